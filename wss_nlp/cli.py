@@ -1,0 +1,287 @@
+"""Command-line interface: ``wss-nlp {demo, reconstruct, phantom, compare}``.
+
+Exit codes: 0 success, 1 solver failure, 2 bad input or usage.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+
+from . import __version__
+from . import geometry as geo
+from . import io as wio
+from . import metrics
+from . import phantoms
+from . import velocity as vel
+from .errors import InputError, WssNlpError
+from .reconstruct import ReconstructionOptions, reconstruct
+
+_G = geo.GeometryOptions()
+_V = vel.VelocityOptions()
+
+
+def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("geometry (Sec. 2, 7.1)")
+    g.add_argument("--alpha", type=float, default=_G.alpha,
+                   help="Tikhonov parameter of the H^s radius penalty; dimensionless (default %(default)g)")
+    g.add_argument("--n-fourier", type=int, default=_G.n_fourier,
+                   help="highest harmonic N of the radius R(phi) (default %(default)s)")
+    g.add_argument("--sobolev", type=int, default=_G.sobolev_s, help="order s of the H^s penalty (default %(default)s)")
+    g.add_argument("--prior", choices=["area", "zero"], default=_G.prior,
+                   help="penalize R - R_area (default, unbiased) or R itself as in eq. (tik1)")
+    g.add_argument("--gamma", type=float, default=None,
+                   help="width of the smoothed Heaviside in mm (default: h / quad-order)")
+    g.add_argument("--heaviside", choices=["erf", "arctan"], default=_G.heaviside,
+                   help="smoothed Heaviside: erf (default, Gaussian tails) or the paper's arctan")
+    g.add_argument("--quad-order", type=int, default=_G.quad_order,
+                   help="sub-voxel quadrature points per axis, q x q per voxel (default %(default)s)")
+    g.add_argument("--geometry-solver", choices=["ipopt", "gauss-newton"], default=_G.solver,
+                   help="IPOPT (default) or the paper's projected Gauss-Newton")
+    g.add_argument("--hessian", choices=["gauss-newton", "exact", "limited-memory"], default=_G.hessian,
+                   help="Hessian used by IPOPT (default %(default)s)")
+    v = p.add_argument_group("velocity (Sec. 3, 7.2)")
+    v.add_argument("--beta", type=float, default=_V.beta,
+                   help="Tikhonov parameter of the ||Delta^t v||^2 penalty; dimensionless (default %(default)g)")
+    v.add_argument("--laplacian-power", type=int, choices=[1, 2], default=_V.laplacian_power,
+                   help="t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5 (default %(default)s)")
+    v.add_argument("--basis", choices=["zernike", "eigen"], default=_V.basis,
+                   help="(1-|xi|^2) x Zernike polynomials, or the paper's Dirichlet eigenfunctions (default %(default)s)")
+    v.add_argument("--degree", type=int, default=_V.degree, help="Zernike degree (default %(default)s)")
+    v.add_argument("--max-eigenvalue", type=float, default=_V.max_eigenvalue,
+                   help="eigenvalue cut-off M of the eigenfunction basis (default %(default)g)")
+    v.add_argument("--eta", type=float, default=_V.eta, help="exponent of the map phi_R, >= 2 (default %(default)g)")
+    v.add_argument("--inner-fraction", type=float, default=_V.inner_fraction,
+                   help="inner radius of phi_R as a fraction of min R (default %(default)g)")
+    v.add_argument("--velocity-solver", choices=["ipopt", "cholesky"], default=_V.solver,
+                   help="CasADi/IPOPT (default) or direct Cholesky solve")
+    w = p.add_argument_group("wall shear stress (Sec. 4)")
+    w.add_argument("--viscosity", type=float, default=None,
+                   help="dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'")
+    w.add_argument("--n-phi", type=int, default=360, help="angles at which tau is reported, >= 360 (default 360)")
+
+
+def options_from_args(args) -> ReconstructionOptions:
+    gopt = geo.GeometryOptions(
+        n_fourier=args.n_fourier, alpha=args.alpha, sobolev_s=args.sobolev, prior=args.prior, gamma=args.gamma,
+        heaviside=args.heaviside, quad_order=args.quad_order, solver=args.geometry_solver, hessian=args.hessian)
+    vopt = vel.VelocityOptions(
+        basis=args.basis, degree=args.degree, max_eigenvalue=args.max_eigenvalue, beta=args.beta,
+        laplacian_power=args.laplacian_power, eta=args.eta, inner_fraction=args.inner_fraction,
+        quad_order=args.quad_order, solver=args.velocity_solver)
+    return ReconstructionOptions(geometry=gopt, velocity=vopt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity)
+
+
+def _progress(stream):
+    t0 = time.perf_counter()
+
+    def report(done, total, res):
+        flag = "" if res.converged else "  [NOT CONVERGED]"
+        stream.write(f"  slice {done}/{total}: mean WSS {res.wss.mean:.4g} Pa, "
+                     f"{time.perf_counter() - t0:.1f} s elapsed{flag}\n")
+        stream.flush()
+
+    return report
+
+
+def _warn(results, stream) -> None:
+    for r in results:
+        for msg in r.warnings:
+            stream.write(f"wss-nlp: warning: {msg}\n")
+
+
+def _write_truth(path, truth) -> None:
+    s = metrics.truth_samples(truth)
+    with wio.atomic_h5(path) as f:
+        for k, v in wio.provenance({"truth": truth.parameters}).items():
+            f.attrs[k] = v
+        f.attrs["case"] = truth.name
+        f.attrs["description"] = phantoms.CASES[truth.name][1]
+        g = f.create_group("slice_000")
+        g["geometry/center_mm"] = s["center"]
+        g["geometry/phi"] = s["phi"]
+        g["geometry/radius_mm"] = s["radius"]
+        from . import radius as rad
+
+        g["geometry/coefficients"] = rad.fit(s["phi"], s["radius"], 32)
+        g["geometry"].attrs["note"] = "coefficients: least-squares projection onto V_32 of the exact radius"
+        g["wss/phi"] = s["phi"]
+        g["wss/tau_pa"] = s["tau"]
+        g["wss"].attrs["mean_pa"] = s["mean_tau"]
+        g["velocity_true_m_s"] = truth.velocity_image
+        g.attrs["alpha"] = np.nan
+        g.attrs["beta"] = np.nan
+
+
+def _read_truth(path) -> metrics.TruthTable:
+    d = wio.read_result(path)[0]
+    return metrics.TruthTable(d["center"], d["phi"], d["radius"], d["tau"], d["mean_tau"])
+
+
+def _error_table(rows) -> str:
+    head = f"{'quantity':<34}{'value':>14}"
+    lines = [head, "-" * len(head)]
+    lines += [f"{k:<34}{v:>14}" for k, v in rows]
+    return "\n".join(lines)
+
+
+def _errors_rows(err: metrics.Errors):
+    return [
+        ("radius rel. L2 error", f"{err.radius_rel_l2:.3%}"),
+        ("radius max. error [mm]", f"{err.radius_max_mm:.4f}"),
+        ("WSS rel. L2 error", f"{err.wss_rel_l2:.2%}"),
+        ("mean WSS reconstructed [Pa]", f"{err.mean_wss_pa:.5g}"),
+        ("mean WSS true [Pa]", f"{err.mean_wss_true_pa:.5g}"),
+        ("mean WSS rel. error", f"{err.mean_wss_rel:+.2%}"),
+    ]
+
+
+# ------------------------------------------------------------------ commands
+def cmd_phantom(args) -> int:
+    acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=None if args.snr <= 0 else args.snr,
+                                       seed=args.seed, venc=args.venc, as_phase=not args.velocity)
+    wio.write_acquisition(args.output, acq)
+    print(f"wrote {args.output}: {args.case}, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
+          f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels")
+    if args.truth:
+        _write_truth(args.truth, truth)
+        print(f"wrote {args.truth}: exact radius and WSS (mean {truth.mean_wss:.5g} Pa)")
+    return 0
+
+
+def cmd_reconstruct(args) -> int:
+    options = options_from_args(args)
+    acq = wio.read_acquisition(args.input)
+    print(f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
+          f"h = {acq.grid.h:g} mm", file=sys.stderr)
+    results = reconstruct(acq, options, progress=_progress(sys.stderr))
+    wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv])
+    _warn(results, sys.stderr)
+    for r in results:
+        print(f"slice {r.index}: mean WSS {r.wss.mean:.5g} Pa, mean radius {r.geometry.coefficients[0]:.4f} mm, "
+              f"converged: {r.converged}")
+    print(f"wrote {args.output}")
+    if args.figures:
+        from .plotting import save_figures
+
+        for r in results:
+            save_figures(r, args.figures, prefix=f"slice_{r.index:03d}_")
+        print(f"figures in {args.figures}")
+    return 0
+
+
+def cmd_compare(args) -> int:
+    truth = _read_truth(args.truth)
+    rec = wio.read_result(args.result)
+    for d in rec:
+        if "wall_x" not in d:
+            raise InputError(f"{args.result}: {d['name']} has no wss/wall_x_mm; was it written by wss-nlp?")
+        err = metrics.compare(d["center"], d["phi"], d["radius"], d["wall_x"], d["wall_y"], d["tau"],
+                              d["mean_tau"], truth)
+        print(f"{d['name']} against {args.truth}:")
+        print(_error_table(_errors_rows(err)))
+    return 0
+
+
+def cmd_demo(args) -> int:
+    out = args.output_dir
+    os.makedirs(out, exist_ok=True)
+    options = options_from_args(args)
+    snr = None if args.snr <= 0 else args.snr
+    print(f"wss-nlp {__version__} demo: phantom '{args.case}' ({phantoms.CASES[args.case][1]})")
+    print(f"  voxel size h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}")
+    acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=snr, seed=args.seed)
+    in_path, truth_path, res_path = (os.path.join(out, n) for n in ("input.h5", "truth.h5", "result.h5"))
+    wio.write_acquisition(in_path, acq)
+    _write_truth(truth_path, truth)
+    t0 = time.perf_counter()
+    results = reconstruct(wio.read_acquisition(in_path), options, progress=_progress(sys.stdout))
+    seconds = time.perf_counter() - t0
+    wio.write_result(res_path, results, options.as_dict(), argv=["wss-nlp", *args.argv])
+    _warn(results, sys.stderr)
+    res = results[0]
+    err = metrics.compare_slice(res, truth)
+    rows = _errors_rows(err) + [
+        ("geometry solver", f"{res.geometry.stats.status}"),
+        ("velocity solver", f"{res.velocity.stats.status}"),
+        ("time [s]", f"{seconds:.2f}"),
+    ]
+    print()
+    print(_error_table(rows))
+    from .plotting import save_figures
+
+    figs = save_figures(res, out, truth=truth)
+    print()
+    print(f"wrote {in_path} (input), {truth_path} (truth), {res_path} (result)")
+    print("figures: " + ", ".join(os.path.basename(f) for f in figs) + f" in {out}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="wss-nlp",
+        description="Vessel geometry, velocity and wall shear stress from phase-contrast MRI "
+                    "(Egger & Teschner), with every Tikhonov problem posed in CasADi.")
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    d = sub.add_parser("demo", help="reconstruct a built-in phantom and report errors against the truth",
+                       description="Build a phantom, reconstruct it, print errors, write files and figures.")
+    d.add_argument("--case", choices=list(phantoms.CASES), default="laminar", help="phantom (default %(default)s)")
+    d.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
+    d.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none (default %(default)g)")
+    d.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    d.add_argument("-o", "--output-dir", default="wss_nlp_demo", help="output folder (default %(default)s)")
+    _add_reconstruction_arguments(d)
+    d.set_defaults(func=cmd_demo)
+
+    r = sub.add_parser("reconstruct", help="reconstruct an acquisition file",
+                       description="Reconstruct geometry, velocity and WSS of every slice of INPUT.")
+    r.add_argument("input", help="input HDF5 file (format: see README)")
+    r.add_argument("-o", "--output", required=True, help="result HDF5 file")
+    r.add_argument("--figures", default=None, help="folder for PNG figures of every slice")
+    _add_reconstruction_arguments(r)
+    r.set_defaults(func=cmd_reconstruct)
+
+    ph = sub.add_parser("phantom", help="write a synthetic acquisition (and its truth)")
+    ph.add_argument("--case", choices=list(phantoms.CASES), default="laminar")
+    ph.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
+    ph.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none")
+    ph.add_argument("--seed", type=int, default=0)
+    ph.add_argument("--venc", type=float, default=None, help="velocity encoding in m/s (default 1.25 x peak)")
+    ph.add_argument("--velocity", action="store_true", help="store 'velocity' instead of 'phase' + venc")
+    ph.add_argument("-o", "--output", required=True, help="input file to write")
+    ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
+    ph.set_defaults(func=cmd_phantom)
+
+    c = sub.add_parser("compare", help="errors of a result file against a truth file")
+    c.add_argument("result")
+    c.add_argument("truth")
+    c.set_defaults(func=cmd_compare)
+    return p
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: --help (0) or usage error (2)
+        return int(exc.code or 0)
+    args.argv = argv
+    try:
+        return int(args.func(args) or 0)
+    except WssNlpError as exc:
+        print(f"wss-nlp: error: {exc}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("wss-nlp: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,323 @@
+"""Geometry identification: Tikhonov regularization of F_{gamma,h}(R) = m (Sec. 2, 7.1).
+
+The functional (paper eq. (tik1), discretized as in Sec. 7.1)
+
+    J(c) = ||F_{gamma,h}(R_c) - m||^2_{L^2(D)} + alpha ||R_c - R_ref||^2_{H^s}
+
+is written symbolically in CasADi and minimized over V_N subject to the box
+``r0 <= R(phi_j) <= r1`` at ``n_box`` uniform angles, either by IPOPT
+(:func:`solve_ipopt`) or by the paper's projected Gauss-Newton iteration
+(:func:`solve_projected_gauss_newton`), which serves as an independent
+cross-check.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import scipy.optimize
+
+import casadi as ca
+
+from . import measurement as meas
+from . import radius as rad
+from .errors import InputError, SolverError
+from .solver import SolverStats, ipopt_options, run_nlpsol
+
+
+@dataclass(frozen=True)
+class GeometryOptions:
+    """Options of the geometry step.
+
+    Attributes
+    ----------
+    n_fourier : int
+        Highest harmonic N of the radius space V_N.
+    alpha : float
+        Regularization parameter (dimensionless: misfit and penalty are both
+        in mm^2).
+    sobolev_s : int
+        Order s of the H^s penalty (the paper uses s = 2).
+    prior : {"area", "zero"}
+        Reference radius in the penalty. "zero" is eq. (tik1) literally,
+        ``alpha ||R||^2``, which shrinks the mean radius by about
+        ``alpha h``; "area" penalizes ``R - R_ref`` with ``R_ref`` the
+        equal-area radius of the normalized magnitude (a constant), the
+        standard Tikhonov form with an initial guess, and removes that bias.
+    gamma : float or None
+        Width of the smoothed Heaviside in mm; None means ``h / quad_order``
+        (the spacing of the sub-voxel points, so the objective is smooth).
+    heaviside : {"erf", "arctan"}
+        Shape of the smoothed Heaviside; "arctan" is the paper's, "erf" has
+        Gaussian tails and far less bias (see
+        :func:`wss_nlp.measurement.smoothed_heaviside`).
+    quad_order : int
+        Sub-voxel midpoint points per axis (q x q per voxel).
+    solver : {"ipopt", "gauss-newton"}
+        IPOPT with the box as linear inequalities, or projected Gauss-Newton.
+    hessian : {"gauss-newton", "exact", "limited-memory"}
+        Hessian used by IPOPT.
+    n_box : int
+        Angles at which the box constraint is imposed (0: ``max(64, 8N)``).
+    tol, max_iter : float, int
+        Stopping rules.
+    """
+
+    n_fourier: int = 8
+    alpha: float = 1e-3
+    sobolev_s: int = 2
+    prior: str = "area"
+    gamma: float | None = None
+    heaviside: str = "erf"
+    quad_order: int = 4
+    solver: str = "ipopt"
+    hessian: str = "gauss-newton"
+    n_box: int = 0
+    tol: float = 1e-9
+    max_iter: int = 200
+
+    def __post_init__(self):
+        if self.n_fourier < 0:
+            raise InputError(f"n_fourier must be >= 0, got {self.n_fourier}")
+        if not self.alpha > 0:
+            raise InputError(f"alpha must be > 0, got {self.alpha}")
+        if self.prior not in ("area", "zero"):
+            raise InputError(f"geometry prior must be 'area' or 'zero', got {self.prior!r}")
+        if self.solver not in ("ipopt", "gauss-newton"):
+            raise InputError(f"geometry solver must be 'ipopt' or 'gauss-newton', got {self.solver!r}")
+        if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
+            raise InputError(f"hessian must be gauss-newton, exact or limited-memory, got {self.hessian!r}")
+        if self.heaviside not in meas.HEAVISIDES:
+            raise InputError(f"heaviside must be one of {meas.HEAVISIDES}, got {self.heaviside!r}")
+        if self.gamma is not None and not self.gamma > 0:
+            raise InputError(f"gamma must be > 0 mm, got {self.gamma}")
+
+    def box_angles(self) -> np.ndarray:
+        return rad.uniform_angles(self.n_box or max(64, 8 * self.n_fourier))
+
+
+@dataclass
+class GeometryProblem:
+    """Data of one geometry identification: normalized magnitude on a grid."""
+
+    grid: meas.VoxelGrid
+    magnitude: np.ndarray  # normalized, (ny, nx), values in [0, 1]
+    center: tuple[float, float]  # mm
+    r0: float  # box lower bound, mm
+    r1: float  # box upper bound, mm
+    r_ref: float  # reference (equal-area) radius, mm
+
+
+@dataclass
+class GeometryResult:
+    coefficients: np.ndarray
+    center: tuple[float, float]
+    alpha: float
+    gamma: float
+    residual_norm: float  # ||F(R) - m||_{L^2(D)} in mm
+    penalty: float  # ||R - R_ref||_{H^s}^2 in mm^2
+    stats: SolverStats
+    box: tuple[float, float] = (0.0, 0.0)
+    box_active: bool = False
+    options: dict = field(default_factory=dict)
+
+    def radius(self, phi, derivative: int = 0) -> np.ndarray:
+        return rad.evaluate(self.coefficients, phi, derivative)
+
+
+@dataclass
+class TikhonovNLP:
+    """CasADi pieces of the geometry functional (returned by :func:`build_tikhonov`)."""
+
+    c: ca.MX  # decision variables
+    f: ca.MX  # objective J(c)
+    g: ca.MX  # box-constraint expression R(phi_j)
+    residual: ca.MX  # weighted residual on the annulus, J = |residual|^2 + penalty
+    penalty: ca.MX  # ||R - R_ref||^2_{H^s}
+    reference: np.ndarray  # R_ref coefficients
+    weights: np.ndarray  # H^s weights
+    model: meas.AnnulusModel
+    gamma: float
+    constant_misfit: float  # misfit of the voxels outside the annulus
+
+
+def effective_gamma(grid: meas.VoxelGrid, options: GeometryOptions) -> float:
+    return options.gamma if options.gamma is not None else grid.h / options.quad_order
+
+
+def build_tikhonov(problem: GeometryProblem, options: GeometryOptions) -> TikhonovNLP:
+    """Build the CasADi expression of the Tikhonov functional (eq. (tik1)).
+
+    Notes
+    -----
+    ``J(c) = sum_i |V_i| (F_i(c) - m_i)^2 + alpha sum_k w_k (c_k - c_ref,k)^2``
+    with the H^s weights ``w`` of :func:`wss_nlp.radius.sobolev_weights`;
+    ``|V_i|`` in mm^2 makes the first term the L^2(D) norm of the
+    piecewise-constant residual. Voxels outside the annulus of
+    :class:`wss_nlp.measurement.AnnulusModel` contribute a constant.
+    """
+    n = options.n_fourier
+    model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, options.quad_order)
+    gamma = effective_gamma(problem.grid, options)
+    c = ca.MX.sym("c", rad.n_coefficients(n))
+    m = problem.magnitude.ravel()
+    area = problem.grid.voxel_area
+    residual = np.sqrt(area) * (meas.magnitude_model(model, c, gamma, options.heaviside) - ca.DM(m[model.annulus]))
+    ref = np.zeros(rad.n_coefficients(n))
+    if options.prior == "area":
+        ref[0] = problem.r_ref
+    w = rad.sobolev_weights(n, options.sobolev_s)
+    dc = c - ca.DM(ref)
+    penalty = ca.dot(ca.DM(w) * dc, dc)
+    f = ca.sumsqr(residual) + options.alpha * penalty
+    g = ca.mtimes(ca.DM(rad.design_matrix(options.box_angles(), n)), c)
+    outside = np.setdiff1d(np.arange(m.size), np.concatenate([model.annulus, model.inside]))
+    const = area * (np.sum((1 - m[model.inside]) ** 2) + np.sum(m[outside] ** 2))
+    return TikhonovNLP(c, f, g, residual, penalty, ref, w, model, gamma, float(const))
+
+
+def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
+    """A circle of the equal-area radius about the centre."""
+    c0 = np.zeros(rad.n_coefficients(n_fourier))
+    c0[0] = problem.r_ref
+    return c0
+
+
+def _finish(problem, options, nlp, coef, stats) -> GeometryResult:
+    fun = ca.Function("parts", [nlp.c], [ca.sumsqr(nlp.residual), nlp.penalty])
+    mis, pen = (float(v) for v in fun(coef))
+    r_box = rad.evaluate(coef, options.box_angles())
+    slack = 1e-6 * problem.r1
+    active = bool(np.any(r_box <= problem.r0 + slack) or np.any(r_box >= problem.r1 - slack))
+    return GeometryResult(
+        coefficients=np.asarray(coef, dtype=float).ravel(),
+        center=tuple(problem.center),
+        alpha=options.alpha,
+        gamma=nlp.gamma,
+        residual_norm=float(np.sqrt(mis + nlp.constant_misfit)),
+        penalty=pen,
+        stats=stats,
+        box=(problem.r0, problem.r1),
+        box_active=active,
+        options={k: v for k, v in vars(options).items()},
+    )
+
+
+def solve_ipopt(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
+    """Minimize the geometry functional with IPOPT; the box goes to IPOPT.
+
+    ``options.hessian = "gauss-newton"`` passes ``2 (J^T J + alpha W)`` as the
+    Hessian of the Lagrangian (the constraints are linear), following
+    CasADi's ``sysid.py`` example; "exact" uses CasADi's exact Hessian.
+    """
+    nlp = build_tikhonov(problem, options)
+    opts = ipopt_options(options.tol, options.max_iter)
+    if options.hessian == "gauss-newton":
+        jac = ca.jacobian(nlp.residual, nlp.c)
+        hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * options.alpha * ca.diag(ca.DM(nlp.weights)))
+        sigma = ca.MX.sym("sigma")
+        opts["hess_lag"] = ca.Function(
+            "nlp_hess_l",
+            {"x": nlp.c, "lam_f": sigma, "hess_gamma_x_x": sigma * hess},
+            ["x", "p", "lam_f", "lam_g"],
+            ["hess_gamma_x_x"],
+        )
+    elif options.hessian == "limited-memory":
+        opts["ipopt.hessian_approximation"] = "limited-memory"
+    solver = ca.nlpsol("geometry", "ipopt", {"x": nlp.c, "f": nlp.f, "g": nlp.g}, opts)
+    x0 = initial_guess(problem, options.n_fourier) if x0 is None else np.asarray(x0, dtype=float)
+    sol, stats = run_nlpsol(solver, "geometry (IPOPT)", x0=x0, lbg=problem.r0, ubg=problem.r1)
+    stats.extra["hessian"] = options.hessian
+    return _finish(problem, options, nlp, np.asarray(sol["x"]).ravel(), stats)
+
+
+def _project_box(y, hmat, box_matrix, r0, r1):
+    """Projection of ``y`` onto ``{r0 <= S c <= r1}`` in the metric of ``hmat``."""
+    s = box_matrix @ y
+    if np.all(s >= r0) and np.all(s <= r1):
+        return y
+    cons = [
+        {"type": "ineq", "fun": lambda z: box_matrix @ z - r0, "jac": lambda z: box_matrix},
+        {"type": "ineq", "fun": lambda z: r1 - box_matrix @ z, "jac": lambda z: -box_matrix},
+    ]
+    start = np.clip(s, r0, r1)
+    z0 = np.linalg.lstsq(box_matrix, start, rcond=None)[0]
+    res = scipy.optimize.minimize(
+        lambda z: 0.5 * (z - y) @ hmat @ (z - y),
+        z0,
+        jac=lambda z: hmat @ (z - y),
+        constraints=cons,
+        method="SLSQP",
+        options={"ftol": 1e-14, "maxiter": 200},
+    )
+    return res.x
+
+
+def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
+    """The paper's projected Gauss-Newton method (Sec. 7.1) with a line search.
+
+    Notes
+    -----
+    Step: ``(J^T J + alpha W) d = -(J^T r + alpha W (c - c_ref))``; the trial
+    point ``P(c + t d)`` is projected onto the box in the metric of the
+    Gauss-Newton matrix and ``t`` is halved until the Armijo condition
+    holds. Stops when the relative step falls below ``sqrt(tol)``.
+    Residuals and Jacobians come from the same CasADi expressions as the
+    IPOPT path; the iteration itself is independent NumPy/SciPy code.
+    """
+    t_start = time.perf_counter()
+    nlp = build_tikhonov(problem, options)
+    fun = ca.Function("gn", [nlp.c], [nlp.residual, ca.jacobian(nlp.residual, nlp.c)])
+    objective = ca.Function("J", [nlp.c], [nlp.f])
+    w = nlp.weights
+    box_matrix = rad.design_matrix(options.box_angles(), options.n_fourier)
+    c = initial_guess(problem, options.n_fourier) if x0 is None else np.asarray(x0, dtype=float).copy()
+    c = _project_box(c, np.eye(c.size), box_matrix, problem.r0, problem.r1)
+    f_c = float(objective(c))
+    status, converged, it = "Maximum_Iterations_Exceeded", False, 0
+    for it in range(1, options.max_iter + 1):
+        r, jac = (np.asarray(v) for v in fun(c))
+        r = r.ravel()
+        grad = jac.T @ r + options.alpha * w * (c - nlp.reference)
+        hmat = jac.T @ jac + options.alpha * np.diag(w)
+        step = -np.linalg.solve(hmat, grad)
+        t = 1.0
+        while True:
+            trial = _project_box(c + t * step, hmat, box_matrix, problem.r0, problem.r1)
+            f_t = float(objective(trial))
+            if f_t <= f_c + 1e-4 * 2 * grad @ (trial - c) or t < 1e-8:
+                break
+            t *= 0.5
+        if t < 1e-8 and f_t > f_c:
+            status = "Line_Search_Failed"
+            break
+        change = np.linalg.norm(trial - c) / (1 + np.linalg.norm(c))
+        c, f_c = trial, f_t
+        if change < np.sqrt(options.tol):
+            status, converged = "Solve_Succeeded", True
+            break
+    if not np.all(np.isfinite(c)):
+        raise SolverError("geometry (projected Gauss-Newton): iterate became non-finite")
+    stats = SolverStats(
+        solver="projected-gauss-newton",
+        status=status,
+        converged=converged,
+        iterations=it,
+        objective=f_c,
+        seconds=time.perf_counter() - t_start,
+    )
+    return _finish(problem, options, nlp, c, stats)
+
+
+def solve(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
+    """Dispatch on ``options.solver``."""
+    if options.solver == "ipopt":
+        return solve_ipopt(problem, options, x0)
+    return solve_projected_gauss_newton(problem, options, x0)
+
+
+def with_options(options: GeometryOptions, **changes) -> GeometryOptions:
+    """Copy of the options with some fields changed."""
+    return replace(options, **changes)

@@ -1,0 +1,328 @@
+"""Reading and writing the HDF5 formats of ``shared/spec/data-format.md``.
+
+Input: one acquisition (``magnitude`` and ``velocity`` or ``phase``, with
+attributes). Output: one group ``slice_NNN`` per slice with ``geometry/``,
+``wss/`` and extras. Writes are atomic: a temporary file in the target
+folder is renamed into place only after it is complete.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import os
+import sys
+import tempfile
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+from .measurement import VoxelGrid
+
+
+@dataclass
+class Acquisition:
+    """Images of one acquisition, arrays of shape ``(nz, ny, nx)``."""
+
+    magnitude: np.ndarray
+    velocity: np.ndarray | None = None
+    phase: np.ndarray | None = None
+    voxel_size_mm: tuple[float, float] = (1.0, 1.0)
+    origin_mm: tuple[float, float] = (0.0, 0.0)
+    slice_spacing_mm: float | None = None
+    venc_m_s: float | None = None
+    viscosity_pa_s: float | None = None
+    source: str = "<memory>"
+    extra_attrs: dict = field(default_factory=dict)
+
+    @property
+    def nz(self) -> int:
+        return int(self.magnitude.shape[0])
+
+    @property
+    def grid(self) -> VoxelGrid:
+        return VoxelGrid(tuple(self.magnitude.shape[1:]), tuple(self.voxel_size_mm), tuple(self.origin_mm))
+
+    def velocity_images(self) -> np.ndarray:
+        """Through-plane velocity in m/s, from ``velocity`` or ``venc * phase / pi``."""
+        if self.velocity is not None:
+            return self.velocity
+        return self.venc_m_s * self.phase / np.pi
+
+    def validate(self) -> None:
+        """Check shapes, finiteness and attributes; raise :class:`InputError`."""
+        src = self.source
+        mag = self.magnitude
+        if mag.ndim != 3:
+            raise InputError(f"{src}: 'magnitude' must have shape (nz, ny, nx), got {mag.shape}")
+        if (self.velocity is None) == (self.phase is None):
+            raise InputError(f"{src}: exactly one of 'velocity' and 'phase' must be present")
+        name, other = ("velocity", self.velocity) if self.velocity is not None else ("phase", self.phase)
+        if other.shape != mag.shape:
+            raise InputError(f"{src}: shape mismatch: 'magnitude' {mag.shape} but '{name}' {other.shape}")
+        if min(mag.shape[1:]) < 4:
+            raise InputError(f"{src}: images of {mag.shape[1:]} voxels are too small to hold a vessel")
+        for nm, arr in (("magnitude", mag), (name, other)):
+            bad = ~np.isfinite(arr)
+            if bad.any():
+                iz = sorted(set(np.nonzero(bad)[0].tolist()))
+                raise InputError(f"{src}: '{nm}' contains NaN or Inf ({int(bad.sum())} voxels, slices {iz[:10]})")
+        vs = np.asarray(self.voxel_size_mm, dtype=float)
+        if vs.shape != (2,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
+            raise InputError(f"{src}: 'voxel_size_mm' must be two positive numbers [dy, dx], got {self.voxel_size_mm}")
+        org = np.asarray(self.origin_mm, dtype=float)
+        if org.shape != (2,) or not np.all(np.isfinite(org)):
+            raise InputError(f"{src}: 'origin_mm' must be two finite numbers [x0, y0], got {self.origin_mm}")
+        if self.nz > 1 and not (self.slice_spacing_mm is not None and self.slice_spacing_mm > 0):
+            raise InputError(f"{src}: 'slice_spacing_mm' (> 0) is required when nz = {self.nz} > 1")
+        if self.phase is not None:
+            if self.venc_m_s is None or not self.venc_m_s > 0:
+                raise InputError(f"{src}: attribute 'venc_m_s' (> 0) is required with 'phase'")
+            if np.any(np.abs(self.phase) > np.pi + 1e-6):
+                raise InputError(f"{src}: 'phase' must lie in (-pi, pi] radians")
+        if self.viscosity_pa_s is not None and not self.viscosity_pa_s > 0:
+            raise InputError(f"{src}: 'viscosity_pa_s' must be > 0, got {self.viscosity_pa_s}")
+
+
+def _attr(f, name, src, required=False, size=None):
+    if name not in f.attrs:
+        if required:
+            raise InputError(f"{src}: missing attribute '{name}'")
+        return None
+    val = np.asarray(f.attrs[name], dtype=float).ravel()
+    if size is not None and val.size != size:
+        raise InputError(f"{src}: attribute '{name}' must have {size} values, got {val.size}")
+    if not np.all(np.isfinite(val)):
+        raise InputError(f"{src}: attribute '{name}' is not finite: {val}")
+    return tuple(val.tolist()) if size and size > 1 else float(val[0])
+
+
+def read_acquisition(path) -> Acquisition:
+    """Read and validate an input file (see the format document)."""
+    import h5py
+
+    src = str(path)
+    if not os.path.exists(src):
+        raise InputError(f"{src}: no such file")
+    try:
+        f = h5py.File(src, "r")
+    except OSError as exc:
+        raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
+    with f:
+        def dataset(name):
+            if name not in f:
+                return None
+            obj = f[name]
+            if not isinstance(obj, h5py.Dataset):
+                raise InputError(f"{src}: '{name}' must be a dataset")
+            arr = np.asarray(obj[()], dtype=float)
+            if arr.ndim == 2:  # a single slice stored without the nz axis
+                arr = arr[None]
+            return arr
+
+        mag = dataset("magnitude")
+        if mag is None:
+            raise InputError(f"{src}: missing dataset 'magnitude'")
+        acq = Acquisition(
+            magnitude=mag,
+            velocity=dataset("velocity"),
+            phase=dataset("phase"),
+            voxel_size_mm=_attr(f, "voxel_size_mm", src, required=True, size=2),
+            origin_mm=_attr(f, "origin_mm", src, required=True, size=2),
+            slice_spacing_mm=_attr(f, "slice_spacing_mm", src),
+            venc_m_s=_attr(f, "venc_m_s", src),
+            viscosity_pa_s=_attr(f, "viscosity_pa_s", src),
+            source=src,
+        )
+    if acq.velocity is None and acq.phase is None:
+        raise InputError(f"{src}: missing dataset 'velocity' (or 'phase' with 'venc_m_s')")
+    acq.validate()
+    return acq
+
+
+@contextlib.contextmanager
+def atomic_h5(path):
+    """Open a temporary HDF5 file next to ``path``; rename on success only."""
+    import h5py
+
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(folder):
+        raise InputError(f"{path}: output folder {folder} does not exist")
+    fd, tmp = tempfile.mkstemp(suffix=".h5.part", dir=folder)
+    os.close(fd)
+    try:
+        with h5py.File(tmp, "w") as f:
+            yield f
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+
+
+def write_acquisition(path, acq: Acquisition) -> None:
+    """Write an input file in the public format (atomic)."""
+    with atomic_h5(path) as f:
+        f.create_dataset("magnitude", data=acq.magnitude)
+        if acq.velocity is not None:
+            f.create_dataset("velocity", data=acq.velocity)
+        if acq.phase is not None:
+            f.create_dataset("phase", data=acq.phase)
+        f.attrs["voxel_size_mm"] = np.asarray(acq.voxel_size_mm, dtype=float)
+        f.attrs["origin_mm"] = np.asarray(acq.origin_mm, dtype=float)
+        for name in ("slice_spacing_mm", "venc_m_s", "viscosity_pa_s"):
+            val = getattr(acq, name)
+            if val is not None:
+                f.attrs[name] = float(val)
+        for k, v in acq.extra_attrs.items():
+            f.attrs[k] = v
+
+
+def provenance(options: dict | None = None, argv=None) -> dict:
+    """File-level provenance attributes: versions, options, command line, time."""
+    import casadi
+
+    from . import __version__
+
+    out = {
+        "wss_nlp_version": __version__,
+        "casadi_version": casadi.__version__,
+        "ipopt_version": _ipopt_version(),
+        "numpy_version": np.__version__,
+        "python_version": sys.version.split()[0],
+        "command_line": " ".join(argv if argv is not None else sys.argv),
+        "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+    if options:
+        import json
+
+        out["options_json"] = json.dumps(options, sort_keys=True, default=str)
+    return out
+
+
+def _ipopt_version() -> str:
+    """IPOPT version as reported by the library CasADi loads."""
+    import ctypes
+    import glob
+
+    import casadi
+
+    libs = glob.glob(os.path.join(os.path.dirname(casadi.__file__), "libipopt*"))
+    for lib in libs:
+        try:
+            handle = ctypes.CDLL(lib)
+            fn = handle.GetIpoptVersion
+        except (OSError, AttributeError):
+            continue
+        major, minor, release = ctypes.c_int(), ctypes.c_int(), ctypes.c_int()
+        fn(ctypes.byref(major), ctypes.byref(minor), ctypes.byref(release))
+        return f"{major.value}.{minor.value}.{release.value}"
+    return "unknown"
+
+
+def _stats_attrs(group, stats, prefix):
+    for k, v in stats.as_attrs(prefix).items():
+        group.attrs[k] = v if not isinstance(v, (dict, list)) else str(v)
+
+
+def write_result(path, results, options: dict, argv=None, extra_attrs: dict | None = None) -> None:
+    """Write reconstructions in the output format (one group per slice, atomic).
+
+    Parameters
+    ----------
+    results : list of :class:`wss_nlp.reconstruct.SliceResult`
+    options : dict
+        The options used, stored as JSON in the provenance.
+    """
+    import json
+
+    with atomic_h5(path) as f:
+        for k, v in provenance(options, argv).items():
+            f.attrs[k] = v
+        for k, v in (extra_attrs or {}).items():
+            f.attrs[k] = v
+        f.attrs["n_slices"] = len(results)
+        f.attrs["all_converged"] = bool(all(r.converged for r in results))
+        for r in results:
+            s = f.create_group(f"slice_{r.index:03d}")
+            g, v, w = r.geometry, r.velocity, r.wss
+            s.attrs["alpha"] = float(g.alpha)
+            s.attrs["beta"] = float(v.beta)
+            s.attrs["converged"] = bool(r.converged)
+            s.attrs["warnings"] = json.dumps(r.warnings)
+            s.attrs["seconds_json"] = json.dumps(r.seconds)
+            gg = s.create_group("geometry")
+            gg["center_mm"] = np.asarray(g.center, dtype=float)
+            gg["coefficients"] = g.coefficients
+            gg["phi"] = w.phi
+            gg["radius_mm"] = g.radius(w.phi)
+            gg.attrs.update({"gamma_mm": g.gamma, "box_r0_mm": g.box[0], "box_r1_mm": g.box[1],
+                             "box_active": g.box_active, "residual_norm_mm": g.residual_norm,
+                             "penalty_mm2": g.penalty, "magnitude_m0": r.normalization.m0,
+                             "magnitude_m1": r.normalization.m1, "equal_area_radius_mm": r.lumen.r_area,
+                             "options_json": json.dumps(g.options, default=str)})
+            _stats_attrs(gg, g.stats, "solver_")
+            wg = s.create_group("wss")
+            wg["phi"] = w.phi
+            wg["tau_pa"] = w.tau
+            wg["wall_x_mm"] = w.wall_x
+            wg["wall_y_mm"] = w.wall_y
+            wg.attrs["mean_pa"] = float(w.mean)
+            wg.attrs["viscosity_pa_s"] = float(w.viscosity_pa_s)
+            vg = s.create_group("velocity")
+            vg["coefficients"] = v.coefficients
+            vg["voxel_index"] = v.voxel_index
+            vg["voxel_fraction"] = v.voxel_fraction
+            vg["fitted_m_s"] = v.fitted
+            vg.attrs.update({"basis_json": json.dumps(v.basis.describe()), "r_in_mm": v.disk_map.r_in,
+                             "eta": v.disk_map.eta, "residual_norm_m_s": v.residual_norm,
+                             "penalty": v.penalty, "options_json": json.dumps(v.options, default=str)})
+            _stats_attrs(vg, v.stats, "solver_")
+
+
+def read_result(path) -> list[dict]:
+    """Read a result (or truth) file into one dictionary per slice.
+
+    Keys: ``center``, ``coefficients``, ``phi``, ``radius``, ``tau``,
+    ``mean_tau``, ``alpha``, ``beta``, ``converged`` and, where present,
+    ``wall_x``, ``wall_y``, ``tau_std``, ``mean_std``.
+    """
+    import h5py
+
+    src = str(path)
+    if not os.path.exists(src):
+        raise InputError(f"{src}: no such file")
+    try:
+        f = h5py.File(src, "r")
+    except OSError as exc:
+        raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
+    out = []
+    with f:
+        names = sorted(k for k in f if k.startswith("slice_"))
+        if not names:
+            raise InputError(f"{src}: no 'slice_NNN' groups; not a wss-nlp result file")
+        for name in names:
+            s = f[name]
+            try:
+                d = {
+                    "name": name,
+                    "center": s["geometry/center_mm"][()],
+                    "coefficients": s["geometry/coefficients"][()],
+                    "phi": s["geometry/phi"][()],
+                    "radius": s["geometry/radius_mm"][()],
+                    "tau": s["wss/tau_pa"][()],
+                    "mean_tau": float(s["wss"].attrs["mean_pa"]),
+                    "alpha": float(s.attrs.get("alpha", np.nan)),
+                    "beta": float(s.attrs.get("beta", np.nan)),
+                    "converged": bool(s.attrs.get("converged", True)),
+                }
+            except KeyError as exc:
+                raise InputError(f"{src}: group {name} lacks {exc}") from exc
+            for key, ds in (("wall_x", "wss/wall_x_mm"), ("wall_y", "wss/wall_y_mm"), ("tau_std", "wss/tau_std_pa")):
+                if ds in s:
+                    d[key] = s[ds][()]
+            if "velocity_true_m_s" in s:
+                d["velocity_true"] = s["velocity_true_m_s"][()]
+            out.append(d)
+    return out

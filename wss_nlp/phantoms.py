@@ -1,0 +1,464 @@
+"""Synthetic phantoms with exact geometry, velocity and wall shear stress.
+
+Lumens (star-shaped about their centre): :class:`Circle`, :class:`Ellipse`,
+:class:`FourierLumen`, :class:`LevelSetStar`. Flows with exact WSS:
+:class:`PoiseuilleEllipse`, :class:`StarPoiseuille`, :class:`Manufactured`
+(a polynomial field vanishing on a star-shaped wall) and
+:class:`TurbulentPipe` (the DNS mean profile at Re_tau = 180.9, J. Yao et
+al., doi:10.18738/T8/HLC3QY, scaled to the paper's 25.885 mm pipe).
+
+:func:`acquire` simulates a phase-contrast acquisition: the complex signal
+``rho exp(i pi u / venc)`` averaged over each voxel (partial volume and
+intra-voxel dephasing), complex Gaussian noise at a given SNR, a random
+sub-voxel offset of the vessel against the grid; magnitude and phase out.
+
+:func:`make_phantom` is the seeded factory shared by tests, the demo,
+scripts and benchmarks; it returns ``(Acquisition, Truth)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+from importlib import resources
+
+import numpy as np
+import scipy.interpolate
+import scipy.optimize
+
+from . import radius as rad
+from .errors import InputError
+from .io import Acquisition
+from .measurement import VoxelGrid
+
+#: mm -> m: velocity gradients in (m/s)/mm times this are in 1/s.
+PER_MM = 1000.0
+
+
+# --------------------------------------------------------------------- lumens
+@dataclass
+class Lumen:
+    """A star-shaped lumen about ``center`` (mm)."""
+
+    center: tuple[float, float] = (0.0, 0.0)
+
+    def radius(self, phi, derivative: int = 0) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def inside(self, x, y) -> np.ndarray:
+        dx, dy = np.asarray(x) - self.center[0], np.asarray(y) - self.center[1]
+        return np.hypot(dx, dy) < self.radius(np.arctan2(dy, dx)).reshape(np.shape(dx))
+
+    def radius_about(self, center, phi) -> np.ndarray:
+        """Distance from ``center`` to the wall along the rays of angle ``phi``.
+
+        Used to compare a reconstruction made about another centre. Requires
+        the lumen to be star-shaped about ``center`` as well (bisection on
+        the first exit along each ray).
+        """
+        phi = np.asarray(phi, dtype=float)
+        e = np.stack([np.cos(phi), np.sin(phi)])
+        lo = np.zeros_like(phi)
+        hi = np.full_like(phi, 4 * float(np.max(self.radius(rad.uniform_angles(256)))))
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            ins = self.inside(center[0] + mid * e[0], center[1] + mid * e[1])
+            lo, hi = np.where(ins, mid, lo), np.where(ins, hi, mid)
+        return 0.5 * (lo + hi)
+
+    def max_radius(self) -> float:
+        return float(np.max(self.radius(rad.uniform_angles(720))))
+
+
+@dataclass
+class Circle(Lumen):
+    r: float = 10.0
+
+    def radius(self, phi, derivative=0):
+        phi = np.asarray(phi, dtype=float)
+        return np.full_like(phi, self.r) if derivative == 0 else np.zeros_like(phi)
+
+
+@dataclass
+class Ellipse(Lumen):
+    """Semi-axes ``a`` (along angle ``angle``) and ``b``."""
+
+    a: float = 12.0
+    b: float = 9.0
+    angle: float = 0.0
+
+    def radius(self, phi, derivative=0):
+        t = np.asarray(phi, dtype=float) - self.angle
+        q = (np.cos(t) / self.a) ** 2 + (np.sin(t) / self.b) ** 2
+        r = q**-0.5
+        if derivative == 0:
+            return r
+        dq = 2 * np.sin(t) * np.cos(t) * (1 / self.b**2 - 1 / self.a**2)
+        if derivative == 1:
+            return -0.5 * q**-1.5 * dq
+        raise ValueError("Ellipse.radius supports derivative 0 and 1")
+
+
+@dataclass
+class FourierLumen(Lumen):
+    """``R(phi)`` given by Fourier coefficients ``[b0, b1..bN, a1..aN]`` (lies in V_N)."""
+
+    coefficients: tuple = (10.0,)
+
+    def radius(self, phi, derivative=0):
+        return rad.evaluate(np.asarray(self.coefficients), phi, derivative)
+
+
+@dataclass
+class LevelSetStar(Lumen):
+    """Wall ``{f = 0}`` of ``f = 1 - r^2/a^2 - eps r^3 cos(3 phi) / a^3`` (local polar coords).
+
+    Star-shaped and smooth for ``|eps| < 0.5``; ``R(phi)`` is the positive
+    root of the cubic, found per angle.
+    """
+
+    a: float = 11.0
+    eps: float = 0.25
+
+    def level(self, x, y):
+        """``f`` and its gradient at physical points."""
+        u, v = np.asarray(x) - self.center[0], np.asarray(y) - self.center[1]
+        a, e = self.a, self.eps
+        f = 1 - (u**2 + v**2) / a**2 - e * (u**3 - 3 * u * v**2) / a**3
+        fx = -2 * u / a**2 - e * (3 * u**2 - 3 * v**2) / a**3
+        fy = -2 * v / a**2 + e * 6 * u * v / a**3
+        return f, fx, fy
+
+    def radius(self, phi, derivative=0):
+        phi = np.asarray(phi, dtype=float)
+        c3 = np.cos(3 * phi)
+        t = np.ones_like(phi)
+        for _ in range(50):  # Newton on g(t) = 1 - t^2 - eps c3 t^3, t = r / a
+            g = 1 - t**2 - self.eps * c3 * t**3
+            dg = -2 * t - 3 * self.eps * c3 * t**2
+            t = t - g / dg
+        r = self.a * t
+        if derivative == 0:
+            return r
+        if derivative == 1:  # implicit differentiation of g(t(phi), phi) = 0
+            dgdphi = 3 * self.eps * np.sin(3 * phi) * t**3
+            dg = -2 * t - 3 * self.eps * c3 * t**2
+            return -self.a * dgdphi / dg
+        raise ValueError("LevelSetStar.radius supports derivative 0 and 1")
+
+
+# ---------------------------------------------------------------------- flows
+@dataclass
+class Flow:
+    """Through-plane velocity in m/s with exact wall shear stress."""
+
+    lumen: Lumen
+    viscosity_pa_s: float
+
+    def velocity(self, x, y) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def wall_gradient(self, phi) -> np.ndarray:  # pragma: no cover - abstract
+        """``-dU/dn`` in (m/s)/mm at the wall point of angle ``phi`` about the lumen centre."""
+        raise NotImplementedError
+
+    def wss(self, phi) -> np.ndarray:
+        """``tau = -mu dU/dn`` in Pa at the wall point of angle ``phi``."""
+        return self.viscosity_pa_s * PER_MM * self.wall_gradient(phi)
+
+    def mean_wss(self, n: int = 4096) -> float:
+        phi = rad.uniform_angles(n)
+        r, dr = self.lumen.radius(phi), self.lumen.radius(phi, 1)
+        return rad.arc_length_mean(self.wss(phi), r, dr)
+
+
+def _local(lumen, x, y, angle=0.0):
+    u, v = np.asarray(x) - lumen.center[0], np.asarray(y) - lumen.center[1]
+    c, s = np.cos(angle), np.sin(angle)
+    return c * u + s * v, -s * u + c * v
+
+
+@dataclass
+class PoiseuilleEllipse(Flow):
+    """Laminar Poiseuille flow in an elliptic pipe: ``u = U (1 - x'^2/a^2 - y'^2/b^2)``."""
+
+    u_max: float = 0.4
+
+    def velocity(self, x, y):
+        e = self.lumen
+        xl, yl = _local(e, x, y, e.angle)
+        return np.maximum(self.u_max * (1 - (xl / e.a) ** 2 - (yl / e.b) ** 2), 0.0)
+
+    def wall_gradient(self, phi):
+        e = self.lumen
+        r = e.radius(phi)
+        t = np.asarray(phi) - e.angle
+        xl, yl = r * np.cos(t), r * np.sin(t)
+        return 2 * self.u_max * np.hypot(xl / e.a**2, yl / e.b**2)
+
+
+@dataclass
+class StarPoiseuille(Flow):
+    """``u = U (1 - r^2 / R(phi)^2)`` in any star-shaped lumen.
+
+    Notes
+    -----
+    At the wall ``-dU/dn = 2 U sqrt(R^2 + R'^2) / R^2``. The field is
+    C^{1,1} at the centre (not smoother unless R is constant); the wall
+    gradient is exact.
+    """
+
+    u_max: float = 0.4
+
+    def velocity(self, x, y):
+        l = self.lumen
+        u, v = np.asarray(x) - l.center[0], np.asarray(y) - l.center[1]
+        r2 = u**2 + v**2
+        big_r = l.radius(np.arctan2(v, u)).reshape(np.shape(u))
+        return np.maximum(self.u_max * (1 - r2 / big_r**2), 0.0)
+
+    def wall_gradient(self, phi):
+        r, dr = self.lumen.radius(phi), self.lumen.radius(phi, 1)
+        return 2 * self.u_max * np.sqrt(r**2 + dr**2) / r**2
+
+
+@dataclass
+class Manufactured(Flow):
+    """Polynomial field ``u = U f(x, y) (1 + kappa x'/a)`` vanishing on the wall of a :class:`LevelSetStar`.
+
+    Smooth (a polynomial) up to and including the wall; ``-dU/dn = U (1 +
+    kappa x'/a) |grad f|`` there because ``f = 0`` and ``grad f`` points
+    inwards.
+    """
+
+    u_max: float = 0.4
+    kappa: float = 0.2
+
+    def velocity(self, x, y):
+        l = self.lumen
+        f, _, _ = l.level(x, y)
+        xl = np.asarray(x) - l.center[0]
+        return np.maximum(self.u_max * f * (1 + self.kappa * xl / l.a), 0.0)
+
+    def wall_gradient(self, phi):
+        l = self.lumen
+        r = l.radius(phi)
+        x, y = l.center[0] + r * np.cos(phi), l.center[1] + r * np.sin(phi)
+        _, fx, fy = l.level(x, y)
+        return self.u_max * (1 + self.kappa * r * np.cos(phi) / l.a) * np.hypot(fx, fy)
+
+
+@lru_cache(maxsize=1)
+def dns_profile():
+    """``(y+, U+)`` of the turbulent pipe DNS at Re_tau = 180.9 (doi:10.18738/T8/HLC3QY)."""
+    with resources.files("wss_nlp.data").joinpath("pipe_re180_mean.dat").open() as fh:
+        table = np.loadtxt(fh, comments="#")
+    yplus, uplus = table[:, 2], table[:, 5]
+    order = np.argsort(yplus)
+    return yplus[order], uplus[order]
+
+
+@dataclass
+class TurbulentPipe(Flow):
+    """Mean turbulent pipe flow at Re_tau = 180.9 in a circular pipe.
+
+    Notes
+    -----
+    ``u(r) = u_tau U+((R - r) u_tau / nu)`` with ``u_tau = Re_tau nu / R``.
+    The DNS has ``dU+/dy+ = 1`` at the wall, so ``tau = rho u_tau^2`` exactly.
+    Defaults: water at 22 C in the paper's 25.885 mm pipe, giving a bulk
+    velocity of about 0.19 m/s (about 6 l/min).
+    """
+
+    density_kg_m3: float = 997.8
+    re_tau: float = 180.9
+
+    @property
+    def radius_mm(self) -> float:
+        return float(self.lumen.r)
+
+    @property
+    def nu(self) -> float:
+        return self.viscosity_pa_s / self.density_kg_m3
+
+    @property
+    def u_tau(self) -> float:
+        return self.re_tau * self.nu / (self.radius_mm / PER_MM)
+
+    def velocity(self, x, y):
+        yplus, uplus = dns_profile()
+        interp = scipy.interpolate.PchipInterpolator(yplus, uplus, extrapolate=False)
+        r = np.hypot(np.asarray(x) - self.lumen.center[0], np.asarray(y) - self.lumen.center[1])
+        yp = np.clip((self.radius_mm - r) / PER_MM * self.u_tau / self.nu, 0, yplus[-1])
+        u = self.u_tau * interp(yp)
+        return np.where(r < self.radius_mm, np.nan_to_num(u), 0.0)
+
+    def wall_gradient(self, phi):
+        return np.full_like(np.asarray(phi, dtype=float), self.u_tau**2 / self.nu / PER_MM)
+
+
+# ---------------------------------------------------------------- acquisition
+@dataclass
+class Truth:
+    """What a phantom knows exactly."""
+
+    name: str
+    flow: Flow
+    velocity_image: np.ndarray  # noise-free voxel-averaged velocity, (ny, nx)
+    parameters: dict = field(default_factory=dict)
+
+    @property
+    def lumen(self) -> Lumen:
+        return self.flow.lumen
+
+    @property
+    def center(self):
+        return self.flow.lumen.center
+
+    def radius_about(self, center, phi):
+        return self.lumen.radius_about(center, phi)
+
+    def wss_at_points(self, x, y) -> np.ndarray:
+        """Exact WSS at the true wall point in the direction of ``(x, y)`` from the true centre."""
+        phi = np.arctan2(np.asarray(y) - self.center[1], np.asarray(x) - self.center[0])
+        return self.flow.wss(phi)
+
+    @property
+    def mean_wss(self) -> float:
+        return self.flow.mean_wss()
+
+
+def acquire(
+    flow: Flow,
+    grid: VoxelGrid,
+    snr: float | None,
+    rng: np.random.Generator,
+    venc: float | None = None,
+    rho: float = 1.0,
+    spacing_mm: float = 0.025,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Simulate one phase-contrast slice.
+
+    Notes
+    -----
+    ``d_i = (1/|V_i|) int_{V_i} rho chi_Omega exp(i pi u / venc) dx + n_i`` with
+    ``n_i`` complex Gaussian, standard deviation ``rho / SNR`` per channel;
+    the voxel integral uses a midpoint rule with points about ``spacing_mm``
+    apart (at most 60 x 60 per voxel). Returns ``|d|``, ``arg d``, the
+    noise-free voxel-mean velocity and ``venc`` (default 1.25 max|u|). The
+    phase convention is the file format's: ``velocity = venc phase / pi``.
+    """
+    n_sub = int(np.clip(np.ceil(grid.h / spacing_mm), 4, 60))
+    xc, yc = grid.centers()
+    t = (np.arange(n_sub) + 0.5) / n_sub - 0.5
+    ox, oy = np.meshgrid(t * grid.dx, t * grid.dy)
+    ox, oy = ox.ravel(), oy.ravel()
+    if venc is None:
+        rr = np.linspace(0, flow.lumen.max_radius(), 64)
+        probe = [flow.velocity(flow.lumen.center[0] + r * np.cos(p), flow.lumen.center[1] + r * np.sin(p))
+                 for r in rr for p in rad.uniform_angles(16)]
+        venc = 1.25 * float(np.max(np.abs(probe)))
+    ny, nx = grid.shape
+    signal = np.zeros((ny, nx), dtype=complex)
+    u_mean = np.zeros((ny, nx))
+    for iy in range(ny):  # row by row keeps memory small at fine resolution
+        px = xc[iy][:, None] + ox[None, :]
+        py = yc[iy][:, None] + oy[None, :]
+        ins = flow.lumen.inside(px, py)
+        u = np.where(ins, flow.velocity(px, py), 0.0)
+        signal[iy] = (rho * ins * np.exp(1j * np.pi * u / venc)).mean(axis=1)
+        cnt = ins.sum(axis=1)
+        u_mean[iy] = np.where(cnt > 0, (u * ins).sum(axis=1) / np.maximum(cnt, 1), 0.0)
+    if snr is not None:
+        sigma = rho / snr
+        signal = signal + sigma * (rng.standard_normal(signal.shape) + 1j * rng.standard_normal(signal.shape))
+    return np.abs(signal), np.angle(signal), u_mean, venc
+
+
+def _laminar(h_mm, rng):
+    lumen = Ellipse(a=13.0, b=10.0, angle=0.4)
+    return PoiseuilleEllipse(lumen=lumen, viscosity_pa_s=3.5e-3, u_max=0.4), 1.5 * 13.0
+
+
+def _turbulent(h_mm, rng):
+    return TurbulentPipe(lumen=Circle(r=25.885 / 2), viscosity_pa_s=0.955e-3), 1.55 * 12.9425
+
+
+def _manufactured(h_mm, rng):
+    lumen = LevelSetStar(a=11.0, eps=0.25)
+    return Manufactured(lumen=lumen, viscosity_pa_s=3.5e-3, u_max=0.4, kappa=0.2), 1.5 * lumen.max_radius()
+
+
+def _fourier(h_mm, rng):
+    coef = np.zeros(rad.n_coefficients(4))
+    coef[0], coef[2], coef[3], coef[4 + 3] = 10.0, 0.8, -0.4, 0.5  # b0, b2, b3, a3
+    lumen = FourierLumen(coefficients=tuple(coef))
+    return StarPoiseuille(lumen=lumen, viscosity_pa_s=3.5e-3, u_max=0.4), 1.5 * lumen.max_radius()
+
+
+def _circle(h_mm, rng):
+    return StarPoiseuille(lumen=Circle(r=10.0), viscosity_pa_s=3.5e-3, u_max=0.4), 1.5 * 10.0
+
+
+#: Phantom cases: name -> (builder, description).
+CASES = {
+    "laminar": (_laminar, "Poiseuille flow in an elliptic pipe (13 x 10 mm semi-axes), blood-like viscosity"),
+    "turbulent": (_turbulent, "DNS mean turbulent pipe flow, Re_tau 180.9, water, 25.885 mm pipe (paper Sec. 7)"),
+    "manufactured": (_manufactured, "polynomial flow vanishing on a smooth three-lobed star-shaped wall"),
+    "fourier": (_fourier, "Poiseuille-type flow u = U(1 - r^2/R(phi)^2) in a lumen whose R lies in V_4"),
+    "circle": (_circle, "Poiseuille flow in a circular pipe of radius 10 mm"),
+}
+
+
+def make_phantom(
+    case: str = "laminar",
+    h_mm: float = 1.0,
+    snr: float | None = 25.0,
+    seed: int = 0,
+    venc: float | None = None,
+    offset: bool = True,
+    as_phase: bool = True,
+) -> tuple[Acquisition, Truth]:
+    """Seeded phantom factory: ``(acquisition, truth)`` for one slice.
+
+    Parameters
+    ----------
+    case : str
+        One of :data:`CASES`.
+    h_mm : float
+        In-plane voxel size (square voxels).
+    snr : float or None
+        Signal-to-noise ratio of the lumen signal; None for noise-free data.
+    seed : int
+        Seed of the random sub-voxel offset and of the noise.
+    venc : float or None
+        Velocity encoding in m/s; None picks 1.25 times the peak velocity.
+    offset : bool
+        Shift the vessel by a random sub-voxel amount against the grid.
+    as_phase : bool
+        Store ``phase`` and ``venc_m_s`` (as a scanner does) rather than ``velocity``.
+    """
+    if case not in CASES:
+        raise InputError(f"unknown phantom case {case!r}; choose from {', '.join(CASES)}")
+    if not h_mm > 0:
+        raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
+    rng = np.random.default_rng(seed)
+    flow, half_fov = CASES[case][0](h_mm, rng)
+    n = int(np.ceil(2 * half_fov / h_mm))
+    shift = rng.uniform(-0.5, 0.5, size=2) * h_mm if offset else np.zeros(2)
+    origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
+    flow.lumen.center = (float(shift[0]), float(shift[1]))
+    grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
+    mag, phase, u_mean, venc = acquire(flow, grid, snr, rng, venc=venc)
+    acq = Acquisition(
+        magnitude=mag[None],
+        phase=phase[None] if as_phase else None,
+        velocity=None if as_phase else (venc * phase / np.pi)[None],
+        voxel_size_mm=(h_mm, h_mm),
+        origin_mm=origin,
+        venc_m_s=venc,
+        viscosity_pa_s=flow.viscosity_pa_s,
+        source=f"phantom:{case}",
+    )
+    params = {"case": case, "h_mm": h_mm, "snr": -1.0 if snr is None else float(snr), "seed": seed, "venc_m_s": venc}
+    return acq, Truth(name=case, flow=flow, velocity_image=u_mean, parameters=params)

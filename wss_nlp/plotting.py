@@ -1,0 +1,140 @@
+"""Figures in the layout of the paper's Figures 1-5 (the only module using pyplot).
+
+1. magnitude with the reconstructed contour (and the true wall when known);
+2. R(phi), reconstructed and true;
+3. raw velocity and the truncated velocity actually used;
+4. reconstructed velocity (next to the true one when known);
+5. WSS against angle with its mean (and the truth, and a band when known).
+"""
+
+from __future__ import annotations
+
+import os
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+
+def _contour(ax, res, **kw):
+    g = res.geometry
+    phi = np.linspace(0, 2 * np.pi, 721)
+    r = g.radius(phi)
+    ax.plot(g.center[0] + r * np.cos(phi), g.center[1] + r * np.sin(phi), **kw)
+
+
+def _image(ax, img, grid, **kw):
+    return ax.imshow(img, origin="lower", extent=grid.extent(), interpolation="nearest", **kw)
+
+
+def figure_geometry(res, truth=None):
+    """Fig. 1 and 2: magnitude with contour; R(phi)."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+    ax = axes[0]
+    im = _image(ax, res.magnitude, res.grid, cmap="gray", vmin=0, vmax=1)
+    _contour(ax, res, color="tab:red", lw=1.2, label="reconstructed wall")
+    phi = np.linspace(0, 2 * np.pi, 721)
+    if truth is not None:
+        rt = truth.radius_about(res.geometry.center, phi)
+        ax.plot(res.geometry.center[0] + rt * np.cos(phi), res.geometry.center[1] + rt * np.sin(phi), "--",
+                color="tab:cyan", lw=1, label="true wall")
+    ax.plot(*res.geometry.center, "+", color="tab:red")
+    ax.set(xlabel="x [mm]", ylabel="y [mm]", title=f"normalized magnitude, h = {res.grid.h:g} mm")
+    ax.legend(loc="lower right", fontsize=8)
+    fig.colorbar(im, ax=ax, shrink=0.8)
+    ax = axes[1]
+    ax.plot(phi, res.geometry.radius(phi), color="tab:red", label=r"$R_\alpha^\delta$ (reconstructed)")
+    if truth is not None:
+        ax.plot(phi, rt, "--", color="tab:blue", label=r"$R^\dagger$ (true, about the same centre)")
+    ax.axhspan(*res.geometry.box, color="0.92", zorder=0, label="box [r0, r1]")
+    r = res.geometry.radius(phi)
+    pad = 0.3 * (r.max() - r.min()) + 0.2
+    ax.set(xlabel=r"$\varphi$ [rad]", ylabel="R [mm]", ylim=(r.min() - pad, r.max() + pad),
+           title=rf"radius function, $\alpha$ = {res.geometry.alpha:g}")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def figure_velocity_data(res):
+    """Fig. 3: raw velocity and the truncated velocity used in the fit."""
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+    raw = res.velocity_image
+    lim = np.max(np.abs(raw))
+    im = _image(axes[0], raw, res.grid, cmap="RdBu_r", vmin=-lim, vmax=lim)
+    axes[0].set(title="velocity raw data [m/s]", xlabel="x [mm]", ylabel="y [mm]")
+    fig.colorbar(im, ax=axes[0], shrink=0.8)
+    used = np.full(raw.size, np.nan)
+    used[res.velocity.voxel_index] = raw.ravel()[res.velocity.voxel_index]
+    used = used.reshape(raw.shape)
+    im = _image(axes[1], used, res.grid, cmap="viridis")
+    _contour(axes[1], res, color="w", lw=0.8)
+    axes[1].set(title=r"truncated data ($|V_i \cap \Omega| > 0$) [m/s]", xlabel="x [mm]")
+    fig.colorbar(im, ax=axes[1], shrink=0.8)
+    fig.tight_layout()
+    return fig
+
+
+def figure_velocity(res, truth=None):
+    """Fig. 4: reconstructed velocity (and the true one)."""
+    n = 2 if truth is not None else 1
+    fig, axes = plt.subplots(1, n, figsize=(5.6 * n, 4.6), squeeze=False)
+    xc, yc = res.grid.centers()
+    rec = res.velocity.evaluate_physical(xc, yc)
+    vmax = float(np.max(rec))
+    if truth is not None:
+        true = truth.flow.velocity(xc, yc)
+        vmax = max(vmax, float(np.max(true)))
+        im = _image(axes[0, 1], true, res.grid, cmap="viridis", vmin=0, vmax=vmax)
+        axes[0, 1].set(title="true velocity [m/s]", xlabel="x [mm]")
+        fig.colorbar(im, ax=axes[0, 1], shrink=0.8)
+    im = _image(axes[0, 0], rec, res.grid, cmap="viridis", vmin=0, vmax=vmax)
+    axes[0, 0].set(title=rf"reconstructed velocity [m/s], $\beta$ = {res.velocity.beta:g}", xlabel="x [mm]",
+                   ylabel="y [mm]")
+    fig.colorbar(im, ax=axes[0, 0], shrink=0.8)
+    fig.tight_layout()
+    return fig
+
+
+def figure_wss(res, truth=None):
+    """Fig. 5: WSS against angle with its arc-length mean."""
+    fig, ax = plt.subplots(figsize=(8, 4.2))
+    w = res.wss
+    ax.plot(w.phi, w.tau, color="tab:red", lw=1.2, label=r"$\tau$ reconstructed")
+    ax.axhline(w.mean, color="tab:red", ls=":", label=rf"mean {w.mean:.4g} Pa")
+    std = getattr(w, "tau_std", None)
+    if std is not None:
+        ax.fill_between(w.phi, w.tau - 2 * std, w.tau + 2 * std, color="tab:red", alpha=0.2, label=r"$\pm 2\sigma$")
+    if truth is not None:
+        tt = truth.wss_at_points(w.wall_x, w.wall_y)
+        ax.plot(w.phi, tt, color="tab:blue", lw=1.2, label=r"$\tau^\dagger$ true")
+        ax.axhline(truth.mean_wss, color="tab:blue", ls=":", label=f"true mean {truth.mean_wss:.4g} Pa")
+    ax.set(xlabel=r"$\varphi$ [rad]", ylabel=r"$\tau$ [Pa]", title="wall shear stress", xlim=(0, 2 * np.pi))
+    lo = min(0.0, float(np.min(w.tau)))
+    ax.set_ylim(lo, 1.25 * max(float(np.max(w.tau)), truth.mean_wss if truth is not None else 0))
+    ax.legend(fontsize=8, ncol=2, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
+FIGURES = {
+    "fig1_2_geometry.png": figure_geometry,
+    "fig3_velocity_data.png": lambda res, truth=None: figure_velocity_data(res),
+    "fig4_velocity.png": figure_velocity,
+    "fig5_wss.png": figure_wss,
+}
+
+
+def save_figures(res, folder, truth=None, prefix: str = "") -> list[str]:
+    """Write all figures of one slice into ``folder``; returns the paths."""
+    os.makedirs(folder, exist_ok=True)
+    paths = []
+    for name, make in FIGURES.items():
+        fig = make(res, truth)
+        path = os.path.join(folder, prefix + name)
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        paths.append(path)
+    return paths

@@ -1,0 +1,124 @@
+"""Radius functions in the truncated Fourier space V_N (paper Sec. 7.1).
+
+A radius function is stored as the coefficient vector
+``c = [b0, b1..bN, a1..aN]`` (the order of the public file format) of
+
+    R(phi) = b0 + sum_k b_k cos(k phi) + a_k sin(k phi),
+
+in millimetres. Everything here is linear in ``c``, so evaluation is a
+design matrix that works for NumPy arrays and CasADi symbols alike.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import casadi as ca
+
+
+def n_coefficients(n_fourier: int) -> int:
+    """Length ``2N+1`` of the coefficient vector of V_N."""
+    return 2 * n_fourier + 1
+
+
+def n_fourier_from_size(size: int) -> int:
+    """Inverse of :func:`n_coefficients`; raises on even sizes."""
+    if size < 1 or size % 2 == 0:
+        raise ValueError(f"a Fourier coefficient vector has odd length 2N+1, got {size}")
+    return (size - 1) // 2
+
+
+def design_matrix(phi, n_fourier: int, derivative: int = 0) -> np.ndarray:
+    """Matrix ``B`` with ``B @ c = R^(derivative)(phi)``.
+
+    Parameters
+    ----------
+    phi : array_like
+        Angles in radians, any shape; flattened.
+    n_fourier : int
+        Highest harmonic N.
+    derivative : int
+        Order of the derivative with respect to phi.
+
+    Returns
+    -------
+    ndarray, shape (phi.size, 2N+1)
+    """
+    phi = np.asarray(phi, dtype=float).ravel()
+    k = np.arange(1, n_fourier + 1)
+    kp = np.outer(phi, k)
+    # d^j/dphi^j cos(k phi) = k^j cos(k phi + j pi/2), likewise for sin.
+    shift = derivative * np.pi / 2
+    const = np.ones((phi.size, 1)) if derivative == 0 else np.zeros((phi.size, 1))
+    scale = k.astype(float) ** derivative
+    return np.hstack([const, scale * np.cos(kp + shift), scale * np.sin(kp + shift)])
+
+
+def evaluate(coefficients, phi, derivative: int = 0) -> np.ndarray:
+    """``R^(derivative)(phi)`` for numeric coefficients."""
+    c = np.asarray(coefficients, dtype=float).ravel()
+    return design_matrix(phi, n_fourier_from_size(c.size), derivative) @ c
+
+
+def symbolic(coefficients, phi, derivative: int = 0):
+    """``R^(derivative)(phi)`` for a CasADi coefficient vector and scalar angle."""
+    n = n_fourier_from_size(coefficients.numel())
+    terms = [1 if derivative == 0 else 0]
+    k_list = range(1, n + 1)
+    shift = derivative * np.pi / 2
+    cos_terms = [k**derivative * ca.cos(k * phi + shift) for k in k_list]
+    sin_terms = [k**derivative * ca.sin(k * phi + shift) for k in k_list]
+    row = ca.vertcat(*terms, *cos_terms, *sin_terms)
+    return ca.dot(row, coefficients)
+
+
+def sobolev_weights(n_fourier: int, s: int = 2) -> np.ndarray:
+    """Diagonal weights ``w`` with ``||R||^2_{H^s} = sum w_i c_i^2``.
+
+    Notes
+    -----
+    The norm is ``||R||^2_{H^s(0,2pi)} = sum_{j=0}^{s} ||R^(j)||^2_{L^2(0,2pi)}``
+    (paper eq. (tik1) with s = 2). By Parseval, ``int cos^2(k phi) = pi`` and
+    ``int 1 = 2 pi``, so ``w_0 = 2 pi`` and ``w_k = pi sum_j k^(2j)``.
+    Units: mm^2 for R in mm.
+    """
+    if s < 0 or int(s) != s:
+        raise ValueError(f"Sobolev index s must be a non-negative integer, got {s}")
+    k = np.arange(1, n_fourier + 1, dtype=float)
+    wk = np.pi * sum(k ** (2 * j) for j in range(int(s) + 1))
+    return np.concatenate([[2 * np.pi], wk, wk])
+
+
+def sobolev_norm(coefficients, s: int = 2) -> float:
+    """``||R||_{H^s(0, 2 pi)}`` of numeric coefficients (see :func:`sobolev_weights`)."""
+    c = np.asarray(coefficients, dtype=float).ravel()
+    w = sobolev_weights(n_fourier_from_size(c.size), s)
+    return float(np.sqrt(np.sum(w * c**2)))
+
+
+def fit(phi, radius, n_fourier: int) -> np.ndarray:
+    """Least-squares projection of sampled radii onto V_N.
+
+    For uniform samples with more than 2N+1 points this is the truncated
+    Fourier series (discrete orthogonality).
+    """
+    b = design_matrix(phi, n_fourier)
+    coef, *_ = np.linalg.lstsq(b, np.asarray(radius, dtype=float).ravel(), rcond=None)
+    return coef
+
+
+def uniform_angles(n: int) -> np.ndarray:
+    """``n`` uniform angles on [0, 2 pi)."""
+    return 2 * np.pi * np.arange(n) / n
+
+
+def arc_length_mean(values, radius, dradius) -> float:
+    """Arc-length weighted mean over a closed curve sampled at uniform angles.
+
+    Notes
+    -----
+    ``ds = sqrt(R^2 + R'^2) dphi``; the trapezoidal rule on uniform periodic
+    samples is spectrally accurate for smooth integrands.
+    """
+    ds = np.sqrt(np.asarray(radius) ** 2 + np.asarray(dradius) ** 2)
+    return float(np.sum(np.asarray(values) * ds) / np.sum(ds))

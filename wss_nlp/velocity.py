@@ -1,0 +1,230 @@
+"""Velocity approximation on the reference disk (Sec. 3, Remark 3.5, Sec. 7.2).
+
+Given the lumen ``Omega_R = phi_R(B)``, find ``v = sum_j c_j v_j`` in a basis
+vanishing on the wall minimizing
+
+    (1/|Omega|) sum_i |V_i cap Omega| (T_i c - u_i)^2 + (beta/pi) ||Delta v||^2_{L^2(B)},
+
+where ``T_i c`` is the mean of ``v o phi_R^{-1}`` over ``V_i cap Omega``
+(the operator ``T~_h`` of Sec. 7.2) and ``i`` runs over the voxels that meet
+the lumen. The residual is measured in the physical domain (Remark 3.5).
+Dividing the misfit by the lumen area and the penalty by ``|B| = pi`` makes
+``beta`` dimensionless and independent of vessel size and voxel size; the
+paper's parameter is ``beta_paper = beta |Omega| / pi`` for a misfit in mm^2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+
+import casadi as ca
+
+from . import measurement as meas
+from . import radius as rad
+from .errors import InputError, SolverError
+from .mapping import DiskMap
+from .solver import SolverStats, ipopt_options, run_nlpsol
+from .velocity_basis import BASES, make_basis
+
+
+@dataclass(frozen=True)
+class VelocityOptions:
+    """Options of the velocity step.
+
+    Attributes
+    ----------
+    basis : {"zernike", "eigen"}
+        ``(1 - |xi|^2)`` times Zernike polynomials up to ``degree`` (default),
+        or the paper's Dirichlet eigenfunctions with eigenvalue <= ``max_eigenvalue``.
+    degree : int
+        Zernike degree (``(degree+1)(degree+2)/2`` functions).
+    max_eigenvalue : float
+        Eigenvalue cut-off M of the eigenfunction basis.
+    beta : float
+        Regularization parameter (dimensionless, see module notes).
+    laplacian_power : {1, 2}
+        ``t`` in the penalty ``beta ||Delta^t v||^2``: 1 is eq. (tik2); 2 is
+        Remark 3.5's stronger norm, which does not penalize a Poiseuille
+        profile (``Delta^2 (1 - |xi|^2) = 0``) and so does not pull the wall
+        gradient down the way ``||Delta v||^2`` does.
+    eta : float
+        Exponent of the map phi_R (>= 2).
+    inner_radius : float or None
+        ``r_in`` of phi_R in mm; None means ``inner_fraction * min R``.
+    inner_fraction : float
+        Used when ``inner_radius`` is None. 1 makes phi_R a pure scaling for
+        a circular lumen, so a Poiseuille profile maps to ``1 - |xi|^2``.
+    quad_order : int
+        Sub-voxel points per axis for ``T~_h`` and ``|V_i cap Omega|``.
+    solver : {"ipopt", "cholesky"}
+        The CasADi/IPOPT solve of the Tikhonov problem or a direct Cholesky solve.
+    """
+
+    basis: str = "zernike"
+    degree: int = 10
+    max_eigenvalue: float = 400.0
+    beta: float = 1e-4
+    laplacian_power: int = 1
+    eta: float = 2.0
+    inner_radius: float | None = None
+    inner_fraction: float = 1.0
+    quad_order: int = 4
+    solver: str = "ipopt"
+
+    def __post_init__(self):
+        if self.basis not in BASES:
+            raise InputError(f"velocity basis must be one of {BASES}, got {self.basis!r}")
+        if not self.beta > 0:
+            raise InputError(f"beta must be > 0, got {self.beta}")
+        if self.laplacian_power not in (1, 2):
+            raise InputError(f"laplacian_power must be 1 or 2, got {self.laplacian_power}")
+        if self.solver not in ("ipopt", "cholesky"):
+            raise InputError(f"velocity solver must be 'ipopt' or 'cholesky', got {self.solver!r}")
+        if not 0 < self.inner_fraction <= 1:
+            raise InputError(f"inner_fraction must lie in (0, 1], got {self.inner_fraction}")
+
+    def make_basis(self):
+        return make_basis(self.basis, self.degree, self.max_eigenvalue)
+
+    def make_map(self, coefficients, center) -> DiskMap:
+        rmin = float(np.min(rad.evaluate(coefficients, rad.uniform_angles(720))))
+        r_in = self.inner_radius if self.inner_radius is not None else self.inner_fraction * rmin
+        return DiskMap(np.asarray(coefficients, dtype=float), tuple(center), float(r_in), self.eta)
+
+
+@dataclass
+class VelocityProblem:
+    """The assembled linear least-squares problem."""
+
+    operator: np.ndarray  # (n_vox, n_basis): T~_h
+    weights: np.ndarray  # (n_vox,) |V_i cap Omega| in mm^2
+    data: np.ndarray  # (n_vox,) measured velocity in m/s
+    gram: np.ndarray  # (n_basis, n_basis) Laplacian Gram matrix on B
+    voxels: meas.LumenVoxels
+    disk_map: DiskMap
+    basis: object
+
+    @property
+    def area(self) -> float:
+        return float(np.sum(self.weights))
+
+    def normal_equations(self, beta: float) -> tuple[np.ndarray, np.ndarray]:
+        """``H c = g`` with ``H = T^T W T / A + beta G / pi``, ``g = T^T W u / A``."""
+        wt = self.operator * (self.weights / self.area)[:, None]
+        return wt.T @ self.operator + beta / np.pi * self.gram, wt.T @ self.data
+
+
+@dataclass
+class VelocityResult:
+    coefficients: np.ndarray
+    beta: float
+    residual_norm: float  # sqrt(sum_i |V_i cap Omega| (T_i c - u_i)^2 / |Omega|), m/s
+    penalty: float  # ||Delta v||^2_{L^2(B)} / pi
+    stats: SolverStats
+    disk_map: DiskMap
+    basis: object
+    fitted: np.ndarray  # T~_h c on the lumen voxels
+    voxel_index: np.ndarray
+    voxel_fraction: np.ndarray
+    options: dict = field(default_factory=dict)
+
+    def evaluate_physical(self, x, y) -> np.ndarray:
+        """Reconstructed velocity ``u = v o phi_R^{-1}`` at physical points (0 outside)."""
+        rho, t = self.disk_map.inverse(x, y)
+        inside = np.ravel(rho < 1)
+        out = np.zeros(np.size(rho))
+        if inside.any():
+            xi, yi = np.ravel(rho)[inside] * np.cos(np.ravel(t)[inside]), np.ravel(rho)[inside] * np.sin(np.ravel(t)[inside])
+            out[inside] = self.basis.evaluate(xi, yi) @ self.coefficients
+        return out.reshape(np.shape(rho))
+
+
+def assemble(grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, center, options: VelocityOptions,
+             basis=None) -> VelocityProblem:
+    """Assemble ``T~_h``, the partial volumes and the data on the voxels meeting the lumen.
+
+    Notes
+    -----
+    ``T~_h(v)_i = (1/|V_i cap Omega|) int_{V_i cap Omega} v(phi_R^{-1}(x)) dx``
+    by the midpoint rule on the sub-voxel points inside the lumen.
+    """
+    basis = options.make_basis() if basis is None else basis
+    disk_map = options.make_map(coefficients, center)
+    vox = meas.lumen_voxels(grid, center, coefficients, options.quad_order)
+    if vox.index.size < basis.size:
+        raise InputError(
+            f"only {vox.index.size} voxels meet the lumen but the velocity basis has {basis.size} functions; "
+            "lower the basis degree/cut-off or use finer images"
+        )
+    px, py = vox.px[vox.inside], vox.py[vox.inside]
+    rho, t = disk_map.inverse(px, py)
+    values = basis.evaluate(np.minimum(rho, 1.0) * np.cos(t), np.minimum(rho, 1.0) * np.sin(t))
+    rows = np.nonzero(vox.inside)[0]
+    counts = vox.inside.sum(axis=1)
+    avg = scipy.sparse.csr_matrix((1.0 / counts[rows], (rows, np.arange(rows.size))), shape=(vox.index.size, rows.size))
+    operator = np.asarray(avg @ values)
+    return VelocityProblem(
+        operator=operator,
+        weights=vox.fraction * grid.voxel_area,
+        data=np.asarray(velocity_image, dtype=float).ravel()[vox.index],
+        gram=basis.laplacian_gram(options.laplacian_power),
+        voxels=vox,
+        disk_map=disk_map,
+        basis=basis,
+    )
+
+
+def build_tikhonov(problem: VelocityProblem, beta: float):
+    """CasADi expression of the velocity functional; returns ``(c, f, residual)``."""
+    c = ca.MX.sym("c", problem.operator.shape[1])
+    sw = np.sqrt(problem.weights / problem.area)
+    residual = ca.DM(sw) * (ca.mtimes(ca.DM(problem.operator), c) - ca.DM(problem.data))
+    f = ca.sumsqr(residual) + beta / np.pi * ca.dot(c, ca.mtimes(ca.DM(problem.gram), c))
+    return c, f, residual
+
+
+def solve_cholesky(problem: VelocityProblem, beta: float) -> np.ndarray:
+    """Direct solve of the normal equations by Cholesky factorization."""
+    hmat, g = problem.normal_equations(beta)
+    try:
+        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(hmat), g)
+    except np.linalg.LinAlgError as exc:
+        raise SolverError(f"velocity: normal matrix is not positive definite ({exc}); increase beta") from exc
+
+
+def solve(problem: VelocityProblem, options: VelocityOptions, beta: float | None = None) -> VelocityResult:
+    """Solve the velocity Tikhonov problem (CasADi/IPOPT or Cholesky)."""
+    import time
+
+    beta = options.beta if beta is None else beta
+    if options.solver == "ipopt":
+        c, f, _ = build_tikhonov(problem, beta)
+        opts = ipopt_options(1e-12, 50, {"ipopt.hessian_constant": "yes"})
+        solver = ca.nlpsol("velocity", "ipopt", {"x": c, "f": f}, opts)
+        sol, stats = run_nlpsol(solver, "velocity (IPOPT)", x0=np.zeros(problem.operator.shape[1]))
+        coef = np.asarray(sol["x"]).ravel()
+    else:
+        t0 = time.perf_counter()
+        coef = solve_cholesky(problem, beta)
+        hmat, g = problem.normal_equations(beta)
+        obj = float(coef @ hmat @ coef - 2 * g @ coef + problem.data @ (problem.weights * problem.data) / problem.area)
+        stats = SolverStats("cholesky", "Solve_Succeeded", True, 1, obj, time.perf_counter() - t0)
+    fitted = problem.operator @ coef
+    res = float(np.sqrt(np.sum(problem.weights * (fitted - problem.data) ** 2) / problem.area))
+    return VelocityResult(
+        coefficients=coef,
+        beta=beta,
+        residual_norm=res,
+        penalty=float(coef @ problem.gram @ coef / np.pi),
+        stats=stats,
+        disk_map=problem.disk_map,
+        basis=problem.basis,
+        fitted=fitted,
+        voxel_index=problem.voxels.index,
+        voxel_fraction=problem.voxels.fraction,
+        options=dict(vars(options)),
+    )

@@ -1,0 +1,250 @@
+"""Velocity bases on the unit disk B that vanish on the wall (Sec. 3, 7.2).
+
+* :class:`ZernikeWallBasis` -- ``(1 - |xi|^2) Z_n^m(xi)`` for ``n <= degree``:
+  polynomials, smooth up to the wall, whose Laplacian need *not* vanish on
+  the wall. A Poiseuille profile ``1 - |xi|^2`` is the first basis function.
+* :class:`DirichletEigenBasis` -- the paper's eigenfunctions
+  ``J_m(j_{m,k} rho) {cos, sin}(m t)`` of the Dirichlet Laplacian with
+  eigenvalue ``j_{m,k}^2 <= M``. Each has ``Delta v = 0`` on the wall, so a
+  profile with nonzero wall Laplacian converges slowly in the wall gradient
+  (Lemma 3.3, Remark 3.4).
+
+Both are normalized in L^2(B). Every basis gives values (NumPy), a CasADi
+expression in the Cartesian reference point (for exact derivatives) and the
+exact Gram matrix ``G_ij = (Delta^t v_i, Delta^t v_j)_{L^2(B)}`` (t = 1 is
+eq. (tik2); t = 2 is the stronger penalty of Remark 3.5).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from math import factorial
+
+import numpy as np
+import scipy.special
+
+import casadi as ca
+
+from .errors import InputError
+
+BASES = ("zernike", "eigen")
+
+
+def _zernike_terms(degree: int):
+    """``(n, m)`` pairs with ``m`` signed (negative: sine), ordered by n."""
+    return [(n, m) for n in range(degree + 1) for m in range(-n, n + 1, 2)]
+
+
+def _radial_coefficients(n: int, m: int):
+    """Coefficients of ``R_n^m(rho) / rho^m`` as a polynomial in ``s = rho^2``, highest power first."""
+    m = abs(m)
+    p = (n - m) // 2
+    return [
+        (-1) ** k * factorial(n - k) / (factorial(k) * factorial((n + m) // 2 - k) * factorial((n - m) // 2 - k))
+        for k in range(p + 1)
+    ]
+
+
+class ZernikeWallBasis:
+    """Span of ``(1 - |xi|^2) Z_n^m(xi)``, ``n <= degree``, orthonormalized in L^2(B).
+
+    The functions ``(1 - |xi|^2) Z_n^m`` are far from orthogonal (Gram
+    entries up to 0.95), so the basis is ``w = raw @ T`` with ``T = L^{-T}``
+    from the Cholesky factor of their Gram matrix; the first function is
+    still proportional to the Poiseuille profile ``1 - |xi|^2``.
+
+    The same arithmetic code evaluates NumPy arrays and CasADi symbols:
+    ``rho^m cos(m t)`` and ``rho^m sin(m t)`` are the real and imaginary
+    parts of ``(x + i y)^m``, built by recurrence, and the radial part is a
+    polynomial in ``x^2 + y^2``; nothing is singular at the centre.
+    """
+
+    kind = "zernike"
+
+    def __init__(self, degree: int = 10):
+        if degree < 0:
+            raise InputError(f"Zernike degree must be >= 0, got {degree}")
+        self.degree = int(degree)
+        self.terms = _zernike_terms(self.degree)
+        self._grams = {}
+        self.transform = np.eye(len(self.terms))
+        gram = self._gram(laplacian=0)
+        self.transform = np.linalg.inv(np.linalg.cholesky(gram)).T
+
+    @property
+    def size(self) -> int:
+        return len(self.terms)
+
+    def describe(self) -> dict:
+        return {"basis": self.kind, "degree": self.degree, "size": self.size,
+                "terms_n": [n for n, _ in self.terms], "terms_m": [m for _, m in self.terms]}
+
+    def _raw(self, x, y):
+        """List of unnormalized basis values (arithmetic only)."""
+        s = x * x + y * y
+        re, im = [1.0 + 0 * x], [0 * x]
+        for _ in range(self.degree):
+            re.append(x * re[-1] - y * im[-1])
+            im.append(x * im[-1] + y * re[-1])
+        bubble = 1 - s
+        out = []
+        for n, m in self.terms:
+            poly = 0 * x
+            for coef in _radial_coefficients(n, m):
+                poly = poly * s + coef
+            ang = re[abs(m)] if m >= 0 else im[abs(m)]
+            out.append(bubble * poly * ang)
+        return out
+
+    def evaluate(self, x, y) -> np.ndarray:
+        """Values at reference points, shape ``(npts, size)``."""
+        x, y = np.ravel(x), np.ravel(y)
+        return np.stack(self._raw(x, y), axis=1) @ self.transform
+
+    def symbolic(self, xi):
+        """CasADi column of the basis functions at the reference point ``xi``."""
+        return ca.mtimes(ca.DM(self.transform).T, ca.vertcat(*self._raw(xi[0], xi[1])))
+
+    def laplacian_gram(self, power: int = 1) -> np.ndarray:
+        """Exact ``(Delta^t v_i, Delta^t v_j)_{L^2(B)}``, ``t = power``, by CasADi derivatives and exact quadrature."""
+        if power not in self._grams:  # computed once per basis: it takes up to seconds
+            self._grams[power] = self._gram(laplacian=power)
+        return self._grams[power]
+
+    def _gram(self, laplacian: int) -> np.ndarray:
+        xi = ca.SX.sym("xi", 2)
+        raw = self._raw(xi[0], xi[1])
+        for _ in range(int(laplacian)):  # Delta commutes with the fixed linear transform
+            raw = [ca.trace(ca.hessian(r, xi)[0]) for r in raw]
+        f = ca.Function("f", [xi], [ca.mtimes(ca.DM(self.transform).T, ca.vertcat(*raw))])
+        # integrand: polynomial of degree <= 2 (degree + 2) in (x, y): Gauss-Legendre
+        # in rho (with weight rho) and the trapezoidal rule in t are exact.
+        nr = self.degree + 4
+        nt = 2 * self.degree + 8
+        g, w = np.polynomial.legendre.leggauss(nr)
+        rho, wr = 0.5 * (g + 1), 0.5 * w
+        t = 2 * np.pi * np.arange(nt) / nt
+        rr, tt = np.meshgrid(rho, t, indexing="ij")
+        ww = (wr * rho)[:, None] * np.full(nt, 2 * np.pi / nt)[None, :]
+        pts = np.vstack([(rr * np.cos(tt)).ravel(), (rr * np.sin(tt)).ravel()])
+        vals = np.asarray(f.map(pts.shape[1])(pts))  # (size, npts)
+        return (vals * ww.ravel()) @ vals.T
+
+
+# ----------------------------------------------------------------- Bessel basis
+class _BesselJ(ca.Callback):
+    """``J_m`` of a scalar as a CasADi callback, differentiable to any order.
+
+    CasADi has no Bessel functions; the Jacobian of this callback is
+    ``(J_{m-1} - J_{m+1}) / 2`` built from further callbacks, so first and
+    higher derivatives are exact (to SciPy's accuracy).
+    """
+
+    def __init__(self, order: int):
+        ca.Callback.__init__(self)
+        self.order = order
+        self.construct(f"besselj_{order}".replace("-", "m"), {"enable_fd": False})
+
+    def get_n_in(self):
+        return 1
+
+    def get_n_out(self):
+        return 1
+
+    def eval(self, arg):
+        return [float(scipy.special.jv(self.order, float(arg[0])))]
+
+    def has_jacobian(self):
+        return True
+
+    def get_jacobian(self, name, inames, onames, opts):
+        x = ca.MX.sym(inames[0])
+        out = ca.MX.sym(onames[0])
+        d = 0.5 * (bessel_j(self.order - 1)(x) - bessel_j(self.order + 1)(x))
+        return ca.Function(name, [x, out], [d], inames, onames, opts)
+
+
+@lru_cache(maxsize=None)
+def bessel_j(order: int) -> _BesselJ:
+    """Cached callback for ``J_order`` (callbacks must outlive their use)."""
+    return _BesselJ(order)
+
+
+class DirichletEigenBasis:
+    """Dirichlet-Laplacian eigenfunctions of the unit disk with ``lambda <= M``.
+
+    ``v = J_m(j rho) cos(m t) / c`` or ``J_m(j rho) sin(m t) / c`` with
+    ``j = j_{m,k}`` the k-th zero of ``J_m`` and ``c`` the L^2(B) norm
+    ``sqrt(pi_m / 2) |J_{m+1}(j)|`` (``pi_0 = 2 pi``, ``pi_m = pi``).
+    ``-Delta v = j^2 v``, so the Laplacian Gram matrix is ``diag(j^4)``.
+    """
+
+    kind = "eigen"
+
+    def __init__(self, max_eigenvalue: float = 400.0):
+        if not max_eigenvalue > scipy.special.jn_zeros(0, 1)[0] ** 2:
+            raise InputError(f"eigenvalue cut-off M = {max_eigenvalue} keeps no eigenfunction (need M > 5.78)")
+        self.max_eigenvalue = float(max_eigenvalue)
+        jmax = np.sqrt(self.max_eigenvalue)
+        terms = []
+        m = 0
+        while True:
+            zeros = scipy.special.jn_zeros(m, max(1, int(jmax / np.pi) + 2))
+            zeros = zeros[zeros <= jmax]
+            if zeros.size == 0:
+                break
+            for j in zeros:
+                terms.append((m, float(j), "cos"))
+                if m > 0:
+                    terms.append((m, float(j), "sin"))
+            m += 1
+        terms.sort(key=lambda z: (z[1], z[0], z[2]))
+        self.terms = terms
+        self.norm = np.array([np.sqrt((2 * np.pi if m == 0 else np.pi) / 2) * abs(scipy.special.jv(m + 1, j))
+                              for m, j, _ in terms])
+
+    @property
+    def size(self) -> int:
+        return len(self.terms)
+
+    def describe(self) -> dict:
+        return {"basis": self.kind, "max_eigenvalue": self.max_eigenvalue, "size": self.size,
+                "terms_m": [m for m, _, _ in self.terms], "terms_j": [j for _, j, _ in self.terms],
+                "terms_sin": [int(k == "sin") for _, _, k in self.terms]}
+
+    def evaluate(self, x, y) -> np.ndarray:
+        x, y = np.ravel(x), np.ravel(y)
+        rho, t = np.hypot(x, y), np.arctan2(y, x)
+        cols = []
+        for (m, j, kind), c in zip(self.terms, self.norm):
+            ang = np.cos(m * t) if kind == "cos" else np.sin(m * t)
+            cols.append(scipy.special.jv(m, j * rho) * ang / c)
+        return np.stack(cols, axis=1)
+
+    def symbolic(self, xi):
+        """CasADi column of the basis at ``xi`` (valid away from ``xi = 0``)."""
+        rho = ca.sqrt(ca.dot(xi, xi))
+        t = ca.atan2(xi[1], xi[0])
+        out = []
+        for (m, j, kind), c in zip(self.terms, self.norm):
+            ang = ca.cos(m * t) if kind == "cos" else ca.sin(m * t)
+            out.append(bessel_j(m)(j * rho) * ang / c)
+        return ca.vertcat(*out)
+
+    def laplacian_gram(self, power: int = 1) -> np.ndarray:
+        """``diag(lambda^(2t))``: ``Delta^t v = (-lambda)^t v`` for orthonormal eigenfunctions."""
+        return np.diag(np.array([j for _, j, _ in self.terms]) ** (4 * power))
+
+
+@lru_cache(maxsize=16)
+def make_basis(kind: str = "zernike", degree: int = 10, max_eigenvalue: float = 400.0):
+    """Factory used by the options: ``"zernike"`` (degree) or ``"eigen"`` (M).
+
+    Cached: bases are immutable and building the Gram matrices takes a
+    noticeable fraction of a second.
+    """
+    if kind == "zernike":
+        return ZernikeWallBasis(degree)
+    if kind == "eigen":
+        return DirichletEigenBasis(max_eigenvalue)
+    raise InputError(f"unknown velocity basis {kind!r}; choose from {BASES}")

@@ -1,0 +1,105 @@
+"""Wall shear stress from the reconstructed geometry and velocity (Sec. 4, eq. (wss)).
+
+    tau(phi) = -mu n_R(phi) . J_R(xi)^{-T} grad_xi v(xi),   xi = (cos phi, sin phi),
+
+with ``J_R`` the Jacobian of phi_R and ``n_R`` the outward unit normal of
+eq. (normal). All derivatives are CasADi's exact symbolic ones. (The paper
+writes ``n . J^{-1} grad v``; by the chain rule ``grad_x u = J^{-T} grad_xi v``,
+which is what is implemented -- the two agree only when J is symmetric.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import casadi as ca
+
+from . import radius as rad
+from .mapping import symbolic_forward
+
+#: mm -> m: gradients in (m/s)/mm times this are in 1/s, so tau is in Pa.
+PER_MM = 1000.0
+
+
+@dataclass
+class WssResult:
+    phi: np.ndarray  # angles about the centre, rad
+    tau: np.ndarray  # Pa
+    mean: float  # arc-length weighted mean, Pa
+    wall_x: np.ndarray  # wall points, mm
+    wall_y: np.ndarray
+    viscosity_pa_s: float
+
+
+def wss_expression(velocity_of_xi, n_fourier: int, r_in: float, eta: float):
+    """CasADi ``Function`` ``(phi, c_R, center, p_v, mu) -> (tau, x_wall)``.
+
+    Parameters
+    ----------
+    velocity_of_xi : callable
+        ``(xi: MX 2-vector, p_v: MX) -> MX scalar``, the velocity on the
+        reference disk with parameters ``p_v`` (basis coefficients for a
+        reconstruction, anything for an analytic field).
+    n_fourier, r_in, eta : geometry of phi_R.
+
+    Notes
+    -----
+    ``tau = -mu * 1000 * n . (J^{-T} grad v)``: lengths in mm, velocity in
+    m/s, ``mu`` in Pa s, so ``tau`` is in Pa.
+    """
+    phi = ca.MX.sym("phi")
+    c_r = ca.MX.sym("c_R", rad.n_coefficients(n_fourier))
+    center = ca.MX.sym("center", 2)
+    mu = ca.MX.sym("mu")
+    xi = ca.MX.sym("xi", 2)
+    p_v = ca.MX.sym("p_v", velocity_of_xi.n_params if hasattr(velocity_of_xi, "n_params") else 1)
+    x = symbolic_forward(xi, c_r, center, r_in, eta)
+    v = velocity_of_xi(xi, p_v)
+    jac = ca.jacobian(x, xi)
+    grad_v = ca.gradient(v, xi)
+    at_xi = ca.Function("at_xi", [xi, c_r, center, p_v], [jac, grad_v, x])
+    jac_w, grad_w, x_w = at_xi(ca.vertcat(ca.cos(phi), ca.sin(phi)), c_r, center, p_v)
+    grad_x = ca.solve(jac_w.T, grad_w)
+    big_r = rad.symbolic(c_r, phi)
+    dr = ca.jacobian(big_r, phi)
+    normal = ca.vertcat(big_r * ca.cos(phi) + dr * ca.sin(phi), big_r * ca.sin(phi) - dr * ca.cos(phi))
+    normal = normal / ca.sqrt(big_r**2 + dr**2)  # eq. (normal)
+    tau = -mu * PER_MM * ca.dot(normal, grad_x)
+    return ca.Function("wss", [phi, c_r, center, p_v, mu], [tau, x_w], ["phi", "c_R", "center", "p_v", "mu"], ["tau", "x_wall"])
+
+
+class _BasisVelocity:
+    """``v(xi) = sum_j p_j v_j(xi)`` for a velocity basis, as a callable for :func:`wss_expression`."""
+
+    def __init__(self, basis):
+        self.basis = basis
+        self.n_params = basis.size
+
+    def __call__(self, xi, p):
+        return ca.dot(self.basis.symbolic(xi), p)
+
+
+def evaluate(phi, c_r, center, velocity_of_xi, params, r_in, eta, viscosity_pa_s) -> WssResult:
+    """Evaluate tau on the angles ``phi`` and its arc-length weighted mean."""
+    phi = np.asarray(phi, dtype=float)
+    c_r = np.asarray(c_r, dtype=float)
+    fun = wss_expression(velocity_of_xi, rad.n_fourier_from_size(c_r.size), r_in, eta).map(phi.size)
+    tau, xw = fun(phi[None, :], c_r, np.asarray(center, float), np.atleast_1d(np.asarray(params, float)), viscosity_pa_s)
+    tau = np.asarray(tau).ravel()
+    xw = np.asarray(xw)
+    r, dr = rad.evaluate(c_r, phi), rad.evaluate(c_r, phi, 1)
+    mean = rad.arc_length_mean(tau, r, dr) if _is_uniform(phi) else float("nan")
+    return WssResult(phi=phi, tau=tau, mean=mean, wall_x=xw[0], wall_y=xw[1], viscosity_pa_s=viscosity_pa_s)
+
+
+def _is_uniform(phi) -> bool:
+    return phi.size > 2 and np.allclose(phi, rad.uniform_angles(phi.size))
+
+
+def from_reconstruction(velocity_result, n_phi: int, viscosity_pa_s: float) -> WssResult:
+    """WSS of a :class:`wss_nlp.velocity.VelocityResult` at ``n_phi`` uniform angles."""
+    dm = velocity_result.disk_map
+    return evaluate(rad.uniform_angles(n_phi), dm.coefficients, dm.center, _BasisVelocity(velocity_result.basis),
+                    velocity_result.coefficients, dm.r_in, dm.eta, viscosity_pa_s)
