@@ -109,6 +109,10 @@ class GeometryProblem:
     r1: float  # box upper bound, mm
     r_ref: float  # reference (equal-area) radius, mm
 
+    def __post_init__(self):
+        if not 0 < self.r0 < self.r1:
+            raise InputError(f"geometry box must satisfy 0 < r0 < r1, got r0 = {self.r0} mm, r1 = {self.r1} mm")
+
 
 @dataclass
 class GeometryResult:

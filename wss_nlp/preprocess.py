@@ -20,6 +20,13 @@ from .measurement import VoxelGrid
 
 #: Fewest voxels a lumen may cover before we refuse to fit it.
 MIN_LUMEN_VOXELS = 12
+#: Smallest (m1 - m0) / (background spread) accepted as a vessel; pure
+#: Rayleigh noise splits into two classes with a ratio of about 2.
+MIN_CONTRAST_TO_NOISE = 4.0
+
+
+def _where(source: str) -> str:
+    return f"{source}: " if source else ""
 
 
 @dataclass
@@ -27,6 +34,11 @@ class Normalization:
     m0: float  # background peak of the raw magnitude
     m1: float  # lumen peak of the raw magnitude
     threshold: float  # Otsu split between the two classes
+    background_spread: float  # robust standard deviation (1.4826 MAD) of the background class
+
+    @property
+    def contrast_to_noise(self) -> float:
+        return (self.m1 - self.m0) / max(self.background_spread, 1e-300)
 
 
 def _otsu(values: np.ndarray, bins: int) -> float:
@@ -54,21 +66,28 @@ def histogram_peaks(magnitude: np.ndarray, source: str = "") -> Normalization:
 
     The histogram is split in two classes by Otsu's threshold; each peak is
     the mode of its class. Raises :class:`NoVesselError` when the image has
-    no contrast.
+    no contrast, or when the lumen peak is not clearly above the background
+    (contrast-to-noise ratio below :data:`MIN_CONTRAST_TO_NOISE`).
     """
+    src = _where(source)
     vals = np.asarray(magnitude, dtype=float).ravel()
     lo, hi = np.percentile(vals, [0.5, 99.5])
     if not hi > lo:
-        raise NoVesselError(f"{source}: magnitude image has no contrast (constant image), no vessel in view")
+        raise NoVesselError(f"{src}magnitude image has no contrast (constant image): no vessel in view")
     bins = int(np.clip(np.sqrt(vals.size), 32, 256))
     thr = _otsu(vals, bins)
     low, high = vals[vals <= thr], vals[vals > thr]
     if low.size == 0 or high.size == 0:
-        raise NoVesselError(f"{source}: magnitude histogram is not bimodal, no vessel in view")
+        raise NoVesselError(f"{src}magnitude histogram is not bimodal: no vessel in view")
     m0, m1 = _peak(low, bins), _peak(high, bins)
-    if not m1 > m0:
-        raise NoVesselError(f"{source}: magnitude histogram has no lumen peak above the background")
-    return Normalization(m0=m0, m1=m1, threshold=thr)
+    spread = 1.4826 * float(np.median(np.abs(low - np.median(low))))
+    norm = Normalization(m0=m0, m1=m1, threshold=thr, background_spread=spread)
+    if not m1 > m0 or norm.contrast_to_noise < MIN_CONTRAST_TO_NOISE:
+        raise NoVesselError(
+            f"{src}no vessel in view: the magnitude histogram has no lumen peak clearly above the background "
+            f"(contrast-to-noise {norm.contrast_to_noise:.2g} < {MIN_CONTRAST_TO_NOISE:g})"
+        )
+    return norm
 
 
 def normalize_magnitude(magnitude: np.ndarray, norm: Normalization) -> np.ndarray:
@@ -102,19 +121,20 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "") -> Lumen:
     enough never to bind at the solution of a star-shaped lumen, tight
     enough to keep the forward model small.
     """
+    src = _where(source)
     labels, n = scipy.ndimage.label(m > 0.5)
     if n == 0:
-        raise NoVesselError(f"{source}: no voxel of the normalized magnitude exceeds 1/2: no vessel in view")
+        raise NoVesselError(f"{src}no voxel of the normalized magnitude exceeds 1/2: no vessel in view")
     sizes = scipy.ndimage.sum_labels(np.ones_like(m), labels, index=np.arange(1, n + 1))
     k = int(np.argmax(sizes)) + 1
     mask = labels == k
     if mask.sum() < MIN_LUMEN_VOXELS:
         raise NoVesselError(
-            f"{source}: largest bright region has {int(mask.sum())} voxels (< {MIN_LUMEN_VOXELS}): no vessel in view"
+            f"{src}largest bright region has {int(mask.sum())} voxels (< {MIN_LUMEN_VOXELS}): no vessel in view"
         )
     if mask[0].any() or mask[-1].any() or mask[:, 0].any() or mask[:, -1].any():
         raise LumenTouchesBorderError(
-            f"{source}: the lumen touches the border of the field of view; crop or re-centre the images"
+            f"{src}the lumen touches the border of the field of view; crop or re-centre the images"
         )
     grown = scipy.ndimage.binary_dilation(mask, iterations=2)
     xc, yc = grid.centers()
@@ -127,7 +147,7 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "") -> Lumen:
     r_min, r_max = float(dist.min()), float(dist.max()) + 0.5 * h
     if not mask[int(np.clip(round((cy - grid.origin_mm[1]) / grid.dy), 0, m.shape[0] - 1)),
                 int(np.clip(round((cx - grid.origin_mm[0]) / grid.dx), 0, m.shape[1] - 1))]:
-        raise NoVesselError(f"{source}: the barycenter of the bright region lies outside it; the lumen is not star-shaped")
+        raise NoVesselError(f"{src}the barycenter of the bright region lies outside it; the lumen is not star-shaped")
     return Lumen(
         mask=mask,
         center=(cx, cy),

@@ -70,7 +70,8 @@ def run_nlpsol(solver: ca.Function, what: str, **args) -> tuple[dict, SolverStat
     try:
         sol = solver(**args)
     except RuntimeError as exc:  # evaluation errors surface as RuntimeError
-        raise SolverError(f"{what}: IPOPT raised an error: {exc}") from exc
+        last = [ln for ln in str(exc).splitlines() if ln.strip()][-1:] or ["unknown error"]
+        raise SolverError(f"{what}: IPOPT raised an error: {last[0].strip()}") from exc
     seconds = time.perf_counter() - t0
     st = solver.stats()
     status = str(st.get("return_status", "unknown"))

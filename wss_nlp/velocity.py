@@ -41,7 +41,11 @@ class VelocityOptions:
         ``(1 - |xi|^2)`` times Zernike polynomials up to ``degree`` (default),
         or the paper's Dirichlet eigenfunctions with eigenvalue <= ``max_eigenvalue``.
     degree : int
-        Zernike degree (``(degree+1)(degree+2)/2`` functions).
+        Zernike degree: highest polynomial degree in the reference disk.
+    angular_order : int or None
+        Highest angular order |m| of the Zernike functions (None: ``degree``);
+        a high degree with a low angular order resolves thin wall layers
+        without the quadratic growth of the full set.
     max_eigenvalue : float
         Eigenvalue cut-off M of the eigenfunction basis.
     beta : float
@@ -66,6 +70,7 @@ class VelocityOptions:
 
     basis: str = "zernike"
     degree: int = 10
+    angular_order: int | None = None
     max_eigenvalue: float = 400.0
     beta: float = 1e-4
     laplacian_power: int = 1
@@ -88,7 +93,7 @@ class VelocityOptions:
             raise InputError(f"inner_fraction must lie in (0, 1], got {self.inner_fraction}")
 
     def make_basis(self):
-        return make_basis(self.basis, self.degree, self.max_eigenvalue)
+        return make_basis(self.basis, self.degree, self.max_eigenvalue, self.angular_order)
 
     def make_map(self, coefficients, center) -> DiskMap:
         rmin = float(np.min(rad.evaluate(coefficients, rad.uniform_angles(720))))
@@ -155,11 +160,8 @@ def assemble(grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, cen
     basis = options.make_basis() if basis is None else basis
     disk_map = options.make_map(coefficients, center)
     vox = meas.lumen_voxels(grid, center, coefficients, options.quad_order)
-    if vox.index.size < basis.size:
-        raise InputError(
-            f"only {vox.index.size} voxels meet the lumen but the velocity basis has {basis.size} functions; "
-            "lower the basis degree/cut-off or use finer images"
-        )
+    if vox.index.size == 0:  # more functions than voxels is fine: beta > 0 keeps the problem well-posed
+        raise InputError("no voxel meets the reconstructed lumen; the geometry step failed to find a vessel")
     px, py = vox.px[vox.inside], vox.py[vox.inside]
     rho, t = disk_map.inverse(px, py)
     values = basis.evaluate(np.minimum(rho, 1.0) * np.cos(t), np.minimum(rho, 1.0) * np.sin(t))

@@ -18,7 +18,6 @@ eq. (tik2); t = 2 is the stronger penalty of Remark 3.5).
 from __future__ import annotations
 
 from functools import lru_cache
-from math import factorial
 
 import numpy as np
 import scipy.special
@@ -30,28 +29,40 @@ from .errors import InputError
 BASES = ("zernike", "eigen")
 
 
-def _zernike_terms(degree: int):
-    """``(n, m)`` pairs with ``m`` signed (negative: sine), ordered by n."""
-    return [(n, m) for n in range(degree + 1) for m in range(-n, n + 1, 2)]
+def _zernike_terms(degree: int, max_order: int | None = None):
+    """``(n, m)`` pairs with ``m`` signed (negative: sine), ``n <= degree``, ``|m| <= max_order``."""
+    mmax = degree if max_order is None else min(max_order, degree)
+    return [(n, m) for n in range(degree + 1) for m in range(-n, n + 1, 2) if abs(m) <= mmax]
 
 
-def _radial_coefficients(n: int, m: int):
-    """Coefficients of ``R_n^m(rho) / rho^m`` as a polynomial in ``s = rho^2``, highest power first."""
-    m = abs(m)
-    p = (n - m) // 2
-    return [
-        (-1) ** k * factorial(n - k) / (factorial(k) * factorial((n + m) // 2 - k) * factorial((n - m) // 2 - k))
-        for k in range(p + 1)
-    ]
+def _jacobi(k_max: int, a: int, x):
+    """Jacobi polynomials ``P_k^{(a,0)}(x)``, ``k = 0..k_max``, by the three-term recurrence.
+
+    Arithmetic only, so it works on NumPy arrays and CasADi symbols, and it
+    stays accurate where explicit Zernike sums (factorial coefficients) lose
+    all digits beyond degree ~20.
+    """
+    p = [1.0 + 0 * x]
+    if k_max >= 1:
+        p.append((a + 1) + (a + 2) * (x - 1) / 2)
+    for k in range(1, k_max):
+        c = 2 * k + a
+        lhs = 2 * (k + 1) * (k + a + 1) * c
+        p.append(((c + 1) * ((c + 2) * c * x + a * a) * p[k] - 2 * (k + a) * k * (c + 2) * p[k - 1]) / lhs)
+    return p
 
 
 class ZernikeWallBasis:
-    """Span of ``(1 - |xi|^2) Z_n^m(xi)``, ``n <= degree``, orthonormalized in L^2(B).
+    """Span of ``(1 - |xi|^2) Z_n^m(xi)``, ``n <= degree``, ``|m| <= max_order``, orthonormal in L^2(B).
 
     The functions ``(1 - |xi|^2) Z_n^m`` are far from orthogonal (Gram
     entries up to 0.95), so the basis is ``w = raw @ T`` with ``T = L^{-T}``
     from the Cholesky factor of their Gram matrix; the first function is
     still proportional to the Poiseuille profile ``1 - |xi|^2``.
+
+    Limiting the angular order separately from the degree gives high radial
+    resolution (thin boundary layers) without the quadratic growth of the
+    full Zernike set.
 
     The same arithmetic code evaluates NumPy arrays and CasADi symbols:
     ``rho^m cos(m t)`` and ``rho^m sin(m t)`` are the real and imaginary
@@ -61,11 +72,14 @@ class ZernikeWallBasis:
 
     kind = "zernike"
 
-    def __init__(self, degree: int = 10):
+    def __init__(self, degree: int = 10, max_order: int | None = None):
         if degree < 0:
             raise InputError(f"Zernike degree must be >= 0, got {degree}")
+        if max_order is not None and max_order < 0:
+            raise InputError(f"Zernike angular order must be >= 0, got {max_order}")
         self.degree = int(degree)
-        self.terms = _zernike_terms(self.degree)
+        self.max_order = None if max_order is None else int(max_order)
+        self.terms = _zernike_terms(self.degree, self.max_order)
         self._grams = {}
         self.transform = np.eye(len(self.terms))
         gram = self._gram(laplacian=0)
@@ -76,24 +90,29 @@ class ZernikeWallBasis:
         return len(self.terms)
 
     def describe(self) -> dict:
-        return {"basis": self.kind, "degree": self.degree, "size": self.size,
+        return {"basis": self.kind, "degree": self.degree,
+                "max_order": -1 if self.max_order is None else self.max_order, "size": self.size,
                 "terms_n": [n for n, _ in self.terms], "terms_m": [m for _, m in self.terms]}
 
     def _raw(self, x, y):
-        """List of unnormalized basis values (arithmetic only)."""
+        """List of unnormalized basis values (arithmetic only).
+
+        ``Z_n^m = rho^|m| P_k^{(|m|,0)}(1 - 2 rho^2) {cos, sin}(|m| t)`` with
+        ``k = (n - |m|)/2``, up to sign and scale (absorbed by the orthonormalization).
+        """
         s = x * x + y * y
+        mmax = max(abs(m) for _, m in self.terms)
         re, im = [1.0 + 0 * x], [0 * x]
-        for _ in range(self.degree):
-            re.append(x * re[-1] - y * im[-1])
-            im.append(x * im[-1] + y * re[-1])
+        for _ in range(mmax):  # (x + i y)^(k+1) = (x + i y) (x + i y)^k
+            re_k, im_k = re[-1], im[-1]
+            re.append(x * re_k - y * im_k)
+            im.append(x * im_k + y * re_k)
+        radial = {a: _jacobi((self.degree - a) // 2, a, 1 - 2 * s) for a in range(mmax + 1)}
         bubble = 1 - s
         out = []
         for n, m in self.terms:
-            poly = 0 * x
-            for coef in _radial_coefficients(n, m):
-                poly = poly * s + coef
             ang = re[abs(m)] if m >= 0 else im[abs(m)]
-            out.append(bubble * poly * ang)
+            out.append(bubble * radial[abs(m)][(n - abs(m)) // 2] * ang)
         return out
 
     def evaluate(self, x, y) -> np.ndarray:
@@ -112,23 +131,30 @@ class ZernikeWallBasis:
         return self._grams[power]
 
     def _gram(self, laplacian: int) -> np.ndarray:
-        xi = ca.SX.sym("xi", 2)
-        raw = self._raw(xi[0], xi[1])
-        for _ in range(int(laplacian)):  # Delta commutes with the fixed linear transform
-            raw = [ca.trace(ca.hessian(r, xi)[0]) for r in raw]
-        f = ca.Function("f", [xi], [ca.mtimes(ca.DM(self.transform).T, ca.vertcat(*raw))])
-        # integrand: polynomial of degree <= 2 (degree + 2) in (x, y): Gauss-Legendre
-        # in rho (with weight rho) and the trapezoidal rule in t are exact.
-        nr = self.degree + 4
-        nt = 2 * self.degree + 8
-        g, w = np.polynomial.legendre.leggauss(nr)
-        rho, wr = 0.5 * (g + 1), 0.5 * w
-        t = 2 * np.pi * np.arange(nt) / nt
-        rr, tt = np.meshgrid(rho, t, indexing="ij")
-        ww = (wr * rho)[:, None] * np.full(nt, 2 * np.pi / nt)[None, :]
-        pts = np.vstack([(rr * np.cos(tt)).ravel(), (rr * np.sin(tt)).ravel()])
-        vals = np.asarray(f.map(pts.shape[1])(pts))  # (size, npts)
-        return (vals * ww.ravel()) @ vals.T
+        """``(Delta^t w_i, Delta^t w_j)_{L^2(B)}`` for ``t = laplacian``, exactly.
+
+        Each raw function is ``g(rho) trig(m t)`` with a polynomial ``g``, and
+        ``Delta (g trig) = (g'' + g'/rho - m^2 g/rho^2) trig``; the radial
+        derivatives are CasADi's exact ones on 1-D expressions. Angular
+        integrals are ``2 pi`` (m = 0), ``pi`` (equal signed m) or 0, and the
+        radial integrand is a polynomial of degree <= 2 degree + 5 in rho,
+        which Gauss-Legendre with ``degree + 4`` nodes integrates exactly.
+        """
+        r = ca.SX.sym("r")
+        nodes, weights = np.polynomial.legendre.leggauss(self.degree + 4)
+        rho, wr = 0.5 * (nodes + 1), 0.5 * weights * 0.5 * (nodes + 1)
+        vals = np.empty((self.size, rho.size))
+        for i, (n, m) in enumerate(self.terms):
+            a = abs(m)
+            g = (1 - r**2) * r**a * _jacobi((n - a) // 2, a, 1 - 2 * r**2)[(n - a) // 2]
+            for _ in range(int(laplacian)):
+                dg = ca.jacobian(g, r)
+                g = ca.jacobian(dg, r) + dg / r - a * a * g / r**2
+            vals[i] = np.asarray(ca.Function("g", [r], [g]).map(rho.size)(rho)).ravel()
+        ms = np.array([m for _, m in self.terms])
+        angular = np.where(ms == 0, 2 * np.pi, np.pi)[:, None] * (ms[:, None] == ms[None, :])
+        raw = angular * ((vals * wr) @ vals.T)
+        return self.transform.T @ raw @ self.transform
 
 
 # ----------------------------------------------------------------- Bessel basis
@@ -237,14 +263,14 @@ class DirichletEigenBasis:
 
 
 @lru_cache(maxsize=16)
-def make_basis(kind: str = "zernike", degree: int = 10, max_eigenvalue: float = 400.0):
+def make_basis(kind: str = "zernike", degree: int = 10, max_eigenvalue: float = 400.0, max_order: int | None = None):
     """Factory used by the options: ``"zernike"`` (degree) or ``"eigen"`` (M).
 
     Cached: bases are immutable and building the Gram matrices takes a
     noticeable fraction of a second.
     """
     if kind == "zernike":
-        return ZernikeWallBasis(degree)
+        return ZernikeWallBasis(degree, max_order)
     if kind == "eigen":
         return DirichletEigenBasis(max_eigenvalue)
     raise InputError(f"unknown velocity basis {kind!r}; choose from {BASES}")

@@ -1,0 +1,110 @@
+import numpy as np
+import pytest
+
+import casadi as ca
+
+from wss_nlp import geometry as geo
+from wss_nlp import measurement as meas
+from wss_nlp import radius as rad
+from wss_nlp.errors import InputError, SolverError
+from wss_nlp.solver import ipopt_options, run_nlpsol
+
+from conftest import geometry_problem
+
+
+@pytest.mark.parametrize("kind", ["erf", "arctan"])
+def test_forward_model_taylor(fourier_noise_free, kind):
+    """||F(c + e d) - F(c) - e J d|| must fall like e^2 (CasADi's exact Jacobian)."""
+    acq, _ = fourier_noise_free
+    prob = geometry_problem(acq)
+    model = meas.annulus_model(prob.grid, prob.center, prob.r0, prob.r1, 4)
+    c = ca.MX.sym("c", rad.n_coefficients(6))
+    f_expr = meas.magnitude_model(model, c, 0.2, kind)
+    fun = ca.Function("F", [c], [f_expr, ca.jacobian(f_expr, c)])
+    rng = np.random.default_rng(0)
+    c0 = np.zeros(rad.n_coefficients(6))
+    c0[0] = prob.r_ref
+    c0[1:] = 0.2 * rng.normal(size=c0.size - 1) / np.arange(1, c0.size) ** 0
+    d = rng.normal(size=c0.size)
+    f0, jac = (np.asarray(v) for v in fun(c0))
+    # numeric evaluation path must agree with the symbolic one
+    assert np.allclose(meas.magnitude_model(model, c0, 0.2, kind), f0.ravel(), atol=1e-13)
+    errs = []
+    for e in (1e-2, 5e-3, 2.5e-3, 1.25e-3):
+        fe = np.asarray(fun(c0 + e * d)[0]).ravel()
+        errs.append(np.linalg.norm(fe - f0.ravel() - e * (jac @ d)))
+    ratios = np.array(errs[:-1]) / np.array(errs[1:])
+    # second order: halving e divides the remainder by 4 (3.5..4.5 allows the O(e^3) term)
+    assert np.all((ratios > 3.5) & (ratios < 4.5)), ratios
+
+
+def test_noise_free_recovery_of_radius_in_VN(fourier_noise_free):
+    """The lumen's radius lies in V_4; noise-free data must give it back (rel. error < 1e-3)."""
+    acq, truth = fourier_noise_free
+    prob = geometry_problem(acq)
+    res = geo.solve_ipopt(prob, geo.GeometryOptions(n_fourier=4, alpha=1e-6))
+    phi = rad.uniform_angles(360)
+    rt = truth.radius_about(res.center, phi)
+    err = np.linalg.norm(res.radius(phi) - rt) / np.linalg.norm(rt)
+    assert res.stats.converged
+    assert err < 1e-3, err
+    # and about the true centre the coefficients themselves come back
+    assert np.allclose(res.coefficients[0], truth.lumen.coefficients[0], rtol=1e-3)
+
+
+@pytest.mark.parametrize("hessian", ["gauss-newton", "exact"])
+def test_projected_gauss_newton_agrees_with_ipopt(laminar_snr25, hessian):
+    acq, _ = laminar_snr25
+    prob = geometry_problem(acq)
+    opt = geo.GeometryOptions(hessian=hessian, tol=1e-12)
+    a = geo.solve_ipopt(prob, opt)
+    b = geo.solve_projected_gauss_newton(prob, opt)
+    assert a.stats.converged and b.stats.converged
+    # same strictly convex-near-solution functional: minimizers agree to solver tolerance
+    assert np.allclose(a.coefficients, b.coefficients, rtol=0, atol=1e-6 * a.coefficients[0])
+    assert a.stats.objective == pytest.approx(b.stats.objective, rel=1e-9)
+
+
+def test_box_constraint_active_both_solvers(laminar_snr25):
+    """With r1 below the true maximum radius the box binds; both solvers respect it and agree."""
+    acq, _ = laminar_snr25
+    prob = geometry_problem(acq)
+    prob.r1 = 12.0  # the ellipse reaches 13 mm
+    opt = geo.GeometryOptions(tol=1e-12)
+    a = geo.solve_ipopt(prob, opt)
+    b = geo.solve_projected_gauss_newton(prob, opt)
+    rb = rad.evaluate(a.coefficients, opt.box_angles())
+    assert a.box_active and rb.max() <= 12.0 + 1e-6
+    assert rad.evaluate(b.coefficients, opt.box_angles()).max() <= 12.0 + 1e-8
+    assert np.allclose(a.coefficients, b.coefficients, atol=1e-4)
+
+
+def test_inverted_box_is_an_input_error(laminar_snr25):
+    acq, _ = laminar_snr25
+    prob = geometry_problem(acq)
+    with pytest.raises(InputError, match="0 < r0 < r1"):
+        geo.GeometryProblem(prob.grid, prob.magnitude, prob.center, 14.0, 9.0, prob.r_ref)
+
+
+def test_ipopt_hard_failure_is_a_solver_error():
+    """A NaN in the objective is a hard failure: an error, never a returned iterate."""
+    x = ca.MX.sym("x")
+    solver = ca.nlpsol("s", "ipopt", {"x": x, "f": ca.sqrt(x - 2)}, ipopt_options(1e-8, 50))
+    with pytest.raises(SolverError, match="IPOPT"):
+        run_nlpsol(solver, "toy", x0=0.0)
+
+
+def test_iteration_limit_is_flagged_not_hidden(laminar_snr25):
+    acq, _ = laminar_snr25
+    res = geo.solve_ipopt(geometry_problem(acq), geo.GeometryOptions(max_iter=2))
+    assert not res.stats.converged
+    assert res.stats.status == "Maximum_Iterations_Exceeded"
+
+
+def test_prior_zero_shrinks_radius(laminar_snr25):
+    """eq. (tik1) literally (prior 'zero') biases the mean radius low; 'area' does not."""
+    acq, _ = laminar_snr25
+    prob = geometry_problem(acq)
+    area = geo.solve(prob, geo.GeometryOptions(alpha=0.05, prior="area")).coefficients[0]
+    zero = geo.solve(prob, geo.GeometryOptions(alpha=0.05, prior="zero")).coefficients[0]
+    assert zero < area - 0.01
