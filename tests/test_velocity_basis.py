@@ -72,3 +72,24 @@ def test_bessel_callback_derivative_matches_scipy():
     z = ca.MX.sym("z")
     f = ca.Function("f", [z], [ca.jacobian(vb.bessel_j(2)(z), z)])
     assert float(f(3.7)) == pytest.approx(scipy.special.jvp(2, 3.7), rel=1e-12)
+
+
+@pytest.mark.parametrize("m,k", [(0, 1), (3, 2), (7, 4), (12, 3)])
+def test_chebyshev_bessel_matches_scipy_with_derivatives(m, k):
+    j = scipy.special.jn_zeros(m, k)[-1]
+    coef = vb.bessel_chebyshev(m, float(j))
+    x = np.linspace(0, 1, 101)
+    assert np.abs(vb.clenshaw(coef, x) - scipy.special.jv(m, j * x)).max() < 1e-13
+    r = ca.SX.sym("r")
+    f = ca.Function("f", [r], [ca.jacobian(vb.clenshaw(coef, r), r)])
+    d = np.asarray(f.map(x.size)(x)).ravel()
+    # derivative of the interpolant: error grows ~ degree^2 x 1e-16
+    assert np.abs(d - j * scipy.special.jvp(m, j * x)).max() < 1e-10 * max(1.0, j)
+
+
+def test_eigen_symbolic_chebyshev_equals_callbacks():
+    b = vb.DirichletEigenBasis(150.0)
+    xi = ca.MX.sym("xi", 2)
+    f = ca.Function("f", [xi], [ca.jacobian(b.symbolic(xi), xi), ca.jacobian(b.symbolic(xi, exact_callbacks=True), xi)])
+    a, c = (np.asarray(v) for v in f([0.6, -0.8]))
+    assert np.abs(a - c).max() < 1e-10

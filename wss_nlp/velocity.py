@@ -61,23 +61,35 @@ class VelocityOptions:
         ``r_in`` of phi_R in mm; None means ``inner_fraction * min R``.
     inner_fraction : float
         Used when ``inner_radius`` is None. 1 makes phi_R a pure scaling for
-        a circular lumen, so a Poiseuille profile maps to ``1 - |xi|^2``.
-    quad_order : int
-        Sub-voxel points per axis for ``T~_h`` and ``|V_i cap Omega|``.
+        a circular lumen; smaller values make the map closer to the radial
+        stretch ``R(t) rho^eta`` near the wall, under which Poiseuille flow in
+        an elliptic or star-shaped pipe becomes nearly polynomial.
+
+    Notes
+    -----
+    Defaults come from a sweep over bases, penalties, ``r_in`` and beta on
+    four laminar-type phantoms (ellipse, circle, Fourier lumen, three-lobed
+    polynomial flow) and the turbulent one at h = 0.3-1.5 mm, SNR 25
+    (README, "How the defaults were chosen"): the Zernike basis with
+    ``||Delta^2 v||^2`` had the smallest worst-case laminar WSS error; the
+    eigenfunction basis with ``||Delta v||^2`` was 3-10x worse (Remark 3.4).
+    quad_order : int or None
+        Sub-voxel points per axis for ``T~_h`` and ``|V_i cap Omega|``; None
+        chooses from h and the vessel size (:func:`wss_nlp.measurement.auto_quad_order`).
     solver : {"ipopt", "cholesky"}
         The CasADi/IPOPT solve of the Tikhonov problem or a direct Cholesky solve.
     """
 
     basis: str = "zernike"
-    degree: int = 10
-    angular_order: int | None = None
+    degree: int = 20
+    angular_order: int | None = 6
     max_eigenvalue: float = 400.0
-    beta: float = 1e-4
-    laplacian_power: int = 1
+    beta: float = 5e-8
+    laplacian_power: int = 2
     eta: float = 2.0
     inner_radius: float | None = None
-    inner_fraction: float = 1.0
-    quad_order: int = 4
+    inner_fraction: float = 0.5
+    quad_order: int | None = None
     solver: str = "ipopt"
 
     def __post_init__(self):
@@ -159,16 +171,17 @@ def assemble(grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, cen
     """
     basis = options.make_basis() if basis is None else basis
     disk_map = options.make_map(coefficients, center)
-    vox = meas.lumen_voxels(grid, center, coefficients, options.quad_order)
+    q = meas.auto_quad_order(options.quad_order, grid, float(np.asarray(coefficients)[0]))
+    vox = meas.lumen_voxels(grid, center, coefficients, q)
     if vox.index.size == 0:  # more functions than voxels is fine: beta > 0 keeps the problem well-posed
         raise InputError("no voxel meets the reconstructed lumen; the geometry step failed to find a vessel")
     px, py = vox.px[vox.inside], vox.py[vox.inside]
     rho, t = disk_map.inverse(px, py)
-    values = basis.evaluate(np.minimum(rho, 1.0) * np.cos(t), np.minimum(rho, 1.0) * np.sin(t))
     rows = np.nonzero(vox.inside)[0]
     counts = vox.inside.sum(axis=1)
     avg = scipy.sparse.csr_matrix((1.0 / counts[rows], (rows, np.arange(rows.size))), shape=(vox.index.size, rows.size))
-    operator = np.asarray(avg @ values)
+    rho = np.minimum(rho, 1.0)
+    operator = basis.evaluate(rho * np.cos(t), rho * np.sin(t), average=avg)
     return VelocityProblem(
         operator=operator,
         weights=vox.fraction * grid.voxel_area,
@@ -181,12 +194,22 @@ def assemble(grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, cen
 
 
 def build_tikhonov(problem: VelocityProblem, beta: float):
-    """CasADi expression of the velocity functional; returns ``(c, f, residual)``."""
-    c = ca.MX.sym("c", problem.operator.shape[1])
-    sw = np.sqrt(problem.weights / problem.area)
-    residual = ca.DM(sw) * (ca.mtimes(ca.DM(problem.operator), c) - ca.DM(problem.data))
-    f = ca.sumsqr(residual) + beta / np.pi * ca.dot(c, ca.mtimes(ca.DM(problem.gram), c))
-    return c, f, residual
+    """CasADi expression of the velocity functional; returns ``(c, f)``.
+
+    Notes
+    -----
+    The misfit ``|W^{1/2}(T c - u)|^2 / A`` is expanded exactly as
+    ``c^T (T^T W T) c / A - 2 c^T T^T W u / A + u^T W u / A`` so the graph
+    holds ``n_basis^2`` numbers instead of the ``n_voxels x n_basis``
+    operator; the value is the same functional.
+    """
+    c = ca.MX.sym("c", problem.operator.shape[1])  # MX: matrix products stay single nodes
+    wt = problem.operator * (problem.weights / problem.area)[:, None]
+    quad = ca.DM(wt.T @ problem.operator + beta / np.pi * problem.gram)
+    lin = ca.DM(wt.T @ problem.data)
+    const = float(problem.data @ (problem.weights * problem.data) / problem.area)
+    f = ca.dot(c, ca.mtimes(quad, c)) - 2 * ca.dot(lin, c) + const
+    return c, f
 
 
 def solve_cholesky(problem: VelocityProblem, beta: float) -> np.ndarray:
@@ -204,7 +227,7 @@ def solve(problem: VelocityProblem, options: VelocityOptions, beta: float | None
 
     beta = options.beta if beta is None else beta
     if options.solver == "ipopt":
-        c, f, _ = build_tikhonov(problem, beta)
+        c, f = build_tikhonov(problem, beta)
         opts = ipopt_options(1e-12, 50, {"ipopt.hessian_constant": "yes"})
         solver = ca.nlpsol("velocity", "ipopt", {"x": c, "f": f}, opts)
         sol, stats = run_nlpsol(solver, "velocity (IPOPT)", x0=np.zeros(problem.operator.shape[1]))

@@ -39,9 +39,11 @@ def wss_expression(velocity_of_xi, n_fourier: int, r_in: float, eta: float):
     Parameters
     ----------
     velocity_of_xi : callable
-        ``(xi: MX 2-vector, p_v: MX) -> MX scalar``, the velocity on the
-        reference disk with parameters ``p_v`` (basis coefficients for a
-        reconstruction, anything for an analytic field).
+        ``(xi: 2-vector, p_v) -> scalar``, the velocity on the reference disk
+        as a CasADi expression with parameters ``p_v`` (basis coefficients
+        for a reconstruction, anything for an analytic field). Built in SX
+        (fast) unless the callable sets ``sx_ok = False`` (e.g. it calls
+        MX-only callbacks); ``n_params`` gives the length of ``p_v``.
     n_fourier, r_in, eta : geometry of phi_R.
 
     Notes
@@ -49,12 +51,13 @@ def wss_expression(velocity_of_xi, n_fourier: int, r_in: float, eta: float):
     ``tau = -mu * 1000 * n . (J^{-T} grad v)``: lengths in mm, velocity in
     m/s, ``mu`` in Pa s, so ``tau`` is in Pa.
     """
-    phi = ca.MX.sym("phi")
-    c_r = ca.MX.sym("c_R", rad.n_coefficients(n_fourier))
-    center = ca.MX.sym("center", 2)
-    mu = ca.MX.sym("mu")
-    xi = ca.MX.sym("xi", 2)
-    p_v = ca.MX.sym("p_v", velocity_of_xi.n_params if hasattr(velocity_of_xi, "n_params") else 1)
+    sym = ca.SX if getattr(velocity_of_xi, "sx_ok", True) else ca.MX
+    phi = sym.sym("phi")
+    c_r = sym.sym("c_R", rad.n_coefficients(n_fourier))
+    center = sym.sym("center", 2)
+    mu = sym.sym("mu")
+    xi = sym.sym("xi", 2)
+    p_v = sym.sym("p_v", getattr(velocity_of_xi, "n_params", 1))
     x = symbolic_forward(xi, c_r, center, r_in, eta)
     v = velocity_of_xi(xi, p_v)
     jac = ca.jacobian(x, xi)
