@@ -27,8 +27,13 @@ _V = vel.VelocityOptions()
 
 def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("geometry (Sec. 2, 7.1)")
-    g.add_argument("--alpha", type=float, default=_G.alpha,
-                   help="Tikhonov parameter of the H^s radius penalty; dimensionless (default %(default)g)")
+    g.add_argument("--alpha", default=str(_G.alpha),
+                   help="Tikhonov parameter of the H^s radius penalty (dimensionless), or 'auto' for the "
+                        "discrepancy principle, eq. (disc) (default %(default)s)")
+    g.add_argument("--tau-alpha", type=float, default=ReconstructionOptions.tau_alpha,
+                   help="discrepancy factor for alpha (default %(default)g; the paper's theory uses 4)")
+    g.add_argument("--noise-magnitude", type=float, default=None,
+                   help="noise level delta of the normalized magnitude in mm (default: estimated)")
     g.add_argument("--n-fourier", type=int, default=_G.n_fourier,
                    help="highest harmonic N of the radius R(phi) (default %(default)s)")
     g.add_argument("--sobolev", type=int, default=_G.sobolev_s, help="order s of the H^s penalty (default %(default)s)")
@@ -45,8 +50,14 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--hessian", choices=["gauss-newton", "exact", "limited-memory"], default=_G.hessian,
                    help="Hessian used by IPOPT (default %(default)s)")
     v = p.add_argument_group("velocity (Sec. 3, 7.2)")
-    v.add_argument("--beta", type=float, default=_V.beta,
-                   help="Tikhonov parameter of the ||Delta^t v||^2 penalty; dimensionless (default %(default)g)")
+    v.add_argument("--beta", default=str(_V.beta),
+                   help="Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless; default %(default)s), "
+                        "or a rule: 'gcv' (generalized cross-validation), 'auto' (discrepancy principle, "
+                        "eq. (disc2)), 'lcurve'")
+    v.add_argument("--tau-beta", type=float, default=ReconstructionOptions.tau_beta,
+                   help="discrepancy factor for beta (default %(default)g; the paper's theory uses 2)")
+    v.add_argument("--noise-velocity", type=float, default=None,
+                   help="noise level epsilon of the velocity in m/s (default: estimated)")
     v.add_argument("--laplacian-power", type=int, choices=[1, 2], default=_V.laplacian_power,
                    help="t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5 (default %(default)s)")
     v.add_argument("--basis", choices=["zernike", "eigen"], default=_V.basis,
@@ -69,16 +80,35 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
                    help="skip the second pass that corrects the magnitude for intra-voxel dephasing (needs venc)")
 
 
+def _rule(text: str, rules: tuple, name: str):
+    """``(rule, value)`` from an option that is a number or a rule name ('auto' = discrepancy)."""
+    word = text.strip().lower()
+    if word == "auto":
+        return "discrepancy", None
+    if word in rules:
+        return word, None
+    try:
+        value = float(word)
+    except ValueError:
+        raise InputError(f"--{name} must be a number or one of auto, {', '.join(r for r in rules if r != 'fixed' and r != 'discrepancy')}"
+                         f"; got {text!r}") from None
+    return "fixed", value
+
+
 def options_from_args(args) -> ReconstructionOptions:
+    alpha_rule, alpha = _rule(args.alpha, ("fixed", "discrepancy"), "alpha")
+    beta_rule, beta = _rule(args.beta, ("fixed", "discrepancy", "gcv", "lcurve"), "beta")
     gopt = geo.GeometryOptions(
-        n_fourier=args.n_fourier, alpha=args.alpha, sobolev_s=args.sobolev, prior=args.prior, gamma=args.gamma,
+        n_fourier=args.n_fourier, alpha=alpha if alpha is not None else _G.alpha, sobolev_s=args.sobolev, prior=args.prior, gamma=args.gamma,
         heaviside=args.heaviside, quad_order=args.quad_order, solver=args.geometry_solver, hessian=args.hessian)
     vopt = vel.VelocityOptions(
-        basis=args.basis, degree=args.degree, angular_order=args.angular_order, max_eigenvalue=args.max_eigenvalue, beta=args.beta,
+        basis=args.basis, degree=args.degree, angular_order=args.angular_order, max_eigenvalue=args.max_eigenvalue, beta=beta if beta is not None else _V.beta,
         laplacian_power=args.laplacian_power, eta=args.eta, inner_fraction=args.inner_fraction,
         quad_order=args.quad_order, solver=args.velocity_solver)
     return ReconstructionOptions(geometry=gopt, velocity=vopt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity,
-                                 dephasing_correction=args.dephasing_correction)
+                                 dephasing_correction=args.dephasing_correction, alpha_rule=alpha_rule,
+                                 beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,
+                                 noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity)
 
 
 def _progress(stream):

@@ -122,6 +122,7 @@ class GeometryResult:
     alpha: float
     gamma: float
     residual_norm: float  # ||F(R) - m||_{L^2(D)} in mm
+    annulus_residual_norm: float  # the same on the annulus voxels only (what the discrepancy principle uses)
     penalty: float  # ||R - R_ref||_{H^s}^2 in mm^2
     stats: SolverStats
     box: tuple[float, float] = (0.0, 0.0)
@@ -137,7 +138,8 @@ class TikhonovNLP:
     """CasADi pieces of the geometry functional (returned by :func:`build_tikhonov`)."""
 
     c: ca.MX  # decision variables
-    f: ca.MX  # objective J(c)
+    alpha: ca.MX  # regularization parameter (an NLP parameter)
+    f: ca.MX  # objective J(c; alpha)
     g: ca.MX  # box-constraint expression R(phi_j)
     residual: ca.MX  # weighted residual on the annulus, J = |residual|^2 + penalty
     penalty: ca.MX  # ||R - R_ref||^2_{H^s}
@@ -171,6 +173,7 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions) -> Tikhon
     model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, quad_order(problem, options))
     gamma = effective_gamma(problem, options)
     c = ca.MX.sym("c", rad.n_coefficients(n))
+    alpha = ca.MX.sym("alpha")  # a parameter, so one solver serves a whole alpha sequence
     m = problem.magnitude.ravel()
     area = problem.grid.voxel_area
     residual = np.sqrt(area) * (meas.magnitude_model(model, c, gamma, options.heaviside) - ca.DM(m[model.annulus]))
@@ -180,11 +183,11 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions) -> Tikhon
     w = rad.sobolev_weights(n, options.sobolev_s)
     dc = c - ca.DM(ref)
     penalty = ca.dot(ca.DM(w) * dc, dc)
-    f = ca.sumsqr(residual) + options.alpha * penalty
+    f = ca.sumsqr(residual) + alpha * penalty
     g = ca.mtimes(ca.DM(rad.design_matrix(options.box_angles(), n)), c)
     outside = np.setdiff1d(np.arange(m.size), np.concatenate([model.annulus, model.inside]))
     const = area * (np.sum((1 - m[model.inside]) ** 2) + np.sum(m[outside] ** 2))
-    return TikhonovNLP(c, f, g, residual, penalty, ref, w, model, gamma, float(const))
+    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, float(const))
 
 
 def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
@@ -194,7 +197,7 @@ def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
     return c0
 
 
-def _finish(problem, options, nlp, coef, stats) -> GeometryResult:
+def _finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
     fun = ca.Function("parts", [nlp.c], [ca.sumsqr(nlp.residual), nlp.penalty])
     mis, pen = (float(v) for v in fun(coef))
     r_box = rad.evaluate(coef, options.box_angles())
@@ -203,9 +206,10 @@ def _finish(problem, options, nlp, coef, stats) -> GeometryResult:
     return GeometryResult(
         coefficients=np.asarray(coef, dtype=float).ravel(),
         center=tuple(problem.center),
-        alpha=options.alpha,
+        alpha=float(alpha),
         gamma=nlp.gamma,
         residual_norm=float(np.sqrt(mis + nlp.constant_misfit)),
+        annulus_residual_norm=float(np.sqrt(mis)),
         penalty=pen,
         stats=stats,
         box=(problem.r0, problem.r1),
@@ -214,32 +218,44 @@ def _finish(problem, options, nlp, coef, stats) -> GeometryResult:
     )
 
 
-def solve_ipopt(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
-    """Minimize the geometry functional with IPOPT; the box goes to IPOPT.
+class IpoptGeometrySolver:
+    """IPOPT for the geometry functional, built once and reused for any alpha.
 
     ``options.hessian = "gauss-newton"`` passes ``2 (J^T J + alpha W)`` as the
     Hessian of the Lagrangian (the constraints are linear), following
     CasADi's ``sysid.py`` example; "exact" uses CasADi's exact Hessian.
     """
-    nlp = build_tikhonov(problem, options)
-    opts = ipopt_options(options.tol, options.max_iter)
-    if options.hessian == "gauss-newton":
-        jac = ca.jacobian(nlp.residual, nlp.c)
-        hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * options.alpha * ca.diag(ca.DM(nlp.weights)))
-        sigma = ca.MX.sym("sigma")
-        opts["hess_lag"] = ca.Function(
-            "nlp_hess_l",
-            {"x": nlp.c, "lam_f": sigma, "hess_gamma_x_x": sigma * hess},
-            ["x", "p", "lam_f", "lam_g"],
-            ["hess_gamma_x_x"],
-        )
-    elif options.hessian == "limited-memory":
-        opts["ipopt.hessian_approximation"] = "limited-memory"
-    solver = ca.nlpsol("geometry", "ipopt", {"x": nlp.c, "f": nlp.f, "g": nlp.g}, opts)
-    x0 = initial_guess(problem, options.n_fourier) if x0 is None else np.asarray(x0, dtype=float)
-    sol, stats = run_nlpsol(solver, "geometry (IPOPT)", x0=x0, lbg=problem.r0, ubg=problem.r1)
-    stats.extra["hessian"] = options.hessian
-    return _finish(problem, options, nlp, np.asarray(sol["x"]).ravel(), stats)
+
+    def __init__(self, problem: GeometryProblem, options: GeometryOptions):
+        self.problem, self.options = problem, options
+        nlp = self.nlp = build_tikhonov(problem, options)
+        opts = ipopt_options(options.tol, options.max_iter)
+        if options.hessian == "gauss-newton":
+            jac = ca.jacobian(nlp.residual, nlp.c)
+            hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights)))
+            sigma = ca.MX.sym("sigma")
+            opts["hess_lag"] = ca.Function(
+                "nlp_hess_l",
+                {"x": nlp.c, "p": nlp.alpha, "lam_f": sigma, "hess_gamma_x_x": sigma * hess},
+                ["x", "p", "lam_f", "lam_g"],
+                ["hess_gamma_x_x"],
+            )
+        elif options.hessian == "limited-memory":
+            opts["ipopt.hessian_approximation"] = "limited-memory"
+        self.solver = ca.nlpsol("geometry", "ipopt", {"x": nlp.c, "p": nlp.alpha, "f": nlp.f, "g": nlp.g}, opts)
+
+    def solve(self, alpha: float | None = None, x0=None) -> GeometryResult:
+        alpha = self.options.alpha if alpha is None else float(alpha)
+        x0 = initial_guess(self.problem, self.options.n_fourier) if x0 is None else np.asarray(x0, dtype=float)
+        sol, stats = run_nlpsol(self.solver, "geometry (IPOPT)", x0=x0, p=alpha, lbg=self.problem.r0,
+                                ubg=self.problem.r1)
+        stats.extra["hessian"] = self.options.hessian
+        return _finish(self.problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
+
+
+def solve_ipopt(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
+    """Minimize the geometry functional with IPOPT; the box goes to IPOPT."""
+    return IpoptGeometrySolver(problem, options).solve(options.alpha, x0)
 
 
 def _project_box(y, hmat, box_matrix, r0, r1):
@@ -264,7 +280,8 @@ def _project_box(y, hmat, box_matrix, r0, r1):
     return res.x
 
 
-def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
+def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOptions, x0=None,
+                                 alpha: float | None = None) -> GeometryResult:
     """The paper's projected Gauss-Newton method (Sec. 7.1) with a line search.
 
     Notes
@@ -278,8 +295,9 @@ def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOpti
     """
     t_start = time.perf_counter()
     nlp = build_tikhonov(problem, options)
+    alpha = options.alpha if alpha is None else float(alpha)
     fun = ca.Function("gn", [nlp.c], [nlp.residual, ca.jacobian(nlp.residual, nlp.c)])
-    objective = ca.Function("J", [nlp.c], [nlp.f])
+    objective = ca.Function("J", [nlp.c], [ca.substitute(nlp.f, nlp.alpha, alpha)])
     w = nlp.weights
     box_matrix = rad.design_matrix(options.box_angles(), options.n_fourier)
     c = initial_guess(problem, options.n_fourier) if x0 is None else np.asarray(x0, dtype=float).copy()
@@ -289,8 +307,8 @@ def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOpti
     for it in range(1, options.max_iter + 1):
         r, jac = (np.asarray(v) for v in fun(c))
         r = r.ravel()
-        grad = jac.T @ r + options.alpha * w * (c - nlp.reference)
-        hmat = jac.T @ jac + options.alpha * np.diag(w)
+        grad = jac.T @ r + alpha * w * (c - nlp.reference)
+        hmat = jac.T @ jac + alpha * np.diag(w)
         step = -np.linalg.solve(hmat, grad)
         t = 1.0
         while True:
@@ -317,7 +335,7 @@ def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOpti
         objective=f_c,
         seconds=time.perf_counter() - t_start,
     )
-    return _finish(problem, options, nlp, c, stats)
+    return _finish(problem, options, nlp, c, stats, alpha)
 
 
 def solve(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:

@@ -13,6 +13,7 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
+from . import analysis as an
 from . import geometry as geo
 from . import measurement as meas
 from . import preprocess as pp
@@ -27,19 +28,52 @@ from .measurement import VoxelGrid
 DEPHASING_THRESHOLD = 0.01
 
 
+ALPHA_RULES = ("fixed", "discrepancy")
+BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve")
+
+
 @dataclass(frozen=True)
 class ReconstructionOptions:
-    """Everything that controls a reconstruction (stored in the result file)."""
+    """Everything that controls a reconstruction (stored in the result file).
+
+    ``alpha_rule`` / ``beta_rule`` choose the regularization parameters:
+    "fixed" uses ``geometry.alpha`` / ``velocity.beta``; "discrepancy"
+    searches ``p0 2^-n`` for the largest value whose residual is at most
+    ``tau`` times the estimated (or given) noise level, eqs. (disc),
+    (disc2); for beta also "gcv" and "lcurve" (see :mod:`wss_nlp.analysis`).
+    The defaults (fixed alpha and beta) and tau = 1.1 come from
+    ``scripts/parameter_rules.py`` (README, "Choosing alpha and beta"): no
+    data-driven rule has yet beaten the fixed values on every phantom.
+    """
 
     geometry: geo.GeometryOptions = field(default_factory=geo.GeometryOptions)
     velocity: vel.VelocityOptions = field(default_factory=vel.VelocityOptions)
     n_phi: int = 360
     viscosity_pa_s: float | None = None  # overrides the file's value when set
     dephasing_correction: bool = True  # needs venc; see measurement.dephasing_factors
+    alpha_rule: str = "fixed"
+    beta_rule: str = "fixed"
+    tau_alpha: float = 1.1
+    tau_beta: float = 1.1
+    alpha_start: float = 1.0
+    beta_start: float = 1e-2
+    noise_magnitude: float | None = None  # delta in mm; estimated when None
+    noise_velocity: float | None = None  # epsilon in m/s; estimated when None
 
     def __post_init__(self):
         if self.n_phi < 360:
             raise InputError(f"n_phi must be >= 360 (file format), got {self.n_phi}")
+        if self.alpha_rule not in ALPHA_RULES:
+            raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
+        if self.beta_rule not in BETA_RULES:
+            raise InputError(f"beta rule must be one of {BETA_RULES}, got {self.beta_rule!r}")
+        for name in ("tau_alpha", "tau_beta", "alpha_start", "beta_start"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("noise_magnitude", "noise_velocity"):
+            val = getattr(self, name)
+            if val is not None and not val > 0:
+                raise InputError(f"{name} must be > 0, got {val}")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -59,6 +93,8 @@ class SliceResult:
     magnitude: np.ndarray  # normalized, (ny, nx)
     velocity_image: np.ndarray  # measured velocity, (ny, nx)
     seconds: dict = field(default_factory=dict)
+    alpha_choice: an.ParameterChoice | None = None
+    beta_choice: an.ParameterChoice | None = None
 
     @property
     def converged(self) -> bool:
@@ -70,6 +106,11 @@ class SliceResult:
         for name, st in (("geometry", self.geometry.stats), ("velocity", self.velocity.stats)):
             if not st.converged:
                 out.append(f"slice {self.index}: {name} solve did not converge ({st.solver}: {st.status})")
+        for ch in (self.alpha_choice, self.beta_choice):
+            if ch is not None and ch.rule == "discrepancy" and not ch.satisfied:
+                out.append(f"slice {self.index}: no {ch.name} reached residual <= {ch.tau:g} x noise "
+                           f"({ch.noise:.3g}); model error dominates, took {ch.name} = {ch.chosen:.3g} where the "
+                           "residual stopped falling")
         if self.geometry.box_active:
             out.append(f"slice {self.index}: the radius reached the box [{self.geometry.box[0]:.3g}, "
                        f"{self.geometry.box[1]:.3g}] mm; the lumen may not be star-shaped about the centre")
@@ -107,12 +148,13 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
 
     t0 = time.perf_counter()
     problem = geo.GeometryProblem(grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area)
-    g = geo.solve(problem, options.geometry)
+    g, alpha_choice = choose_alpha(problem, magnitude, norm, lumen, options, where)
     t["geometry"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity)
-    v = vel.solve(vp, options.velocity)
+    beta_choice = choose_beta(vp, magnitude, lumen, venc, options, where)
+    v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
 
     factors = None
@@ -124,9 +166,9 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
         m_corr = m.copy().ravel()
         m_corr[vp.voxels.index] = np.clip(m_corr[vp.voxels.index] / np.maximum(factors, 1e-3), 0.0, 1.0)
         problem = geo.GeometryProblem(grid, m_corr.reshape(m.shape), lumen.center, lumen.r0, lumen.r1, lumen.r_area)
-        g = geo.solve(problem, options.geometry, x0=g.coefficients)
+        g = geo.solve(problem, geo.with_options(options.geometry, alpha=g.alpha), x0=g.coefficients)
         vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity, basis=vp.basis)
-        v = vel.solve(vp, options.velocity)
+        v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -135,7 +177,77 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
     t["min_dephasing_factor"] = float(np.min(factors)) if factors is not None else 1.0
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
-    return SliceResult(index, g, v, w, norm, lumen, grid, m, np.asarray(velocity_image, float), t)
+    return SliceResult(index, g, v, w, norm, lumen, grid, m, np.asarray(velocity_image, float), t,
+                       alpha_choice, beta_choice)
+
+
+def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str):
+    """Geometry solve with alpha fixed or from the discrepancy principle (eq. (disc)).
+
+    The residual and the noise level are both taken on the annulus voxels
+    (see :mod:`wss_nlp.analysis`); each solve starts from the previous one.
+    """
+    gopt = options.geometry
+    if options.alpha_rule == "fixed":
+        g = geo.solve(problem, gopt)
+        return g, an.ParameterChoice("alpha", "fixed", g.alpha)
+    if gopt.solver == "ipopt":
+        solver = geo.IpoptGeometrySolver(problem, gopt)
+        annulus = solver.nlp.model.annulus
+
+        def run(alpha, prev):
+            return solver.solve(alpha, None if prev is None else prev.coefficients)
+    else:
+        annulus = geo.build_tikhonov(problem, gopt).model.annulus
+
+        def run(alpha, prev):
+            return geo.solve_projected_gauss_newton(problem, gopt, None if prev is None else prev.coefficients, alpha)
+    if options.noise_magnitude is not None:
+        noise = an.NoiseEstimate(options.noise_magnitude, "given (--noise-magnitude)")
+    else:
+        noise = an.magnitude_noise(problem.magnitude, raw, lumen.mask, norm.m0, norm.m1, problem.grid.voxel_area,
+                                   annulus, where.rstrip())
+
+    def solve(alpha, prev):
+        r = run(alpha, prev)
+        return r, r.annulus_residual_norm
+
+    g, choice = an.discrepancy_search(solve, options.alpha_start, noise.value, options.tau_alpha)
+    choice.name, choice.noise_method = "alpha", noise.method
+    return g, choice
+
+
+def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str):
+    """beta fixed, from the discrepancy principle (eq. (disc2), with the residual), GCV or the L-curve.
+
+    The searches use direct Cholesky solves of the (linear) velocity problem;
+    the chosen beta is then solved with the configured solver.
+    """
+    rule = options.beta_rule
+    if rule == "fixed":
+        return an.ParameterChoice("beta", "fixed", options.velocity.beta)
+    if rule == "discrepancy":
+        if options.noise_velocity is not None:
+            noise = an.NoiseEstimate(options.noise_velocity, "given (--noise-velocity)")
+        else:
+            noise = an.velocity_noise(vp.data_image, raw, lumen.mask, vp.voxels.index, vp.weights, venc,
+                                      where.rstrip())
+
+        def solve(beta, prev):
+            c = vel.solve_cholesky(vp, beta)
+            fitted = vp.operator @ c
+            return c, float(np.sqrt(np.sum(vp.weights * (fitted - vp.data) ** 2) / vp.area))
+
+        _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta)
+        choice.name, choice.noise_method = "beta", noise.method
+        return choice
+    betas = an.geometric_grid(options.beta_start, 1e-14)
+    gcv, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
+    if rule == "gcv":
+        i = int(np.argmin(gcv))
+        return an.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
+    i, k = an.lcurve_corner(res, pen)
+    return an.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
 
 
 def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> list[SliceResult]:

@@ -120,6 +120,7 @@ class VelocityProblem:
     operator: np.ndarray  # (n_vox, n_basis): T~_h
     weights: np.ndarray  # (n_vox,) |V_i cap Omega| in mm^2
     data: np.ndarray  # (n_vox,) measured velocity in m/s
+    data_image: np.ndarray  # (ny, nx) the whole measured velocity image
     gram: np.ndarray  # (n_basis, n_basis) Laplacian Gram matrix on B
     voxels: meas.LumenVoxels
     disk_map: DiskMap
@@ -186,6 +187,7 @@ def assemble(grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, cen
         operator=operator,
         weights=vox.fraction * grid.voxel_area,
         data=np.asarray(velocity_image, dtype=float).ravel()[vox.index],
+        data_image=np.asarray(velocity_image, dtype=float),
         gram=basis.laplacian_gram(options.laplacian_power),
         voxels=vox,
         disk_map=disk_map,
