@@ -222,6 +222,32 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def cmd_analyze(args) -> int:
+    choices = wio.read_choices(args.result)
+    for name, per in choices.items():
+        print(f"{name}:")
+        if not per:
+            print("  (no parameter-choice record: written by an older version)")
+        for ch in per.values():
+            print(f"  {ch.name}: rule '{ch.rule}', chosen {ch.chosen:.4g}")
+            if ch.rule == "discrepancy":
+                print(f"    noise {ch.noise:.4g} ({ch.noise_method}); threshold tau x noise = {ch.threshold:.4g}"
+                      + ("" if ch.satisfied else "; NOT reached (model error dominates)"))
+            if ch.parameters.size:
+                head = f"    {'parameter':>12} {'residual':>12}" + (f" {'criterion':>12}" if ch.criterion.size else "")
+                print(head)
+                for i, p in enumerate(ch.parameters):
+                    mark = "  <- chosen" if p == ch.chosen else ""
+                    crit = f" {ch.criterion[i]:12.4g}" if ch.criterion.size else ""
+                    print(f"    {p:12.4g} {ch.residuals[i]:12.4g}{crit}{mark}")
+    if args.figures:
+        from .plotting import save_parameter_figures
+
+        paths = save_parameter_figures(choices, args.figures)
+        print(f"{len(paths)} figure(s) in {args.figures}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     out = args.output_dir
     os.makedirs(out, exist_ok=True)
@@ -292,6 +318,11 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("-o", "--output", required=True, help="input file to write")
     ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
     ph.set_defaults(func=cmd_phantom)
+
+    a = sub.add_parser("analyze", help="how alpha and beta were chosen (table and residual curves)")
+    a.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
+    a.add_argument("--figures", default=None, help="folder for residual-vs-parameter PNGs")
+    a.set_defaults(func=cmd_analyze)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")
     c.add_argument("result")

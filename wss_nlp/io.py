@@ -279,6 +279,16 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
                              "eta": v.disk_map.eta, "residual_norm_m_s": v.residual_norm,
                              "penalty": v.penalty, "options_json": json.dumps(v.options, default=str)})
             _stats_attrs(vg, v.stats, "solver_")
+            for ch in (r.alpha_choice, r.beta_choice):
+                if ch is None:
+                    continue
+                ag = s.create_group(f"analysis/{ch.name}")
+                ag["parameters"] = np.asarray(ch.parameters, dtype=float)
+                ag["residuals"] = np.asarray(ch.residuals, dtype=float)
+                ag["criterion"] = np.asarray(ch.criterion, dtype=float)
+                ag.attrs.update({"rule": ch.rule, "chosen": float(ch.chosen), "noise": float(ch.noise),
+                                 "noise_method": ch.noise_method, "tau": float(ch.tau),
+                                 "satisfied": bool(ch.satisfied)})
 
 
 def read_result(path) -> list[dict]:
@@ -325,4 +335,28 @@ def read_result(path) -> list[dict]:
             if "velocity_true_m_s" in s:
                 d["velocity_true"] = s["velocity_true_m_s"][()]
             out.append(d)
+    return out
+
+
+def read_choices(path) -> dict:
+    """``{slice name: {"alpha": ParameterChoice, "beta": ParameterChoice}}`` from a result file."""
+    import h5py
+
+    from .analysis import ParameterChoice
+
+    read_result(path)  # validates the file and its slices
+    out = {}
+    with h5py.File(path, "r") as f:
+        for name in sorted(k for k in f if k.startswith("slice_")):
+            out[name] = {}
+            for which in ("alpha", "beta"):
+                key = f"{name}/analysis/{which}"
+                if key not in f:
+                    continue
+                g = f[key]
+                a = g.attrs
+                out[name][which] = ParameterChoice(
+                    which, str(a["rule"]), float(a["chosen"]), g["parameters"][()], g["residuals"][()],
+                    float(a["noise"]), str(a["noise_method"]), float(a["tau"]), bool(a["satisfied"]),
+                    g["criterion"][()])
     return out

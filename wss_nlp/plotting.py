@@ -138,3 +138,40 @@ def save_figures(res, folder, truth=None, prefix: str = "") -> list[str]:
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+def figure_parameter_choice(choice):
+    """Residual (or criterion) against the parameter, with the threshold and the choice marked."""
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    sym = r"\alpha" if choice.name == "alpha" else r"\beta"
+    if choice.rule in ("discrepancy", "lcurve") and choice.residuals.size:
+        ax.loglog(choice.parameters, choice.residuals, "o-", ms=3, label="residual")
+        if choice.rule == "discrepancy":
+            ax.axhline(choice.threshold, color="tab:red", ls="--",
+                       label=rf"$\tau \cdot$ noise = {choice.tau:g} x {choice.noise:.3g}")
+        ax.set_ylabel("residual")
+    elif choice.rule == "gcv" and choice.criterion.size:
+        ax.loglog(choice.parameters, choice.criterion, "o-", ms=3, label="GCV")
+        ax.set_ylabel("GCV")
+    ax.axvline(choice.chosen, color="tab:green", label=rf"chosen ${sym}$ = {choice.chosen:.3g}")
+    ax.set(xlabel=rf"${sym}$", title=f"{choice.name}: rule '{choice.rule}'"
+           + ("" if choice.satisfied else " (inequality not reached)"))
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def save_parameter_figures(choices: dict, folder: str) -> list[str]:
+    """One PNG per slice and parameter with a search to show."""
+    os.makedirs(folder, exist_ok=True)
+    paths = []
+    for slice_name, per in choices.items():
+        for ch in per.values():
+            if ch.rule == "fixed":
+                continue
+            fig = figure_parameter_choice(ch)
+            path = os.path.join(folder, f"{slice_name}_{ch.name}_{ch.rule}.png")
+            fig.savefig(path, dpi=110)
+            plt.close(fig)
+            paths.append(path)
+    return paths

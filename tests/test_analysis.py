@@ -1,0 +1,125 @@
+import numpy as np
+import pytest
+
+from wss_nlp import analysis as an
+from wss_nlp.cli import main
+
+
+def test_discrepancy_returns_largest_admissible_parameter():
+    """Residual curve r(p) = 1 + 10 p: with noise 1 and tau 2 the admissible set is p <= 0.1."""
+    calls = []
+
+    def solve(p, prev):
+        calls.append((p, prev))
+        return p, 1 + 10 * p
+
+    res, ch = an.discrepancy_search(solve, 1.0, noise=1.0, tau=2.0)
+    assert ch.satisfied and ch.chosen == pytest.approx(2.0**-4)  # 0.0625 is the first power of 1/2 below 0.1
+    assert ch.chosen == max(p for p in ch.parameters if 1 + 10 * p <= 2.0)
+    assert calls[0][1] is None and all(prev == p * 2 for p, prev in calls[1:])  # warm start from the previous
+
+
+def test_discrepancy_model_error_floor_falls_back_to_the_stagnation_point():
+    """r(p) = 3 + p never reaches 1.1: take the largest p within 2 % of the floor, flagged."""
+    _, ch = an.discrepancy_search(lambda p, prev: (p, 3 + 50 * p), 1.0, noise=1.0, tau=1.1, max_steps=40)
+    assert not ch.satisfied
+    assert ch.residuals[list(ch.parameters).index(ch.chosen)] <= 1.02 * ch.residuals.min()
+    assert ch.chosen == max(p for p, r in zip(ch.parameters, ch.residuals) if r <= 1.02 * ch.residuals.min())
+
+
+def test_gcv_matches_dense_hat_matrix(rng):
+    """The n_basis-sized GCV formula against the explicit n x n influence matrix."""
+    n, k = 80, 12
+    t = rng.normal(size=(n, k))
+    w = rng.uniform(0.2, 1.0, n)
+    u = t @ rng.normal(size=k) + 0.1 * rng.normal(size=n)
+    g = np.diag(np.arange(1, k + 1.0) ** 4)
+    betas = np.array([1e-1, 1e-3, 1e-5])
+    gcv, res, _ = an.gcv_curve(t, w, u, g, betas)
+    ww = np.diag(w / w.sum())
+    s = np.sqrt(ww)
+    for b, val, r in zip(betas, gcv, res):
+        hat = s @ t @ np.linalg.solve(t.T @ ww @ t + b / np.pi * g, t.T @ s)
+        resid = s @ u - hat @ (s @ u)
+        assert r == pytest.approx(np.linalg.norm(resid), rel=1e-10)
+        assert val == pytest.approx(n * resid @ resid / (n - np.trace(hat)) ** 2, rel=1e-10)
+
+
+def test_gcv_minimum_on_a_diagonal_problem_with_known_optimum():
+    """Diagonal problem, coefficients x_i = 1, white noise: GCV's minimizer tracks the predictive-risk optimum."""
+    rng = np.random.default_rng(7)
+    n = 400
+    s = np.logspace(0, -3, n)
+    x = np.ones(n)
+    sigma = 1e-2
+    u = s * x + sigma * rng.normal(size=n)
+    betas = np.logspace(0, -9, 91)
+    gcv, _, _ = an.gcv_curve(np.diag(s), np.ones(n), u, np.pi * np.eye(n), betas)
+    # weights are normalized to sum 1, so the filter is s^2 / (s^2 + n beta); expected predictive risk
+    # sum (nb/(s^2+nb))^2 s^2 x^2 + sigma^2 sum (s^2/(s^2+nb))^2, minimized on the same grid
+    risk = [np.sum((n * b / (s**2 + n * b)) ** 2 * s**2) + sigma**2 * np.sum((s**2 / (s**2 + n * b)) ** 2)
+            for b in betas]
+    b_gcv, b_risk = betas[np.argmin(gcv)], betas[np.argmin(risk)]
+    assert abs(np.log10(b_gcv / b_risk)) <= 0.5  # GCV is asymptotically risk-optimal; half a decade on n = 400
+
+
+def test_lcurve_corner_of_a_known_curve():
+    """Points on y = x^2 (t in [-1, 1]): the largest curvature is at the vertex t = 0."""
+    t = np.linspace(-1, 1, 41)
+    i, k = an.lcurve_corner(np.exp(t), np.exp(t**2))  # the corner finder works in log-log coordinates
+    assert t[i] == pytest.approx(0.0, abs=1e-12)
+
+
+def test_noise_estimators_on_synthetic_noise():
+    """A disk on a Rayleigh background with known complex noise sigma; velocity noise from the phase."""
+    rng = np.random.default_rng(11)
+    n, sigma, venc = 96, 0.05, 1.0
+    yy, xx = np.mgrid[:n, :n]
+    mask = np.hypot(xx - 47.5, yy - 47.5) < 30
+    clean = mask.astype(float)
+    d = clean + sigma * (rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n)))
+    raw = np.abs(d)
+    assert an.complex_noise_sigma(raw, mask) == pytest.approx(sigma, rel=0.05)  # 3000+ background voxels
+    vel = venc * np.angle(d) / np.pi
+    idx = np.flatnonzero(mask)
+    w = np.ones(idx.size)
+    est = an.velocity_noise(vel, raw, mask, idx, w, venc)
+    true = np.sqrt(np.mean(vel.ravel()[idx] ** 2))  # the clean velocity is zero
+    assert est.value == pytest.approx(true, rel=0.1)
+    hp = an.velocity_noise(vel, raw, mask, idx, w, None)
+    assert hp.value == pytest.approx(true, rel=0.1)
+    m = np.clip((raw - 0.05) / 0.95, 0, 1)
+    region = np.arange(n * n)
+    delta = an.magnitude_noise(m, raw, mask, 0.05, 1.0, 1.0, region)
+    true_delta = np.sqrt(np.sum((m - clean) ** 2))
+    assert delta.value == pytest.approx(true_delta, rel=0.2)
+
+
+def test_no_background_names_the_option():
+    mask = np.ones((30, 30), dtype=bool)
+    mask[0] = mask[-1] = mask[:, 0] = mask[:, -1] = False
+    with pytest.raises(an.NoiseEstimationError, match="--noise-magnitude"):
+        an.magnitude_noise(np.ones((30, 30)), np.ones((30, 30)), mask, 0.0, 1.0, 1.0, np.arange(900))
+    with pytest.raises(an.NoiseEstimationError, match="--noise-velocity"):
+        an.velocity_noise(np.zeros((30, 30)), np.ones((30, 30)), np.zeros((30, 30), bool), np.arange(3),
+                          np.ones(3), None)
+
+
+@pytest.mark.parametrize("beta", ["auto", "gcv", "lcurve"])
+def test_reconstruct_records_choice_and_analyze_prints_it(tmp_path, capsys, beta):
+    inp, out = tmp_path / "in.h5", tmp_path / "out.h5"
+    assert main(["phantom", "--case", "circle", "--h", "1.0", "--seed", "3", "-o", str(inp)]) == 0
+    args = ["reconstruct", str(inp), "-o", str(out), "--beta", beta]
+    if beta == "auto":
+        args += ["--alpha", "auto"]
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main(["analyze", str(out), "--figures", str(tmp_path / "figs")]) == 0
+    text = capsys.readouterr().out
+    assert "chosen" in text and "<- chosen" in text
+    assert len(list((tmp_path / "figs").glob("*.png"))) == (2 if beta == "auto" else 1)
+
+
+def test_bad_rule_is_a_usage_error(tmp_path, capsys):
+    assert main(["reconstruct", "x.h5", "-o", str(tmp_path / "o.h5"), "--beta", "magic"]) == 2
+    assert "--beta" in capsys.readouterr().err
