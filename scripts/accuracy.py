@@ -18,6 +18,7 @@ import time
 
 import numpy as np
 
+from _report import write_report
 from wss_nlp import metrics, phantoms
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
 
@@ -75,10 +76,7 @@ def main(argv=None):
         )
     lines += ["", "*Targets checked on every seed: radius error <= 0.5 % (all phantoms) and WSS error <= 5 % "
               "(laminar only; the issue sets no WSS target for the turbulent phantom)."]
-    text = "\n".join(lines)
-    with open(os.path.join(args.out, "accuracy.md"), "w") as fh:
-        fh.write(text + "\n")
-    print(text)
+    write_report(args.out, "accuracy.md", lines)
 
 
 if __name__ == "__main__":

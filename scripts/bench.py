@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from _report import write_report
 from wss_nlp import phantoms
 from wss_nlp import velocity_basis as vb
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
@@ -54,10 +55,7 @@ def main(argv=None):
         target = ("yes" if total < TARGET_S else "NO") if h == 0.3 else ""
         ny, nx = acq.magnitude.shape[1:]
         lines.append(f"| {h:g} | {nx} x {ny} | " + " | ".join(f"{t:.3f}" for t in med) + f" | {total:.2f} | {target} |")
-    text = "\n".join(lines)
-    with open(os.path.join(args.out, "bench.md"), "w") as fh:
-        fh.write(text + "\n")
-    print(text)
+    write_report(args.out, "bench.md", lines)
 
 
 if __name__ == "__main__":

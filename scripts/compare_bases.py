@@ -16,10 +16,9 @@ import os
 
 import numpy as np
 
-import casadi as ca
-
+from _report import write_report
 from wss_nlp import geometry as geo
-from wss_nlp import phantoms, radius as rad, velocity as vel, wss
+from wss_nlp import phantoms, velocity as vel, wss
 from wss_nlp import preprocess as pp
 
 CONFIGS = {
@@ -31,16 +30,6 @@ CONFIGS = {
 }
 BETAS = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 5e-8, 1e-8, 1e-9, 1e-10]
 LAMINAR = ("laminar", "manufactured", "fourier")
-
-
-def wss_matrix(vp, mu, n_phi=360):
-    dm = vp.disk_map
-    f = wss.wss_expression(wss._BasisVelocity(vp.basis), rad.n_fourier_from_size(dm.coefficients.size), dm.r_in, dm.eta)
-    ph, cc, ce, p = ca.SX.sym("ph"), ca.SX.sym("cc", dm.coefficients.size), ca.SX.sym("ce", 2), ca.SX.sym("p", vp.basis.size)
-    tau, xw = f(ph, cc, ce, p, mu)
-    g = ca.Function("g", [ph, cc, ce], [ca.jacobian(tau, p), xw]).map(n_phi)
-    a, xw = g(rad.uniform_angles(n_phi)[None, :], dm.coefficients, np.array(dm.center))
-    return np.asarray(a).reshape(n_phi, vp.basis.size), np.asarray(xw)
 
 
 def main(argv=None):
@@ -64,7 +53,7 @@ def main(argv=None):
                 for name, kw in CONFIGS.items():
                     vo = vel.VelocityOptions(solver="cholesky", **kw)
                     vp = vel.assemble(acq.grid, u, g.coefficients, g.center, vo)
-                    a, xw = wss_matrix(vp, acq.viscosity_pa_s)
+                    a, xw = wss.wss_matrix(vp.basis, vp.disk_map, acq.viscosity_pa_s)
                     tt = truth.wss_at_points(xw[0], xw[1])
                     for b in BETAS:
                         tau = a @ vel.solve_cholesky(vp, b)
@@ -80,11 +69,7 @@ def main(argv=None):
         lam = max(err[name][best][c] for c in LAMINAR)
         turb_best = min(err[name][b]["turbulent"] for b in BETAS)
         lines.append(f"| {name} | {best:g} | {lam:.1%} | {err[name][best]['turbulent']:.1%} | {turb_best:.1%} |")
-    text = "\n".join(lines)
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, "compare_bases.md"), "w") as fh:
-        fh.write(text + "\n")
-    print(text)
+    write_report(args.out, "compare_bases.md", lines)
 
 
 if __name__ == "__main__":

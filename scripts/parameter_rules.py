@@ -18,12 +18,13 @@ import os
 
 import numpy as np
 
-from compare_bases import wss_matrix
+from _report import write_report
 from wss_nlp import analysis as an
 from wss_nlp import geometry as geo
 from wss_nlp import phantoms
 from wss_nlp import preprocess as pp
 from wss_nlp import velocity as vel
+from wss_nlp import wss
 
 RULES = ("fixed", "DP tau=1.1", "DP tau=2", "GCV", "L-curve")
 
@@ -52,7 +53,7 @@ def main(argv=None):
                                   geo.GeometryOptions())
                     vo = vel.VelocityOptions()
                     vp = vel.assemble(acq.grid, u, g.coefficients, g.center, vo)
-                    a, xw = wss_matrix(vp, acq.viscosity_pa_s)
+                    a, xw = wss.wss_matrix(vp.basis, vp.disk_map, acq.viscosity_pa_s)
                     tt = truth.wss_at_points(xw[0], xw[1])
 
                     def err(b):
@@ -91,11 +92,7 @@ def main(argv=None):
     within = {k: np.mean([r[k] <= 1.25 for *_, r, _ in rows]) for k in RULES}
     lines += ["", "Share of rows within 1.25x of the oracle: "
               + ", ".join(f"{k} {v:.0%}" for k, v in within.items()) + "."]
-    text = "\n".join(lines)
-    os.makedirs(args.out, exist_ok=True)
-    with open(os.path.join(args.out, "parameter_rules.md"), "w") as fh:
-        fh.write(text + "\n")
-    print(text)
+    write_report(args.out, "parameter_rules.md", lines)
 
 
 if __name__ == "__main__":

@@ -69,3 +69,21 @@ def test_transpose_matters():
 def test_mean_of_constant_is_constant():
     phi = rad.uniform_angles(400)
     assert rad.arc_length_mean(np.full(400, 2.5), rad.evaluate(COEF, phi), rad.evaluate(COEF, phi, 1)) == pytest.approx(2.5)
+
+
+def test_wss_matrix_equals_direct_evaluation(laminar_snr25):
+    """tau is linear in the velocity coefficients: A c must equal the direct evaluation."""
+    from wss_nlp import geometry as geo
+    from wss_nlp import velocity as vel
+
+    from conftest import geometry_problem
+
+    acq, _ = laminar_snr25
+    g = geo.solve(geometry_problem(acq), geo.GeometryOptions())
+    vo = vel.VelocityOptions(degree=8, angular_order=4)
+    vp = vel.assemble(acq.grid, acq.velocity_images()[0], g.coefficients, g.center, vo)
+    res = vel.solve(vp, vo)
+    direct = wss.from_reconstruction(res, 360, 3.5e-3)
+    a, xw = wss.wss_matrix(vp.basis, vp.disk_map, 3.5e-3)
+    assert np.allclose(a @ res.coefficients, direct.tau, rtol=1e-10, atol=1e-12)
+    assert np.allclose(xw[0], direct.wall_x, atol=1e-12)

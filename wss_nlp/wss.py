@@ -106,3 +106,19 @@ def from_reconstruction(velocity_result, n_phi: int, viscosity_pa_s: float) -> W
     dm = velocity_result.disk_map
     return evaluate(rad.uniform_angles(n_phi), dm.coefficients, dm.center, _BasisVelocity(velocity_result.basis),
                     velocity_result.coefficients, dm.r_in, dm.eta, viscosity_pa_s)
+
+
+def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tuple[np.ndarray, np.ndarray]:
+    """``A`` with ``tau = A c`` for velocity coefficients ``c``, and the wall points.
+
+    tau is linear in the velocity coefficients for a fixed geometry, so one
+    CasADi Jacobian per angle gives the whole map; used for fast parameter
+    studies (one matrix serves every beta).
+    """
+    dm = disk_map
+    f = wss_expression(_BasisVelocity(basis), rad.n_fourier_from_size(dm.coefficients.size), dm.r_in, dm.eta)
+    ph, cc, ce, p = ca.SX.sym("ph"), ca.SX.sym("cc", dm.coefficients.size), ca.SX.sym("ce", 2), ca.SX.sym("p", basis.size)
+    tau, xw = f(ph, cc, ce, p, viscosity_pa_s)
+    g = ca.Function("g", [ph, cc, ce], [ca.jacobian(tau, p), xw]).map(n_phi)
+    a, xw = g(rad.uniform_angles(n_phi)[None, :], dm.coefficients, np.array(dm.center))
+    return np.asarray(a).reshape(n_phi, basis.size), np.asarray(xw)
