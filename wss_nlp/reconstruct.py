@@ -198,7 +198,8 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
         def run(alpha, prev):
             return solver.solve(alpha, None if prev is None else prev.coefficients)
     else:
-        annulus = geo.build_tikhonov(problem, gopt).model.annulus
+        annulus = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1,
+                                     geo.quad_order(problem, gopt)).annulus
 
         def run(alpha, prev):
             return geo.solve_projected_gauss_newton(problem, gopt, None if prev is None else prev.coefficients, alpha)
