@@ -137,5 +137,7 @@ def test_alpha_discrepancy_same_choice_with_both_geometry_solvers(laminar_snr25)
         out.append(reconstruct(acq, opts)[0])
     a, b = (r.alpha_choice for r in out)
     assert a.satisfied and a.chosen == b.chosen
-    # same minimizers along the way: residuals agree to solver tolerance
-    assert np.allclose(a.residuals, b.residuals, rtol=1e-6)
+    # same minimizers along the way. Projected GN stops on a relative step of sqrt(tol) = 1e-6 and IPOPT on
+    # scaled optimality, so residuals agree to ~1e-5 (measured 1.5e-5); 1e-4 is still 2500x below the 25 %
+    # gaps between consecutive residuals that decide the choice.
+    assert np.allclose(a.residuals, b.residuals, rtol=1e-4)
