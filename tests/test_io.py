@@ -128,3 +128,14 @@ def test_cli_exit_code_and_no_output(good, tmp_path, capsys, name):
     err = capsys.readouterr().err
     assert str(bad) in err and message in err
     assert not out.exists() and not list(tmp_path.glob("*.part"))
+
+
+def test_written_file_has_umask_permissions(tmp_path):
+    target = tmp_path / "perm.h5"
+    old = os.umask(0o022)
+    try:
+        with wio.atomic_h5(target) as f:
+            f["x"] = np.arange(3)
+    finally:
+        os.umask(old)
+    assert (target.stat().st_mode & 0o777) == 0o644
