@@ -66,7 +66,7 @@ def main(argv=None):
 
                     def solve(b, prev):
                         c = vel.solve_cholesky(vp, b)
-                        return c, float(np.sqrt(np.sum(vp.weights * (vp.operator @ c - vp.data) ** 2) / vp.area))
+                        return c, vp.residual_norm(c)
 
                     gcv, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, grid)
                     chosen = {

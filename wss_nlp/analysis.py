@@ -25,6 +25,7 @@ import numpy as np
 import scipy.ndimage
 
 from .errors import InputError
+from .preprocess import robust_std, where_prefix
 
 #: Fewest plateau voxels on which a noise level is estimated.
 MIN_PLATEAU_VOXELS = 20
@@ -62,7 +63,7 @@ def magnitude_noise(m: np.ndarray, raw: np.ndarray, mask: np.ndarray, m0: float,
     Units: mm (an L^2(D) norm of a dimensionless image).
     """
     inner, outer = _plateaus(mask)
-    where = f"{source}: " if source else ""
+    where = where_prefix(source)
     if outer.sum() < MIN_PLATEAU_VOXELS:
         raise NoiseEstimationError(f"{where}cannot estimate the magnitude noise: no background in the field of view; "
                                    "pass --noise-magnitude (delta, mm) or a fixed --alpha")
@@ -71,8 +72,7 @@ def magnitude_noise(m: np.ndarray, raw: np.ndarray, mask: np.ndarray, m0: float,
                                    "pass --noise-magnitude (delta, mm) or a fixed --alpha")
     msq_in = float(np.mean((1 - m[inner]) ** 2))
     msq_out = float(np.mean(m[outer] ** 2))
-    lumen_raw = raw[inner]
-    var_wall = float((1.4826 * np.median(np.abs(lumen_raw - np.median(lumen_raw))) / (m1 - m0)) ** 2)
+    var_wall = (robust_std(raw[inner]) / (m1 - m0)) ** 2
     flat_in, flat_out = inner.ravel()[region], outer.ravel()[region]
     flat_wall = ~(flat_in | flat_out)
     total = msq_in * flat_in.sum() + msq_out * flat_out.sum() + var_wall * flat_wall.sum()
@@ -113,7 +113,7 @@ def velocity_noise(velocity: np.ndarray, raw: np.ndarray, mask: np.ndarray, voxe
     lumen plateau: ``r = u - (mean of the 4 neighbours)`` has variance
     ``1.25 sigma_u^2`` for white noise.
     """
-    where = f"{source}: " if source else ""
+    where = where_prefix(source)
     sigma = complex_noise_sigma(raw, mask)
     if venc is not None and np.isfinite(sigma):
         mag = np.maximum(raw.ravel()[voxel_index], 1e-300)
@@ -129,7 +129,7 @@ def velocity_noise(velocity: np.ndarray, raw: np.ndarray, mask: np.ndarray, voxe
     u = velocity
     nb = 0.25 * (np.roll(u, 1, 0) + np.roll(u, -1, 0) + np.roll(u, 1, 1) + np.roll(u, -1, 1))
     r = (u - nb)[inner]
-    s = 1.4826 * float(np.median(np.abs(r - np.median(r)))) / np.sqrt(1.25)
+    s = robust_std(r) / np.sqrt(1.25)
     return NoiseEstimate(s, "high-pass: MAD of u minus its 4-neighbour mean on the lumen plateau", {})
 
 

@@ -90,8 +90,8 @@ def _rule(text: str, rules: tuple, name: str):
     try:
         value = float(word)
     except ValueError:
-        raise InputError(f"--{name} must be a number or one of auto, {', '.join(r for r in rules if r != 'fixed' and r != 'discrepancy')}"
-                         f"; got {text!r}") from None
+        words = ["auto"] + [r for r in rules if r not in ("fixed", "discrepancy")]
+        raise InputError(f"--{name} must be a number or one of {', '.join(words)}; got {text!r}") from None
     return "fixed", value
 
 

@@ -25,8 +25,15 @@ MIN_LUMEN_VOXELS = 12
 MIN_CONTRAST_TO_NOISE = 4.0
 
 
-def _where(source: str) -> str:
+def where_prefix(source: str) -> str:
+    """``"source: "`` for error messages, or nothing when there is no source name."""
     return f"{source}: " if source else ""
+
+
+def robust_std(values) -> float:
+    """``1.4826 x median |x - median x|``: the standard deviation for Gaussian data, robust to outliers."""
+    values = np.asarray(values, dtype=float)
+    return 1.4826 * float(np.median(np.abs(values - np.median(values))))
 
 
 @dataclass
@@ -69,7 +76,7 @@ def histogram_peaks(magnitude: np.ndarray, source: str = "") -> Normalization:
     no contrast, or when the lumen peak is not clearly above the background
     (contrast-to-noise ratio below :data:`MIN_CONTRAST_TO_NOISE`).
     """
-    src = _where(source)
+    src = where_prefix(source)
     vals = np.asarray(magnitude, dtype=float).ravel()
     lo, hi = np.percentile(vals, [0.5, 99.5])
     if not hi > lo:
@@ -80,7 +87,7 @@ def histogram_peaks(magnitude: np.ndarray, source: str = "") -> Normalization:
     if low.size == 0 or high.size == 0:
         raise NoVesselError(f"{src}magnitude histogram is not bimodal: no vessel in view")
     m0, m1 = _peak(low, bins), _peak(high, bins)
-    spread = 1.4826 * float(np.median(np.abs(low - np.median(low))))
+    spread = robust_std(low)
     norm = Normalization(m0=m0, m1=m1, threshold=thr, background_spread=spread)
     if not m1 > m0 or norm.contrast_to_noise < MIN_CONTRAST_TO_NOISE:
         raise NoVesselError(
@@ -121,7 +128,7 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "") -> Lumen:
     enough never to bind at the solution of a star-shaped lumen, tight
     enough to keep the forward model small.
     """
-    src = _where(source)
+    src = where_prefix(source)
     labels, n = scipy.ndimage.label(m > 0.5)
     if n == 0:
         raise NoVesselError(f"{src}no voxel of the normalized magnitude exceeds 1/2: no vessel in view")

@@ -236,8 +236,7 @@ def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: Reconstructi
 
         def solve(beta, prev):
             c = vel.solve_cholesky(vp, beta)
-            fitted = vp.operator @ c
-            return c, float(np.sqrt(np.sum(vp.weights * (fitted - vp.data) ** 2) / vp.area))
+            return c, vp.residual_norm(c)
 
         _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta)
         choice.name, choice.noise_method = "beta", noise.method

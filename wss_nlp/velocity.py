@@ -130,6 +130,10 @@ class VelocityProblem:
     def area(self) -> float:
         return float(np.sum(self.weights))
 
+    def residual_norm(self, coefficients) -> float:
+        """``sqrt(sum_i |V_i cap Omega| (T_i c - u_i)^2 / |Omega|)`` in m/s: the misfit the rules compare with epsilon."""
+        return float(np.sqrt(np.sum(self.weights * (self.operator @ coefficients - self.data) ** 2) / self.area))
+
     def normal_equations(self, beta: float) -> tuple[np.ndarray, np.ndarray]:
         """``H c = g`` with ``H = T^T W T / A + beta G / pi``, ``g = T^T W u / A``."""
         wt = self.operator * (self.weights / self.area)[:, None]
@@ -237,20 +241,17 @@ def solve(problem: VelocityProblem, options: VelocityOptions, beta: float | None
     else:
         t0 = time.perf_counter()
         coef = solve_cholesky(problem, beta)
-        hmat, g = problem.normal_equations(beta)
-        obj = float(coef @ hmat @ coef - 2 * g @ coef + problem.data @ (problem.weights * problem.data) / problem.area)
+        obj = problem.residual_norm(coef) ** 2 + beta / np.pi * float(coef @ problem.gram @ coef)
         stats = SolverStats("cholesky", "Solve_Succeeded", True, 1, obj, time.perf_counter() - t0)
-    fitted = problem.operator @ coef
-    res = float(np.sqrt(np.sum(problem.weights * (fitted - problem.data) ** 2) / problem.area))
     return VelocityResult(
         coefficients=coef,
         beta=beta,
-        residual_norm=res,
+        residual_norm=problem.residual_norm(coef),
         penalty=float(coef @ problem.gram @ coef / np.pi),
         stats=stats,
         disk_map=problem.disk_map,
         basis=problem.basis,
-        fitted=fitted,
+        fitted=problem.operator @ coef,
         voxel_index=problem.voxels.index,
         voxel_fraction=problem.voxels.fraction,
         options=dict(vars(options)),
