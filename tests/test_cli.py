@@ -40,7 +40,9 @@ def test_reconstruct_and_compare(files, capsys):
         assert {"alpha", "beta", "converged"} <= set(s.attrs)
         for key in ("wss_nlp_version", "casadi_version", "ipopt_version", "command_line", "created_utc", "options_json"):
             assert key in f.attrs
-        assert json.loads(f.attrs["options_json"])["geometry"]["alpha"] == geo.GeometryOptions().alpha
+        recorded = json.loads(f.attrs["options_json"])
+        assert recorded["geometry"]["alpha"] == geo.GeometryOptions().alpha
+        assert recorded["dephasing_beta_rule"] == "gcv"
     assert len(list((d / "figs").glob("*.png"))) == 4
     capsys.readouterr()
     assert main(["compare", str(out), str(truth)]) == 0

@@ -78,6 +78,9 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--n-phi", type=int, default=360, help="angles at which tau is reported, >= 360 (default 360)")
     w.add_argument("--no-dephasing-correction", dest="dephasing_correction", action="store_false",
                    help="skip the second pass that corrects the magnitude for intra-voxel dephasing (needs venc)")
+    w.add_argument("--dephasing-beta", choices=["gcv", "same"], default="gcv",
+                   help="beta of the velocity fit that predicts dephasing: GCV (default; keeps steep boundary "
+                        "layers) or the same beta as the WSS fit")
 
 
 def _rule(text: str, rules: tuple, name: str):
@@ -106,7 +109,8 @@ def options_from_args(args) -> ReconstructionOptions:
         laplacian_power=args.laplacian_power, eta=args.eta, inner_fraction=args.inner_fraction,
         quad_order=args.quad_order, solver=args.velocity_solver)
     return ReconstructionOptions(geometry=gopt, velocity=vopt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity,
-                                 dephasing_correction=args.dephasing_correction, alpha_rule=alpha_rule,
+                                 dephasing_correction=args.dephasing_correction,
+                                 dephasing_beta_rule=args.dephasing_beta, alpha_rule=alpha_rule,
                                  beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,
                                  noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity)
 

@@ -9,7 +9,7 @@ numbers, the solver statistics and what was assumed.
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -24,12 +24,16 @@ from .io import Acquisition
 from .measurement import VoxelGrid
 
 
+#: Smallest beta of the GCV and L-curve grids (below it the normal matrix loses definiteness in double precision).
+BETA_STOP = 1e-14
+
 #: Smallest predicted magnitude loss (1 - D_i) that triggers the dephasing pass.
 DEPHASING_THRESHOLD = 0.01
 
 
 ALPHA_RULES = ("fixed", "discrepancy")
 BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve")
+DEPHASING_BETA_RULES = ("gcv", "same")
 
 
 @dataclass(frozen=True)
@@ -51,6 +55,7 @@ class ReconstructionOptions:
     n_phi: int = 360
     viscosity_pa_s: float | None = None  # overrides the file's value when set
     dephasing_correction: bool = True  # needs venc; see measurement.dephasing_factors
+    dephasing_beta_rule: str = "gcv"  # beta of the velocity that predicts dephasing: "gcv" or "same"
     alpha_rule: str = "fixed"
     beta_rule: str = "fixed"
     tau_alpha: float = 1.1
@@ -65,6 +70,9 @@ class ReconstructionOptions:
             raise InputError(f"n_phi must be >= 360 (file format), got {self.n_phi}")
         if self.alpha_rule not in ALPHA_RULES:
             raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
+        if self.dephasing_beta_rule not in DEPHASING_BETA_RULES:
+            raise InputError(f"dephasing beta rule must be one of {DEPHASING_BETA_RULES}, "
+                             f"got {self.dephasing_beta_rule!r}")
         if self.beta_rule not in BETA_RULES:
             raise InputError(f"beta rule must be one of {BETA_RULES}, got {self.beta_rule!r}")
         for name in ("tau_alpha", "tau_beta", "alpha_start", "beta_start"):
@@ -159,7 +167,14 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
 
     factors = None
     if options.dephasing_correction and venc is not None:
-        factors = meas.dephasing_factors(vp.voxels, v.evaluate_physical, venc, near_wall=(g.coefficients, grid.h))
+        # Dephasing is set by the velocity variation inside wall voxels, which a beta tuned for WSS may smooth
+        # away (turbulent boundary layers); GCV targets the voxel-level prediction that matters here.
+        v_deph = v
+        if options.dephasing_beta_rule == "gcv":
+            v_deph = vel.solve(vp, replace(options.velocity, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
+        factors = meas.dephasing_factors(vp.voxels, v_deph.evaluate_physical, venc,
+                                         near_wall=(g.coefficients, grid.h))
+        t["dephasing_beta"] = float(v_deph.beta)
     # a second pass only pays where some wall voxel loses more than 1 % of its magnitude
     if factors is not None and np.min(factors) < 1 - DEPHASING_THRESHOLD:
         t0 = time.perf_counter()
@@ -241,13 +256,20 @@ def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: Reconstructi
         _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta)
         choice.name, choice.noise_method = "beta", noise.method
         return choice
-    betas = an.geometric_grid(options.beta_start, 1e-14)
-    gcv, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
     if rule == "gcv":
-        i = int(np.argmin(gcv))
-        return an.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
+        return gcv_beta(vp, options)
+    betas = an.geometric_grid(options.beta_start, BETA_STOP)
+    _, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
     i, k = an.lcurve_corner(res, pen)
     return an.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
+
+
+def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.ParameterChoice:
+    """beta minimizing GCV on the grid ``beta_start 2^-n`` down to ``BETA_STOP``."""
+    betas = an.geometric_grid(options.beta_start, BETA_STOP)
+    gcv, res, _ = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
+    i = int(np.argmin(gcv))
+    return an.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
 
 
 def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> list[SliceResult]:
