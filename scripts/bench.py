@@ -22,7 +22,7 @@ from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_S = 2.0  # issue: a 0.3 mm slice in under 2 s in total on 2 cores
 
-STAGES = ("preprocess", "geometry", "velocity", "dephasing_pass", "wss")
+STAGES = ("preprocess", "geometry", "velocity", "dephasing_check", "dephasing_pass", "wss")
 
 
 def main(argv=None):

@@ -166,6 +166,7 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
     t["velocity"] = time.perf_counter() - t0
 
     factors = None
+    t0 = time.perf_counter()
     if options.dephasing_correction and venc is not None:
         # Dephasing is set by the velocity variation inside wall voxels, which a beta tuned for WSS may smooth
         # away (turbulent boundary layers); GCV targets the voxel-level prediction that matters here.
@@ -175,6 +176,7 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
         factors = meas.dephasing_factors(vp.voxels, v_deph.evaluate_physical, venc,
                                          near_wall=(g.coefficients, grid.h))
         t["dephasing_beta"] = float(v_deph.beta)
+    t["dephasing_check"] = time.perf_counter() - t0
     # a second pass only pays where some wall voxel loses more than 1 % of its magnitude
     if factors is not None and np.min(factors) < 1 - DEPHASING_THRESHOLD:
         t0 = time.perf_counter()
