@@ -13,6 +13,7 @@ import time
 import numpy as np
 
 from . import __version__
+from . import coupled as cpl
 from . import geometry as geo
 from . import io as wio
 from . import metrics
@@ -72,6 +73,15 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
                    help="inner radius of phi_R as a fraction of min R (default %(default)g)")
     v.add_argument("--velocity-solver", choices=["ipopt", "cholesky"], default=_V.solver,
                    help="CasADi/IPOPT (default) or direct Cholesky solve")
+    c = p.add_argument_group("method")
+    c.add_argument("--method", choices=["decoupled", "coupled"], default="decoupled",
+                   help="decoupled: geometry, then velocity (the paper's); coupled: both as one NLP started from "
+                        "the decoupled solution, so the velocity data inform the wall too")
+    c.add_argument("--velocity-weight", type=float, default=None,
+                   help="coupled: weight of the velocity misfit in mm^2/(m/s)^2 (default: the likelihood weight "
+                        "from the estimated noise levels)")
+    c.add_argument("--coupled-quad-order", type=int, default=cpl.CoupledOptions().quad_order,
+                   help="coupled: sub-voxel points per axis of the velocity misfit (default %(default)s)")
     w = p.add_argument_group("wall shear stress (Sec. 4)")
     w.add_argument("--viscosity", type=float, default=None,
                    help="dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'")
@@ -108,7 +118,8 @@ def options_from_args(args) -> ReconstructionOptions:
         basis=args.basis, degree=args.degree, angular_order=args.angular_order, max_eigenvalue=args.max_eigenvalue, beta=beta if beta is not None else _V.beta,
         laplacian_power=args.laplacian_power, eta=args.eta, inner_fraction=args.inner_fraction,
         quad_order=args.quad_order, solver=args.velocity_solver)
-    return ReconstructionOptions(geometry=gopt, velocity=vopt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity,
+    copt = cpl.CoupledOptions(velocity_weight=args.velocity_weight, quad_order=args.coupled_quad_order)
+    return ReconstructionOptions(geometry=gopt, velocity=vopt, method=args.method, coupled=copt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity,
                                  dephasing_correction=args.dephasing_correction,
                                  dephasing_beta_rule=args.dephasing_beta, alpha_rule=alpha_rule,
                                  beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,

@@ -197,7 +197,8 @@ def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
     return c0
 
 
-def _finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
+def finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
+    """GeometryResult of coefficients ``coef`` of the functional ``nlp`` (misfits, penalty, box activity)."""
     fun = ca.Function("parts", [nlp.c], [ca.sumsqr(nlp.residual), nlp.penalty])
     mis, pen = (float(v) for v in fun(coef))
     r_box = rad.evaluate(coef, options.box_angles())
@@ -250,7 +251,7 @@ class IpoptGeometrySolver:
         sol, stats = run_nlpsol(self.solver, "geometry (IPOPT)", x0=x0, p=alpha, lbg=self.problem.r0,
                                 ubg=self.problem.r1)
         stats.extra["hessian"] = self.options.hessian
-        return _finish(self.problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
+        return finish(self.problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
 
 
 def solve_ipopt(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
@@ -335,7 +336,7 @@ def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOpti
         objective=f_c,
         seconds=time.perf_counter() - t_start,
     )
-    return _finish(problem, options, nlp, c, stats, alpha)
+    return finish(problem, options, nlp, c, stats, alpha)
 
 
 def solve(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:

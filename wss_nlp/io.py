@@ -255,6 +255,9 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
             s.attrs["converged"] = bool(r.converged)
             s.attrs["warnings"] = json.dumps(r.warnings)
             s.attrs["seconds_json"] = json.dumps(r.seconds)
+            s.attrs["method"] = getattr(r, "method", "decoupled")
+            if getattr(r, "coupled_info", None):
+                s.attrs["coupled_json"] = json.dumps(r.coupled_info)
             gg = s.create_group("geometry")
             gg["center_mm"] = np.asarray(g.center, dtype=float)
             gg["coefficients"] = g.coefficients

@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from . import analysis as an
+from . import coupled as cpl
 from . import geometry as geo
 from . import measurement as meas
 from . import preprocess as pp
@@ -34,6 +35,7 @@ DEPHASING_THRESHOLD = 0.01
 ALPHA_RULES = ("fixed", "discrepancy")
 BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve")
 DEPHASING_BETA_RULES = ("gcv", "same")
+METHODS = ("decoupled", "coupled")
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,8 @@ class ReconstructionOptions:
 
     geometry: geo.GeometryOptions = field(default_factory=geo.GeometryOptions)
     velocity: vel.VelocityOptions = field(default_factory=vel.VelocityOptions)
+    method: str = "decoupled"  # "coupled": one NLP for geometry and velocity, started from the decoupled solution
+    coupled: cpl.CoupledOptions = field(default_factory=cpl.CoupledOptions)
     n_phi: int = 360
     viscosity_pa_s: float | None = None  # overrides the file's value when set
     dephasing_correction: bool = True  # needs venc; see measurement.dephasing_factors
@@ -68,6 +72,8 @@ class ReconstructionOptions:
     def __post_init__(self):
         if self.n_phi < 360:
             raise InputError(f"n_phi must be >= 360 (file format), got {self.n_phi}")
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {METHODS}, got {self.method!r}")
         if self.alpha_rule not in ALPHA_RULES:
             raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
         if self.dephasing_beta_rule not in DEPHASING_BETA_RULES:
@@ -103,6 +109,8 @@ class SliceResult:
     seconds: dict = field(default_factory=dict)
     alpha_choice: an.ParameterChoice | None = None
     beta_choice: an.ParameterChoice | None = None
+    method: str = "decoupled"
+    coupled_info: dict = field(default_factory=dict)  # weight, how it was chosen, the decoupled start's numbers
 
     @property
     def converged(self) -> bool:
@@ -188,6 +196,12 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = time.perf_counter() - t0
 
+    info = {}
+    if options.method == "coupled":
+        t0 = time.perf_counter()
+        g, v, info = solve_coupled(problem, g, v, magnitude, norm, lumen, velocity_image, venc, options, where)
+        t["coupled"] = time.perf_counter() - t0
+
     t0 = time.perf_counter()
     w = wss_mod.from_reconstruction(v, options.n_phi, viscosity_pa_s)
     t["wss"] = time.perf_counter() - t0
@@ -195,7 +209,26 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
     return SliceResult(index, g, v, w, norm, lumen, grid, m, np.asarray(velocity_image, float), t,
-                       alpha_choice, beta_choice)
+                       alpha_choice, beta_choice, options.method, info)
+
+
+def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options: ReconstructionOptions, where: str):
+    """The coupled NLP started from the decoupled ``(g, v)``, with the same alpha and beta.
+
+    Returns the coupled geometry and velocity results and a dict with the
+    weight, how it was chosen and the decoupled start's mean radius.
+    """
+    copt = options.coupled
+    if copt.velocity_weight is not None:
+        weight, how = copt.velocity_weight, {"weight_method": "given (--velocity-weight)"}
+    else:
+        weight, how = cpl.weight_from_data(problem, options.geometry, raw, norm, lumen.mask, velocity_image, venc,
+                                           where.rstrip())
+        how["weight_method"] = "likelihood: W sigma_m^2 / sigma_u^2 from the estimated noise levels"
+    res = cpl.solve(problem, options.geometry, velocity_image, options.velocity, g, v, weight, copt)
+    info = {"velocity_weight": weight, **how, "decoupled_mean_radius_mm": float(g.coefficients[0]),
+            "decoupled_converged": bool(g.stats.converged and v.stats.converged)}
+    return res.geometry, res.velocity, info
 
 
 def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str):

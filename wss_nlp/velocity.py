@@ -243,6 +243,11 @@ def solve(problem: VelocityProblem, options: VelocityOptions, beta: float | None
         coef = solve_cholesky(problem, beta)
         obj = problem.residual_norm(coef) ** 2 + beta / np.pi * float(coef @ problem.gram @ coef)
         stats = SolverStats("cholesky", "Solve_Succeeded", True, 1, obj, time.perf_counter() - t0)
+    return result(problem, options, coef, beta, stats)
+
+
+def result(problem: VelocityProblem, options: VelocityOptions, coef, beta: float, stats: SolverStats) -> VelocityResult:
+    """VelocityResult of coefficients ``coef`` on the assembled ``problem``."""
     return VelocityResult(
         coefficients=coef,
         beta=beta,

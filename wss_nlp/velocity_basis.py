@@ -130,7 +130,33 @@ class ZernikeWallBasis:
 
     def symbolic(self, xi):
         """CasADi column of the basis functions at the reference point ``xi``."""
-        return ca.mtimes(ca.DM(self.transform).T, ca.vertcat(*self._raw(xi[0], xi[1])))
+        return ca.mtimes(ca.DM(self.transform).T, self.symbolic_raw(xi))
+
+    def symbolic_raw(self, xi):
+        """The unnormalized functions, ``symbolic(xi) = transform^T symbolic_raw(xi)``.
+
+        Mapping this over many points and applying ``transform`` as one
+        dense product afterwards is far cheaper than mapping :meth:`symbolic`.
+        """
+        return ca.vertcat(*self._raw(xi[0], xi[1]))
+
+    def radial_raw(self, rho) -> np.ndarray:
+        """Radial factors of the raw functions, ``(1 - rho^2) rho^|m| P_k^{(|m|,0)}(1 - 2 rho^2)``, shape (size, n).
+
+        ``raw_j(rho, t) = radial_raw(rho)[j] * angular_raw(t)[j]`` (polar separation, used by the coupled method).
+        """
+        rho = np.ravel(rho).astype(float)
+        s = rho * rho
+        out = []
+        for n, m in self.terms:
+            a = abs(m)
+            out.append((1 - s) * rho**a * _jacobi((n - a) // 2, a, 1 - 2 * s)[(n - a) // 2])
+        return np.array(out)
+
+    def angular_raw(self, t) -> np.ndarray:
+        """Angular factors ``cos(m t)`` (m >= 0) or ``sin(|m| t)`` (m < 0), shape (size, n)."""
+        t = np.ravel(t).astype(float)
+        return np.array([np.cos(m * t) if m >= 0 else np.sin(-m * t) for _, m in self.terms])
 
     def laplacian_gram(self, power: int = 1) -> np.ndarray:
         """Exact ``(Delta^t v_i, Delta^t v_j)_{L^2(B)}``, ``t = power``, by CasADi derivatives and exact quadrature."""
@@ -294,6 +320,23 @@ class DirichletEigenBasis:
             radial = bessel_j(m)(j * rho) if exact_callbacks else clenshaw(bessel_chebyshev(m, j), rho)
             out.append(radial * ang / c)
         return ca.vertcat(*out)
+
+    @property
+    def transform(self) -> np.ndarray:
+        return np.eye(self.size)
+
+    def symbolic_raw(self, xi):
+        """Same as :meth:`symbolic` (the functions are orthonormal already; ``transform`` is the identity)."""
+        return self.symbolic(xi)
+
+    def radial_raw(self, rho) -> np.ndarray:
+        """``J_m(j rho) / c`` for each function, shape (size, n) (see :meth:`ZernikeWallBasis.radial_raw`)."""
+        rho = np.ravel(rho).astype(float)
+        return np.array([scipy.special.jv(m, j * rho) / c for (m, j, _), c in zip(self.terms, self.norm)])
+
+    def angular_raw(self, t) -> np.ndarray:
+        t = np.ravel(t).astype(float)
+        return np.array([np.cos(m * t) if kind == "cos" else np.sin(m * t) for m, _, kind in self.terms])
 
     def laplacian_gram(self, power: int = 1) -> np.ndarray:
         """``diag(lambda^(2t))``: ``Delta^t v = (-lambda)^t v`` for orthonormal eigenfunctions."""

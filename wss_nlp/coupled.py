@@ -1,0 +1,403 @@
+"""Geometry and velocity as one coupled NLP (an extension of Secs. 2-3).
+
+The decoupled method fixes the lumen from the magnitude alone and then fits
+the velocity on it. Here both are unknowns of one Tikhonov functional,
+
+    J(c_R, c_v) = ||F_{gamma,h}(R) - m||^2 + alpha ||R - R_ref||^2_{H^s}
+                + lambda [ (1/A) sum_i |V_i cap Omega_R|_gamma (T_i(R) c_v - u_i)^2
+                           + (beta/pi) ||Delta^t v||^2_{L^2(B)} ],
+
+minimized by IPOPT with the box ``r0 <= R(phi_j) <= r1``. The velocity misfit
+depends on R through the map ``phi_R^{-1}`` (where in the reference disk each
+sub-voxel point lies) and through which points lie in the lumen; the sharp
+indicator of the decoupled operator ``T~_h`` is replaced by the smoothed
+Heaviside ``H_gamma(R(phi_p) - |x_p - c|)`` so the functional is
+differentiable. With a sharp indicator and R fixed the velocity part is the
+decoupled functional exactly (``tests/test_coupled.py``).
+
+The velocity data then inform the wall: the no-slip condition ``v = 0`` on
+``partial Omega_R`` must be compatible with the measured velocities near the
+wall, which helps where the magnitude image is poor.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import scipy.sparse
+
+import casadi as ca
+
+from . import geometry as geo
+from . import measurement as meas
+from . import radius as rad
+from . import velocity as vel
+from .errors import InputError
+from .solver import SolverStats, ipopt_options, run_nlpsol
+
+
+@dataclass(frozen=True)
+class CoupledOptions:
+    """Options of the coupled solve (``alpha``, ``beta``, bases and the rest come from the decoupled options).
+
+    Attributes
+    ----------
+    velocity_weight : float or None
+        ``lambda`` in mm^2 / (m/s)^2. None (default) takes the likelihood
+        weight ``lambda = A sigma_m^2 / sigma_u^2`` from the noise levels
+        (``sigma_m``: per-voxel noise of the normalized magnitude,
+        ``sigma_u``: of the velocity; :func:`likelihood_weight`), so that each
+        image counts with its information content, and at fixed R the
+        velocity part is the decoupled velocity problem.
+    hessian : {"gauss-newton", "exact"}
+        IPOPT Hessian: Gauss-Newton ``2 (J^T J + penalty Hessian)`` (default;
+        the functional is a sum of squares) or CasADi's exact Hessian.
+    quad_order : int
+        Sub-voxel points per axis of the velocity misfit (q x q per voxel).
+        3 keeps the solve within a few times the decoupled one; the smoothed
+        indicator makes the partial volumes continuous in R at any q.
+    tol, max_iter : float, int
+        IPOPT stopping rules. The misfit sums thousands of sub-voxel terms,
+        so a relative tolerance much below 1e-7 only meets rounding noise
+        (IPOPT then stops with Search_Direction_Becomes_Too_Small).
+    """
+
+    velocity_weight: float | None = None
+    hessian: str = "gauss-newton"
+    quad_order: int = 3
+    tol: float = 1e-7
+    max_iter: int = 200
+
+    def __post_init__(self):
+        if self.velocity_weight is not None and not self.velocity_weight > 0:
+            raise InputError(f"velocity weight must be > 0, got {self.velocity_weight}")
+        if self.quad_order < 1:
+            raise InputError(f"coupled quad_order must be >= 1, got {self.quad_order}")
+        if self.hessian not in ("gauss-newton", "exact"):
+            raise InputError(f"coupled hessian must be 'gauss-newton' or 'exact', got {self.hessian!r}")
+
+
+def likelihood_weight(delta: float, n_annulus: int, voxel_area: float, sigma_u: float, weight_sum: float) -> float:
+    """``lambda = W sigma_m^2 / sigma_u^2``: the two misfits in the proportion of a Gaussian likelihood.
+
+    Notes
+    -----
+    With ``sigma_m^2 = delta^2 / (|V| n_annulus)`` the per-voxel variance of
+    the normalized magnitude and ``sigma_u`` the velocity noise of a voxel
+    fully inside the lumen (``sigma_u / m_i`` elsewhere, Appendix B), the
+    negative log-likelihood is ``sum_i (F_i - m_i)^2 / sigma_m^2 +
+    sum_i m_i^2 (T_i c - u_i)^2 / sigma_u^2``. In the functional's units
+    (magnitude misfit ``|V| sum (F - m)^2`` in mm^2, velocity misfit
+    ``sum_i w_i (T_i c - u_i)^2 / W`` with ``w_i = |V| m_i^2``) this is
+    ``misfit_m / (|V| sigma_m^2) + (W / |V|) misfit_v / sigma_u^2``;
+    multiplying by ``|V| sigma_m^2`` gives ``lambda`` (mm^2 / (m/s)^2).
+    """
+    if not (delta > 0 and sigma_u > 0 and n_annulus > 0):
+        raise InputError(f"the likelihood weight needs positive noise levels, got delta = {delta}, "
+                         f"sigma_u = {sigma_u}; pass --velocity-weight")
+    sigma_m2 = delta**2 / (voxel_area * n_annulus)
+    return float(weight_sum * sigma_m2 / sigma_u**2)
+
+
+def weight_from_data(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, raw_magnitude, norm, mask,
+                     velocity_image, venc: float | None, source: str = "") -> tuple[float, dict]:
+    """The likelihood weight with both noise levels estimated (:mod:`wss_nlp.analysis`); also returns how.
+
+    ``sigma_u`` for a voxel fully inside the lumen: ``venc sigma / (pi m1)``
+    with ``sigma`` from the Rayleigh background and ``m1`` the raw lumen
+    level (phase data), else the high-pass estimate on the lumen plateau.
+    """
+    from . import analysis as an  # analysis imports nothing from here; local to keep the module graph flat
+
+    annulus = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1,
+                                 geo.quad_order(problem, gopt)).annulus
+    delta = an.magnitude_noise(problem.magnitude, raw_magnitude, mask, norm.m0, norm.m1, problem.grid.voxel_area,
+                               annulus, source)
+    sigma = an.complex_noise_sigma(raw_magnitude, mask)
+    if venc is not None and np.isfinite(sigma) and sigma > 0:
+        sigma_u, how = venc * sigma / (np.pi * norm.m1), "venc sigma / (pi m1), sigma from the Rayleigh background"
+    else:
+        est = an.velocity_noise(velocity_image, raw_magnitude, mask, np.zeros(0, int), np.zeros(0), None, source)
+        sigma_u, how = est.value, est.method
+    weights = problem.grid.voxel_area * np.clip(problem.magnitude, 0.0, 1.0) ** 2
+    lam = likelihood_weight(delta.value, annulus.size, problem.grid.voxel_area, sigma_u, float(np.sum(weights)))
+    return lam, {"delta_mm": delta.value, "sigma_u_m_s": float(sigma_u), "sigma_u_method": how}
+
+
+@dataclass
+class VelocityMisfitModel:
+    """Sub-voxel points of every voxel that can meet an admissible lumen (``|x - c| <= r1``)."""
+
+    index: np.ndarray  # flat voxel indices
+    data: np.ndarray  # measured velocity on those voxels, m/s
+    weights: np.ndarray  # precision weights |V| m_i^2 (normalized magnitude m_i), mm^2
+    dist: np.ndarray  # (n_points,) distance of each point to the centre, mm
+    cos: np.ndarray
+    sin: np.ndarray
+    design: np.ndarray  # (n_points, 2N+1): R at each point's angle is design @ c_R
+    sum_matrix: scipy.sparse.csr_matrix  # (n_vox, n_points): sums over a voxel's points
+    order: int
+    voxel_area: float
+
+
+def velocity_misfit_model(grid: meas.VoxelGrid, velocity_image, magnitude, center, r1: float, n_fourier: int,
+                          order: int) -> VelocityMisfitModel:
+    """The fixed voxel set, its precision weights and sub-voxel points (see :func:`velocity_residual`)."""
+    xc, yc = grid.centers()
+    dist = np.hypot(xc - center[0], yc - center[1]).ravel()
+    index = np.flatnonzero(dist <= r1 + 0.5 * np.hypot(grid.dx, grid.dy))
+    px, py = meas.subvoxel_points(grid, index, order)
+    dx, dy = (px - center[0]).ravel(), (py - center[1]).ravel()
+    r = np.hypot(dx, dy)
+    phi = np.arctan2(dy, dx)
+    nq = order * order
+    rows = np.repeat(np.arange(index.size), nq)
+    sums = scipy.sparse.csr_matrix((np.ones(rows.size), (rows, np.arange(rows.size))), shape=(index.size, rows.size))
+    m = np.clip(np.asarray(magnitude, float).ravel()[index], 0.0, 1.0)
+    return VelocityMisfitModel(index, np.asarray(velocity_image, float).ravel()[index], grid.voxel_area * m**2, r, dx / np.maximum(r, 1e-300),
+                               dy / np.maximum(r, 1e-300), rad.design_matrix(phi, n_fourier), sums, order,
+                               grid.voxel_area)
+
+
+#: Floor ``s_0`` (in sub-voxel points) of the smoothed point count in ``T_i = t_i / sqrt(s_i^2 + s_0^2)``.
+DENOMINATOR_FLOOR = 0.05
+
+#: Largest reference radius at which the basis is evaluated; sub-voxel points mapped beyond it lie several
+#: millimetres outside the wall, where the smoothed indicator is zero in double precision.
+RHO_MAX = 1.25
+
+
+@dataclass
+class PolarBasis:
+    """A velocity basis split as ``raw_j(rho, t) = radial_{r(j)}(rho) angular_{a(j)}(t)`` at fixed angles.
+
+    ``radial = cheb @ T(2 rho / RHO_MAX - 1)`` (Chebyshev polynomials ``T_k``),
+    ``raw = (select_angular @ angular) * (select_radial @ radial)``; distinct
+    radial and angular factors are stored once (Zernike functions with
+    ``+-m`` share a radial factor).
+    """
+
+    cheb: np.ndarray  # (n_radial, K)
+    cheb_derivative: np.ndarray  # (n_radial, K): d radial / d rho in the same Chebyshev form
+    angular: np.ndarray  # (n_angular, n_points)
+    select_radial: np.ndarray  # (n_raw, n_radial) one-hot
+    select_angular: np.ndarray  # (n_raw, n_angular) one-hot
+
+    @property
+    def n_radial(self) -> int:
+        return self.cheb.shape[0]
+
+
+def _distinct_rows(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices of distinct rows (to 1e-12 relative) and the one-hot map from all rows to them."""
+    key = np.round(values / max(np.max(np.abs(values)), 1e-300) * 1e12)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    select = np.zeros((values.shape[0], first.size))
+    select[np.arange(values.shape[0]), np.ravel(inverse)] = 1.0
+    return first, select
+
+
+def polar_basis(basis, angles: np.ndarray, tol: float = 1e-12) -> PolarBasis:
+    """Polar separation of ``basis`` at the point angles ``angles``, radial factors in Chebyshev form.
+
+    The expansion is exact (to rounding) for the Zernike basis, whose radial
+    factors are polynomials; for the eigenfunctions the degree grows until
+    the interpolant on ``[0, RHO_MAX]`` is within ``tol`` (relative) of
+    SciPy's Bessel functions.
+    """
+    check = np.linspace(0, RHO_MAX, 301)
+    rad_first, select_r = _distinct_rows(basis.radial_raw(check))
+    ang_first, select_a = _distinct_rows(basis.angular_raw(np.linspace(0, 2 * np.pi, 97)))
+    ref = basis.radial_raw(check)[rad_first]
+    scale = np.max(np.abs(ref))
+    for k in (24, 32, 48, 64, 96):
+        nodes = np.cos(np.pi * (np.arange(k) + 0.5) / k)
+        vander = np.polynomial.chebyshev.chebvander(nodes, k - 1)
+        coef = np.linalg.solve(vander, basis.radial_raw(RHO_MAX * (nodes + 1) / 2)[rad_first].T).T
+        approx = coef @ np.polynomial.chebyshev.chebvander(2 * check / RHO_MAX - 1, k - 1).T
+        if np.max(np.abs(approx - ref)) <= tol * scale:
+            deriv = np.polynomial.chebyshev.chebder(coef.T).T * (2 / RHO_MAX)
+            deriv = np.hstack([deriv, np.zeros((coef.shape[0], 1))])
+            return PolarBasis(coef, deriv, basis.angular_raw(angles)[ang_first], select_r, select_a)
+    raise InputError(f"the {basis.kind} basis is too oscillatory for a degree-95 Chebyshev expansion; "
+                     "lower its size or use --method decoupled")
+
+
+def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, gamma: float, heaviside: str,
+                      jacobian: bool = False, floor: float = DENOMINATOR_FLOOR):
+    """Weighted velocity residual ``sqrt(w_i / W) (T_i(R) c_v - u_i)`` on the fixed voxel set (CasADi MX).
+
+    With ``jacobian=True`` returns ``(r, dr/dc_R, dr/dc_v)``; the Jacobian
+    is assembled by the chain rule from CasADi's exact derivatives of the
+    pointwise pieces (``H_gamma'``, ``d rho / d R``, ``d v / d rho``), which
+    costs a few basis evaluations instead of one sweep per unknown
+    (``tests/test_coupled.py`` checks it against ``ca.jacobian``).
+
+    Notes
+    -----
+    ``T_i(R) c_v`` is the mean of ``v o phi_R^{-1}`` over the part of voxel
+    i inside the lumen, smoothed: with ``chi_p = H_gamma(R(phi_p) - |x_p - c|)``,
+    ``s_i = sum_{p in V_i} chi_p`` and ``t_i = sum_{p in V_i} chi_p v_p``,
+    ``T_i = t_i / sqrt(s_i^2 + s_0^2)`` with ``s_0 = floor`` (in points): 0
+    outside the lumen, and its derivative stays bounded for voxels the wall
+    barely enters. With a sharp indicator and ``s_0 -> 0``
+    this is the decoupled operator ``T~_h`` exactly; for ``s_i >= 1`` the
+    floor changes ``T_i`` by at most ``s_0^2 / 2`` relative.
+    ``v_p = v(phi_R^{-1}(x_p))`` uses the closed-form inverse of eq. (trafo)
+    for ``eta = 2``: ``rho = 2 r / (r_in + sqrt(r_in^2 + 4 (R - r_in) r))``.
+
+    The voxel set (every voxel that can meet an admissible lumen) and the
+    weights ``w_i = |V| m_i^2`` do not depend on R; ``W = sum_i w_i``.
+    ``m_i^2`` is the precision of voxel i's velocity (phase noise ~ 1/|d_i|,
+    Appendix B). Weighting by the model's partial volume
+    ``|V_i cap Omega_R|`` instead, as the decoupled misfit does, lets the
+    misfit fall by shrinking the lumen and dropping the noisiest wall
+    voxels: a measured inward bias of the wall (laminar phantom, h = 1 mm,
+    SNR 25: mean radius bias -0.018 mm decoupled, -0.041 mm coupled).
+    """
+    n_pts = model.dist.size
+    # pointwise scalar pieces as small SX functions with their exact derivatives, mapped over the points
+    gap, big_r, dist = ca.SX.sym("gap"), ca.SX.sym("R"), ca.SX.sym("r")
+    heav = meas.smoothed_heaviside(gap, gamma, heaviside)
+    f_chi = ca.Function("chi", [gap], [heav, ca.jacobian(heav, gap)]).map(n_pts)
+    rho_expr = 2 * dist / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * dist))
+    f_rho = ca.Function("rho", [big_r, dist], [rho_expr, ca.jacobian(rho_expr, big_r)]).map(n_pts)
+
+    r_at = ca.mtimes(ca.DM(model.design), c_r).T  # (1, n_pts)
+    dist_row = ca.DM(model.dist).T
+    chi, dchi = f_chi(r_at - dist_row)
+    rho, drho = f_rho(r_at, dist_row)
+    # basis functions by polar separation, raw_j = radial_j(rho) angular_j(t), with the radial factors in
+    # Chebyshev form: the moving points cost dense products with a few rows (see PolarBasis)
+    pb = polar_basis(basis, np.arctan2(model.sin, model.cos))
+    rho_c = ca.fmin(rho, RHO_MAX)  # points this far out have chi = 0 to machine precision
+    drho = drho * (rho < RHO_MAX)
+    arg = 2 * rho_c / RHO_MAX - 1
+    tk = [ca.MX.ones(1, n_pts), arg]
+    while len(tk) < pb.cheb.shape[1]:
+        tk.append(2 * arg * tk[-1] - tk[-2])
+    tk = ca.vertcat(*tk[:pb.cheb.shape[1]])
+    transform = ca.DM(basis.transform)
+    c_raw = ca.mtimes(transform, c_v)  # v = c_v^T transform^T raw
+    # v_p = sum_a angular_a(t_p) sum_r Q_ar radial_r(rho_p),  Q = S_a^T diag(c_raw) S_r
+    q_mat = ca.mtimes(ca.DM(pb.select_angular).T, ca.repmat(c_raw, 1, pb.n_radial) * ca.DM(pb.select_radial))
+    ang = ca.DM(pb.angular)
+    v = ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb)), tk))  # (1, n_pts)
+    agg = ca.DM(model.sum_matrix)
+    u = ca.DM(model.data)
+    s = ca.mtimes(agg, chi.T)
+    t = ca.mtimes(agg, (chi * v).T)
+    scale = ca.DM(np.sqrt(model.weights / np.sum(model.weights)))
+    den = ca.sqrt(s * s + floor**2)
+    res = scale * (t / den - u)
+    if not jacobian:
+        return res
+    dv = ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb_derivative)), tk))
+    radial = ca.mtimes(ca.DM(pb.cheb), tk)  # (n_radial, n_pts)
+    raw = ca.mtimes(ca.DM(pb.select_angular), ang) * ca.mtimes(ca.DM(pb.select_radial), radial)  # (n_raw, n_pts)
+    design = ca.DM(model.design)
+    n_r = model.design.shape[1]
+    ds_dr = ca.mtimes(agg, ca.repmat(dchi.T, 1, n_r) * design)
+    dt_dr = ca.mtimes(agg, ca.repmat((dchi * v + chi * dv * drho).T, 1, n_r) * design)
+    dt_dv = ca.mtimes(ca.mtimes(agg, ca.repmat(chi.T, 1, basis.size) * raw.T), transform)
+    jac_r = ca.repmat(scale / den, 1, n_r) * (dt_dr - ca.repmat(t * s / (den * den), 1, n_r) * ds_dr)
+    jac_v = ca.repmat(scale / den, 1, basis.size) * dt_dv
+    return res, jac_r, jac_v
+
+
+@dataclass
+class CoupledNLP:
+    x: ca.MX  # [c_R; c_v]
+    n_r: int
+    f: ca.MX
+    g: ca.MX
+    residual: ca.MX  # stacked [magnitude residual; sqrt(lambda) velocity residual]
+    jacobian: ca.MX  # d residual / d x, assembled by the chain rule (see velocity_residual)
+    geometry: geo.TikhonovNLP
+    velocity_model: VelocityMisfitModel
+    weight: float
+    gram: np.ndarray
+
+
+def build(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velocity_image, vopt: vel.VelocityOptions,
+          basis, r_in: float, weight: float, alpha: float, beta: float, quad_order: int = 3) -> CoupledNLP:
+    """The coupled functional as a CasADi NLP (variables ``[c_R; c_v]``)."""
+    if vopt.eta != 2:
+        raise InputError(f"the coupled method uses the closed-form inverse of phi_R, which needs eta = 2 "
+                         f"(got {vopt.eta}); use --eta 2 or --method decoupled")
+    gnlp = geo.build_tikhonov(geometry_problem, gopt)
+    n_r = gnlp.c.numel()
+    c_v = ca.MX.sym("c_v", basis.size)
+    x = ca.vertcat(gnlp.c, c_v)
+    q = quad_order
+    model = velocity_misfit_model(geometry_problem.grid, velocity_image, geometry_problem.magnitude,
+                                  geometry_problem.center,
+                                  geometry_problem.r1, gopt.n_fourier, q)
+    res_v, jac_vr, jac_vv = velocity_residual(model, gnlp.c, c_v, basis, r_in, gnlp.gamma, gopt.heaviside,
+                                              jacobian=True)
+    gram = basis.laplacian_gram(vopt.laplacian_power)
+    pen_v = ca.dot(c_v, ca.mtimes(ca.DM(gram), c_v)) / np.pi
+    alpha_pen = alpha * gnlp.penalty
+    f = ca.sumsqr(gnlp.residual) + alpha_pen + weight * (ca.sumsqr(res_v) + beta * pen_v)
+    residual = ca.vertcat(gnlp.residual, np.sqrt(weight) * res_v)
+    jac_m = ca.jacobian(gnlp.residual, gnlp.c)
+    jacobian = ca.vertcat(ca.horzcat(jac_m, ca.MX(jac_m.shape[0], basis.size)),
+                          np.sqrt(weight) * ca.horzcat(jac_vr, jac_vv))
+    return CoupledNLP(x, n_r, f, gnlp.g, residual, jacobian, gnlp, model, weight, gram)
+
+
+@dataclass
+class CoupledResult:
+    """Geometry and velocity of the coupled solve, as the decoupled result types, plus its stats."""
+
+    geometry: geo.GeometryResult
+    velocity: vel.VelocityResult
+    stats: SolverStats
+    weight: float
+    start: tuple[np.ndarray, np.ndarray] = field(default_factory=tuple)  # warm start (c_R, c_v)
+
+
+def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velocity_image, vopt: vel.VelocityOptions,
+          start_geometry: geo.GeometryResult, start_velocity: vel.VelocityResult, weight: float,
+          options: CoupledOptions | None = None, alpha: float | None = None, beta: float | None = None) -> CoupledResult:
+    """Solve the coupled NLP with IPOPT, warm-started from a decoupled solution.
+
+    The inner radius of ``phi_R`` is frozen at the start's value (it is a
+    parameter of the map, not an unknown), and the box's lower bound is
+    raised to it if needed so that ``phi_R`` stays one-to-one.
+    """
+    options = options or CoupledOptions()
+    alpha = start_geometry.alpha if alpha is None else float(alpha)
+    beta = start_velocity.beta if beta is None else float(beta)
+    dm = start_velocity.disk_map
+    nlp = build(geometry_problem, gopt, velocity_image, vopt, start_velocity.basis, dm.r_in, weight, alpha, beta,
+                options.quad_order)
+    opts = ipopt_options(options.tol, options.max_iter)
+    if options.hessian == "gauss-newton":
+        jac = nlp.jacobian
+        reg = np.zeros((nlp.x.numel(), nlp.x.numel()))
+        n_r = nlp.n_r
+        reg[:n_r, :n_r] = alpha * np.diag(nlp.geometry.weights)
+        reg[n_r:, n_r:] = weight * beta / np.pi * nlp.gram
+        hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * ca.DM(reg))
+        sigma = ca.MX.sym("sigma")
+        opts["hess_lag"] = ca.Function("nlp_hess_l", {"x": nlp.x, "p": ca.MX.sym("p", 0), "lam_f": sigma,
+                                                      "hess_gamma_x_x": sigma * hess},
+                                       ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+    solver = ca.nlpsol("coupled", "ipopt", {"x": nlp.x, "f": nlp.f, "g": nlp.g}, opts)
+    x0 = np.concatenate([start_geometry.coefficients, start_velocity.coefficients])
+    lower = max(geometry_problem.r0, 1.000001 * dm.r_in)
+    t0 = time.perf_counter()
+    sol, stats = run_nlpsol(solver, "coupled geometry+velocity (IPOPT)", x0=x0, lbg=lower, ubg=geometry_problem.r1)
+    stats.extra["hessian"] = options.hessian
+    stats.extra["velocity_weight"] = weight
+    x = np.asarray(sol["x"]).ravel()
+    c_r, c_v = x[:nlp.n_r], x[nlp.n_r:]
+    g = geo.finish(geometry_problem, gopt, nlp.geometry, c_r, stats, alpha)
+    vopt_fixed = replace(vopt, inner_radius=dm.r_in)
+    vp = vel.assemble(geometry_problem.grid, velocity_image, c_r, g.center, vopt_fixed, basis=start_velocity.basis)
+    v = vel.result(vp, vopt_fixed, c_v, beta, stats)
+    stats.seconds = time.perf_counter() - t0
+    return CoupledResult(g, v, stats, weight, (start_geometry.coefficients, start_velocity.coefficients))
