@@ -88,6 +88,12 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--n-phi", type=int, default=360, help="angles at which tau is reported, >= 360 (default 360)")
     w.add_argument("--no-dephasing-correction", dest="dephasing_correction", action="store_false",
                    help="skip the second pass that corrects the magnitude for intra-voxel dephasing (needs venc)")
+    w.add_argument("--no-uncertainty", dest="uncertainty", action="store_false",
+                   help="skip the linearized WSS band and the sensitivities (decoupled method; about 1-2x the "
+                        "time of the solve)")
+    w.add_argument("--noise-sigma", type=float, default=None,
+                   help="complex noise per channel in raw magnitude units for the band (default: from the "
+                        "Rayleigh background)")
     w.add_argument("--dephasing-beta", choices=["gcv", "same"], default="gcv",
                    help="beta of the velocity fit that predicts dephasing: GCV (default; keeps steep boundary "
                         "layers) or the same beta as the WSS fit")
@@ -121,7 +127,8 @@ def options_from_args(args) -> ReconstructionOptions:
     copt = cpl.CoupledOptions(velocity_weight=args.velocity_weight, quad_order=args.coupled_quad_order)
     return ReconstructionOptions(geometry=gopt, velocity=vopt, method=args.method, coupled=copt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity,
                                  dephasing_correction=args.dephasing_correction,
-                                 dephasing_beta_rule=args.dephasing_beta, alpha_rule=alpha_rule,
+                                 dephasing_beta_rule=args.dephasing_beta, uncertainty=args.uncertainty,
+                                 noise_sigma=args.noise_sigma, alpha_rule=alpha_rule,
                                  beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,
                                  noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity)
 
@@ -263,6 +270,38 @@ def cmd_analyze(args) -> int:
     return 0
 
 
+def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
+    """What moves the mean WSS, largest first: ``(cause, change of mean tau in Pa)``.
+
+    Parameters change by +10 % (alpha, beta, gamma) or by half a voxel
+    (centre), to first order; noise enters as one standard deviation of
+    the linearized band.
+    """
+    d = dict(zip(rec["names"], rec["d_mean"]))
+    h = rec["h_mm"]
+    rows = [("alpha +10 %", 0.1 * rec["alpha"] * d["alpha"]),
+            ("beta +10 %", 0.1 * rec["beta"] * d["beta"]),
+            ("gamma +10 %", 0.1 * rec["gamma"] * d["gamma"]),
+            ("centre x + h/2", 0.5 * h * d["center_x"]),
+            ("centre y + h/2", 0.5 * h * d["center_y"]),
+            ("magnitude noise (1 std)", rec["mean_std_magnitude_pa"]),
+            ("velocity noise (1 std)", rec["mean_std_velocity_pa"])]
+    return sorted(rows, key=lambda r: -abs(r[1]))
+
+
+def cmd_sensitivity(args) -> int:
+    recs = wio.read_sensitivity(args.result)
+    if not recs:
+        raise InputError(f"{args.result}: no sensitivity records; reconstruct with the decoupled method and without "
+                         "--no-uncertainty")
+    for name, rec in recs.items():
+        print(f"{name}: mean WSS {rec['mean_pa']:.4g} Pa +- {rec['mean_std_pa']:.2g} Pa (1 std, linearized)")
+        print(f"  {'what changes':<26} {'mean WSS change [Pa]':>22} {'relative':>10}")
+        for cause, delta in sensitivity_table(rec):
+            print(f"  {cause:<26} {delta:>+22.3e} {delta / rec['mean_pa']:>+10.2%}")
+    return 0
+
+
 def cmd_demo(args) -> int:
     out = args.output_dir
     os.makedirs(out, exist_ok=True)
@@ -286,6 +325,8 @@ def cmd_demo(args) -> int:
         ("velocity solver", f"{res.velocity.stats.status}"),
         ("time [s]", f"{seconds:.2f}"),
     ]
+    if np.isfinite(res.wss.mean_std):
+        rows.insert(4, ("mean WSS std (linearized) [Pa]", f"{res.wss.mean_std:.2g}"))
     print()
     print(_error_table(rows))
     from .plotting import save_figures
@@ -338,6 +379,10 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
     a.add_argument("--figures", default=None, help="folder for residual-vs-parameter PNGs")
     a.set_defaults(func=cmd_analyze)
+
+    se = sub.add_parser("sensitivity", help="which parameters and which noise the mean WSS is most sensitive to")
+    se.add_argument("result", help="result file written by 'wss-nlp reconstruct' (decoupled method)")
+    se.set_defaults(func=cmd_sensitivity)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")
     c.add_argument("result")

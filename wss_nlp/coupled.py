@@ -164,9 +164,8 @@ def velocity_misfit_model(grid: meas.VoxelGrid, velocity_image, magnitude, cente
 #: Floor ``s_0`` (in sub-voxel points) of the smoothed point count in ``T_i = t_i / sqrt(s_i^2 + s_0^2)``.
 DENOMINATOR_FLOOR = 0.05
 
-#: Largest reference radius at which the basis is evaluated; sub-voxel points mapped beyond it lie several
-#: millimetres outside the wall, where the smoothed indicator is zero in double precision.
-RHO_MAX = 1.25
+#: The radial factors are expanded on ``[0, RHO_MAX]``, the reference disk.
+RHO_MAX = 1.0
 
 
 @dataclass
@@ -272,8 +271,12 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
     # basis functions by polar separation, raw_j = radial_j(rho) angular_j(t), with the radial factors in
     # Chebyshev form: the moving points cost dense products with a few rows (see PolarBasis)
     pb = polar_basis(basis, np.arctan2(model.sin, model.cos))
-    rho_c = ca.fmin(rho, RHO_MAX)  # points this far out have chi = 0 to machine precision
-    drho = drho * (rho < RHO_MAX)
+    # Outside the wall (rho > 1) the velocity is continued by odd reflection, v(rho) = -v(2 - rho): C^1 across
+    # the wall (v = 0 there) and bounded, where the polynomials themselves grow like 3^degree by rho = 1.2 and
+    # their curvature, times chi's tails, makes the functional too stiff for Newton steps (measured).
+    sign = ca.if_else(rho <= 1, 1, -1)
+    rho_c = ca.fmax(ca.fmin(rho, 2 - rho), 0)
+    drho = drho * (rho < 2)
     arg = 2 * rho_c / RHO_MAX - 1
     tk = [ca.MX.ones(1, n_pts), arg]
     while len(tk) < pb.cheb.shape[1]:
@@ -284,7 +287,7 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
     # v_p = sum_a angular_a(t_p) sum_r Q_ar radial_r(rho_p),  Q = S_a^T diag(c_raw) S_r
     q_mat = ca.mtimes(ca.DM(pb.select_angular).T, ca.repmat(c_raw, 1, pb.n_radial) * ca.DM(pb.select_radial))
     ang = ca.DM(pb.angular)
-    v = ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb)), tk))  # (1, n_pts)
+    v = sign * ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb)), tk))  # (1, n_pts)
     agg = ca.DM(model.sum_matrix)
     u = ca.DM(model.data)
     s = ca.mtimes(agg, chi.T)
@@ -296,7 +299,8 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
         return res
     dv = ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb_derivative)), tk))
     radial = ca.mtimes(ca.DM(pb.cheb), tk)  # (n_radial, n_pts)
-    raw = ca.mtimes(ca.DM(pb.select_angular), ang) * ca.mtimes(ca.DM(pb.select_radial), radial)  # (n_raw, n_pts)
+    raw = ca.repmat(sign, basis.size, 1) * ca.mtimes(ca.DM(pb.select_angular), ang) * \
+        ca.mtimes(ca.DM(pb.select_radial), radial)  # (n_raw, n_pts)
     design = ca.DM(model.design)
     n_r = model.design.shape[1]
     ds_dr = ca.mtimes(agg, ca.repmat(dchi.T, 1, n_r) * design)

@@ -128,6 +128,7 @@ class GeometryResult:
     box: tuple[float, float] = (0.0, 0.0)
     box_active: bool = False
     options: dict = field(default_factory=dict)
+    box_multipliers: np.ndarray = field(default_factory=lambda: np.zeros(0))  # IPOPT lam_g (0 where inactive)
 
     def radius(self, phi, derivative: int = 0) -> np.ndarray:
         return rad.evaluate(self.coefficients, phi, derivative)
@@ -230,7 +231,9 @@ class IpoptGeometrySolver:
     def __init__(self, problem: GeometryProblem, options: GeometryOptions):
         self.problem, self.options = problem, options
         nlp = self.nlp = build_tikhonov(problem, options)
-        opts = ipopt_options(options.tol, options.max_iter)
+        # clip_inactive_lam: IPOPT leaves ~1e-12 multipliers on inactive bounds, which sensitivity analysis
+        # (wss_nlp.sensitivity) would read as active constraints
+        opts = ipopt_options(options.tol, options.max_iter, {"clip_inactive_lam": True})
         if options.hessian == "gauss-newton":
             jac = ca.jacobian(nlp.residual, nlp.c)
             hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights)))
@@ -251,7 +254,9 @@ class IpoptGeometrySolver:
         sol, stats = run_nlpsol(self.solver, "geometry (IPOPT)", x0=x0, p=alpha, lbg=self.problem.r0,
                                 ubg=self.problem.r1)
         stats.extra["hessian"] = self.options.hessian
-        return finish(self.problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
+        out = finish(self.problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
+        out.box_multipliers = np.asarray(sol["lam_g"]).ravel()
+        return out
 
 
 def solve_ipopt(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import json
 import os
 import sys
 import tempfile
@@ -198,7 +199,6 @@ def provenance(options: dict | None = None, argv=None) -> dict:
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
     if options:
-        import json
 
         out["options_json"] = json.dumps(options, sort_keys=True, default=str)
     return out
@@ -238,7 +238,6 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
     options : dict
         The options used, stored as JSON in the provenance.
     """
-    import json
 
     with atomic_h5(path) as f:
         for k, v in provenance(options, argv).items():
@@ -276,6 +275,12 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
             wg["wall_y_mm"] = w.wall_y
             wg.attrs["mean_pa"] = float(w.mean)
             wg.attrs["viscosity_pa_s"] = float(w.viscosity_pa_s)
+            if getattr(w, "tau_std", None) is not None:
+                wg["tau_std_pa"] = w.tau_std
+                wg.attrs["mean_std_pa"] = float(w.mean_std)
+            sen = getattr(r, "sensitivity", None)
+            if sen is not None:
+                _write_sensitivity(s.create_group("sensitivity"), sen, r.grid.shape, r.grid.h)
             vg = s.create_group("velocity")
             vg["coefficients"] = v.coefficients
             vg["voxel_index"] = v.voxel_index
@@ -297,6 +302,60 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
                                  "satisfied": bool(ch.satisfied)})
 
 
+def _open_result(src: str):
+    """Open an HDF5 file for reading, with an InputError naming the file if it is missing or not HDF5."""
+    import h5py
+
+    if not os.path.exists(src):
+        raise InputError(f"{src}: no such file")
+    try:
+        return h5py.File(src, "r")
+    except OSError as exc:
+        raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
+
+
+def _write_sensitivity(group, sen, shape, h_mm: float) -> None:
+    """Derivatives of tau and mean tau (see wss_nlp.sensitivity) and the band's two parts."""
+    group["names"] = np.array(sen.names, dtype="S")
+    group["d_tau"] = sen.d_tau  # (n_phi, n_names), Pa per unit
+    group["d_mean"] = sen.d_mean
+    for name, index, values in (("d_mean_d_magnitude", sen.m_index, sen.d_mean_d_m),
+                                ("d_mean_d_velocity", sen.u_index, sen.d_mean_d_u)):
+        image = np.zeros(int(np.prod(shape)))
+        image[index] = values
+        group[name] = image.reshape(shape)  # per voxel of the normalized magnitude / velocity (m/s) image
+    group.attrs.update({"mean_std_pa": float(sen.mean_std), "mean_std_magnitude_pa": float(sen.mean_std_magnitude),
+                        "mean_std_velocity_pa": float(sen.mean_std_velocity), "seconds": float(sen.seconds),
+                        "h_mm": float(h_mm),
+                        "noise_json": json.dumps({k: v for k, v in sen.noise.items()
+                                                  if not isinstance(v, np.ndarray)}, default=float)})
+
+
+def read_sensitivity(path) -> dict:
+    """``{slice name: {"names", "d_mean", "d_tau", "mean_std_*", "h_mm", "alpha", "beta", "gamma", "mean_pa"}}``."""
+    out = {}
+    with _open_result(str(path)) as f:
+        for name in sorted(k for k in f if k.startswith("slice_")):
+            s = f[name]
+            if "sensitivity" not in s:
+                continue
+            g = s["sensitivity"]
+            out[name] = {
+                "names": [n.decode() for n in g["names"][()]],
+                "d_mean": np.asarray(g["d_mean"]),
+                "d_tau": np.asarray(g["d_tau"]),
+                "mean_std_pa": float(g.attrs["mean_std_pa"]),
+                "mean_std_magnitude_pa": float(g.attrs["mean_std_magnitude_pa"]),
+                "mean_std_velocity_pa": float(g.attrs["mean_std_velocity_pa"]),
+                "alpha": float(s.attrs["alpha"]),
+                "beta": float(s.attrs["beta"]),
+                "gamma": float(s["geometry"].attrs["gamma_mm"]),
+                "mean_pa": float(s["wss"].attrs["mean_pa"]),
+                "h_mm": float(g.attrs["h_mm"]),
+            }
+    return out
+
+
 def read_result(path) -> list[dict]:
     """Read a result (or truth) file into one dictionary per slice.
 
@@ -304,17 +363,9 @@ def read_result(path) -> list[dict]:
     ``mean_tau``, ``alpha``, ``beta``, ``converged`` and, where present,
     ``wall_x``, ``wall_y``, ``tau_std``, ``mean_std``.
     """
-    import h5py
-
     src = str(path)
-    if not os.path.exists(src):
-        raise InputError(f"{src}: no such file")
-    try:
-        f = h5py.File(src, "r")
-    except OSError as exc:
-        raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
     out = []
-    with f:
+    with _open_result(src) as f:
         names = sorted(k for k in f if k.startswith("slice_"))
         if not names:
             raise InputError(f"{src}: no 'slice_NNN' groups; not a wss-nlp result file")
@@ -338,6 +389,8 @@ def read_result(path) -> list[dict]:
             for key, ds in (("wall_x", "wss/wall_x_mm"), ("wall_y", "wss/wall_y_mm"), ("tau_std", "wss/tau_std_pa")):
                 if ds in s:
                     d[key] = s[ds][()]
+            if "mean_std_pa" in s["wss"].attrs:
+                d["mean_std"] = float(s["wss"].attrs["mean_std_pa"])
             if "velocity_true_m_s" in s:
                 d["velocity_true"] = s["velocity_true_m_s"][()]
             out.append(d)

@@ -18,7 +18,7 @@ scripts and benchmarks; it returns ``(Acquisition, Truth)``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from importlib import resources
 
@@ -370,9 +370,25 @@ def acquire(
         cnt = ins.sum(axis=1)
         u_mean[iy] = np.where(cnt > 0, (u * ins).sum(axis=1) / np.maximum(cnt, 1), 0.0)
     if snr is not None:
-        sigma = rho / snr
-        signal = signal + sigma * (rng.standard_normal(signal.shape) + 1j * rng.standard_normal(signal.shape))
+        signal = complex_noise(signal, rho / snr, rng)
     return np.abs(signal), np.angle(signal), u_mean, venc
+
+
+def complex_noise(signal: np.ndarray, sigma: float, rng: np.random.Generator) -> np.ndarray:
+    """``signal + sigma (n_1 + i n_2)`` with independent standard normal ``n_1, n_2``."""
+    return signal + sigma * (rng.standard_normal(signal.shape) + 1j * rng.standard_normal(signal.shape))
+
+
+def noisy_copy(acq: Acquisition, snr: float, rng: np.random.Generator, rho: float = 1.0) -> Acquisition:
+    """A noise-free phase-data acquisition (``make_phantom(..., snr=None)``) with fresh complex noise.
+
+    For Monte-Carlo studies: the geometry, flow and grid offset stay fixed
+    and only the noise changes between draws.
+    """
+    if acq.phase is None:
+        raise InputError("noisy_copy needs phase data (make_phantom(..., as_phase=True))")
+    d = complex_noise(acq.magnitude * np.exp(1j * acq.phase), rho / snr, rng)
+    return replace(acq, magnitude=np.abs(d), phase=np.angle(d))
 
 
 def _laminar(h_mm, rng):

@@ -175,3 +175,23 @@ def save_parameter_figures(choices: dict, folder: str) -> list[str]:
             plt.close(fig)
             paths.append(path)
     return paths
+
+
+def figure_band_check(phi, linearized, sampled, n_draws: int):
+    """Linearized WSS standard deviation against a Monte-Carlo estimate, per angle."""
+    fig, ax = plt.subplots(figsize=(8, 3.8))
+    ax.plot(phi, sampled, color="tab:gray", lw=1.2, label=f"Monte Carlo ({n_draws} noise draws)")
+    ax.plot(phi, linearized, color="tab:red", lw=1.2, ls="--", label="linearized (CasADi sensitivities)")
+    ax.set(xlabel=r"$\varphi$ [rad]", ylabel=r"std of $\tau$ [Pa]", xlim=(0, 2 * np.pi), ylim=(0, None),
+           title="uncertainty band: linearization vs sampling")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def save_figure(fig, path: str) -> str:
+    """Write one figure as PNG and close it."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -18,6 +18,7 @@ from . import coupled as cpl
 from . import geometry as geo
 from . import measurement as meas
 from . import preprocess as pp
+from . import sensitivity as sens
 from . import velocity as vel
 from . import wss as wss_mod
 from .errors import InputError, WssNlpError
@@ -68,6 +69,8 @@ class ReconstructionOptions:
     beta_start: float = 1e-2
     noise_magnitude: float | None = None  # delta in mm; estimated when None
     noise_velocity: float | None = None  # epsilon in m/s; estimated when None
+    uncertainty: bool = True  # linearized WSS band and sensitivities (decoupled method; wss_nlp.sensitivity)
+    noise_sigma: float | None = None  # complex noise per channel (raw units) for the band; estimated when None
 
     def __post_init__(self):
         if self.n_phi < 360:
@@ -111,6 +114,8 @@ class SliceResult:
     beta_choice: an.ParameterChoice | None = None
     method: str = "decoupled"
     coupled_info: dict = field(default_factory=dict)  # weight, how it was chosen, the decoupled start's numbers
+    sensitivity: sens.Sensitivity | None = None
+    notes: list = field(default_factory=list)  # things the user should know that are not failures
 
     @property
     def converged(self) -> bool:
@@ -127,6 +132,7 @@ class SliceResult:
                 out.append(f"slice {self.index}: no {ch.name} reached residual <= {ch.tau:g} x noise "
                            f"({ch.noise:.3g}); model error dominates, took {ch.name} = {ch.chosen:.3g} where the "
                            "residual stopped falling")
+        out.extend(f"slice {self.index}: {n}" for n in self.notes)
         if self.geometry.box_active:
             out.append(f"slice {self.index}: the radius reached the box [{self.geometry.box[0]:.3g}, "
                        f"{self.geometry.box[1]:.3g}] mm; the lumen may not be star-shaped about the centre")
@@ -208,8 +214,35 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
     t["min_dephasing_factor"] = float(np.min(factors)) if factors is not None else 1.0
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
+    notes, sensitivity = [], None
+    if options.uncertainty and options.method == "coupled":
+        notes.append("no uncertainty band: sensitivities are implemented for the decoupled method only")
+    elif options.uncertainty:
+        t0 = time.perf_counter()
+        sensitivity, note = uncertainty(problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options)
+        notes += [note] if note else []
+        t["uncertainty"] = time.perf_counter() - t0
     return SliceResult(index, g, v, w, norm, lumen, grid, m, np.asarray(velocity_image, float), t,
-                       alpha_choice, beta_choice, options.method, info)
+                       alpha_choice, beta_choice, options.method, info, sensitivity, notes)
+
+
+def uncertainty(problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, options: ReconstructionOptions):
+    """Sensitivities and the linearized band (sets ``w.tau_std``, ``w.mean_std``); returns ``(Sensitivity, note)``.
+
+    A band that cannot be computed (no background for the noise level, no
+    venc, a failed anchor re-solve) is reported in the note, not raised:
+    the reconstruction itself is still valid.
+    """
+    try:
+        s = sens.decoupled(problem, options.geometry, g, vp, options.velocity, v, viscosity_pa_s, w.phi.size)
+        sigma_m, sigma_u, how = sens.noise_levels(raw, lumen.mask, norm.m0, norm.m1, s.u_index, venc,
+                                                  options.noise_sigma)
+    except WssNlpError as exc:
+        return None, f"no uncertainty band: {exc}"
+    w.tau_std, w.mean_std, s.mean_std_magnitude, s.mean_std_velocity = s.band(sigma_m, sigma_u)
+    s.tau_std, s.mean_std = w.tau_std, w.mean_std
+    s.noise.update({"sigma_m": sigma_m, "method": how})
+    return s, ""
 
 
 def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options: ReconstructionOptions, where: str):

@@ -153,6 +153,10 @@ class ZernikeWallBasis:
             out.append((1 - s) * rho**a * _jacobi((n - a) // 2, a, 1 - 2 * s)[(n - a) // 2])
         return np.array(out)
 
+    def angular_terms(self) -> list[tuple[int, str]]:
+        """``(order, "cos" | "sin")`` of each raw function's angular factor."""
+        return [(abs(m), "cos" if m >= 0 else "sin") for _, m in self.terms]
+
     def angular_raw(self, t) -> np.ndarray:
         """Angular factors ``cos(m t)`` (m >= 0) or ``sin(|m| t)`` (m < 0), shape (size, n)."""
         t = np.ravel(t).astype(float)
@@ -333,6 +337,9 @@ class DirichletEigenBasis:
         """``J_m(j rho) / c`` for each function, shape (size, n) (see :meth:`ZernikeWallBasis.radial_raw`)."""
         rho = np.ravel(rho).astype(float)
         return np.array([scipy.special.jv(m, j * rho) / c for (m, j, _), c in zip(self.terms, self.norm)])
+
+    def angular_terms(self) -> list[tuple[int, str]]:
+        return [(m, kind) for m, _, kind in self.terms]
 
     def angular_raw(self, t) -> np.ndarray:
         t = np.ravel(t).astype(float)

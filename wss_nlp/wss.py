@@ -31,9 +31,11 @@ class WssResult:
     wall_x: np.ndarray  # wall points, mm
     wall_y: np.ndarray
     viscosity_pa_s: float
+    tau_std: np.ndarray | None = None  # linearized standard deviation from the data noise, Pa (wss_nlp.sensitivity)
+    mean_std: float = float("nan")
 
 
-def wss_expression(velocity_of_xi, n_fourier: int, r_in: float, eta: float):
+def wss_expression(velocity_of_xi, n_fourier: int, r_in: float | None, eta: float):
     """CasADi ``Function`` ``(phi, c_R, center, p_v, mu) -> (tau, x_wall)``.
 
     Parameters
@@ -44,7 +46,8 @@ def wss_expression(velocity_of_xi, n_fourier: int, r_in: float, eta: float):
         for a reconstruction, anything for an analytic field). Built in SX
         (fast) unless the callable sets ``sx_ok = False`` (e.g. it calls
         MX-only callbacks); ``n_params`` gives the length of ``p_v``.
-    n_fourier, r_in, eta : geometry of phi_R.
+    n_fourier, r_in, eta : geometry of phi_R. ``r_in = None`` makes the
+        inner radius a last input ``r_in`` (for derivatives with respect to it).
 
     Notes
     -----
@@ -58,19 +61,22 @@ def wss_expression(velocity_of_xi, n_fourier: int, r_in: float, eta: float):
     mu = sym.sym("mu")
     xi = sym.sym("xi", 2)
     p_v = sym.sym("p_v", getattr(velocity_of_xi, "n_params", 1))
-    x = symbolic_forward(xi, c_r, center, r_in, eta)
+    r_in_sym = sym.sym("r_in") if r_in is None else None
+    x = symbolic_forward(xi, c_r, center, r_in_sym if r_in is None else r_in, eta)
     v = velocity_of_xi(xi, p_v)
     jac = ca.jacobian(x, xi)
     grad_v = ca.gradient(v, xi)
-    at_xi = ca.Function("at_xi", [xi, c_r, center, p_v], [jac, grad_v, x])
-    jac_w, grad_w, x_w = at_xi(ca.vertcat(ca.cos(phi), ca.sin(phi)), c_r, center, p_v)
+    extra = [] if r_in_sym is None else [r_in_sym]
+    at_xi = ca.Function("at_xi", [xi, c_r, center, p_v] + extra, [jac, grad_v, x])
+    jac_w, grad_w, x_w = at_xi(ca.vertcat(ca.cos(phi), ca.sin(phi)), c_r, center, p_v, *extra)
     grad_x = ca.solve(jac_w.T, grad_w)
     big_r = rad.symbolic(c_r, phi)
     dr = ca.jacobian(big_r, phi)
     normal = ca.vertcat(big_r * ca.cos(phi) + dr * ca.sin(phi), big_r * ca.sin(phi) - dr * ca.cos(phi))
     normal = normal / ca.sqrt(big_r**2 + dr**2)  # eq. (normal)
     tau = -mu * PER_MM * ca.dot(normal, grad_x)
-    return ca.Function("wss", [phi, c_r, center, p_v, mu], [tau, x_w], ["phi", "c_R", "center", "p_v", "mu"], ["tau", "x_wall"])
+    return ca.Function("wss", [phi, c_r, center, p_v, mu] + extra, [tau, x_w],
+                       ["phi", "c_R", "center", "p_v", "mu"] + ["r_in"] * bool(extra), ["tau", "x_wall"])
 
 
 class _BasisVelocity:

@@ -1,0 +1,149 @@
+"""Sensitivities of the decoupled reconstruction against finite differences of re-solves, and the band."""
+
+import h5py
+import numpy as np
+import pytest
+
+from wss_nlp import geometry as geo
+from wss_nlp import phantoms
+from wss_nlp import sensitivity as sens
+from wss_nlp import velocity as vel
+from wss_nlp import wss
+from wss_nlp.cli import main
+from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+
+# Re-solves use IPOPT at 1e-13 and Cholesky for the velocity, so central differences with a relative step of
+# 1e-3 (1e-4 mm for the centre) are accurate to ~1e-7; the issue asks for agreement to 1e-4.
+RTOL = 1e-4
+GOPT = geo.GeometryOptions(tol=1e-13)
+VOPT = vel.VelocityOptions(solver="cholesky")
+
+
+class Pipeline:
+    """Geometry solve -> velocity solve -> mean WSS, re-run with one input changed."""
+
+    def __init__(self, res, viscosity, r1=None):
+        self.res, self.mu = res, viscosity
+        lum = res.lumen
+        self.r1 = lum.r1 if r1 is None else r1
+        self.problem = geo.GeometryProblem(res.grid, res.magnitude, lum.center, lum.r0, self.r1, lum.r_area)
+        self.g = geo.solve(self.problem, GOPT)
+        self.vp = vel.assemble(res.grid, res.velocity_image, self.g.coefficients, self.g.center, VOPT)
+        self.v = vel.solve(self.vp, VOPT)
+
+    def mean(self, m=None, alpha=None, gamma=None, center=None, u=None, beta=None):
+        lum, res, g = self.res.lumen, self.res, self.g
+        pr = geo.GeometryProblem(res.grid, res.magnitude if m is None else m, lum.center if center is None else center,
+                                 lum.r0, self.r1, lum.r_area)
+        go = geo.with_options(GOPT, alpha=g.alpha if alpha is None else alpha, gamma=g.gamma if gamma is None else gamma)
+        gg = geo.solve(pr, go, x0=g.coefficients)
+        vv = vel.assemble(res.grid, res.velocity_image if u is None else u, gg.coefficients, gg.center, VOPT)
+        sol = vel.solve(vv, VOPT, beta=self.v.beta if beta is None else beta)
+        return wss.from_reconstruction(sol, 360, self.mu).mean, gg
+
+    def sensitivity(self):
+        return sens.decoupled(self.problem, GOPT, self.g, self.vp, VOPT, self.v, self.mu)
+
+
+@pytest.fixture(scope="module")
+def laminar():
+    acq, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=3)
+    res = reconstruct(acq, ReconstructionOptions(dephasing_correction=False, uncertainty=False))[0]
+    return Pipeline(res, acq.viscosity_pa_s)
+
+
+def _central(f, x, h):
+    return (f(x + h) - f(x - h)) / (2 * h)
+
+
+def test_scalar_parameter_derivatives_match_resolves(laminar):
+    s = laminar.sensitivity()
+    assert s.noise["active_box_constraints"] == 0  # box present but inactive
+    g, v = laminar.g, laminar.v
+    fds = {
+        "alpha": _central(lambda a: laminar.mean(alpha=a)[0], g.alpha, 1e-3 * g.alpha),
+        "beta": _central(lambda b: laminar.mean(beta=b)[0], v.beta, 1e-3 * v.beta),
+        "gamma": _central(lambda c: laminar.mean(gamma=c)[0], g.gamma, 1e-3 * g.gamma),
+    }
+    c0 = np.asarray(laminar.res.lumen.center, float)
+    for j, name in enumerate(("center_x", "center_y")):
+        e = np.eye(2)[j]
+        fds[name] = _central(lambda t: laminar.mean(center=tuple(c0 + t * e))[0], 0.0, 1e-4)
+    for name, fd in fds.items():
+        assert s.d_mean[sens.SCALARS.index(name)] == pytest.approx(fd, rel=RTOL), name
+
+
+def test_data_derivatives_match_resolves(laminar):
+    s = laminar.sensitivity()
+    rng = np.random.default_rng(11)
+    m0, u0 = laminar.res.magnitude, laminar.res.velocity_image
+    dm = np.zeros(m0.size)
+    dm[s.m_index] = rng.normal(size=s.m_index.size)
+    du = np.zeros(u0.size)
+    du[s.u_index] = 0.01 * rng.normal(size=s.u_index.size)
+    fd_m = _central(lambda t: laminar.mean(m=m0 + t * dm.reshape(m0.shape))[0], 0.0, 1e-4)
+    fd_u = _central(lambda t: laminar.mean(u=u0 + t * du.reshape(u0.shape))[0], 0.0, 1e-4)
+    assert s.d_mean_d_m @ dm[s.m_index] == pytest.approx(fd_m, rel=RTOL)
+    assert s.d_mean_d_u @ du[s.u_index] == pytest.approx(fd_u, rel=RTOL)
+    # tau at every angle, not only the mean: one angle checked against the re-solve of the coefficients
+    _, gg = laminar.mean(m=m0 + 1e-4 * dm.reshape(m0.shape))
+    _, gm = laminar.mean(m=m0 - 1e-4 * dm.reshape(m0.shape))
+    fd_c = (gg.coefficients - gm.coefficients) / 2e-4
+    np.testing.assert_allclose(s.d_coef_r[:, :s.m_index.size] @ dm[s.m_index], fd_c, rtol=RTOL,
+                               atol=RTOL * np.max(np.abs(fd_c)))
+
+
+def test_derivatives_with_the_box_active():
+    """An upper bound below the fitted radius: the active rows enter the KKT system (clip_inactive_lam)."""
+    acq, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=3)
+    res = reconstruct(acq, ReconstructionOptions(dephasing_correction=False, uncertainty=False))[0]
+    r_max = float(np.max(res.geometry.radius(np.linspace(0, 2 * np.pi, 720))))
+    pipe = Pipeline(res, acq.viscosity_pa_s, r1=r_max - 0.3)
+    assert pipe.g.box_active
+    s = pipe.sensitivity()
+    assert s.noise["active_box_constraints"] > 0
+    for name, x0, step in (("alpha", pipe.g.alpha, 1e-3 * pipe.g.alpha), ("gamma", pipe.g.gamma, 1e-3 * pipe.g.gamma)):
+        fd = _central(lambda t: pipe.mean(**{name: t})[0], x0, step)
+        assert s.d_mean[sens.SCALARS.index(name)] == pytest.approx(fd, rel=RTOL), name
+
+
+def test_band_written_and_sensitivity_command(tmp_path, capsys):
+    inp, out = tmp_path / "in.h5", tmp_path / "out.h5"
+    assert main(["phantom", "--case", "laminar", "--h", "1.5", "--seed", "2", "-o", str(inp)]) == 0
+    assert main(["reconstruct", str(inp), "-o", str(out)]) == 0
+    with h5py.File(out) as f:
+        w = f["slice_000/wss"]
+        assert w["tau_std_pa"].shape == w["tau_pa"].shape and np.all(w["tau_std_pa"][()] > 0)
+        assert 0 < w.attrs["mean_std_pa"] < 0.1 * w.attrs["mean_pa"]
+        assert f["slice_000/sensitivity/d_mean_d_velocity"].shape == f["slice_000/sensitivity/d_mean_d_magnitude"].shape
+    capsys.readouterr()
+    assert main(["sensitivity", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "velocity noise (1 std)" in text and "alpha +10 %" in text
+    bare = tmp_path / "bare.h5"
+    assert main(["reconstruct", str(inp), "-o", str(bare), "--no-uncertainty"]) == 0
+    with h5py.File(bare) as f:
+        assert "tau_std_pa" not in f["slice_000/wss"]
+    assert main(["sensitivity", str(bare)]) == 2
+
+
+@pytest.mark.slow
+def test_band_agrees_with_monte_carlo():
+    """200 noise draws on one noise-free acquisition: the linearized std within 20 % of the sample std."""
+    acq0, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=None, seed=4)
+    rng = np.random.default_rng(2024)
+    opts = ReconstructionOptions(uncertainty=False)
+
+    def draw():
+        return phantoms.noisy_copy(acq0, 25.0, rng)
+
+    banded = reconstruct(draw(), ReconstructionOptions())[0]
+    means, taus = [], []
+    for _ in range(200):
+        r = reconstruct(draw(), opts)[0]
+        means.append(r.wss.mean)
+        taus.append(r.wss.tau)
+    mc_mean_std = np.std(means, ddof=1)
+    mc_tau_std = np.std(np.array(taus), axis=0, ddof=1)
+    assert banded.wss.mean_std == pytest.approx(mc_mean_std, rel=0.2)
+    assert np.sqrt(np.mean(banded.wss.tau_std**2)) == pytest.approx(np.sqrt(np.mean(mc_tau_std**2)), rel=0.2)

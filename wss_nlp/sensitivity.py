@@ -1,0 +1,397 @@
+"""Derivatives of the reconstruction and a linearized uncertainty band (decoupled method).
+
+The decoupled reconstruction is a chain of two solves, each differentiated
+exactly with CasADi:
+
+1. geometry: ``c_R(p_g)`` minimizes the Tikhonov functional of Sec. 2 with
+   parameters ``p_g = (m, alpha, gamma, centre)``; its derivative is the
+   parametric sensitivity of the NLP (implicit function theorem on the KKT
+   system, CasADi's ``nlpsol`` derivatives with the exact Hessian and
+   ``clip_inactive_lam`` so that the tiny multipliers IPOPT returns for
+   inactive box constraints are not mistaken for active ones);
+2. velocity: ``c_v = H(c_R, beta)^{-1} T(c_R)^T W u / A``, a closed-form
+   CasADi expression in ``(c_R, centre, u, beta)`` with the voxel membership
+   of the sub-voxel points held at the solution (it is piecewise constant,
+   so this is the derivative almost everywhere);
+3. WSS: ``tau(phi_j; c_R, c_v, r_in(c_R))`` of eq. (wss) with
+   ``r_in = f min R`` differentiated as well.
+
+The chain rule is assembled from these Jacobians. The band is
+``sigma_tau^2 = sum_i (d tau / d m_i)^2 sigma_m^2 + sum_i (d tau / d u_i)^2 sigma_u,i^2``
+with independent per-voxel noise: ``sigma_m = sigma / (m1 - m0)`` for the
+normalized magnitude and ``sigma_u,i = venc sigma / (pi |d_i|)`` (capped at
+``venc / sqrt 3``) for the velocity, ``sigma`` the complex noise level
+(Appendix B); magnitude and phase noise are independent to first order.
+
+Held fixed (documented in the README): the preprocessing outputs other
+than the centre (normalization levels, the box, the reference radius) and
+the dephasing factors of the second pass.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+
+import casadi as ca
+
+from . import geometry as geo
+from . import measurement as meas
+from . import radius as rad
+from . import velocity as vel
+from . import wss as wss_mod
+from .coupled import RHO_MAX, polar_basis
+from .errors import InputError, SolverError
+
+SCALARS = ("alpha", "beta", "gamma", "center_x", "center_y")
+
+
+@dataclass
+class Sensitivity:
+    """Derivatives of tau and mean tau, and the uncertainty band they imply.
+
+    ``d_tau`` has one column per name in :data:`SCALARS`; ``d_tau_d_m`` and
+    ``d_tau_d_u`` have one column per voxel of ``m_index`` / ``u_index``
+    (flat row-major indices). Units: Pa per unit of the parameter (alpha,
+    beta: dimensionless; gamma, centre: mm; m: dimensionless; u: m/s).
+    """
+
+    phi: np.ndarray
+    d_tau: np.ndarray  # (n_phi, 5)
+    d_mean: np.ndarray  # (5,)
+    d_tau_d_m: np.ndarray  # (n_phi, n_m)
+    d_tau_d_u: np.ndarray  # (n_phi, n_u)
+    d_mean_d_m: np.ndarray
+    d_mean_d_u: np.ndarray
+    m_index: np.ndarray
+    u_index: np.ndarray
+    d_coef_r: np.ndarray  # (2N+1, n_m + n_u + 5): d c_R / d [m, u, scalars]
+    d_coef_v: np.ndarray  # (n_basis, n_m + n_u + 5)
+    tau_std: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    mean_std: float = float("nan")
+    mean_std_magnitude: float = float("nan")  # part of mean_std from the magnitude noise
+    mean_std_velocity: float = float("nan")
+    noise: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return SCALARS
+
+    def scalar(self, name: str) -> np.ndarray:
+        return self.d_tau[:, SCALARS.index(name)]
+
+    def band(self, sigma_m: float, sigma_u: np.ndarray) -> tuple[np.ndarray, float, float, float]:
+        """``(tau_std, mean_std, mean_std from m, mean_std from u)`` for per-voxel noise levels."""
+        sigma_u = np.broadcast_to(np.asarray(sigma_u, float), self.u_index.shape)
+        var_m = sigma_m**2 * np.sum(self.d_tau_d_m**2, axis=1)
+        var_u = np.sum((self.d_tau_d_u * sigma_u) ** 2, axis=1)
+        mean_m = sigma_m**2 * float(np.sum(self.d_mean_d_m**2))
+        mean_u = float(np.sum((self.d_mean_d_u * sigma_u) ** 2))
+        return np.sqrt(var_m + var_u), float(np.sqrt(mean_m + mean_u)), float(np.sqrt(mean_m)), float(np.sqrt(mean_u))
+
+
+# --------------------------------------------------------------------------- symbolic pieces
+def _fourier_row(n: int, t):
+    """``[1, cos t, ..., cos Nt, sin t, ..., sin Nt]`` (the ordering of :mod:`wss_nlp.radius`) as an SX column."""
+    return ca.vertcat(1, *[ca.cos(k * t) for k in range(1, n + 1)], *[ca.sin(k * t) for k in range(1, n + 1)])
+
+
+def voxel_model_function(n_fourier: int, order: int, heaviside: str) -> ca.Function:
+    """Per-voxel ``F_i(z)`` with ``z = [c_R; gamma; c_x; c_y]``, its gradient and Hessian in z (SX).
+
+    Inputs ``(z, x_pts, y_pts)`` with the ``order^2`` sub-voxel points; the
+    same model as eq. (discForw) in :func:`wss_nlp.measurement.magnitude_model`
+    with the polar coordinates about a variable centre.
+    """
+    n_r = rad.n_coefficients(n_fourier)
+    z = ca.SX.sym("z", n_r + 3)
+    xs, ys = ca.SX.sym("x", order * order), ca.SX.sym("y", order * order)
+    c_r, gam, cx, cy = z[:n_r], z[n_r], z[n_r + 1], z[n_r + 2]
+    total = 0
+    for j in range(order * order):
+        dx, dy = xs[j] - cx, ys[j] - cy
+        big_r = ca.dot(_fourier_row(n_fourier, ca.atan2(dy, dx)), c_r)
+        total += meas.smoothed_heaviside(big_r - ca.sqrt(dx * dx + dy * dy), gam, heaviside)
+    f = total / (order * order)
+    hess, grad = ca.hessian(f, z)
+    return ca.Function("voxel", [z, xs, ys], [f, grad, ca.vec(hess)])
+
+
+def point_map_function(n_fourier: int) -> ca.Function:
+    """Per sub-voxel point: ``rho`` of the inverse map (eta = 2) and ``t``, with gradients (SX).
+
+    Inputs ``(c_R, r_in, c_x, c_y, x, y)``; ``d rho / d [c_R; r_in; c_x; c_y]``
+    and ``d t / d [c_x; c_y]``.
+    """
+    n_r = rad.n_coefficients(n_fourier)
+    c_r, r_in = ca.SX.sym("c_R", n_r), ca.SX.sym("r_in")
+    cx, cy, x, y = ca.SX.sym("cx"), ca.SX.sym("cy"), ca.SX.sym("x"), ca.SX.sym("y")
+    dx, dy = x - cx, y - cy
+    r = ca.sqrt(dx * dx + dy * dy)
+    t = ca.atan2(dy, dx)
+    big_r = ca.dot(_fourier_row(n_fourier, t), c_r)
+    rho = 2 * r / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * r))
+    args = ca.vertcat(c_r, r_in, cx, cy)
+    return ca.Function("point", [c_r, r_in, cx, cy, x, y],
+                       [rho, ca.gradient(rho, args), t, ca.gradient(t, ca.vertcat(cx, cy))])
+
+
+def wss_derivative_function(basis, n_fourier: int, eta: float, viscosity_pa_s: float) -> ca.Function:
+    """Per angle: ``tau`` of eq. (wss) and its gradient in ``[c_R; c_v; r_in]`` (SX)."""
+    tau_f = wss_mod.wss_expression(wss_mod._BasisVelocity(basis), n_fourier, None, eta)
+    n_r = rad.n_coefficients(n_fourier)
+    phi, c_r, center = ca.SX.sym("phi"), ca.SX.sym("c_R", n_r), ca.SX.sym("center", 2)
+    c_v, r_in = ca.SX.sym("c_v", basis.size), ca.SX.sym("r_in")
+    tau = tau_f(phi, c_r, center, c_v, viscosity_pa_s, r_in)[0]
+    return ca.Function("dtau", [phi, c_r, center, c_v, r_in], [tau, ca.gradient(tau, ca.vertcat(c_r, c_v, r_in))])
+
+
+def geometry_kkt(problem: geo.GeometryProblem, options: geo.GeometryOptions, coefficients: np.ndarray, alpha: float,
+                 gamma: float, lam_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``d c_R / d [m_annulus; alpha; gamma; c_x; c_y]`` at a solution, by the implicit function theorem.
+
+    Notes
+    -----
+    With ``r_i = F_i(z) - m_i`` and ``J(c) = |V| sum r_i^2 + alpha (c - c_ref)^T W (c - c_ref)``,
+    stationarity plus the active box rows ``G_A c = r_0 | r_1`` give
+    ``[[H, G_A^T], [G_A, 0]] [dc; dlam] = [-dgrad/dp; 0]`` with
+    ``H = 2 |V| sum (grad_c F_i grad_c F_i^T + r_i hess_cc F_i) + 2 alpha W`` and
+    ``dgrad/dm_i = -2 |V| grad_c F_i``, ``dgrad/dalpha = 2 W (c - c_ref)``,
+    ``dgrad/dq = 2 |V| sum (d_q F_i grad_c F_i + r_i d_q grad_c F_i)`` for
+    ``q`` in ``(gamma, c_x, c_y)``. All derivatives of ``F_i`` are CasADi's
+    exact ones; the active set is where IPOPT's multipliers are nonzero
+    (run with ``clip_inactive_lam``, so inactive ones are exactly zero).
+    Returns ``(dc/dp, annulus indices)``.
+    """
+    n = options.n_fourier
+    n_r = rad.n_coefficients(n)
+    q = geo.quad_order(problem, options)
+    model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
+    px, py = meas.subvoxel_points(problem.grid, model.annulus, q)
+    n_a = model.annulus.size
+    fun = voxel_model_function(n, q, options.heaviside).map(n_a)
+    z = np.concatenate([coefficients, [gamma], problem.center])
+    f_v, grad, hess = (np.asarray(a) for a in fun(z, px.T, py.T))
+    nz = z.size
+    hess = hess.reshape(nz, nz, n_a)
+    resid = f_v.ravel() - problem.magnitude.ravel()[model.annulus]
+    area = problem.grid.voxel_area
+    w = rad.sobolev_weights(n, options.sobolev_s)
+    ref = np.zeros(n_r)
+    if options.prior == "area":
+        ref[0] = problem.r_ref
+    g_c = grad[:n_r]  # (n_r, n_a)
+    hmat = 2 * area * (g_c @ g_c.T + np.einsum("ijk,k->ij", hess[:n_r, :n_r], resid)) + 2 * alpha * np.diag(w)
+    dgrad = np.zeros((n_r, n_a + 4))
+    dgrad[:, :n_a] = -2 * area * g_c
+    dgrad[:, n_a] = 2 * w * (coefficients - ref)
+    for col, k in ((n_a + 1, n_r), (n_a + 2, n_r + 1), (n_a + 3, n_r + 2)):
+        dgrad[:, col] = 2 * area * (g_c @ grad[k] + hess[:n_r, k] @ resid)
+    box = rad.design_matrix(options.box_angles(), n)
+    active = np.flatnonzero(lam_box != 0)
+    kkt = np.zeros((n_r + active.size, n_r + active.size))
+    kkt[:n_r, :n_r] = hmat
+    kkt[:n_r, n_r:] = box[active].T
+    kkt[n_r:, :n_r] = box[active]
+    rhs = np.zeros((kkt.shape[0], n_a + 4))
+    rhs[:n_r] = -dgrad
+    try:
+        sol = np.linalg.solve(kkt, rhs)
+    except np.linalg.LinAlgError as exc:
+        raise SolverError(f"sensitivity: the KKT matrix is singular ({exc}); more box constraints are active "
+                          "than the radius has degrees of freedom") from exc
+    return sol[:n_r], model.annulus
+
+
+def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, c_r0: np.ndarray, center0):
+    """The voxel-mean operator ``T~_h`` and its derivatives with respect to ``[c_R; c_x; c_y]``.
+
+    Returns ``(OperatorDerivative, r_in, d r_in / d c_R)``.
+
+    Notes
+    -----
+    Every raw basis function is ``radial(rho) angular(t)`` and a sub-voxel
+    point moves in the reference disk only through ``rho_p`` (which depends
+    on R(t_p), ``r_in = f min R`` and the centre) and ``t_p`` (centre only),
+    so ``d raw = angular radial' d rho_p + angular' radial d t_p``. CasADi
+    differentiates ``rho_p`` and ``t_p`` exactly; ``radial'`` comes from the
+    Chebyshev form (exact for the Zernike basis) and ``angular'`` in closed
+    form. Membership of the points and the partial volumes are those of
+    ``vp`` (piecewise constant in R). ``min R`` is taken over 720 angles
+    like :meth:`wss_nlp.velocity.VelocityOptions.make_map`; its derivative
+    is the design row of the minimizing angle. Requires ``eta = 2``.
+    """
+    if options.eta != 2:
+        raise InputError(f"sensitivities use the closed-form inverse of phi_R, which needs eta = 2 (got {options.eta})")
+    basis, vox = vp.basis, vp.voxels
+    n_r = c_r0.size
+    n = rad.n_fourier_from_size(n_r)
+    if options.inner_radius is not None:
+        r_in, dr_in = float(options.inner_radius), np.zeros(n_r)
+    else:
+        design = rad.design_matrix(rad.uniform_angles(720), n)
+        j = int(np.argmin(design @ c_r0))
+        r_in, dr_in = options.inner_fraction * float(design[j] @ c_r0), options.inner_fraction * design[j]
+    inside = vox.inside
+    px, py = vox.px[inside], vox.py[inside]
+    fun = point_map_function(n).map(px.size)
+    rho0, drho, th0, dth = (np.asarray(a) for a in fun(c_r0, r_in, center0[0], center0[1], px, py))
+    rho0, th0 = rho0.ravel(), th0.ravel()
+    # chain rule for r_in(c_R); columns [c_R, c_x, c_y]
+    drho = np.vstack([drho[:n_r] + np.outer(dr_in, drho[n_r]), drho[n_r + 1:]]).T
+    dth = np.vstack([np.zeros((n_r, px.size)), dth]).T
+    clipped = rho0 > 1.0  # velocity.assemble clips rho to 1 (points on the wall within rounding)
+    rho0 = np.minimum(rho0, 1.0)
+    drho[clipped] = 0.0
+
+    pb = polar_basis(basis, th0)
+    tk = np.polynomial.chebyshev.chebvander(2 * rho0 / RHO_MAX - 1, pb.cheb.shape[1] - 1).T
+    radial = pb.select_radial @ (pb.cheb @ tk)
+    dradial = pb.select_radial @ (pb.cheb_derivative @ tk)
+    orders = np.array([m for m, _ in basis.angular_terms()], float)[:, None]
+    is_cos = np.array([kind == "cos" for _, kind in basis.angular_terms()])[:, None]
+    ang = np.where(is_cos, np.cos(orders * th0), np.sin(orders * th0))
+    dang = np.where(is_cos, -orders * np.sin(orders * th0), orders * np.cos(orders * th0))
+    rows = np.nonzero(inside)[0]
+    counts = inside.sum(axis=1)
+    avg = scipy.sparse.csr_matrix((1.0 / counts[rows], (rows, np.arange(rows.size))), shape=(vox.index.size, rows.size))
+    op = np.asarray(avg @ (ang * radial).T) @ basis.transform
+    return OperatorDerivative(op, avg, (ang * dradial).T @ basis.transform, (dang * radial).T @ basis.transform,
+                              drho, dth), r_in, dr_in
+
+
+@dataclass
+class OperatorDerivative:
+    """``T~_h`` and the pieces of its derivative: ``dT_k = avg diag(drho_k) A_rho + avg diag(dt_k) A_t``."""
+
+    op: np.ndarray  # (n_vox, n_basis)
+    avg: scipy.sparse.csr_matrix  # (n_vox, n_points): voxel means over the inside points
+    a_rho: np.ndarray  # (n_points, n_basis): d basis / d rho at the points
+    a_theta: np.ndarray  # (n_points, n_basis): d basis / d t
+    drho: np.ndarray  # (n_points, n_dir)
+    dtheta: np.ndarray  # (n_points, n_dir)
+
+    def times(self, c: np.ndarray) -> np.ndarray:
+        """``[dT_k c]_k``, shape (n_vox, n_dir)."""
+        return np.asarray(self.avg @ (self.drho * (self.a_rho @ c)[:, None] + self.dtheta * (self.a_theta @ c)[:, None]))
+
+    def transpose_times(self, y: np.ndarray) -> np.ndarray:
+        """``[dT_k^T y]_k``, shape (n_basis, n_dir)."""
+        z = np.asarray(self.avg.T @ y).ravel()
+        return self.a_rho.T @ (self.drho * z[:, None]) + self.a_theta.T @ (self.dtheta * z[:, None])
+
+
+def _mean_weight_jacobian(c_r: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Arc-length weights ``w_j = ds_j / sum ds`` on uniform angles and ``dw/dc_R`` (CasADi)."""
+    n = rad.n_fourier_from_size(c_r.size)
+    c = ca.SX.sym("c", c_r.size)
+    big_r = ca.mtimes(ca.DM(rad.design_matrix(phi, n)), c)
+    d_r = ca.mtimes(ca.DM(rad.design_matrix(phi, n, 1)), c)
+    ds = ca.sqrt(big_r * big_r + d_r * d_r)
+    w = ds / ca.sum1(ds)
+    out = ca.Function("w", [c], [w, ca.jacobian(w, c)])(c_r)
+    return np.asarray(out[0]).ravel(), np.asarray(out[1])
+
+
+# --------------------------------------------------------------------------- driver
+def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry: geo.GeometryResult,
+              vp: vel.VelocityProblem, vopt: vel.VelocityOptions, velocity: vel.VelocityResult, viscosity_pa_s: float,
+              n_phi: int = 360, tol: float = 1e-12) -> Sensitivity:
+    """Sensitivities of the decoupled reconstruction at its solution (see the module notes).
+
+    Parameters
+    ----------
+    problem, gopt, geometry : the geometry solve (``geometry.alpha`` and ``geometry.gamma`` are used).
+    vp, vopt, velocity : the velocity problem assembled on ``geometry`` and its solution (``velocity.beta``).
+    tol : float
+        IPOPT tolerance of the re-solve that anchors the sensitivities; the
+        solution derivatives are only as good as the KKT point.
+    """
+    t_start = time.perf_counter()
+    # anchor: re-solve from the solution to a tight tolerance (the reconstruction's tolerance leaves the
+    # stationarity residual at ~1e-9, which would show in the derivatives)
+    gopt_t = geo.with_options(gopt, alpha=geometry.alpha, tol=tol)
+    anchor = geo.IpoptGeometrySolver(problem, gopt_t).solve(geometry.alpha, geometry.coefficients)
+    if not anchor.stats.converged:
+        raise SolverError(f"geometry sensitivity re-solve did not converge ({anchor.stats.status}); "
+                          "the derivatives would not be those of a solution")
+    c_r0 = anchor.coefficients
+    dcr_dpg, annulus = geometry_kkt(problem, gopt_t, c_r0, geometry.alpha, geometry.gamma, anchor.box_multipliers)
+
+    # velocity: c_v = H^{-1} T^T W u with H = T^T W T + beta G / pi (W includes 1/A); differentiate the
+    # normal equations along each geometry direction
+    ctr = np.asarray(problem.center, float)
+    n_r, n_u, nb = c_r0.size, vp.data.size, vp.basis.size
+    od, r_in, dr_in = operator_derivatives(vp, vopt, c_r0, ctr)
+    t_op = od.op
+    wt = vp.weights / vp.area
+    hmat = t_op.T @ (wt[:, None] * t_op) + velocity.beta / np.pi * vp.gram
+    cho = scipy.linalg.cho_factor(hmat)
+    cv0 = scipy.linalg.cho_solve(cho, t_op.T @ (wt * vp.data))
+    resid = t_op @ cv0 - vp.data
+    dcv_du = scipy.linalg.cho_solve(cho, t_op.T * wt[None, :])
+    dcv_db = -scipy.linalg.cho_solve(cho, vp.gram @ cv0 / np.pi)
+    # H dc = -(dT^T W r + T^T W dT c) along each of the n_r + 2 geometry directions at once
+    dcv_dgeo = -scipy.linalg.cho_solve(cho, od.transpose_times(wt * resid) + t_op.T @ (wt[:, None] * od.times(cv0)))
+
+    # WSS at each angle and its arc-length mean
+    phi = rad.uniform_angles(n_phi)
+    fun = wss_derivative_function(vp.basis, rad.n_fourier_from_size(n_r), vopt.eta, viscosity_pa_s).map(n_phi)
+    tau0, grad = (np.asarray(a) for a in fun(phi[None, :], c_r0, ctr, cv0, r_in))
+    tau0 = tau0.ravel()
+    dt_dr = grad[:n_r].T + np.outer(grad[n_r + nb], dr_in)
+    dt_dv = grad[n_r:n_r + nb].T
+    w_mean, dw = _mean_weight_jacobian(c_r0, phi)
+    mean0 = float(w_mean @ tau0)
+
+    # chain rule on [m_annulus, u, alpha, beta, gamma, c_x, c_y]
+    n_m = annulus.size
+    n_all = n_m + n_u + len(SCALARS)
+    dcr = np.zeros((n_r, n_all))
+    dcr[:, :n_m] = dcr_dpg[:, :n_m]
+    dcr[:, n_m + n_u + 0] = dcr_dpg[:, n_m]  # alpha
+    dcr[:, n_m + n_u + 2] = dcr_dpg[:, n_m + 1]  # gamma
+    dcr[:, n_m + n_u + 3:] = dcr_dpg[:, n_m + 2:]  # centre
+    dcv = dcv_dgeo[:, :n_r] @ dcr
+    dcv[:, n_m:n_m + n_u] += dcv_du
+    dcv[:, n_m + n_u + 1] += dcv_db
+    dcv[:, n_m + n_u + 3:] += dcv_dgeo[:, n_r:]
+    dtau = dt_dr @ dcr + dt_dv @ dcv  # tau does not depend on the centre directly (translation invariance)
+    dmean = w_mean @ dtau + tau0 @ (dw @ dcr)
+    out = Sensitivity(phi=phi, d_tau=dtau[:, n_m + n_u:], d_mean=dmean[n_m + n_u:],
+                      d_tau_d_m=dtau[:, :n_m], d_tau_d_u=dtau[:, n_m:n_m + n_u],
+                      d_mean_d_m=dmean[:n_m], d_mean_d_u=dmean[n_m:n_m + n_u],
+                      m_index=np.asarray(annulus), u_index=np.asarray(vp.voxels.index), d_coef_r=dcr, d_coef_v=dcv)
+    out.seconds = time.perf_counter() - t_start
+    out.noise["tau_reference"] = tau0
+    out.noise["mean_reference"] = mean0
+    out.noise["active_box_constraints"] = int(np.count_nonzero(anchor.box_multipliers))
+    return out
+
+
+def noise_levels(raw_magnitude: np.ndarray, mask: np.ndarray, m0: float, m1: float, u_index: np.ndarray,
+                 venc: float | None, sigma: float | None = None) -> tuple[float, np.ndarray, str]:
+    """Per-voxel noise ``(sigma_m, sigma_u[u_index], how)`` from the complex noise level (Appendix B).
+
+    ``sigma`` (per channel, raw units) is estimated from the Rayleigh
+    background when not given.
+    """
+    from .analysis import NoiseEstimationError, complex_noise_sigma
+
+    how = "given"
+    if sigma is None:
+        sigma, how = complex_noise_sigma(raw_magnitude, mask), "Rayleigh background"
+    if not np.isfinite(sigma) or sigma <= 0:
+        raise NoiseEstimationError("cannot estimate the complex noise level for the uncertainty band (no background "
+                                   "in the field of view); pass --noise-sigma")
+    if venc is None:
+        raise NoiseEstimationError("the uncertainty band needs venc (phase data) to convert phase noise to velocity")
+    mag = np.maximum(np.asarray(raw_magnitude, float).ravel()[u_index], 1e-300)
+    sigma_u = np.minimum(venc * sigma / (np.pi * mag), venc / np.sqrt(3))
+    return float(sigma / (m1 - m0)), sigma_u, f"sigma = {sigma:.4g} ({how}); sigma_m = sigma/(m1-m0), " \
+                                             "sigma_u,i = venc sigma/(pi |d_i|)"
