@@ -4,6 +4,7 @@ import h5py
 import numpy as np
 import pytest
 
+from wss_nlp import coupled as cpl
 from wss_nlp import geometry as geo
 from wss_nlp import phantoms
 from wss_nlp import sensitivity as sens
@@ -125,6 +126,50 @@ def test_band_written_and_sensitivity_command(tmp_path, capsys):
     with h5py.File(bare) as f:
         assert "tau_std_pa" not in f["slice_000/wss"]
     assert main(["sensitivity", str(bare)]) == 2
+
+
+def test_coupled_derivatives_match_resolves():
+    """Coupled NLP: IFT on its KKT system against re-solves (each polished by the same Newton steps)."""
+    acq, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=3)
+    opts = ReconstructionOptions(method="coupled", uncertainty=False, dephasing_correction=False)
+    res = reconstruct(acq, opts)[0]
+    lum = res.lumen
+    problem = geo.GeometryProblem(res.grid, res.magnitude, lum.center, lum.r0, lum.r1, lum.r_area)
+    start_g = geo.solve(problem, opts.geometry)
+    start_v = vel.solve(vel.assemble(res.grid, res.velocity_image, start_g.coefficients, start_g.center,
+                                     opts.velocity), opts.velocity)
+    weight = res.coupled_info["velocity_weight"]
+
+    def solve(m=None, u=None, center=None, **scalars):
+        pr = geo.GeometryProblem(res.grid, res.magnitude if m is None else m, lum.center if center is None else center,
+                                 lum.r0, lum.r1, lum.r_area)
+        gopt = opts.geometry if "gamma" not in scalars else geo.with_options(opts.geometry, gamma=scalars.pop("gamma"))
+        c = cpl.solve(pr, gopt, res.velocity_image if u is None else u, opts.velocity, start_g, start_v, weight,
+                      **scalars)
+        return sens.coupled(c, pr, gopt, opts.velocity, acq.viscosity_pa_s)
+
+    s = solve()
+    assert s.noise["kkt_residual_after_polish"] < 1e-8
+    mean = lambda **kw: solve(**kw).noise["mean_reference"]  # noqa: E731
+    g0 = res.geometry
+    for name, x0 in (("alpha", g0.alpha), ("beta", res.velocity.beta), ("gamma", g0.gamma)):
+        fd = _central(lambda t: mean(**{name: t}), x0, 1e-3 * x0)
+        assert s.d_mean[sens.SCALARS.index(name)] == pytest.approx(fd, rel=RTOL), name
+    c0 = np.asarray(lum.center, float)
+    for j, name in enumerate(("center_x", "center_y")):
+        fd = _central(lambda t: mean(center=tuple(c0 + t * np.eye(2)[j])), 0.0, 1e-4)
+        assert s.d_mean[sens.SCALARS.index(name)] == pytest.approx(fd, rel=RTOL), name
+    rng = np.random.default_rng(5)
+    m0, u0 = problem.magnitude, res.velocity_image
+    dm = np.zeros(m0.size)
+    dm[s.m_index] = rng.normal(size=s.m_index.size)
+    dm[(m0.ravel() <= 0) | (m0.ravel() >= 1)] = 0  # the precision weights clip m to [0, 1]: one-sided there
+    du = np.zeros(u0.size)
+    du[s.u_index] = 0.01 * rng.normal(size=s.u_index.size)
+    fd_m = _central(lambda t: mean(m=m0 + t * dm.reshape(m0.shape)), 0.0, 1e-4)
+    fd_u = _central(lambda t: mean(u=u0 + t * du.reshape(u0.shape)), 0.0, 1e-4)
+    assert s.d_mean_d_m @ dm[s.m_index] == pytest.approx(fd_m, rel=RTOL)
+    assert s.d_mean_d_u @ du[s.u_index] == pytest.approx(fd_u, rel=RTOL)
 
 
 @pytest.mark.slow

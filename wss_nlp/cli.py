@@ -89,7 +89,7 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     w.add_argument("--no-dephasing-correction", dest="dephasing_correction", action="store_false",
                    help="skip the second pass that corrects the magnitude for intra-voxel dephasing (needs venc)")
     w.add_argument("--no-uncertainty", dest="uncertainty", action="store_false",
-                   help="skip the linearized WSS band and the sensitivities (decoupled method; about 1-2x the "
+                   help="skip the linearized WSS band and the sensitivities (about 1-3x the "
                         "time of the solve)")
     w.add_argument("--noise-sigma", type=float, default=None,
                    help="complex noise per channel in raw magnitude units for the band (default: from the "
@@ -274,8 +274,8 @@ def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
     """What moves the mean WSS, largest first: ``(cause, change of mean tau in Pa)``.
 
     Parameters change by +10 % (alpha, beta, gamma) or by half a voxel
-    (centre), to first order; noise enters as one standard deviation of
-    the linearized band.
+    (centre), to first order; noise enters as one standard deviation of the
+    linearized band.
     """
     d = dict(zip(rec["names"], rec["d_mean"]))
     h = rec["h_mm"]
@@ -292,7 +292,7 @@ def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
 def cmd_sensitivity(args) -> int:
     recs = wio.read_sensitivity(args.result)
     if not recs:
-        raise InputError(f"{args.result}: no sensitivity records; reconstruct with the decoupled method and without "
+        raise InputError(f"{args.result}: no sensitivity records; reconstruct without "
                          "--no-uncertainty")
     for name, rec in recs.items():
         print(f"{name}: mean WSS {rec['mean_pa']:.4g} Pa +- {rec['mean_std_pa']:.2g} Pa (1 std, linearized)")
@@ -381,7 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.set_defaults(func=cmd_analyze)
 
     se = sub.add_parser("sensitivity", help="which parameters and which noise the mean WSS is most sensitive to")
-    se.add_argument("result", help="result file written by 'wss-nlp reconstruct' (decoupled method)")
+    se.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
     se.set_defaults(func=cmd_sensitivity)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")

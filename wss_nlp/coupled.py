@@ -60,14 +60,16 @@ class CoupledOptions:
         indicator makes the partial volumes continuous in R at any q.
     tol, max_iter : float, int
         IPOPT stopping rules. The misfit sums thousands of sub-voxel terms,
-        so a relative tolerance much below 1e-7 only meets rounding noise
-        (IPOPT then stops with Search_Direction_Becomes_Too_Small).
+        so much tighter tolerances only meet rounding noise (measured: 1e-7
+        ran into the iteration limit on a laminar SNR 6 slice whose solution
+        agreed with the 1e-6 one to 1e-9 mm). Sensitivities polish the
+        solution with Newton steps anyway (:func:`wss_nlp.sensitivity.coupled`).
     """
 
     velocity_weight: float | None = None
     hessian: str = "gauss-newton"
     quad_order: int = 3
-    tol: float = 1e-7
+    tol: float = 1e-6
     max_iter: int = 200
 
     def __post_init__(self):
@@ -140,6 +142,8 @@ class VelocityMisfitModel:
     sum_matrix: scipy.sparse.csr_matrix  # (n_vox, n_points): sums over a voxel's points
     order: int
     voxel_area: float
+    px: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (n_points,) absolute point coordinates, mm
+    py: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 def velocity_misfit_model(grid: meas.VoxelGrid, velocity_image, magnitude, center, r1: float, n_fourier: int,
@@ -156,9 +160,9 @@ def velocity_misfit_model(grid: meas.VoxelGrid, velocity_image, magnitude, cente
     rows = np.repeat(np.arange(index.size), nq)
     sums = scipy.sparse.csr_matrix((np.ones(rows.size), (rows, np.arange(rows.size))), shape=(index.size, rows.size))
     m = np.clip(np.asarray(magnitude, float).ravel()[index], 0.0, 1.0)
-    return VelocityMisfitModel(index, np.asarray(velocity_image, float).ravel()[index], grid.voxel_area * m**2, r, dx / np.maximum(r, 1e-300),
-                               dy / np.maximum(r, 1e-300), rad.design_matrix(phi, n_fourier), sums, order,
-                               grid.voxel_area)
+    return VelocityMisfitModel(index, np.asarray(velocity_image, float).ravel()[index], grid.voxel_area * m**2, r,
+                               dx / np.maximum(r, 1e-300), dy / np.maximum(r, 1e-300), rad.design_matrix(phi, n_fourier),
+                               sums, order, grid.voxel_area, px.ravel(), py.ravel())
 
 
 #: Floor ``s_0`` (in sub-voxel points) of the smoothed point count in ``T_i = t_i / sqrt(s_i^2 + s_0^2)``.
@@ -183,6 +187,7 @@ class PolarBasis:
     angular: np.ndarray  # (n_angular, n_points)
     select_radial: np.ndarray  # (n_raw, n_radial) one-hot
     select_angular: np.ndarray  # (n_raw, n_angular) one-hot
+    angular_terms: list = field(default_factory=list)  # (order, "cos" | "sin") of each distinct angular row
 
     @property
     def n_radial(self) -> int:
@@ -219,13 +224,20 @@ def polar_basis(basis, angles: np.ndarray, tol: float = 1e-12) -> PolarBasis:
         if np.max(np.abs(approx - ref)) <= tol * scale:
             deriv = np.polynomial.chebyshev.chebder(coef.T).T * (2 / RHO_MAX)
             deriv = np.hstack([deriv, np.zeros((coef.shape[0], 1))])
-            return PolarBasis(coef, deriv, basis.angular_raw(angles)[ang_first], select_r, select_a)
+            terms = [basis.angular_terms()[i] for i in ang_first]
+            return PolarBasis(coef, deriv, basis.angular_raw(angles)[ang_first], select_r, select_a, terms)
     raise InputError(f"the {basis.kind} basis is too oscillatory for a degree-95 Chebyshev expansion; "
                      "lower its size or use --method decoupled")
 
 
-def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, gamma: float, heaviside: str,
-                      jacobian: bool = False, floor: float = DENOMINATOR_FLOOR):
+def _sparse_dm(matrix: np.ndarray) -> ca.DM:
+    """A CasADi DM with the sparsity of ``matrix`` (products skip the structural zeros)."""
+    sp = scipy.sparse.csc_matrix(matrix)
+    return ca.DM(ca.Sparsity(sp.shape[0], sp.shape[1], sp.indptr.tolist(), sp.indices.tolist()), sp.data.tolist())
+
+
+def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, gamma, heaviside: str,
+                      jacobian: bool = False, floor: float = DENOMINATOR_FLOOR, center=None):
     """Weighted velocity residual ``sqrt(w_i / W) (T_i(R) c_v - u_i)`` on the fixed voxel set (CasADi MX).
 
     With ``jacobian=True`` returns ``(r, dr/dc_R, dr/dc_v)``; the Jacobian
@@ -249,6 +261,9 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
 
     The voxel set (every voxel that can meet an admissible lumen) and the
     weights ``w_i = |V| m_i^2`` do not depend on R; ``W = sum_i w_i``.
+    ``center`` (a CasADi 2-vector, value: the model's centre) makes the
+    polar coordinates of the points symbolic, for derivatives in the centre
+    (residual only, not with ``jacobian=True``).
     ``m_i^2`` is the precision of voxel i's velocity (phase noise ~ 1/|d_i|,
     Appendix B). Weighting by the model's partial volume
     ``|V_i cap Omega_R|`` instead, as the decoupled misfit does, lets the
@@ -259,18 +274,29 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
     n_pts = model.dist.size
     # pointwise scalar pieces as small SX functions with their exact derivatives, mapped over the points
     gap, big_r, dist = ca.SX.sym("gap"), ca.SX.sym("R"), ca.SX.sym("r")
-    heav = meas.smoothed_heaviside(gap, gamma, heaviside)
-    f_chi = ca.Function("chi", [gap], [heav, ca.jacobian(heav, gap)]).map(n_pts)
+    width = ca.SX.sym("gamma")
+    heav = meas.smoothed_heaviside(gap, width, heaviside)
+    f_chi = ca.Function("chi", [gap, width], [heav, ca.jacobian(heav, gap)]).map(n_pts)
     rho_expr = 2 * dist / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * dist))
     f_rho = ca.Function("rho", [big_r, dist], [rho_expr, ca.jacobian(rho_expr, big_r)]).map(n_pts)
 
-    r_at = ca.mtimes(ca.DM(model.design), c_r).T  # (1, n_pts)
-    dist_row = ca.DM(model.dist).T
-    chi, dchi = f_chi(r_at - dist_row)
+    pb = polar_basis(basis, np.arctan2(model.sin, model.cos))
+    if center is None:
+        r_at = ca.mtimes(ca.DM(model.design), c_r).T  # (1, n_pts)
+        dist_row = ca.DM(model.dist).T
+        ang = ca.DM(pb.angular)
+    else:
+        if jacobian:
+            raise InputError("velocity_residual: a symbolic centre is supported for the residual only")
+        dist_row, c1, s1 = rad.polar_about(model.px, model.py, center)
+        cs, sn = rad.harmonics(c1, s1, rad.n_fourier_from_size(c_r.numel()))
+        r_at = rad.from_harmonics(c_r, cs, sn)
+        hc, hs = rad.harmonics(c1, s1, max(m for m, _ in pb.angular_terms))
+        ang = ca.vertcat(*[hc[m] if kind == "cos" else hs[m] for m, kind in pb.angular_terms])
+    chi, dchi = f_chi(r_at - dist_row, gamma)
     rho, drho = f_rho(r_at, dist_row)
     # basis functions by polar separation, raw_j = radial_j(rho) angular_j(t), with the radial factors in
     # Chebyshev form: the moving points cost dense products with a few rows (see PolarBasis)
-    pb = polar_basis(basis, np.arctan2(model.sin, model.cos))
     # Outside the wall (rho > 1) the velocity is continued by odd reflection, v(rho) = -v(2 - rho): C^1 across
     # the wall (v = 0 there) and bounded, where the polynomials themselves grow like 3^degree by rho = 1.2 and
     # their curvature, times chi's tails, makes the functional too stiff for Newton steps (measured).
@@ -285,8 +311,8 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
     transform = ca.DM(basis.transform)
     c_raw = ca.mtimes(transform, c_v)  # v = c_v^T transform^T raw
     # v_p = sum_a angular_a(t_p) sum_r Q_ar radial_r(rho_p),  Q = S_a^T diag(c_raw) S_r
-    q_mat = ca.mtimes(ca.DM(pb.select_angular).T, ca.repmat(c_raw, 1, pb.n_radial) * ca.DM(pb.select_radial))
-    ang = ca.DM(pb.angular)
+    sel_a, sel_r = _sparse_dm(pb.select_angular), _sparse_dm(pb.select_radial)  # one-hot: keep them sparse
+    q_mat = ca.mtimes(sel_a.T, ca.repmat(c_raw, 1, pb.n_radial) * sel_r)
     v = sign * ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb)), tk))  # (1, n_pts)
     agg = ca.DM(model.sum_matrix)
     u = ca.DM(model.data)
@@ -299,8 +325,7 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
         return res
     dv = ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb_derivative)), tk))
     radial = ca.mtimes(ca.DM(pb.cheb), tk)  # (n_radial, n_pts)
-    raw = ca.repmat(sign, basis.size, 1) * ca.mtimes(ca.DM(pb.select_angular), ang) * \
-        ca.mtimes(ca.DM(pb.select_radial), radial)  # (n_raw, n_pts)
+    raw = ca.repmat(sign, basis.size, 1) * ca.mtimes(sel_a, ang) * ca.mtimes(sel_r, radial)  # (n_raw, n_pts)
     design = ca.DM(model.design)
     n_r = model.design.shape[1]
     ds_dr = ca.mtimes(agg, ca.repmat(dchi.T, 1, n_r) * design)
@@ -308,7 +333,7 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
     dt_dv = ca.mtimes(ca.mtimes(agg, ca.repmat(chi.T, 1, basis.size) * raw.T), transform)
     jac_r = ca.repmat(scale / den, 1, n_r) * (dt_dr - ca.repmat(t * s / (den * den), 1, n_r) * ds_dr)
     jac_v = ca.repmat(scale / den, 1, basis.size) * dt_dv
-    return res, jac_r, jac_v
+    return res, jac_r, jac_v, t / den - u
 
 
 @dataclass
@@ -323,6 +348,10 @@ class CoupledNLP:
     velocity_model: VelocityMisfitModel
     weight: float
     gram: np.ndarray
+    gamma: ca.MX  # the NLP parameter p (smoothing width, mm); its value is geometry.gamma
+    velocity_error: ca.MX  # T_i(R) c_v - u_i on the voxel set (unweighted), m/s
+    alpha: float
+    beta: float
 
 
 def build(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velocity_image, vopt: vel.VelocityOptions,
@@ -331,7 +360,8 @@ def build(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velo
     if vopt.eta != 2:
         raise InputError(f"the coupled method uses the closed-form inverse of phi_R, which needs eta = 2 "
                          f"(got {vopt.eta}); use --eta 2 or --method decoupled")
-    gnlp = geo.build_tikhonov(geometry_problem, gopt)
+    gamma = ca.MX.sym("gamma")  # an NLP parameter (value: the geometry's gamma) so sensitivities can reach it
+    gnlp = geo.build_tikhonov(geometry_problem, gopt, gamma_symbol=gamma)
     n_r = gnlp.c.numel()
     c_v = ca.MX.sym("c_v", basis.size)
     x = ca.vertcat(gnlp.c, c_v)
@@ -339,8 +369,8 @@ def build(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velo
     model = velocity_misfit_model(geometry_problem.grid, velocity_image, geometry_problem.magnitude,
                                   geometry_problem.center,
                                   geometry_problem.r1, gopt.n_fourier, q)
-    res_v, jac_vr, jac_vv = velocity_residual(model, gnlp.c, c_v, basis, r_in, gnlp.gamma, gopt.heaviside,
-                                              jacobian=True)
+    res_v, jac_vr, jac_vv, err_v = velocity_residual(model, gnlp.c, c_v, basis, r_in, gamma, gopt.heaviside,
+                                                     jacobian=True)
     gram = basis.laplacian_gram(vopt.laplacian_power)
     pen_v = ca.dot(c_v, ca.mtimes(ca.DM(gram), c_v)) / np.pi
     alpha_pen = alpha * gnlp.penalty
@@ -349,7 +379,7 @@ def build(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velo
     jac_m = ca.jacobian(gnlp.residual, gnlp.c)
     jacobian = ca.vertcat(ca.horzcat(jac_m, ca.MX(jac_m.shape[0], basis.size)),
                           np.sqrt(weight) * ca.horzcat(jac_vr, jac_vv))
-    return CoupledNLP(x, n_r, f, gnlp.g, residual, jacobian, gnlp, model, weight, gram)
+    return CoupledNLP(x, n_r, f, gnlp.g, residual, jacobian, gnlp, model, weight, gram, gamma, err_v, alpha, beta)
 
 
 @dataclass
@@ -361,6 +391,7 @@ class CoupledResult:
     stats: SolverStats
     weight: float
     start: tuple[np.ndarray, np.ndarray] = field(default_factory=tuple)  # warm start (c_R, c_v)
+    nlp: CoupledNLP | None = None  # the solved NLP (for sensitivities)
 
 
 def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velocity_image, vopt: vel.VelocityOptions,
@@ -378,7 +409,10 @@ def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velo
     dm = start_velocity.disk_map
     nlp = build(geometry_problem, gopt, velocity_image, vopt, start_velocity.basis, dm.r_in, weight, alpha, beta,
                 options.quad_order)
-    opts = ipopt_options(options.tol, options.max_iter)
+    # warm start from the decoupled solution: a small initial barrier parameter keeps IPOPT near it
+    opts = ipopt_options(options.tol, options.max_iter, {
+        "clip_inactive_lam": True, "ipopt.mu_init": 1e-6, "ipopt.warm_start_init_point": "yes",
+        "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_start_mult_bound_push": 1e-9})
     if options.hessian == "gauss-newton":
         jac = nlp.jacobian
         reg = np.zeros((nlp.x.numel(), nlp.x.numel()))
@@ -387,21 +421,23 @@ def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velo
         reg[n_r:, n_r:] = weight * beta / np.pi * nlp.gram
         hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * ca.DM(reg))
         sigma = ca.MX.sym("sigma")
-        opts["hess_lag"] = ca.Function("nlp_hess_l", {"x": nlp.x, "p": ca.MX.sym("p", 0), "lam_f": sigma,
+        opts["hess_lag"] = ca.Function("nlp_hess_l", {"x": nlp.x, "p": nlp.gamma, "lam_f": sigma,
                                                       "hess_gamma_x_x": sigma * hess},
                                        ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
-    solver = ca.nlpsol("coupled", "ipopt", {"x": nlp.x, "f": nlp.f, "g": nlp.g}, opts)
+    solver = ca.nlpsol("coupled", "ipopt", {"x": nlp.x, "p": nlp.gamma, "f": nlp.f, "g": nlp.g}, opts)
     x0 = np.concatenate([start_geometry.coefficients, start_velocity.coefficients])
     lower = max(geometry_problem.r0, 1.000001 * dm.r_in)
     t0 = time.perf_counter()
-    sol, stats = run_nlpsol(solver, "coupled geometry+velocity (IPOPT)", x0=x0, lbg=lower, ubg=geometry_problem.r1)
+    sol, stats = run_nlpsol(solver, "coupled geometry+velocity (IPOPT)", x0=x0, p=nlp.geometry.gamma, lbg=lower,
+                            ubg=geometry_problem.r1)
     stats.extra["hessian"] = options.hessian
     stats.extra["velocity_weight"] = weight
     x = np.asarray(sol["x"]).ravel()
     c_r, c_v = x[:nlp.n_r], x[nlp.n_r:]
-    g = geo.finish(geometry_problem, gopt, nlp.geometry, c_r, stats, alpha)
+    g = geo.finish(geometry_problem, gopt, geo.build_tikhonov(geometry_problem, gopt), c_r, stats, alpha)
+    g.box_multipliers = np.asarray(sol["lam_g"]).ravel()
     vopt_fixed = replace(vopt, inner_radius=dm.r_in)
     vp = vel.assemble(geometry_problem.grid, velocity_image, c_r, g.center, vopt_fixed, basis=start_velocity.basis)
     v = vel.result(vp, vopt_fixed, c_v, beta, stats)
     stats.seconds = time.perf_counter() - t0
-    return CoupledResult(g, v, stats, weight, (start_geometry.coefficients, start_velocity.coefficients))
+    return CoupledResult(g, v, stats, weight, (start_geometry.coefficients, start_velocity.coefficients), nlp)

@@ -159,7 +159,7 @@ def effective_gamma(problem: GeometryProblem, options: GeometryOptions) -> float
     return options.gamma if options.gamma is not None else problem.grid.h / quad_order(problem, options)
 
 
-def build_tikhonov(problem: GeometryProblem, options: GeometryOptions) -> TikhonovNLP:
+def build_tikhonov(problem: GeometryProblem, options: GeometryOptions, gamma_symbol=None) -> TikhonovNLP:
     """Build the CasADi expression of the Tikhonov functional (eq. (tik1)).
 
     Notes
@@ -177,7 +177,8 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions) -> Tikhon
     alpha = ca.MX.sym("alpha")  # a parameter, so one solver serves a whole alpha sequence
     m = problem.magnitude.ravel()
     area = problem.grid.voxel_area
-    residual = np.sqrt(area) * (meas.magnitude_model(model, c, gamma, options.heaviside) - ca.DM(m[model.annulus]))
+    width = gamma if gamma_symbol is None else gamma_symbol  # a symbol lets callers differentiate in gamma
+    residual = np.sqrt(area) * (meas.magnitude_model(model, c, width, options.heaviside) - ca.DM(m[model.annulus]))
     ref = np.zeros(rad.n_coefficients(n))
     if options.prior == "area":
         ref[0] = problem.r_ref

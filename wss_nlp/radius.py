@@ -122,3 +122,29 @@ def arc_length_mean(values, radius, dradius) -> float:
     """
     ds = np.sqrt(np.asarray(radius) ** 2 + np.asarray(dradius) ** 2)
     return float(np.sum(np.asarray(values) * ds) / np.sum(ds))
+
+
+def polar_about(px, py, center):
+    """``(r, cos t, sin t)`` of fixed points (mm) about a CasADi centre, as MX rows."""
+    dx = ca.DM(np.ravel(px)).T - center[0]
+    dy = ca.DM(np.ravel(py)).T - center[1]
+    r = ca.sqrt(dx * dx + dy * dy)
+    return r, dx / r, dy / r
+
+
+def harmonics(c1, s1, n: int):
+    """``cos(k t), sin(k t)`` for ``k = 0..n`` from ``cos t, sin t`` (MX rows) by the complex recurrence."""
+    cs, sn = [ca.MX.ones(c1.shape), c1], [ca.MX.zeros(c1.shape), s1]
+    for _ in range(2, n + 1):
+        cs.append(cs[-1] * c1 - sn[-1] * s1)
+        sn.append(sn[-1] * c1 + cs[-2] * s1)
+    return cs[:n + 1], sn[:n + 1]
+
+
+def from_harmonics(coefficients, cs, sn):
+    """``R(t) = c_0 + sum_k c_k cos(k t) + c_{N+k} sin(k t)`` on rows of harmonics (see :func:`harmonics`)."""
+    n = len(cs) - 1
+    out = coefficients[0] * cs[0]
+    for k in range(1, n + 1):
+        out = out + coefficients[k] * cs[k] + coefficients[n + k] * sn[k]
+    return out

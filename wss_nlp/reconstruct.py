@@ -69,7 +69,7 @@ class ReconstructionOptions:
     beta_start: float = 1e-2
     noise_magnitude: float | None = None  # delta in mm; estimated when None
     noise_velocity: float | None = None  # epsilon in m/s; estimated when None
-    uncertainty: bool = True  # linearized WSS band and sensitivities (decoupled method; wss_nlp.sensitivity)
+    uncertainty: bool = True  # linearized WSS band and sensitivities (wss_nlp.sensitivity)
     noise_sigma: float | None = None  # complex noise per channel (raw units) for the band; estimated when None
 
     def __post_init__(self):
@@ -202,10 +202,11 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = time.perf_counter() - t0
 
-    info = {}
+    info, cres = {}, None
     if options.method == "coupled":
         t0 = time.perf_counter()
-        g, v, info = solve_coupled(problem, g, v, magnitude, norm, lumen, velocity_image, venc, options, where)
+        cres, info = solve_coupled(problem, g, v, magnitude, norm, lumen, velocity_image, venc, options, where)
+        g, v = cres.geometry, cres.velocity
         t["coupled"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -215,18 +216,18 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
     notes, sensitivity = [], None
-    if options.uncertainty and options.method == "coupled":
-        notes.append("no uncertainty band: sensitivities are implemented for the decoupled method only")
-    elif options.uncertainty:
+    if options.uncertainty:
         t0 = time.perf_counter()
-        sensitivity, note = uncertainty(problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options)
+        sensitivity, note = uncertainty(problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options,
+                                        cres)
         notes += [note] if note else []
         t["uncertainty"] = time.perf_counter() - t0
     return SliceResult(index, g, v, w, norm, lumen, grid, m, np.asarray(velocity_image, float), t,
                        alpha_choice, beta_choice, options.method, info, sensitivity, notes)
 
 
-def uncertainty(problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, options: ReconstructionOptions):
+def uncertainty(problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, options: ReconstructionOptions,
+                coupled_result=None):
     """Sensitivities and the linearized band (sets ``w.tau_std``, ``w.mean_std``); returns ``(Sensitivity, note)``.
 
     A band that cannot be computed (no background for the noise level, no
@@ -234,7 +235,10 @@ def uncertainty(problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, op
     the reconstruction itself is still valid.
     """
     try:
-        s = sens.decoupled(problem, options.geometry, g, vp, options.velocity, v, viscosity_pa_s, w.phi.size)
+        if coupled_result is not None:
+            s = sens.coupled(coupled_result, problem, options.geometry, options.velocity, viscosity_pa_s, w.phi.size)
+        else:
+            s = sens.decoupled(problem, options.geometry, g, vp, options.velocity, v, viscosity_pa_s, w.phi.size)
         sigma_m, sigma_u, how = sens.noise_levels(raw, lumen.mask, norm.m0, norm.m1, s.u_index, venc,
                                                   options.noise_sigma)
     except WssNlpError as exc:
@@ -248,7 +252,7 @@ def uncertainty(problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, op
 def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options: ReconstructionOptions, where: str):
     """The coupled NLP started from the decoupled ``(g, v)``, with the same alpha and beta.
 
-    Returns the coupled geometry and velocity results and a dict with the
+    Returns the :class:`wss_nlp.coupled.CoupledResult` and a dict with the
     weight, how it was chosen and the decoupled start's mean radius.
     """
     copt = options.coupled
@@ -261,7 +265,7 @@ def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options
     res = cpl.solve(problem, options.geometry, velocity_image, options.velocity, g, v, weight, copt)
     info = {"velocity_weight": weight, **how, "decoupled_mean_radius_mm": float(g.coefficients[0]),
             "decoupled_converged": bool(g.stats.converged and v.stats.converged)}
-    return res.geometry, res.velocity, info
+    return res, info
 
 
 def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str):

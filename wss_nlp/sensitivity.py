@@ -1,6 +1,6 @@
-"""Derivatives of the reconstruction and a linearized uncertainty band (decoupled method).
+"""Derivatives of the reconstruction and a linearized uncertainty band.
 
-The decoupled reconstruction is a chain of two solves, each differentiated
+:func:`coupled` handles the coupled NLP (see its notes). The decoupled reconstruction is a chain of two solves, each differentiated
 exactly with CasADi:
 
 1. geometry: ``c_R(p_g)`` minimizes the Tikhonov functional of Sec. 2 with
@@ -151,22 +151,18 @@ def wss_derivative_function(basis, n_fourier: int, eta: float, viscosity_pa_s: f
     return ca.Function("dtau", [phi, c_r, center, c_v, r_in], [tau, ca.gradient(tau, ca.vertcat(c_r, c_v, r_in))])
 
 
-def geometry_kkt(problem: geo.GeometryProblem, options: geo.GeometryOptions, coefficients: np.ndarray, alpha: float,
-                 gamma: float, lam_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``d c_R / d [m_annulus; alpha; gamma; c_x; c_y]`` at a solution, by the implicit function theorem.
+def geometry_parameter_derivatives(problem: geo.GeometryProblem, options: geo.GeometryOptions,
+                                   coefficients: np.ndarray, alpha: float, gamma: float):
+    """Hessian of the geometry functional in ``c_R`` and ``d grad / d [m_annulus; alpha; gamma; c_x; c_y]``.
 
     Notes
     -----
-    With ``r_i = F_i(z) - m_i`` and ``J(c) = |V| sum r_i^2 + alpha (c - c_ref)^T W (c - c_ref)``,
-    stationarity plus the active box rows ``G_A c = r_0 | r_1`` give
-    ``[[H, G_A^T], [G_A, 0]] [dc; dlam] = [-dgrad/dp; 0]`` with
-    ``H = 2 |V| sum (grad_c F_i grad_c F_i^T + r_i hess_cc F_i) + 2 alpha W`` and
+    With ``r_i = F_i(z) - m_i`` and ``J(c) = |V| sum r_i^2 + alpha (c - c_ref)^T W (c - c_ref)``:
+    ``H = 2 |V| sum (grad_c F_i grad_c F_i^T + r_i hess_cc F_i) + 2 alpha W``,
     ``dgrad/dm_i = -2 |V| grad_c F_i``, ``dgrad/dalpha = 2 W (c - c_ref)``,
     ``dgrad/dq = 2 |V| sum (d_q F_i grad_c F_i + r_i d_q grad_c F_i)`` for
-    ``q`` in ``(gamma, c_x, c_y)``. All derivatives of ``F_i`` are CasADi's
-    exact ones; the active set is where IPOPT's multipliers are nonzero
-    (run with ``clip_inactive_lam``, so inactive ones are exactly zero).
-    Returns ``(dc/dp, annulus indices)``.
+    ``q`` in ``(gamma, c_x, c_y)``; all derivatives of ``F_i`` are CasADi's
+    exact ones (:func:`voxel_model_function`). Returns ``(H, dgrad, annulus)``.
     """
     n = options.n_fourier
     n_r = rad.n_coefficients(n)
@@ -192,20 +188,37 @@ def geometry_kkt(problem: geo.GeometryProblem, options: geo.GeometryOptions, coe
     dgrad[:, n_a] = 2 * w * (coefficients - ref)
     for col, k in ((n_a + 1, n_r), (n_a + 2, n_r + 1), (n_a + 3, n_r + 2)):
         dgrad[:, col] = 2 * area * (g_c @ grad[k] + hess[:n_r, k] @ resid)
-    box = rad.design_matrix(options.box_angles(), n)
+    return hmat, dgrad, model.annulus
+
+
+def geometry_kkt(problem: geo.GeometryProblem, options: geo.GeometryOptions, coefficients: np.ndarray, alpha: float,
+                 gamma: float, lam_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``d c_R / d [m_annulus; alpha; gamma; c_x; c_y]`` at a solution, by the implicit function theorem.
+
+    Notes
+    -----
+    Stationarity plus the active box rows ``G_A c = r_0 | r_1`` give
+    ``[[H, G_A^T], [G_A, 0]] [dc; dlam] = [-dgrad/dp; 0]`` with ``H`` and
+    ``dgrad/dp`` from :func:`geometry_parameter_derivatives`. The active set
+    is where IPOPT's multipliers are nonzero (run with ``clip_inactive_lam``,
+    so inactive ones are exactly zero). Returns ``(dc/dp, annulus indices)``.
+    """
+    n_r = coefficients.size
+    hmat, dgrad, annulus = geometry_parameter_derivatives(problem, options, coefficients, alpha, gamma)
+    box = rad.design_matrix(options.box_angles(), options.n_fourier)
     active = np.flatnonzero(lam_box != 0)
     kkt = np.zeros((n_r + active.size, n_r + active.size))
     kkt[:n_r, :n_r] = hmat
     kkt[:n_r, n_r:] = box[active].T
     kkt[n_r:, :n_r] = box[active]
-    rhs = np.zeros((kkt.shape[0], n_a + 4))
+    rhs = np.zeros((kkt.shape[0], dgrad.shape[1]))
     rhs[:n_r] = -dgrad
     try:
         sol = np.linalg.solve(kkt, rhs)
     except np.linalg.LinAlgError as exc:
         raise SolverError(f"sensitivity: the KKT matrix is singular ({exc}); more box constraints are active "
                           "than the radius has degrees of freedom") from exc
-    return sol[:n_r], model.annulus
+    return sol[:n_r], annulus
 
 
 def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, c_r0: np.ndarray, center0):
@@ -371,6 +384,154 @@ def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry:
     out.noise["tau_reference"] = tau0
     out.noise["mean_reference"] = mean0
     out.noise["active_box_constraints"] = int(np.count_nonzero(anchor.box_multipliers))
+    return out
+
+
+def coupled(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, vopt: vel.VelocityOptions,
+            viscosity_pa_s: float, n_phi: int = 360, polish_steps: int = 2) -> Sensitivity:
+    """Sensitivities of the coupled reconstruction (:mod:`wss_nlp.coupled`) at its solution.
+
+    Notes
+    -----
+    Implicit function theorem on the KKT system of the coupled NLP with the
+    exact Hessian ``2 J^T J + 2 sum_i r_i hess r_i + penalty Hessian``: ``J``
+    is the chain-rule Jacobian of the residuals, and the second-order term
+    comes from CasADi (forward-over-reverse along the ``c_R`` directions;
+    the residuals are linear in ``c_v``). Parameters: the normalized
+    magnitude (annulus voxels through the geometry misfit and the velocity
+    voxels through the precision weights ``|V| m_i^2``), the velocity image,
+    alpha, beta, gamma and the centre (geometry part from the per-voxel
+    derivatives of :func:`geometry_parameter_derivatives`, velocity part by
+    forward AD of the gradient through the polar coordinates of the
+    sub-voxel points). The IPOPT solution (tolerance limited by rounding in the
+    objective) is first polished by Newton steps on the KKT system, which
+    need only gradients.
+    """
+    t_start = time.perf_counter()
+    nlp = cres.nlp
+    if nlp is None:
+        raise InputError("coupled sensitivities need the solved NLP (CoupledResult.nlp)")
+    n_r = nlp.n_r
+    x = np.concatenate([cres.geometry.coefficients, cres.velocity.coefficients])
+    n_x = x.size
+    gam = float(nlp.geometry.gamma)
+    n_res = nlp.residual.numel()
+    weights_res = ca.MX.sym("w_res", n_res)
+    grad_w = ca.gradient(ca.dot(weights_res, nlp.residual), nlp.x)
+    second = ca.jtimes(grad_w, nlp.x, ca.DM(np.eye(n_x)[:, :n_r]))  # columns of hess(w^T r) along c_R
+    grad_f = ca.gradient(nlp.f, nlp.x)
+    fun = ca.Function("kkt", [nlp.x, nlp.gamma, weights_res],
+                      [nlp.residual, nlp.jacobian, second, grad_f, ca.jtimes(grad_f, nlp.gamma, ca.DM(1.0)),
+                       nlp.velocity_error])
+    fun_res = ca.Function("res", [nlp.x, nlp.gamma], [nlp.residual])
+    reg = np.zeros((n_x, n_x))
+    reg[:n_r, :n_r] = 2 * nlp.alpha * np.diag(nlp.geometry.weights)
+    reg[n_r:, n_r:] = 2 * nlp.weight * nlp.beta / np.pi * nlp.gram
+    box = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
+    active = np.flatnonzero(cres.geometry.box_multipliers != 0)
+    g_act = np.hstack([box[active], np.zeros((active.size, n_x - n_r))])
+
+    def kkt_matrix(res, jac, sec):
+        h2 = np.zeros((n_x, n_x))
+        h2[:, :n_r] = sec
+        h2[:n_r, n_r:] = sec[n_r:].T
+        hmat = 2 * jac.T @ jac + 2 * h2 + reg
+        k = np.zeros((n_x + active.size, n_x + active.size))
+        k[:n_x, :n_x] = hmat
+        k[:n_x, n_x:] = g_act.T
+        k[n_x:, :n_x] = g_act
+        return k
+
+    lam = np.zeros(active.size)
+    for it in range(polish_steps + 1):
+        res0 = np.asarray(fun_res(x, gam)).ravel()
+        res, jac, sec, grad, dgrad_dgam, err_v = (np.asarray(a) for a in fun(x, gam, res0))
+        res, grad, err_v = res.ravel(), grad.ravel(), err_v.ravel()
+        kkt = kkt_matrix(res, jac, sec)
+        stationarity = grad + g_act.T @ lam
+        if it == polish_steps or np.linalg.norm(stationarity) <= 1e-13 * max(1.0, np.linalg.norm(grad)):
+            break
+        step = np.linalg.solve(kkt, -np.concatenate([stationarity, np.zeros(active.size)]))
+        x, lam = x + step[:n_x], lam + step[n_x:]
+    polished = float(np.linalg.norm(grad + g_act.T @ lam))
+
+    # d grad f / d p for p = [magnitude voxels; velocity voxels; alpha, beta, gamma, centre x, centre y]
+    model = nlp.velocity_model
+    annulus = nlp.geometry.model.annulus
+    n_a = annulus.size
+    m_index = np.union1d(annulus, model.index)
+    u_index = model.index
+    n_m, n_u = m_index.size, u_index.size
+    dgrad = np.zeros((n_x, n_m + n_u + len(SCALARS)))
+    area = problem.grid.voxel_area
+    pos_a = np.searchsorted(m_index, annulus)
+    dgrad[:, pos_a] += -2 * np.sqrt(area) * jac[:n_a].T
+    # precision weights s_k = sqrt(|V|) m_k / sqrt(W), W = |V| sum m_k^2: d s_k / d m_j
+    m_v = np.clip(problem.magnitude.ravel()[model.index], 0.0, 1.0)
+    free = (m_v > 0) & (m_v < 1)
+    big_w = area * np.sum(m_v**2)
+    jac_v = jac[n_a:]  # rows of sqrt(lambda) s_k (T_k - u_k)
+    e_v = np.sqrt(nlp.weight) * err_v
+    # 4 sum_k (d s_k / d m_j) e_k J_k: diagonal part and the rank-one part through W
+    diag_part = 4 * np.sqrt(area / big_w) * (free * e_v)[:, None] * jac_v  # (n_u, n_x), k = j
+    coupling = 4 * np.sqrt(area) * area * big_w**-1.5 * ((m_v * e_v) @ jac_v)  # sum_k m_k e_k J_k
+    pos_v = np.searchsorted(m_index, model.index)
+    dgrad[:, pos_v] += diag_part.T - np.outer(coupling, free * m_v)
+    scale = np.sqrt(model.weights / np.sum(model.weights))
+    dgrad[:, n_m:n_m + n_u] = -2 * np.sqrt(nlp.weight) * scale[None, :] * jac_v.T
+    ref = nlp.geometry.reference
+    dgrad[:n_r, n_m + n_u + 0] = 2 * nlp.geometry.weights * (x[:n_r] - ref)
+    dgrad[n_r:, n_m + n_u + 1] = 2 * nlp.weight * nlp.gram @ x[n_r:] / np.pi
+    dgrad[:, n_m + n_u + 2] = dgrad_dgam.ravel()
+    dgrad[:, n_m + n_u + 3:] = _coupled_centre_derivative(nlp, problem, gopt, x, gam, cres.velocity)
+    rhs = np.zeros((n_x + active.size, dgrad.shape[1]))
+    rhs[:n_x] = -dgrad
+    try:
+        dx = np.linalg.solve(kkt, rhs)[:n_x]
+    except np.linalg.LinAlgError as exc:
+        raise SolverError(f"coupled sensitivity: singular KKT matrix ({exc})") from exc
+
+    phi = rad.uniform_angles(n_phi)
+    c_r0, cv0 = x[:n_r], x[n_r:]
+    r_in = cres.velocity.disk_map.r_in
+    fun_t = wss_derivative_function(cres.velocity.basis, gopt.n_fourier, vopt.eta, viscosity_pa_s).map(n_phi)
+    tau0, grad_t = (np.asarray(a) for a in fun_t(phi[None, :], c_r0, np.asarray(problem.center, float), cv0, r_in))
+    tau0 = tau0.ravel()
+    dt_dx = grad_t[:n_x].T  # r_in is fixed in the coupled model
+    w_mean, dw = _mean_weight_jacobian(c_r0, phi)
+    dtau = dt_dx @ dx
+    dmean = w_mean @ dtau + tau0 @ (dw @ dx[:n_r])
+    out = Sensitivity(phi=phi, d_tau=dtau[:, n_m + n_u:], d_mean=dmean[n_m + n_u:],
+                      d_tau_d_m=dtau[:, :n_m], d_tau_d_u=dtau[:, n_m:n_m + n_u],
+                      d_mean_d_m=dmean[:n_m], d_mean_d_u=dmean[n_m:n_m + n_u],
+                      m_index=m_index, u_index=u_index, d_coef_r=dx[:n_r], d_coef_v=dx[n_r:])
+    out.seconds = time.perf_counter() - t_start
+    out.noise.update({"tau_reference": tau0, "mean_reference": float(w_mean @ tau0),
+                      "active_box_constraints": int(active.size), "kkt_residual_after_polish": polished,
+                      "solution": x})
+    return out
+
+
+def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, velocity) -> np.ndarray:
+    """``d grad_x J / d [c_x, c_y]`` of the coupled functional at ``x`` (n_x, 2).
+
+    The geometry part (rows of c_R) comes from the per-voxel CasADi
+    derivatives; the velocity part by forward AD of the gradient of the
+    velocity misfit written with a symbolic centre. ``r_in`` is fixed in the
+    coupled model; the box does not depend on the centre.
+    """
+    from . import coupled as cpl
+
+    n_r = nlp.n_r
+    _, dgrad_geo, _ = geometry_parameter_derivatives(problem, geo.with_options(gopt, alpha=nlp.alpha), x[:n_r],
+                                                     nlp.alpha, gamma)
+    center = ca.MX.sym("center", 2)
+    res_v = cpl.velocity_residual(nlp.velocity_model, nlp.x[:n_r], nlp.x[n_r:], velocity.basis,
+                                  velocity.disk_map.r_in, gamma, gopt.heaviside, center=center)
+    grad_v = ca.gradient(nlp.weight * ca.sumsqr(res_v), nlp.x)
+    fun = ca.Function("dcentre", [nlp.x, center], [ca.jtimes(grad_v, center, ca.DM.eye(2))])
+    out = np.asarray(fun(x, np.asarray(problem.center, float)))
+    out[:n_r] += dgrad_geo[:, -2:]
     return out
 
 
