@@ -195,3 +195,18 @@ def save_figure(fig, path: str) -> str:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def figure_rates(deltas, curves: dict):
+    """Log-log error against noise level, one panel per Sobolev index r; ``curves[(k, rule)]`` is (n_delta, 3)."""
+    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
+    for r, ax in enumerate(axes):
+        for (k, rule), errs in curves.items():
+            ax.loglog(deltas, errs[:, r], "o-" if rule == "a priori" else "s--", label=f"k = {k}, {rule}")
+            ref = errs[-1, r] * (np.asarray(deltas) / deltas[-1]) ** (1 - r / k)
+            ax.loglog(deltas, ref, ":", color="gray", lw=0.8)
+        ax.set(xlabel=r"noise level $\delta$", ylabel=rf"$\|R_\alpha - R\|_{{H^{r}}}$", title=f"r = {r} "
+               "(dotted: slope 1 - r/k)")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
