@@ -65,7 +65,9 @@ def main(argv=None):
                              f"{sum(status)}/{len(status)}" + (f" ({failed} failed)" if failed else "")))
                 print(f"{case} h={h} snr={snr} done", file=sys.stderr, flush=True)
     lines = [f"Default options, {args.seeds} seeds per row; errors mean (max) over seeds; 'better' = share of seeds "
-             "on which the coupled error is smaller; seconds: median per slice (coupled includes its decoupled start); 'converged': coupled solves that converged / seeds reconstructed (seeds whose preprocessing failed are counted apart).",
+             "on which the coupled error is smaller; seconds: median per slice (coupled includes its decoupled "
+             "start); 'converged': coupled solves that converged / seeds reconstructed (seeds whose preprocessing "
+             "failed are counted apart).",
              "",
              "| phantom | h [mm] | SNR | radius err decoupled | radius err coupled | better | WSS err decoupled | "
              "WSS err coupled | better | s decoupled | s coupled | ratio | coupled converged |",

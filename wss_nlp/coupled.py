@@ -4,7 +4,7 @@ The decoupled method fixes the lumen from the magnitude alone and then fits
 the velocity on it. Here both are unknowns of one Tikhonov functional,
 
     J(c_R, c_v) = ||F_{gamma,h}(R) - m||^2 + alpha ||R - R_ref||^2_{H^s}
-                + lambda [ (1/A) sum_i |V_i cap Omega_R|_gamma (T_i(R) c_v - u_i)^2
+                + lambda [ (1/W) sum_i w_i (T_i(R) c_v - u_i)^2
                            + (beta/pi) ||Delta^t v||^2_{L^2(B)} ],
 
 minimized by IPOPT with the box ``r0 <= R(phi_j) <= r1``. The velocity misfit
@@ -12,8 +12,10 @@ depends on R through the map ``phi_R^{-1}`` (where in the reference disk each
 sub-voxel point lies) and through which points lie in the lumen; the sharp
 indicator of the decoupled operator ``T~_h`` is replaced by the smoothed
 Heaviside ``H_gamma(R(phi_p) - |x_p - c|)`` so the functional is
-differentiable. With a sharp indicator and R fixed the velocity part is the
-decoupled functional exactly (``tests/test_coupled.py``).
+differentiable; with a sharp indicator ``T_i(R)`` is the decoupled operator
+exactly (``tests/test_coupled.py``). The voxel set and the precision weights
+``w_i = |V| m_i^2`` are fixed (see :func:`velocity_residual` for why), and
+``lambda`` defaults to the likelihood weight (:func:`likelihood_weight`).
 
 The velocity data then inform the wall: the no-slip condition ``v = 0`` on
 ``partial Omega_R`` must be compatible with the measured velocities near the
@@ -161,7 +163,8 @@ def velocity_misfit_model(grid: meas.VoxelGrid, velocity_image, magnitude, cente
     sums = scipy.sparse.csr_matrix((np.ones(rows.size), (rows, np.arange(rows.size))), shape=(index.size, rows.size))
     m = np.clip(np.asarray(magnitude, float).ravel()[index], 0.0, 1.0)
     return VelocityMisfitModel(index, np.asarray(velocity_image, float).ravel()[index], grid.voxel_area * m**2, r,
-                               dx / np.maximum(r, 1e-300), dy / np.maximum(r, 1e-300), rad.design_matrix(phi, n_fourier),
+                               dx / np.maximum(r, 1e-300), dy / np.maximum(r, 1e-300),
+                               rad.design_matrix(phi, n_fourier),
                                sums, order, grid.voxel_area, px.ravel(), py.ravel())
 
 
@@ -396,7 +399,8 @@ class CoupledResult:
 
 def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velocity_image, vopt: vel.VelocityOptions,
           start_geometry: geo.GeometryResult, start_velocity: vel.VelocityResult, weight: float,
-          options: CoupledOptions | None = None, alpha: float | None = None, beta: float | None = None) -> CoupledResult:
+          options: CoupledOptions | None = None, alpha: float | None = None,
+          beta: float | None = None) -> CoupledResult:
     """Solve the coupled NLP with IPOPT, warm-started from a decoupled solution.
 
     The inner radius of ``phi_R`` is frozen at the start's value (it is a

@@ -1,7 +1,8 @@
 """Derivatives of the reconstruction and a linearized uncertainty band.
 
-:func:`coupled` handles the coupled NLP (see its notes). The decoupled reconstruction is a chain of two solves, each differentiated
-exactly with CasADi:
+:func:`coupled` handles the coupled NLP (see its notes). The decoupled
+reconstruction is a chain of two solves, each differentiated exactly with
+CasADi:
 
 1. geometry: ``c_R(p_g)`` minimizes the Tikhonov functional of Sec. 2 with
    parameters ``p_g = (m, alpha, gamma, centre)``; its derivative is the
@@ -291,7 +292,8 @@ class OperatorDerivative:
 
     def times(self, c: np.ndarray) -> np.ndarray:
         """``[dT_k c]_k``, shape (n_vox, n_dir)."""
-        return np.asarray(self.avg @ (self.drho * (self.a_rho @ c)[:, None] + self.dtheta * (self.a_theta @ c)[:, None]))
+        moved = self.drho * (self.a_rho @ c)[:, None] + self.dtheta * (self.a_theta @ c)[:, None]
+        return np.asarray(self.avg @ moved)
 
     def transpose_times(self, y: np.ndarray) -> np.ndarray:
         """``[dT_k^T y]_k``, shape (n_basis, n_dir)."""
