@@ -8,6 +8,12 @@ against the exact values. Writes ``scripts/results/accuracy.md`` and
 ``accuracy.csv`` and prints the Markdown table.
 
     python scripts/accuracy.py [--seeds 5] [--snr 25] [--cases laminar,turbulent]
+
+With ``--auto`` it instead compares the data-driven parameters (``--alpha auto
+--beta auto``: discrepancy principle for both) with the oracle over an
+alpha-beta grid (alpha = 1e-3 4^k, k = -4..4; beta = 1e-2 2^-n down to
+1e-14; truth known) at SNR 10, 25 and 50, 3 seeds, and writes
+``accuracy_auto.md`` (issue 3: auto within 1.25x of the oracle).
 """
 
 import argparse
@@ -19,11 +25,54 @@ import time
 import numpy as np
 
 from _report import write_report
+from wss_nlp import analysis as an
+from wss_nlp import geometry as geo
 from wss_nlp import metrics, phantoms
+from wss_nlp import velocity as vel
+from wss_nlp import wss
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_RADIUS = 0.005  # issue: geometry error <= 0.5 % at every h
 TARGET_WSS_LAMINAR = 0.05  # issue: laminar WSS error <= 5 % at every h
+TARGET_ORACLE_RATIO = 1.25  # issue 3: auto WSS error within 1.25x of the oracle over an alpha-beta grid
+
+
+def oracle_wss_error(acq, truth) -> float:
+    """Smallest WSS error over the alpha-beta grid (default pipeline otherwise, dephasing pass included)."""
+    best = np.inf
+    betas = an.geometric_grid(1e-2, 1e-14)
+    for k in range(-4, 5):
+        opts = ReconstructionOptions(geometry=geo.GeometryOptions(alpha=1e-3 * 4.0**k), uncertainty=False)
+        res = reconstruct(acq, opts)[0]
+        g = res.geometry
+        vp = vel.assemble(res.grid, res.velocity_image, g.coefficients, g.center, opts.velocity,
+                          basis=res.velocity.basis)
+        a, xw = wss.wss_matrix(vp.basis, vp.disk_map, acq.viscosity_pa_s)  # tau is linear in the coefficients
+        tt = truth.wss_at_points(xw[0], xw[1])
+        for b in betas:
+            best = min(best, np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt))
+    return float(best)
+
+
+def auto_study(args) -> None:
+    auto = ReconstructionOptions(alpha_rule="discrepancy", beta_rule="discrepancy", uncertainty=False)
+    lines = ["WSS relative L2 error with alpha and beta from the discrepancy principle ('auto') and the oracle "
+             "over the alpha-beta grid (truth known); mean over 3 seeds, ratio = worst seed.", "",
+             "| phantom | h [mm] | SNR | auto | oracle | auto / oracle (worst seed) | within 1.25x |",
+             "|---|---|---|---|---|---|---|"]
+    for case in args.cases.split(","):
+        for h in (float(x) for x in args.h.split(",")):
+            for snr in (10.0, 25.0, 50.0):
+                e_auto, e_or = [], []
+                for seed in range(3):
+                    acq, truth = phantoms.make_phantom(case, h_mm=h, snr=snr, seed=seed)
+                    e_auto.append(metrics.compare_slice(reconstruct(acq, auto)[0], truth).wss_rel_l2)
+                    e_or.append(oracle_wss_error(acq, truth))
+                ratio = max(x / y for x, y in zip(e_auto, e_or))
+                lines.append(f"| {case} | {h:g} | {snr:g} | {np.mean(e_auto):.1%} | {np.mean(e_or):.1%} | "
+                             f"{ratio:.2f} | {'yes' if ratio <= TARGET_ORACLE_RATIO else 'no'} |")
+                print(f"{case} h={h} snr={snr} done", file=sys.stderr, flush=True)
+    write_report(args.out, "accuracy_auto.md", lines)
 
 
 def main(argv=None):
@@ -33,8 +82,12 @@ def main(argv=None):
     p.add_argument("--cases", default="laminar,turbulent")
     p.add_argument("--h", default="1.5,1.0,0.6,0.3")
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
+    p.add_argument("--auto", action="store_true", help="auto vs oracle parameters instead (see above)")
     args = p.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
+    if args.auto:
+        auto_study(args)
+        return
     options = ReconstructionOptions()
     rows = []
     for case in args.cases.split(","):

@@ -3,6 +3,7 @@ import pytest
 
 from wss_nlp import analysis as an
 from wss_nlp.cli import main
+from wss_nlp.errors import InputError
 
 
 def test_discrepancy_returns_largest_admissible_parameter():
@@ -25,6 +26,20 @@ def test_discrepancy_model_error_floor_falls_back_to_the_stagnation_point():
     assert not ch.satisfied
     assert ch.residuals[list(ch.parameters).index(ch.chosen)] <= 1.02 * ch.residuals.min()
     assert ch.chosen == max(p for p, r in zip(ch.parameters, ch.residuals) if r <= 1.02 * ch.residuals.min())
+
+
+def test_discrepancy_never_goes_below_its_smallest_parameter():
+    """A residual that keeps creeping down above the threshold must not drag the parameter to meaningless values."""
+    tried = []
+
+    def solve(p, prev):
+        tried.append(p)
+        return p, 3 + 1e-3 * np.log10(p)  # falls by ~0.01 % per halving and never by 2 %: no stagnation stop
+
+    _, ch = an.discrepancy_search(solve, 1e-2, noise=1.0, tau=1.1, smallest=1e-8)
+    assert min(tried) >= 1e-8 and not ch.satisfied and ch.chosen >= 1e-8
+    with pytest.raises(InputError):
+        an.discrepancy_search(solve, 1e-9, noise=1.0, tau=1.1, smallest=1e-8)
 
 
 def test_gcv_matches_dense_hat_matrix(rng):

@@ -154,7 +154,7 @@ class ParameterChoice:
 
 
 def discrepancy_search(solve, start: float, noise: float, tau: float, factor: float = 0.5, max_steps: int = 60,
-                       stagnation: float = 1e-3, floor_slack: float = 0.02):
+                       stagnation: float = 1e-3, floor_slack: float = 0.02, smallest: float = 0.0):
     """``p = max{start factor^n : residual(p) <= tau * noise}``, eq. (disc) / (disc2).
 
     Parameters
@@ -169,7 +169,11 @@ def discrepancy_search(solve, start: float, noise: float, tau: float, factor: fl
         noise, limits the fit; the search stops and returns the largest
         parameter whose residual is within ``1 + floor_slack`` of the
         smallest one, with ``satisfied = False``. The same fallback applies
-        after ``max_steps``.
+        after ``max_steps`` or below ``smallest``.
+    smallest : float
+        No parameter below this is tried (a slowly falling residual would
+        otherwise lead the search to values where the solve is meaningless:
+        measured, beta = 4e-18 gave a 530 % WSS error).
 
     Returns
     -------
@@ -177,11 +181,15 @@ def discrepancy_search(solve, start: float, noise: float, tau: float, factor: fl
     """
     if not noise > 0:
         raise InputError(f"the discrepancy principle needs a positive noise level, got {noise}")
+    if not start >= smallest:
+        raise InputError(f"the discrepancy search starts at {start:g}, below its smallest allowed value {smallest:g}")
     params, residuals, results = [], [], []
     prev = None
     p = float(start)
     flat = 0
     for _ in range(max_steps):
+        if p < smallest:
+            break
         prev, res = solve(p, prev)
         params.append(p)
         residuals.append(float(res))

@@ -325,7 +325,8 @@ def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: Reconstructi
             c = vel.solve_cholesky(vp, beta)
             return c, vp.residual_norm(c)
 
-        _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta)
+        _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta,
+                                          smallest=BETA_STOP)
         choice.name, choice.noise_method = "beta", noise.method
         return choice
     if rule == "gcv":
