@@ -438,7 +438,9 @@ def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velo
     stats.extra["velocity_weight"] = weight
     x = np.asarray(sol["x"]).ravel()
     c_r, c_v = x[:nlp.n_r], x[nlp.n_r:]
-    g = geo.finish(geometry_problem, gopt, geo.build_tikhonov(geometry_problem, gopt), c_r, stats, alpha)
+    gnlp = nlp.geometry  # its residual holds the gamma parameter: substitute the value for the report
+    numeric = replace(gnlp, residual=ca.substitute(gnlp.residual, nlp.gamma, ca.MX(gnlp.gamma)))
+    g = geo.finish(geometry_problem, gopt, numeric, c_r, stats, alpha)
     g.box_multipliers = np.asarray(sol["lam_g"]).ravel()
     vopt_fixed = replace(vopt, inner_radius=dm.r_in)
     vp = vel.assemble(geometry_problem.grid, velocity_image, c_r, g.center, vopt_fixed, basis=start_velocity.basis)

@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
 import scipy.special
 
 import casadi as ca
@@ -207,6 +208,13 @@ class LumenVoxels:
     py: np.ndarray  # (n, q^2) quadrature points, y in mm
     inside: np.ndarray  # (n, q^2) bool, point lies in Omega
     center: tuple[float, float] = (0.0, 0.0)  # centre of the radius function, mm
+
+    def mean_matrix(self) -> scipy.sparse.csr_matrix:
+        """``(n_voxels, n_inside_points)``: the mean over each voxel's points inside the lumen (row-major order)."""
+        rows = np.nonzero(self.inside)[0]
+        counts = self.inside.sum(axis=1)
+        return scipy.sparse.csr_matrix((1.0 / counts[rows], (rows, np.arange(rows.size))),
+                                       shape=(self.index.size, rows.size))
 
 
 def lumen_voxels(grid: VoxelGrid, center, coefficients, order: int) -> LumenVoxels:

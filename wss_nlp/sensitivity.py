@@ -271,9 +271,7 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     is_cos = np.array([kind == "cos" for _, kind in basis.angular_terms()])[:, None]
     ang = np.where(is_cos, np.cos(orders * th0), np.sin(orders * th0))
     dang = np.where(is_cos, -orders * np.sin(orders * th0), orders * np.cos(orders * th0))
-    rows = np.nonzero(inside)[0]
-    counts = inside.sum(axis=1)
-    avg = scipy.sparse.csr_matrix((1.0 / counts[rows], (rows, np.arange(rows.size))), shape=(vox.index.size, rows.size))
+    avg = vox.mean_matrix()
     op = np.asarray(avg @ (ang * radial).T) @ basis.transform
     return OperatorDerivative(op, avg, (ang * dradial).T @ basis.transform, (dang * radial).T @ basis.transform,
                               drho, dth), r_in, dr_in

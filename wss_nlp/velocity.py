@@ -182,9 +182,7 @@ def assemble(grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, cen
         raise InputError("no voxel meets the reconstructed lumen; the geometry step failed to find a vessel")
     px, py = vox.px[vox.inside], vox.py[vox.inside]
     rho, t = disk_map.inverse(px, py)
-    rows = np.nonzero(vox.inside)[0]
-    counts = vox.inside.sum(axis=1)
-    avg = scipy.sparse.csr_matrix((1.0 / counts[rows], (rows, np.arange(rows.size))), shape=(vox.index.size, rows.size))
+    avg = vox.mean_matrix()
     rho = np.minimum(rho, 1.0)
     operator = basis.evaluate(rho * np.cos(t), rho * np.sin(t), average=avg)
     return VelocityProblem(
