@@ -172,6 +172,27 @@ def test_coupled_derivatives_match_resolves():
     assert s.d_mean_d_u @ du[s.u_index] == pytest.approx(fd_u, rel=RTOL)
 
 
+def test_coupled_derivatives_with_the_box_active():
+    acq, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=3)
+    opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False)
+    res = reconstruct(acq, opts)[0]
+    lum = res.lumen
+    r_max = float(np.max(res.geometry.radius(np.linspace(0, 2 * np.pi, 720))))
+    problem = geo.GeometryProblem(res.grid, res.magnitude, lum.center, lum.r0, r_max - 0.3, lum.r_area)
+    start_g = geo.solve(problem, opts.geometry)
+    start_v = vel.solve(vel.assemble(res.grid, res.velocity_image, start_g.coefficients, start_g.center,
+                                     opts.velocity), opts.velocity)
+
+    def solve(alpha=None):
+        c = cpl.solve(problem, opts.geometry, res.velocity_image, opts.velocity, start_g, start_v, 2e4, alpha=alpha)
+        return c, sens.coupled(c, problem, opts.geometry, opts.velocity, acq.viscosity_pa_s)
+
+    c, s = solve()
+    assert s.noise["active_box_constraints"] > 0
+    fd = _central(lambda a: solve(alpha=a)[1].noise["mean_reference"], c.geometry.alpha, 1e-3 * c.geometry.alpha)
+    assert s.d_mean[0] == pytest.approx(fd, rel=RTOL)
+
+
 @pytest.mark.slow
 def test_band_agrees_with_monte_carlo():
     """200 noise draws on one noise-free acquisition: the linearized std within 20 % of the sample std."""
