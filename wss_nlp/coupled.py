@@ -32,6 +32,7 @@ import scipy.sparse
 
 import casadi as ca
 
+from . import analysis as an
 from . import geometry as geo
 from . import measurement as meas
 from . import radius as rad
@@ -113,8 +114,6 @@ def weight_from_data(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, ra
     with ``sigma`` from the Rayleigh background and ``m1`` the raw lumen
     level (phase data), else the high-pass estimate on the lumen plateau.
     """
-    from . import analysis as an  # analysis imports nothing from here; local to keep the module graph flat
-
     annulus = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1,
                                  geo.quad_order(problem, gopt)).annulus
     delta = an.magnitude_noise(problem.magnitude, raw_magnitude, mask, norm.m0, norm.m1, problem.grid.voxel_area,

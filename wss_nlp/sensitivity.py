@@ -5,15 +5,16 @@ reconstruction is a chain of two solves, each differentiated exactly with
 CasADi:
 
 1. geometry: ``c_R(p_g)`` minimizes the Tikhonov functional of Sec. 2 with
-   parameters ``p_g = (m, alpha, gamma, centre)``; its derivative is the
-   parametric sensitivity of the NLP (implicit function theorem on the KKT
-   system, CasADi's ``nlpsol`` derivatives with the exact Hessian and
-   ``clip_inactive_lam`` so that the tiny multipliers IPOPT returns for
-   inactive box constraints are not mistaken for active ones);
-2. velocity: ``c_v = H(c_R, beta)^{-1} T(c_R)^T W u / A``, a closed-form
-   CasADi expression in ``(c_R, centre, u, beta)`` with the voxel membership
-   of the sub-voxel points held at the solution (it is piecewise constant,
-   so this is the derivative almost everywhere);
+   parameters ``p_g = (m, alpha, gamma, centre)``; its derivative comes from
+   the implicit function theorem on the KKT system, with the exact Hessian
+   from CasADi per-voxel derivatives and the active set read from IPOPT's
+   multipliers (run with ``clip_inactive_lam``, so that the tiny multipliers
+   IPOPT returns for inactive box constraints are not mistaken for active ones);
+2. velocity: ``c_v = H(c_R, beta)^{-1} T(c_R)^T W u / A``; its normal
+   equations are differentiated along every geometry direction, with CasADi
+   derivatives of the sub-voxel points' reference coordinates and the voxel
+   membership held at the solution (it is piecewise constant, so this is the
+   derivative almost everywhere);
 3. WSS: ``tau(phi_j; c_R, c_v, r_in(c_R))`` of eq. (wss) with
    ``r_in = f min R`` differentiated as well.
 
@@ -40,12 +41,13 @@ import scipy.sparse
 
 import casadi as ca
 
+from . import coupled as cpl
 from . import geometry as geo
 from . import measurement as meas
 from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
-from .coupled import RHO_MAX, polar_basis
+from .analysis import NoiseEstimationError, complex_noise_sigma
 from .errors import InputError, SolverError
 
 SCALARS = ("alpha", "beta", "gamma", "center_x", "center_y")
@@ -83,9 +85,6 @@ class Sensitivity:
     def names(self) -> tuple[str, ...]:
         return SCALARS
 
-    def scalar(self, name: str) -> np.ndarray:
-        return self.d_tau[:, SCALARS.index(name)]
-
     def band(self, sigma_m: float, sigma_u: np.ndarray) -> tuple[np.ndarray, float, float, float]:
         """``(tau_std, mean_std, mean_std from m, mean_std from u)`` for per-voxel noise levels."""
         sigma_u = np.broadcast_to(np.asarray(sigma_u, float), self.u_index.shape)
@@ -97,11 +96,6 @@ class Sensitivity:
 
 
 # --------------------------------------------------------------------------- symbolic pieces
-def _fourier_row(n: int, t):
-    """``[1, cos t, ..., cos Nt, sin t, ..., sin Nt]`` (the ordering of :mod:`wss_nlp.radius`) as an SX column."""
-    return ca.vertcat(1, *[ca.cos(k * t) for k in range(1, n + 1)], *[ca.sin(k * t) for k in range(1, n + 1)])
-
-
 def voxel_model_function(n_fourier: int, order: int, heaviside: str) -> ca.Function:
     """Per-voxel ``F_i(z)`` with ``z = [c_R; gamma; c_x; c_y]``, its gradient and Hessian in z (SX).
 
@@ -116,7 +110,7 @@ def voxel_model_function(n_fourier: int, order: int, heaviside: str) -> ca.Funct
     total = 0
     for j in range(order * order):
         dx, dy = xs[j] - cx, ys[j] - cy
-        big_r = ca.dot(_fourier_row(n_fourier, ca.atan2(dy, dx)), c_r)
+        big_r = rad.symbolic(c_r, ca.atan2(dy, dx))
         total += meas.smoothed_heaviside(big_r - ca.sqrt(dx * dx + dy * dy), gam, heaviside)
     f = total / (order * order)
     hess, grad = ca.hessian(f, z)
@@ -135,7 +129,7 @@ def point_map_function(n_fourier: int) -> ca.Function:
     dx, dy = x - cx, y - cy
     r = ca.sqrt(dx * dx + dy * dy)
     t = ca.atan2(dy, dx)
-    big_r = ca.dot(_fourier_row(n_fourier, t), c_r)
+    big_r = rad.symbolic(c_r, t)
     rho = 2 * r / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * r))
     args = ca.vertcat(c_r, r_in, cx, cy)
     return ca.Function("point", [c_r, r_in, cx, cy, x, y],
@@ -192,6 +186,28 @@ def geometry_parameter_derivatives(problem: geo.GeometryProblem, options: geo.Ge
     return hmat, dgrad, model.annulus
 
 
+def bordered(hmat: np.ndarray, g_active: np.ndarray) -> np.ndarray:
+    """The KKT matrix ``[[H, G_A^T], [G_A, 0]]`` of a problem with linear active constraints ``G_A x = const``."""
+    n, k = hmat.shape[0], g_active.shape[0]
+    out = np.zeros((n + k, n + k))
+    out[:n, :n] = hmat
+    out[:n, n:] = g_active.T
+    out[n:, :n] = g_active
+    return out
+
+
+def solve_kkt(kkt: np.ndarray, dgrad: np.ndarray, what: str) -> np.ndarray:
+    """``dx/dp`` from ``kkt [dx; dlam] = [-d grad/dp; 0]`` (implicit function theorem)."""
+    n = dgrad.shape[0]
+    rhs = np.zeros((kkt.shape[0], dgrad.shape[1]))
+    rhs[:n] = -dgrad
+    try:
+        return np.linalg.solve(kkt, rhs)[:n]
+    except np.linalg.LinAlgError as exc:
+        raise SolverError(f"{what}: the KKT matrix is singular ({exc}); more box constraints are active "
+                          "than the radius has degrees of freedom") from exc
+
+
 def geometry_kkt(problem: geo.GeometryProblem, options: geo.GeometryOptions, coefficients: np.ndarray, alpha: float,
                  gamma: float, lam_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``d c_R / d [m_annulus; alpha; gamma; c_x; c_y]`` at a solution, by the implicit function theorem.
@@ -204,22 +220,9 @@ def geometry_kkt(problem: geo.GeometryProblem, options: geo.GeometryOptions, coe
     is where IPOPT's multipliers are nonzero (run with ``clip_inactive_lam``,
     so inactive ones are exactly zero). Returns ``(dc/dp, annulus indices)``.
     """
-    n_r = coefficients.size
     hmat, dgrad, annulus = geometry_parameter_derivatives(problem, options, coefficients, alpha, gamma)
     box = rad.design_matrix(options.box_angles(), options.n_fourier)
-    active = np.flatnonzero(lam_box != 0)
-    kkt = np.zeros((n_r + active.size, n_r + active.size))
-    kkt[:n_r, :n_r] = hmat
-    kkt[:n_r, n_r:] = box[active].T
-    kkt[n_r:, :n_r] = box[active]
-    rhs = np.zeros((kkt.shape[0], dgrad.shape[1]))
-    rhs[:n_r] = -dgrad
-    try:
-        sol = np.linalg.solve(kkt, rhs)
-    except np.linalg.LinAlgError as exc:
-        raise SolverError(f"sensitivity: the KKT matrix is singular ({exc}); more box constraints are active "
-                          "than the radius has degrees of freedom") from exc
-    return sol[:n_r], annulus
+    return solve_kkt(bordered(hmat, box[lam_box != 0]), dgrad, "geometry sensitivity"), annulus
 
 
 def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, c_r0: np.ndarray, center0):
@@ -263,8 +266,8 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     rho0 = np.minimum(rho0, 1.0)
     drho[clipped] = 0.0
 
-    pb = polar_basis(basis, th0)
-    tk = np.polynomial.chebyshev.chebvander(2 * rho0 / RHO_MAX - 1, pb.cheb.shape[1] - 1).T
+    pb = cpl.polar_basis(basis, th0)
+    tk = np.polynomial.chebyshev.chebvander(2 * rho0 / cpl.RHO_MAX - 1, pb.cheb.shape[1] - 1).T
     radial = pb.select_radial @ (pb.cheb @ tk)
     dradial = pb.select_radial @ (pb.cheb_derivative @ tk)
     orders = np.array([m for m, _ in basis.angular_terms()], float)[:, None]
@@ -311,6 +314,33 @@ def _mean_weight_jacobian(c_r: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray,
     return np.asarray(out[0]).ravel(), np.asarray(out[1])
 
 
+def _wss_sensitivity(basis, eta: float, viscosity_pa_s: float, n_phi: int, c_r0, center, c_v0, r_in: float,
+                     dr_in: np.ndarray, dcr: np.ndarray, dcv: np.ndarray, m_index, u_index) -> Sensitivity:
+    """tau and its mean at ``n_phi`` angles and their derivatives, given ``d c_R / dp`` and ``d c_v / dp``.
+
+    ``p = [magnitude voxels (m_index); velocity voxels (u_index); SCALARS]``;
+    ``r_in`` depends on ``c_R`` through ``dr_in`` (zero where it is fixed).
+    tau does not depend on the centre directly (translation invariance).
+    """
+    n_r, n_m, n_u = c_r0.size, m_index.size, u_index.size
+    phi = rad.uniform_angles(n_phi)
+    fun = wss_derivative_function(basis, rad.n_fourier_from_size(n_r), eta, viscosity_pa_s).map(n_phi)
+    tau0, grad = (np.asarray(a) for a in fun(phi[None, :], c_r0, np.asarray(center, float), c_v0, r_in))
+    tau0 = tau0.ravel()
+    nb = c_v0.size
+    dt_dr = grad[:n_r].T + np.outer(grad[n_r + nb], dr_in)
+    dt_dv = grad[n_r:n_r + nb].T
+    w_mean, dw = _mean_weight_jacobian(c_r0, phi)
+    dtau = dt_dr @ dcr + dt_dv @ dcv
+    dmean = w_mean @ dtau + tau0 @ (dw @ dcr)
+    out = Sensitivity(phi=phi, d_tau=dtau[:, n_m + n_u:], d_mean=dmean[n_m + n_u:],
+                      d_tau_d_m=dtau[:, :n_m], d_tau_d_u=dtau[:, n_m:n_m + n_u],
+                      d_mean_d_m=dmean[:n_m], d_mean_d_u=dmean[n_m:n_m + n_u],
+                      m_index=np.asarray(m_index), u_index=np.asarray(u_index), d_coef_r=dcr, d_coef_v=dcv)
+    out.noise.update({"tau_reference": tau0, "mean_reference": float(w_mean @ tau0)})
+    return out
+
+
 # --------------------------------------------------------------------------- driver
 def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry: geo.GeometryResult,
               vp: vel.VelocityProblem, vopt: vel.VelocityOptions, velocity: vel.VelocityResult, viscosity_pa_s: float,
@@ -339,7 +369,7 @@ def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry:
     # velocity: c_v = H^{-1} T^T W u with H = T^T W T + beta G / pi (W includes 1/A); differentiate the
     # normal equations along each geometry direction
     ctr = np.asarray(problem.center, float)
-    n_r, n_u, nb = c_r0.size, vp.data.size, vp.basis.size
+    n_r, n_u = c_r0.size, vp.data.size
     od, r_in, dr_in = operator_derivatives(vp, vopt, c_r0, ctr)
     t_op = od.op
     wt = vp.weights / vp.area
@@ -351,16 +381,6 @@ def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry:
     dcv_db = -scipy.linalg.cho_solve(cho, vp.gram @ cv0 / np.pi)
     # H dc = -(dT^T W r + T^T W dT c) along each of the n_r + 2 geometry directions at once
     dcv_dgeo = -scipy.linalg.cho_solve(cho, od.transpose_times(wt * resid) + t_op.T @ (wt[:, None] * od.times(cv0)))
-
-    # WSS at each angle and its arc-length mean
-    phi = rad.uniform_angles(n_phi)
-    fun = wss_derivative_function(vp.basis, rad.n_fourier_from_size(n_r), vopt.eta, viscosity_pa_s).map(n_phi)
-    tau0, grad = (np.asarray(a) for a in fun(phi[None, :], c_r0, ctr, cv0, r_in))
-    tau0 = tau0.ravel()
-    dt_dr = grad[:n_r].T + np.outer(grad[n_r + nb], dr_in)
-    dt_dv = grad[n_r:n_r + nb].T
-    w_mean, dw = _mean_weight_jacobian(c_r0, phi)
-    mean0 = float(w_mean @ tau0)
 
     # chain rule on [m_annulus, u, alpha, beta, gamma, c_x, c_y]
     n_m = annulus.size
@@ -374,15 +394,9 @@ def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry:
     dcv[:, n_m:n_m + n_u] += dcv_du
     dcv[:, n_m + n_u + 1] += dcv_db
     dcv[:, n_m + n_u + 3:] += dcv_dgeo[:, n_r:]
-    dtau = dt_dr @ dcr + dt_dv @ dcv  # tau does not depend on the centre directly (translation invariance)
-    dmean = w_mean @ dtau + tau0 @ (dw @ dcr)
-    out = Sensitivity(phi=phi, d_tau=dtau[:, n_m + n_u:], d_mean=dmean[n_m + n_u:],
-                      d_tau_d_m=dtau[:, :n_m], d_tau_d_u=dtau[:, n_m:n_m + n_u],
-                      d_mean_d_m=dmean[:n_m], d_mean_d_u=dmean[n_m:n_m + n_u],
-                      m_index=np.asarray(annulus), u_index=np.asarray(vp.voxels.index), d_coef_r=dcr, d_coef_v=dcv)
+    out = _wss_sensitivity(vp.basis, vopt.eta, viscosity_pa_s, n_phi, c_r0, ctr, cv0, r_in, dr_in, dcr, dcv,
+                           annulus, vp.voxels.index)
     out.seconds = time.perf_counter() - t_start
-    out.noise["tau_reference"] = tau0
-    out.noise["mean_reference"] = mean0
     out.noise["active_box_constraints"] = int(np.count_nonzero(anchor.box_multipliers))
     return out
 
@@ -421,8 +435,7 @@ def coupled(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, vopt:
     second = ca.jtimes(grad_w, nlp.x, ca.DM(np.eye(n_x)[:, :n_r]))  # columns of hess(w^T r) along c_R
     grad_f = ca.gradient(nlp.f, nlp.x)
     fun = ca.Function("kkt", [nlp.x, nlp.gamma, weights_res],
-                      [nlp.residual, nlp.jacobian, second, grad_f, ca.jtimes(grad_f, nlp.gamma, ca.DM(1.0)),
-                       nlp.velocity_error])
+                      [nlp.jacobian, second, grad_f, ca.jtimes(grad_f, nlp.gamma, ca.DM(1.0)), nlp.velocity_error])
     fun_res = ca.Function("res", [nlp.x, nlp.gamma], [nlp.residual])
     reg = np.zeros((n_x, n_x))
     reg[:n_r, :n_r] = 2 * nlp.alpha * np.diag(nlp.geometry.weights)
@@ -431,23 +444,18 @@ def coupled(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, vopt:
     active = np.flatnonzero(cres.geometry.box_multipliers != 0)
     g_act = np.hstack([box[active], np.zeros((active.size, n_x - n_r))])
 
-    def kkt_matrix(res, jac, sec):
-        h2 = np.zeros((n_x, n_x))
+    def kkt_matrix(jac, sec):
+        h2 = np.zeros((n_x, n_x))  # hess(res^T r): only the c_R columns and rows are nonzero
         h2[:, :n_r] = sec
         h2[:n_r, n_r:] = sec[n_r:].T
-        hmat = 2 * jac.T @ jac + 2 * h2 + reg
-        k = np.zeros((n_x + active.size, n_x + active.size))
-        k[:n_x, :n_x] = hmat
-        k[:n_x, n_x:] = g_act.T
-        k[n_x:, :n_x] = g_act
-        return k
+        return bordered(2 * jac.T @ jac + 2 * h2 + reg, g_act)
 
     lam = np.zeros(active.size)
     for it in range(polish_steps + 1):
         res0 = np.asarray(fun_res(x, gam)).ravel()
-        res, jac, sec, grad, dgrad_dgam, err_v = (np.asarray(a) for a in fun(x, gam, res0))
-        res, grad, err_v = res.ravel(), grad.ravel(), err_v.ravel()
-        kkt = kkt_matrix(res, jac, sec)
+        jac, sec, grad, dgrad_dgam, err_v = (np.asarray(a) for a in fun(x, gam, res0))
+        grad, err_v = grad.ravel(), err_v.ravel()
+        kkt = kkt_matrix(jac, sec)
         stationarity = grad + g_act.T @ lam
         if it == polish_steps or np.linalg.norm(stationarity) <= 1e-13 * max(1.0, np.linalg.norm(grad)):
             break
@@ -484,31 +492,13 @@ def coupled(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, vopt:
     dgrad[n_r:, n_m + n_u + 1] = 2 * nlp.weight * nlp.gram @ x[n_r:] / np.pi
     dgrad[:, n_m + n_u + 2] = dgrad_dgam.ravel()
     dgrad[:, n_m + n_u + 3:] = _coupled_centre_derivative(nlp, problem, gopt, x, gam, cres.velocity)
-    rhs = np.zeros((n_x + active.size, dgrad.shape[1]))
-    rhs[:n_x] = -dgrad
-    try:
-        dx = np.linalg.solve(kkt, rhs)[:n_x]
-    except np.linalg.LinAlgError as exc:
-        raise SolverError(f"coupled sensitivity: singular KKT matrix ({exc})") from exc
+    dx = solve_kkt(kkt, dgrad, "coupled sensitivity")
 
-    phi = rad.uniform_angles(n_phi)
-    c_r0, cv0 = x[:n_r], x[n_r:]
-    r_in = cres.velocity.disk_map.r_in
-    fun_t = wss_derivative_function(cres.velocity.basis, gopt.n_fourier, vopt.eta, viscosity_pa_s).map(n_phi)
-    tau0, grad_t = (np.asarray(a) for a in fun_t(phi[None, :], c_r0, np.asarray(problem.center, float), cv0, r_in))
-    tau0 = tau0.ravel()
-    dt_dx = grad_t[:n_x].T  # r_in is fixed in the coupled model
-    w_mean, dw = _mean_weight_jacobian(c_r0, phi)
-    dtau = dt_dx @ dx
-    dmean = w_mean @ dtau + tau0 @ (dw @ dx[:n_r])
-    out = Sensitivity(phi=phi, d_tau=dtau[:, n_m + n_u:], d_mean=dmean[n_m + n_u:],
-                      d_tau_d_m=dtau[:, :n_m], d_tau_d_u=dtau[:, n_m:n_m + n_u],
-                      d_mean_d_m=dmean[:n_m], d_mean_d_u=dmean[n_m:n_m + n_u],
-                      m_index=m_index, u_index=u_index, d_coef_r=dx[:n_r], d_coef_v=dx[n_r:])
+    # r_in is fixed in the coupled model
+    out = _wss_sensitivity(cres.velocity.basis, vopt.eta, viscosity_pa_s, n_phi, x[:n_r], problem.center, x[n_r:],
+                           cres.velocity.disk_map.r_in, np.zeros(n_r), dx[:n_r], dx[n_r:], m_index, u_index)
     out.seconds = time.perf_counter() - t_start
-    out.noise.update({"tau_reference": tau0, "mean_reference": float(w_mean @ tau0),
-                      "active_box_constraints": int(active.size), "kkt_residual_after_polish": polished,
-                      "solution": x})
+    out.noise.update({"active_box_constraints": int(active.size), "kkt_residual_after_polish": polished})
     return out
 
 
@@ -520,8 +510,6 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
     velocity misfit written with a symbolic centre. ``r_in`` is fixed in the
     coupled model; the box does not depend on the centre.
     """
-    from . import coupled as cpl
-
     n_r = nlp.n_r
     _, dgrad_geo, _ = geometry_parameter_derivatives(problem, geo.with_options(gopt, alpha=nlp.alpha), x[:n_r],
                                                      nlp.alpha, gamma)
@@ -542,8 +530,6 @@ def noise_levels(raw_magnitude: np.ndarray, mask: np.ndarray, m0: float, m1: flo
     ``sigma`` (per channel, raw units) is estimated from the Rayleigh
     background when not given.
     """
-    from .analysis import NoiseEstimationError, complex_noise_sigma
-
     how = "given"
     if sigma is None:
         sigma, how = complex_noise_sigma(raw_magnitude, mask), "Rayleigh background"
