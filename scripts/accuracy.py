@@ -16,7 +16,6 @@ alpha-beta grid (alpha = 1e-3 4^k, k = -4..4; beta = 1e-2 2^-n down to
 ``accuracy_auto.md`` (issue 3: auto within 1.25x of the oracle).
 """
 
-import argparse
 import csv
 import os
 import sys
@@ -24,7 +23,7 @@ import time
 
 import numpy as np
 
-from _report import write_report
+from _report import study_parser, write_report
 from wss_nlp import analysis as an
 from wss_nlp import geometry as geo
 from wss_nlp import metrics, phantoms
@@ -76,12 +75,8 @@ def auto_study(args) -> None:
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", type=int, default=5)
+    p = study_parser(__doc__, seeds=5, h="1.5,1.0,0.6,0.3")
     p.add_argument("--snr", type=float, default=25.0)
-    p.add_argument("--cases", default="laminar,turbulent")
-    p.add_argument("--h", default="1.5,1.0,0.6,0.3")
-    p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
     p.add_argument("--auto", action="store_true", help="auto vs oracle parameters instead (see above)")
     args = p.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)

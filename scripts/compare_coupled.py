@@ -10,14 +10,12 @@ its decoupled warm start). Writes ``scripts/results/coupled.md``.
     python scripts/compare_coupled.py [--seeds 5] [--snr 6,10,25] [--h 1.5,1.0]   (about 10 minutes)
 """
 
-import argparse
-import os
 import sys
 import time
 
 import numpy as np
 
-from _report import write_report
+from _report import study_parser, write_report
 from wss_nlp import metrics, phantoms
 from wss_nlp.errors import WssNlpError
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
@@ -26,13 +24,7 @@ TARGET_TIME_RATIO = 5.0  # issue: the coupled solve at h = 1 mm takes at most 5x
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", type=int, default=5)
-    p.add_argument("--cases", default="laminar,turbulent")
-    p.add_argument("--h", default="1.5,1.0")
-    p.add_argument("--snr", default="6,10,25")
-    p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
-    args = p.parse_args(argv)
+    args = study_parser(__doc__, seeds=5, h="1.5,1.0", snr="6,10,25").parse_args(argv)
     methods = ("decoupled", "coupled")
     rows = []
     for case in args.cases.split(","):

@@ -13,12 +13,10 @@ over the true noise level. Writes ``scripts/results/parameter_rules.md``.
     python scripts/parameter_rules.py [--seeds 3] [--cases laminar,turbulent]   (about 3 minutes)
 """
 
-import argparse
-import os
 
 import numpy as np
 
-from _report import write_report
+from _report import study_parser, write_report
 from wss_nlp import analysis as an
 from wss_nlp import geometry as geo
 from wss_nlp import phantoms
@@ -30,13 +28,7 @@ RULES = ("fixed", "DP tau=1.1", "DP tau=2", "GCV", "L-curve")
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--seeds", type=int, default=3)
-    p.add_argument("--cases", default="laminar,turbulent")
-    p.add_argument("--h", default="1.5,1.0,0.6,0.3")
-    p.add_argument("--snr", default="10,25,50")
-    p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
-    args = p.parse_args(argv)
+    args = study_parser(__doc__, seeds=3, h="1.5,1.0,0.6,0.3", snr="10,25,50").parse_args(argv)
     grid = an.geometric_grid(1e-2, 1e-14)
     rows = []
     for case in args.cases.split(","):
