@@ -1,4 +1,4 @@
-"""Command-line interface: ``wss-nlp {demo, reconstruct, phantom, compare}``.
+"""Command-line interface: ``wss-nlp {demo, reconstruct, phantom, analyze, sensitivity, compare, sweep, table, plot}``.
 
 Exit codes: 0 success, 1 solver failure, 2 bad input or usage.
 """
@@ -20,7 +20,7 @@ from . import metrics
 from . import phantoms
 from . import velocity as vel
 from .errors import InputError, WssNlpError
-from .reconstruct import ReconstructionOptions, reconstruct
+from .reconstruct import METHODS, ReconstructionOptions, reconstruct
 
 _G = geo.GeometryOptions()
 _V = vel.VelocityOptions()
@@ -74,9 +74,11 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     v.add_argument("--velocity-solver", choices=["ipopt", "cholesky"], default=_V.solver,
                    help="CasADi/IPOPT (default) or direct Cholesky solve")
     c = p.add_argument_group("method")
-    c.add_argument("--method", choices=["decoupled", "coupled"], default="decoupled",
+    c.add_argument("--method", choices=list(METHODS), default="decoupled",
                    help="decoupled: geometry, then velocity (the paper's); coupled: both as one NLP started from "
-                        "the decoupled solution, so the velocity data inform the wall too")
+                        "the decoupled solution, so the velocity data inform the wall too; oyre / stalder: the "
+                        "classical baselines (cubic near-wall profile fits / smoothing B-spline on a 50 %% "
+                        "magnitude segmentation; README, 'Classical baselines')")
     c.add_argument("--velocity-weight", type=float, default=None,
                    help="coupled: weight of the velocity misfit in mm^2/(m/s)^2 (default: the likelihood weight "
                         "from the estimated noise levels)")
@@ -174,11 +176,6 @@ def _write_truth(path, truth) -> None:
         g.attrs["beta"] = np.nan
 
 
-def _read_truth(path) -> metrics.TruthTable:
-    d = wio.read_result(path)[0]
-    return metrics.TruthTable(d["center"], d["phi"], d["radius"], d["tau"], d["mean_tau"])
-
-
 def _error_table(rows) -> str:
     head = f"{'quantity':<34}{'value':>14}"
     lines = [head, "-" * len(head)]
@@ -232,7 +229,7 @@ def cmd_reconstruct(args) -> int:
 
 
 def cmd_compare(args) -> int:
-    truth = _read_truth(args.truth)
+    truth = metrics.TruthTable.from_file(args.truth)
     rec = wio.read_result(args.result)
     for d in rec:
         if "wall_x" not in d:
@@ -320,11 +317,9 @@ def cmd_demo(args) -> int:
     _warn(results, sys.stderr)
     res = results[0]
     err = metrics.compare_slice(res, truth)
-    rows = _errors_rows(err) + [
-        ("geometry solver", f"{res.geometry.stats.status}"),
-        ("velocity solver", f"{res.velocity.stats.status}"),
-        ("time [s]", f"{seconds:.2f}"),
-    ]
+    solvers = ([("geometry solver", f"{res.geometry.stats.status}"), ("velocity solver", f"{res.velocity.stats.status}")]
+               if hasattr(res, "velocity") else [("method", f"{res.method} (closed-form fits)")])
+    rows = _errors_rows(err) + solvers + [("time [s]", f"{seconds:.2f}")]
     if np.isfinite(res.wss.mean_std):
         rows.insert(4, ("mean WSS std (linearized) [Pa]", f"{res.wss.mean_std:.2g}"))
     print()
@@ -335,6 +330,62 @@ def cmd_demo(args) -> int:
     print()
     print(f"wrote {in_path} (input), {truth_path} (truth), {res_path} (result)")
     print("figures: " + ", ".join(os.path.basename(f) for f in figs) + f" in {out}")
+    return 0
+
+
+def _where(items) -> dict:
+    out = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise InputError(f"--where takes KEY=VALUE, got {item!r}")
+        out[key] = value
+    return out
+
+
+def cmd_sweep(args) -> int:
+    from . import sweep
+
+    study = sweep.load_study(args.study)
+    out = args.output_dir or os.path.join("runs", study.name)
+    s = sweep.run_study(study, out, workers=args.workers, scheduler=args.scheduler, retry_failed=args.retry_failed)
+    print(f"{s.total} cases ({s.ran} run now, {s.skipped} done before), {s.failed} not ok; "
+          f"{s.seconds:.0f} s; table: {s.csv_path}")
+    for path in s.outputs:
+        print(f"wrote {path}")
+    if s.failed:
+        print(f"wss-nlp: warning: {s.failed} case(s) failed or did not converge; see the 'status' and 'message' "
+              f"columns of {s.csv_path}", file=sys.stderr)
+    return 0
+
+
+def cmd_table(args) -> int:
+    from . import sweep
+
+    rows = sweep.read_csv(args.outdir)
+    md, tex = sweep.table(rows, args.rows, args.cols, args.metric, _where(args.where), args.agg,
+                          source=os.path.join(args.outdir, "results.csv"))
+    print(tex if args.latex else md, end="")
+    if args.output:
+        wio.atomic_write(args.output, tex if args.output.endswith(".tex") else md)
+        print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+def cmd_plot(args) -> int:
+    from . import sweep
+    from .plotting import figure_sweep, save_figure
+
+    rows = sweep.read_csv(args.outdir)
+    where = _where(args.where)
+    if not sweep.select(rows, where):
+        raise InputError(f"{args.outdir}/results.csv: no rows match {where}")
+    for k in (args.x, args.y, args.by, args.panels):
+        if k is not None and k not in rows[0]:
+            raise InputError(f"{args.outdir}/results.csv: no column {k!r}; columns: {', '.join(rows[0])}")
+    fig = figure_sweep(rows, args.x, args.y, by=args.by, where=where, panels=args.panels, logx=args.logx)
+    out = args.output or os.path.join(args.outdir, f"{args.y}_vs_{args.x}.png")
+    print(f"wrote {save_figure(fig, out)}")
     return 0
 
 
@@ -383,6 +434,41 @@ def build_parser() -> argparse.ArgumentParser:
     se = sub.add_parser("sensitivity", help="which parameters and which noise the mean WSS is most sensitive to")
     se.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
     se.set_defaults(func=cmd_sensitivity)
+
+    sw = sub.add_parser("sweep", help="run a parameter study from a TOML file (problems/*.toml)",
+                        description="Expand the study's grid, run the cases in parallel (resumable), write "
+                                    "OUTDIR/results.csv, per-case result files and the study's tables and plots.")
+    sw.add_argument("study", help="study file (TOML; see problems/README.md)")
+    sw.add_argument("-o", "--output-dir", default=None, help="output folder (default runs/STUDY_NAME)")
+    sw.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
+    sw.add_argument("--scheduler", default=None,
+                    help="address of a Dask distributed scheduler (tcp://HOST:PORT) to run the cases on")
+    sw.add_argument("--retry-failed", action="store_true", help="run again the cases that failed before")
+    sw.set_defaults(func=cmd_sweep)
+
+    tb = sub.add_parser("table", help="a paper-style table from a sweep's results.csv",
+                        description="Pivot a metric over two parameters (mean over seeds); best per row in bold.")
+    tb.add_argument("outdir", help="output folder of 'wss-nlp sweep'")
+    tb.add_argument("--rows", required=True, help="parameter of the rows (or 'metric' for a single row)")
+    tb.add_argument("--cols", required=True, help="parameter of the columns (or 'metric')")
+    tb.add_argument("--metric", required=True, help="metric column, e.g. radius_err_h2, wss_err")
+    tb.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="fix other parameters")
+    tb.add_argument("--agg", choices=["mean", "median", "max", "min"], default="mean",
+                    help="over seeds (default %(default)s)")
+    tb.add_argument("--latex", action="store_true", help="print LaTeX instead of Markdown")
+    tb.add_argument("-o", "--output", default=None, help="also write the table (.tex: LaTeX, else Markdown)")
+    tb.set_defaults(func=cmd_table)
+
+    pl = sub.add_parser("plot", help="a metric against a parameter from a sweep's results.csv")
+    pl.add_argument("outdir", help="output folder of 'wss-nlp sweep'")
+    pl.add_argument("--x", required=True, help="parameter on the x axis, e.g. h")
+    pl.add_argument("--y", required=True, help="metric on the y axis, e.g. wss_err")
+    pl.add_argument("--by", default=None, help="one line per value of this parameter, e.g. method")
+    pl.add_argument("--panels", default=None, help="one panel per value of this parameter, e.g. case")
+    pl.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="fix other parameters")
+    pl.add_argument("--logx", action="store_true", help="logarithmic x axis")
+    pl.add_argument("-o", "--output", default=None, help="PNG file (default OUTDIR/Y_vs_X.png)")
+    pl.set_defaults(func=cmd_plot)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")
     c.add_argument("result")

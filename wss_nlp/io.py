@@ -165,6 +165,17 @@ def atomic_h5(path):
             os.remove(tmp)
 
 
+def atomic_write(path, data) -> None:
+    """Write text or bytes to ``path`` through a temporary ``.part`` file, renamed only when complete."""
+    path = os.fspath(path)
+    tmp = path + ".part"
+    with open(tmp, "wb") as fh:
+        fh.write(data.encode() if isinstance(data, str) else data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
 def write_acquisition(path, acq: Acquisition) -> None:
     """Write an input file in the public format (atomic)."""
     with atomic_h5(path) as f:
@@ -234,7 +245,7 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
 
     Parameters
     ----------
-    results : list of :class:`wss_nlp.reconstruct.SliceResult`
+    results : list of :class:`wss_nlp.reconstruct.SliceResult` or :class:`wss_nlp.baselines.BaselineResult`
     options : dict
         The options used, stored as JSON in the provenance.
     """
@@ -248,33 +259,20 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
         f.attrs["all_converged"] = bool(all(r.converged for r in results))
         for r in results:
             s = f.create_group(f"slice_{r.index:03d}")
+            _write_core(s, r)
+            if not hasattr(r, "velocity"):  # a classical method (wss_nlp.baselines): no velocity model to store
+                s.attrs["baseline_json"] = json.dumps(r.info)
+                s["geometry"].attrs["segmentation_threshold"] = r.geometry.threshold
+                continue
             g, v, w = r.geometry, r.velocity, r.wss
-            s.attrs["alpha"] = float(g.alpha)
-            s.attrs["beta"] = float(v.beta)
-            s.attrs["converged"] = bool(r.converged)
-            s.attrs["warnings"] = json.dumps(r.warnings)
-            s.attrs["seconds_json"] = json.dumps(r.seconds)
-            s.attrs["method"] = getattr(r, "method", "decoupled")
             if getattr(r, "coupled_info", None):
                 s.attrs["coupled_json"] = json.dumps(r.coupled_info)
-            gg = s.create_group("geometry")
-            gg["center_mm"] = np.asarray(g.center, dtype=float)
-            gg["coefficients"] = g.coefficients
-            gg["phi"] = w.phi
-            gg["radius_mm"] = g.radius(w.phi)
+            gg = s["geometry"]
             gg.attrs.update({"gamma_mm": g.gamma, "box_r0_mm": g.box[0], "box_r1_mm": g.box[1],
                              "box_active": g.box_active, "residual_norm_mm": g.residual_norm,
-                             "penalty_mm2": g.penalty, "magnitude_m0": r.normalization.m0,
-                             "magnitude_m1": r.normalization.m1, "equal_area_radius_mm": r.lumen.r_area,
-                             "options_json": json.dumps(g.options, default=str)})
+                             "penalty_mm2": g.penalty, "options_json": json.dumps(g.options, default=str)})
             _stats_attrs(gg, g.stats, "solver_")
-            wg = s.create_group("wss")
-            wg["phi"] = w.phi
-            wg["tau_pa"] = w.tau
-            wg["wall_x_mm"] = w.wall_x
-            wg["wall_y_mm"] = w.wall_y
-            wg.attrs["mean_pa"] = float(w.mean)
-            wg.attrs["viscosity_pa_s"] = float(w.viscosity_pa_s)
+            wg = s["wss"]
             if getattr(w, "tau_std", None) is not None:
                 wg["tau_std_pa"] = w.tau_std
                 wg.attrs["mean_std_pa"] = float(w.mean_std)
@@ -300,6 +298,31 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
                 ag.attrs.update({"rule": ch.rule, "chosen": float(ch.chosen), "noise": float(ch.noise),
                                  "noise_method": ch.noise_method, "tau": float(ch.tau),
                                  "satisfied": bool(ch.satisfied)})
+
+
+def _write_core(s, r) -> None:
+    """The datasets and attributes every result has (the format's required part, plus wall points)."""
+    g, w = r.geometry, r.wss
+    s.attrs["alpha"] = float(g.alpha)
+    s.attrs["beta"] = float(r.velocity.beta) if hasattr(r, "velocity") else float("nan")
+    s.attrs["converged"] = bool(r.converged)
+    s.attrs["warnings"] = json.dumps(r.warnings)
+    s.attrs["seconds_json"] = json.dumps(r.seconds)
+    s.attrs["method"] = getattr(r, "method", "decoupled")
+    gg = s.create_group("geometry")
+    gg["center_mm"] = np.asarray(g.center, dtype=float)
+    gg["coefficients"] = g.coefficients
+    gg["phi"] = w.phi
+    gg["radius_mm"] = g.radius(w.phi)
+    gg.attrs.update({"magnitude_m0": r.normalization.m0, "magnitude_m1": r.normalization.m1,
+                     "equal_area_radius_mm": r.lumen.r_area})
+    wg = s.create_group("wss")
+    wg["phi"] = w.phi
+    wg["tau_pa"] = w.tau
+    wg["wall_x_mm"] = w.wall_x
+    wg["wall_y_mm"] = w.wall_y
+    wg.attrs["mean_pa"] = float(w.mean)
+    wg.attrs["viscosity_pa_s"] = float(w.viscosity_pa_s)
 
 
 def _open_result(src: str):

@@ -67,6 +67,14 @@ class TruthTable:
         self.x = self.center[0] + self.r * np.cos(self.phi)
         self.y = self.center[1] + self.r * np.sin(self.phi)
 
+    @classmethod
+    def from_file(cls, path) -> "TruthTable":
+        """The truth stored by ``wss-nlp phantom --truth`` (first slice)."""
+        from .io import read_result
+
+        d = read_result(path)[0]
+        return cls(d["center"], d["phi"], d["radius"], d["tau"], d["mean_tau"])
+
     @staticmethod
     def _periodic(phi_s, vals, phi):
         p = np.concatenate([phi_s - 2 * np.pi, phi_s, phi_s + 2 * np.pi])
@@ -91,3 +99,53 @@ def truth_samples(truth, n: int = 1440) -> dict:
     r, dr = lumen.radius(phi), lumen.radius(phi, 1)
     return {"center": np.asarray(lumen.center, dtype=float), "phi": phi, "radius": r, "dradius": dr,
             "tau": truth.flow.wss(phi), "mean_tau": truth.mean_wss}
+
+
+def _pad(coefficients, n_fourier: int) -> np.ndarray:
+    """Coefficients ``[b0, b1..bN, a1..aN]`` of V_N embedded in V_n (n >= N)."""
+    c = np.asarray(coefficients, dtype=float)
+    n0 = rad.n_fourier_from_size(c.size)
+    out = np.zeros(rad.n_coefficients(n_fourier))
+    out[: n0 + 1] = c[: n0 + 1]
+    out[n_fourier + 1: n_fourier + 1 + n0] = c[n0 + 1:]
+    return out
+
+
+def radius_h2_error(center, coefficients, truth, n_fourier: int = 64) -> float:
+    """``||R - R_true||_{H^2} / ||R_true||_{H^2}`` (paper Table 1), R_true about the same centre.
+
+    The true radius is projected onto V_64 (its higher harmonics are below
+    1e-10 mm for the built-in phantoms).
+    """
+    phi = rad.uniform_angles(8 * n_fourier)
+    ct = rad.fit(phi, truth.radius_about(center, phi), n_fourier)
+    return float(rad.sobolev_norm(_pad(coefficients, n_fourier) - ct, 2) / rad.sobolev_norm(ct, 2))
+
+
+def velocity_error(velocity_result, truth, n_rho: int = 64, n_t: int = 128) -> float:
+    """``||v - v_ref||_{L2(B)} / ||v_ref||_{L2(B)}`` on the reference disk (paper Table 2 uses H^2).
+
+    Notes
+    -----
+    ``v_ref = u_true o phi_true`` with ``phi_true`` the map of the
+    reconstruction (same centre, ``r_in``, ``eta``) built on the true
+    radius, as in the paper's Table 2; midpoint rule in ``rho`` (weight
+    ``rho``) and uniform in ``t``. Needs a phantom truth with its flow
+    (NaN for a truth read from a file).
+    """
+    flow = getattr(truth, "flow", None)
+    if flow is None or velocity_result is None:
+        return float("nan")
+    dm = velocity_result.disk_map
+    phi = rad.uniform_angles(512)
+    rt = rad.fit(phi, truth.radius_about(dm.center, phi), 64)
+    true_map = type(dm)(coefficients=rt, center=dm.center, eta=dm.eta,
+                        r_in=min(dm.r_in, float(np.min(rad.evaluate(rt, phi)))))
+    rho = (np.arange(n_rho) + 0.5) / n_rho
+    rr, tt = np.meshgrid(rho, rad.uniform_angles(n_t))
+    v = velocity_result.basis.evaluate(rr.ravel() * np.cos(tt.ravel()), rr.ravel() * np.sin(tt.ravel())) \
+        @ velocity_result.coefficients
+    x, y = true_map.forward(rr, tt)
+    v_ref = flow.velocity(x, y).ravel()
+    w = rr.ravel()
+    return float(np.sqrt(np.sum(w * (v - v_ref) ** 2) / np.sum(w * v_ref**2)))

@@ -48,11 +48,14 @@ def figure_geometry(res, truth=None):
     ax.plot(phi, res.geometry.radius(phi), color="tab:red", label=r"$R_\alpha^\delta$ (reconstructed)")
     if truth is not None:
         ax.plot(phi, rt, "--", color="tab:blue", label=r"$R^\dagger$ (true, about the same centre)")
-    ax.axhspan(*res.geometry.box, color="0.92", zorder=0, label="box [r0, r1]")
+    baseline = not hasattr(res, "velocity")
+    if not baseline:
+        ax.axhspan(*res.geometry.box, color="0.92", zorder=0, label="box [r0, r1]")
     r = res.geometry.radius(phi)
     pad = 0.3 * (r.max() - r.min()) + 0.2
-    ax.set(xlabel=r"$\varphi$ [rad]", ylabel="R [mm]", ylim=(r.min() - pad, r.max() + pad),
-           title=rf"radius function, $\alpha$ = {res.geometry.alpha:g}")
+    title = (f"segmented wall ({res.method}: 50 % magnitude contour)" if baseline
+             else rf"radius function, $\alpha$ = {res.geometry.alpha:g}")
+    ax.set(xlabel=r"$\varphi$ [rad]", ylabel="R [mm]", ylim=(r.min() - pad, r.max() + pad), title=title)
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
@@ -111,7 +114,8 @@ def figure_wss(res, truth=None):
         tt = truth.wss_at_points(w.wall_x, w.wall_y)
         ax.plot(w.phi, tt, color="tab:blue", lw=1.2, label=r"$\tau^\dagger$ true")
         ax.axhline(truth.mean_wss, color="tab:blue", ls=":", label=f"true mean {truth.mean_wss:.4g} Pa")
-    ax.set(xlabel=r"$\varphi$ [rad]", ylabel=r"$\tau$ [Pa]", title="wall shear stress", xlim=(0, 2 * np.pi))
+    ax.set(xlabel=r"$\varphi$ [rad]", ylabel=r"$\tau$ [Pa]", xlim=(0, 2 * np.pi),
+           title=f"wall shear stress ({getattr(res, 'method', 'decoupled')})")
     lo = min(0.0, float(np.min(w.tau)))
     ax.set_ylim(lo, 1.25 * max(float(np.max(w.tau)), truth.mean_wss if truth is not None else 0))
     ax.legend(fontsize=8, ncol=2, loc="lower right")
@@ -131,7 +135,10 @@ def save_figures(res, folder, truth=None, prefix: str = "") -> list[str]:
     """Write all figures of one slice into ``folder``; returns the paths."""
     os.makedirs(folder, exist_ok=True)
     paths = []
-    for name, make in FIGURES.items():
+    # classical baselines have a wall and a WSS but no velocity model
+    names = [n for n in FIGURES if hasattr(res, "velocity") or "velocity" not in n]
+    for name in names:
+        make = FIGURES[name]
         fig = make(res, truth)
         path = os.path.join(folder, prefix + name)
         fig.savefig(path, dpi=110)
@@ -192,8 +199,10 @@ def figure_band_check(phi, linearized, sampled, n_draws: int):
 def save_figure(fig, path: str) -> str:
     """Write one figure as PNG and close it."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    fig.savefig(path, dpi=120)
+    tmp = path + ".part.png"  # never a half-written figure under the final name
+    fig.savefig(tmp, dpi=120)
     plt.close(fig)
+    os.replace(tmp, path)
     return path
 
 
@@ -208,5 +217,45 @@ def figure_rates(deltas, curves: dict):
         ax.set(xlabel=r"noise level $\delta$", ylabel=rf"$\|R_\alpha - R\|_{{H^{r}}}$", title=f"r = {r} "
                "(dotted: slope 1 - r/k)")
     axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def figure_sweep(rows: list, x: str, y: str, by: str | None = None, where: dict | None = None,
+                 panels: str | None = None, logx: bool = False, title: str = ""):
+    """A metric against a parameter from sweep rows: mean over seeds with +-1 standard deviation.
+
+    One line per value of ``by`` (e.g. the method), one panel per value of
+    ``panels`` (e.g. the phantom); failed cases are left out and counted in
+    the legend.
+    """
+    from .sweep import METRICS, select
+
+    sel = select(rows, where or {})
+    pvals = list(dict.fromkeys(r[panels] for r in sel)) if panels else [None]
+    fig, axes = plt.subplots(1, len(pvals), figsize=(5.6 * len(pvals), 4.3), squeeze=False)
+    for ax, pv in zip(axes[0], pvals):
+        part = [r for r in sel if panels is None or r[panels] == pv]
+        for k, bv in enumerate(dict.fromkeys(r[by] for r in part) if by else [None]):
+            line = [r for r in part if by is None or r[by] == bv]
+            xs = sorted(set(r[x] for r in line))
+            mean, std, failed = [], [], 0
+            for xv in xs:
+                vals = [float(r[y]) for r in line if r[x] == xv and r["status"] != "error"]
+                vals = [v for v in vals if np.isfinite(v)]
+                failed += sum(1 for r in line if r[x] == xv) - len(vals)
+                mean.append(np.mean(vals) if vals else np.nan)
+                std.append(np.std(vals) if vals else np.nan)
+            label = (str(bv) if by else y) + (f" ({failed} failed)" if failed else "")
+            ax.errorbar(xs, mean, yerr=std, marker="os^dv<>"[k % 7], capsize=3, label=label)
+        if y.endswith("_bias"):
+            ax.axhline(0.0, color="0.5", lw=0.8)
+        ax.set(xlabel=x, ylabel=METRICS.get(y, y), title=(f"{panels} = {pv}" if panels else title))
+        if logx:
+            ax.set_xscale("log")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    if title and panels:
+        fig.suptitle(title)
     fig.tight_layout()
     return fig

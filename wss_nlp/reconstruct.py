@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from . import analysis as an
+from . import baselines as bl
 from . import coupled as cpl
 from . import geometry as geo
 from . import measurement as meas
@@ -36,7 +37,7 @@ DEPHASING_THRESHOLD = 0.01
 ALPHA_RULES = ("fixed", "discrepancy")
 BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve")
 DEPHASING_BETA_RULES = ("gcv", "same")
-METHODS = ("decoupled", "coupled")
+METHODS = ("decoupled", "coupled") + bl.METHODS
 
 
 @dataclass(frozen=True)
@@ -57,6 +58,7 @@ class ReconstructionOptions:
     velocity: vel.VelocityOptions = field(default_factory=vel.VelocityOptions)
     method: str = "decoupled"  # "coupled": one NLP for geometry and velocity, started from the decoupled solution
     coupled: cpl.CoupledOptions = field(default_factory=cpl.CoupledOptions)
+    baseline: bl.BaselineOptions = field(default_factory=bl.BaselineOptions)  # method "oyre" / "stalder"
     n_phi: int = 360
     viscosity_pa_s: float | None = None  # overrides the file's value when set
     dephasing_correction: bool = True  # needs venc; see measurement.dephasing_factors
@@ -345,8 +347,11 @@ def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.Para
     return an.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
 
 
-def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> list[SliceResult]:
+def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> list:
     """Reconstruct every slice of an acquisition independently.
+
+    Returns :class:`SliceResult` objects, or :class:`wss_nlp.baselines.BaselineResult`
+    for the classical methods (``options.method`` "oyre" or "stalder").
 
     Parameters
     ----------
@@ -359,7 +364,12 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     velocity = acq.velocity_images()
     out = []
     for iz in range(acq.nz):
-        res = reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz, acq.venc_m_s)
+        if options.method in bl.METHODS:
+            res = bl.reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options.method, options.baseline,
+                                       options.n_phi, acq.source, iz)
+        else:
+            res = reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz,
+                                    acq.venc_m_s)
         out.append(res)
         if progress is not None:
             progress(iz + 1, acq.nz, res)
