@@ -120,15 +120,16 @@ def options_from_args(args) -> ReconstructionOptions:
     alpha_rule, alpha = _rule(args.alpha, ("fixed", "discrepancy"), "alpha")
     beta_rule, beta = _rule(args.beta, ("fixed", "discrepancy", "gcv", "lcurve"), "beta")
     gopt = geo.GeometryOptions(
-        n_fourier=args.n_fourier, alpha=alpha if alpha is not None else _G.alpha, sobolev_s=args.sobolev, prior=args.prior, gamma=args.gamma,
-        heaviside=args.heaviside, quad_order=args.quad_order, solver=args.geometry_solver, hessian=args.hessian)
+        n_fourier=args.n_fourier, alpha=alpha if alpha is not None else _G.alpha, sobolev_s=args.sobolev,
+        prior=args.prior, gamma=args.gamma, heaviside=args.heaviside, quad_order=args.quad_order,
+        solver=args.geometry_solver, hessian=args.hessian)
     vopt = vel.VelocityOptions(
-        basis=args.basis, degree=args.degree, angular_order=args.angular_order, max_eigenvalue=args.max_eigenvalue, beta=beta if beta is not None else _V.beta,
-        laplacian_power=args.laplacian_power, eta=args.eta, inner_fraction=args.inner_fraction,
-        quad_order=args.quad_order, solver=args.velocity_solver)
+        basis=args.basis, degree=args.degree, angular_order=args.angular_order, max_eigenvalue=args.max_eigenvalue,
+        beta=beta if beta is not None else _V.beta, laplacian_power=args.laplacian_power, eta=args.eta,
+        inner_fraction=args.inner_fraction, quad_order=args.quad_order, solver=args.velocity_solver)
     copt = cpl.CoupledOptions(velocity_weight=args.velocity_weight, quad_order=args.coupled_quad_order)
-    return ReconstructionOptions(geometry=gopt, velocity=vopt, method=args.method, coupled=copt, n_phi=args.n_phi, viscosity_pa_s=args.viscosity,
-                                 dephasing_correction=args.dephasing_correction,
+    return ReconstructionOptions(geometry=gopt, velocity=vopt, method=args.method, coupled=copt, n_phi=args.n_phi,
+                                 viscosity_pa_s=args.viscosity, dephasing_correction=args.dephasing_correction,
                                  dephasing_beta_rule=args.dephasing_beta, uncertainty=args.uncertainty,
                                  noise_sigma=args.noise_sigma, alpha_rule=alpha_rule,
                                  beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,
@@ -317,8 +318,11 @@ def cmd_demo(args) -> int:
     _warn(results, sys.stderr)
     res = results[0]
     err = metrics.compare_slice(res, truth)
-    solvers = ([("geometry solver", f"{res.geometry.stats.status}"), ("velocity solver", f"{res.velocity.stats.status}")]
-               if hasattr(res, "velocity") else [("method", f"{res.method} (closed-form fits)")])
+    if hasattr(res, "velocity"):
+        solvers = [("geometry solver", f"{res.geometry.stats.status}"),
+                   ("velocity solver", f"{res.velocity.stats.status}")]
+    else:
+        solvers = [("method", f"{res.method} (closed-form fits)")]
     rows = _errors_rows(err) + solvers + [("time [s]", f"{seconds:.2f}")]
     if np.isfinite(res.wss.mean_std):
         rows.insert(4, ("mean WSS std (linearized) [Pa]", f"{res.wss.mean_std:.2g}"))
@@ -348,7 +352,13 @@ def cmd_sweep(args) -> int:
 
     study = sweep.load_study(args.study)
     out = args.output_dir or os.path.join("runs", study.name)
-    s = sweep.run_study(study, out, workers=args.workers, scheduler=args.scheduler, retry_failed=args.retry_failed)
+    try:
+        s = sweep.run_study(study, out, workers=args.workers, scheduler=args.scheduler,
+                            retry_failed=args.retry_failed)
+    except KeyboardInterrupt:
+        print(f"\nwss-nlp: interrupted; finished cases are kept in {out}/cases; run the same command again to "
+              "resume", file=sys.stderr)
+        return 130
     print(f"{s.total} cases ({s.ran} run now, {s.skipped} done before), {s.failed} not ok; "
           f"{s.seconds:.0f} s; table: {s.csv_path}")
     for path in s.outputs:
@@ -364,7 +374,7 @@ def cmd_table(args) -> int:
 
     rows = sweep.read_csv(args.outdir)
     md, tex = sweep.table(rows, args.rows, args.cols, args.metric, _where(args.where), args.agg,
-                          source=os.path.join(args.outdir, "results.csv"))
+                          source=os.path.join(args.outdir, "results.csv"), bold=not args.no_bold)
     print(tex if args.latex else md, end="")
     if args.output:
         wio.atomic_write(args.output, tex if args.output.endswith(".tex") else md)
@@ -456,6 +466,7 @@ def build_parser() -> argparse.ArgumentParser:
     tb.add_argument("--agg", choices=["mean", "median", "max", "min"], default="mean",
                     help="over seeds (default %(default)s)")
     tb.add_argument("--latex", action="store_true", help="print LaTeX instead of Markdown")
+    tb.add_argument("--no-bold", action="store_true", help="do not mark the best value of each row")
     tb.add_argument("-o", "--output", default=None, help="also write the table (.tex: LaTeX, else Markdown)")
     tb.set_defaults(func=cmd_table)
 

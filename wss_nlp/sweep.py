@@ -269,6 +269,8 @@ def options_for(params: dict, where: str = "") -> ReconstructionOptions:
                                      coupled=cpl.CoupledOptions(**parts["coupled"]), **top)
     except TypeError as exc:
         raise InputError(f"{where}: bad option in {params}: {exc}") from exc
+    except InputError as exc:
+        raise InputError(f"{where}: {exc} (case {params})") from exc
 
 
 # ------------------------------------------------------------------ one case
@@ -540,7 +542,11 @@ AGGREGATES = {"mean": np.mean, "median": np.median, "max": np.max, "min": np.min
 
 def pivot(rows: list, row_key: str, col_key: str, metric: str, where: dict | None = None, agg: str = "mean",
           source: str = "results.csv"):
-    """``(row values, col values, matrix, counts)``: ``agg`` of ``metric`` over the seeds (failed cases excluded).
+    """``(row values, col values, matrix, counts, flagged)``: ``agg`` of ``metric`` over the seeds.
+
+    Failed cases (status "error") are left out; ``flagged`` counts the cases
+    of each cell whose solver did not converge (they are included, and marked
+    in the rendered table).
 
     ``row_key`` or ``col_key`` may be ``"metric"`` for a one-row table (as the paper's Table 3).
     """
@@ -561,14 +567,16 @@ def pivot(rows: list, row_key: str, col_key: str, metric: str, where: dict | Non
     rv, cv = key_values(row_key), key_values(col_key)
     mat = np.full((len(rv), len(cv)), np.nan)
     cnt = np.zeros((len(rv), len(cv)), dtype=int)
+    flagged = np.zeros((len(rv), len(cv)), dtype=int)
     for i, a in enumerate(rv):
         for j, b in enumerate(cv):
-            vals = [float(r[metric]) for r in sel
-                    if (row_key == "metric" or r[row_key] == a) and (col_key == "metric" or r[col_key] == b)
-                    and r["status"] != "error" and np.isfinite(float(r[metric]))]
-            if vals:
-                mat[i, j], cnt[i, j] = f(vals), len(vals)
-    return rv, cv, mat, cnt
+            cell = [r for r in sel if (row_key == "metric" or r[row_key] == a)
+                    and (col_key == "metric" or r[col_key] == b) and r["status"] != "error"
+                    and np.isfinite(float(r[metric]))]
+            if cell:
+                mat[i, j], cnt[i, j] = f([float(r[metric]) for r in cell]), len(cell)
+                flagged[i, j] = sum(r["status"] != "ok" for r in cell)
+    return rv, cv, mat, cnt, flagged
 
 
 def _best(values: np.ndarray, metric: str) -> int | None:
@@ -587,8 +595,13 @@ def _fmt(x: float, metric: str) -> str:
     return f"{x:.4g}"
 
 
-def render_table(rv, cv, mat, row_key, col_key, metric, caption: str = "") -> tuple[str, str]:
-    """Markdown and LaTeX of a pivot, the best value of each row in bold (smallest absolute error)."""
+def render_table(rv, cv, mat, row_key, col_key, metric, caption: str = "", flagged=None,
+                 bold: bool = True) -> tuple[str, str]:
+    """Markdown and LaTeX of a pivot, the best value of each row in bold (smallest absolute error).
+
+    Cells with a non-converged case (``flagged > 0``) carry a dagger.
+    """
+    flagged = np.zeros(mat.shape, dtype=int) if flagged is None else flagged
     def lab(v):
         return f"{v:g}" if isinstance(v, float) else str(v)
 
@@ -598,9 +611,9 @@ def render_table(rv, cv, mat, row_key, col_key, metric, caption: str = "") -> tu
            f"${row_key.replace('_', ' ')}\\setminus {col_key.replace('_', ' ')}$ & "
            + " & ".join(lab(c) for c in cv) + r" \\", r"\hline", r"\hline"]
     for i, a in enumerate(rv):
-        b = _best(mat[i], metric)
-        cells_md = [_fmt(x, metric) for x in mat[i]]
-        cells_tex = list(cells_md)
+        b = _best(mat[i], metric) if bold else None
+        cells_md = [_fmt(x, metric) + ("†" if flagged[i, j] else "") for j, x in enumerate(mat[i])]
+        cells_tex = [c.replace("†", r"$^\dagger$") for c in cells_md]
         if b is not None:
             cells_md[b] = f"**{cells_md[b]}**"
             cells_tex[b] = rf"\textbf{{{cells_tex[b]}}}"
@@ -610,13 +623,15 @@ def render_table(rv, cv, mat, row_key, col_key, metric, caption: str = "") -> tu
     return "\n".join(md) + "\n", "\n".join(tex) + "\n"
 
 
-def table(rows, rows_key, cols_key, metric, where=None, agg="mean", caption="", source="results.csv"):
-    """Markdown and LaTeX of one paper-style table from sweep rows."""
-    rv, cv, mat, cnt = pivot(rows, rows_key, cols_key, metric, where, agg, source)
-    md, tex = render_table(rv, cv, mat, rows_key, cols_key, metric, caption)
+def table(rows, rows_key, cols_key, metric, where=None, agg="mean", caption="", source="results.csv", bold=True):
+    """Markdown and LaTeX of one paper-style table from sweep rows (``bold=False`` when columns are not rivals)."""
+    rv, cv, mat, cnt, flagged = pivot(rows, rows_key, cols_key, metric, where, agg, source)
+    md, tex = render_table(rv, cv, mat, rows_key, cols_key, metric, caption, flagged, bold)
     n = cnt[cnt > 0]
     note = (f"\n{agg} of {metric} ({METRICS[metric]}) over {n.min()}-{n.max()} case(s) per cell"
-            + (f"; {where}" if where else "") + "; bold: smallest absolute value in the row.\n")
+            + (f"; {where}" if where else "") + ("; bold: smallest absolute value in the row" if bold else "")
+            + (f"; †: the cell includes {flagged.sum()} case(s) whose solver did not converge (see results.csv)"
+               if flagged.any() else "") + ".\n")
     return md + note, tex
 
 
@@ -626,7 +641,7 @@ def write_views(study: Study, rows: list, outdir: str) -> list[str]:
     for i, spec in enumerate(study.tables):
         name = spec.get("name", f"table{i + 1}")
         md, tex = table(rows, spec["rows"], spec["cols"], spec["metric"], spec.get("where"), spec.get("agg", "mean"),
-                        spec.get("caption", ""), os.path.join(outdir, "results.csv"))
+                        spec.get("caption", ""), os.path.join(outdir, "results.csv"), spec.get("bold", True))
         for ext, text in (("md", md), ("tex", tex)):
             path = os.path.join(outdir, f"{name}.{ext}")
             wio.atomic_write(path, text)
