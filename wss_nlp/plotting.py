@@ -250,7 +250,8 @@ def figure_sweep(rows: list, x: str, y: str, by: str | None = None, where: dict 
             ax.errorbar(xs, mean, yerr=std, marker="os^dv<>"[k % 7], capsize=3, label=label)
         if y.endswith("_bias"):
             ax.axhline(0.0, color="0.5", lw=0.8)
-        ax.set(xlabel={"h": "voxel size h [mm]"}.get(x, x), ylabel=METRICS.get(y, y), title=(f"{panels} = {pv}" if panels else title))
+        ax.set(xlabel={"h": "voxel size h [mm]"}.get(x, x), ylabel=METRICS.get(y, y),
+               title=(f"{panels} = {pv}" if panels else title))
         if logx:
             ax.set_xscale("log")
         ax.grid(alpha=0.3)
