@@ -18,6 +18,7 @@ from . import geometry as geo
 from . import io as wio
 from . import metrics
 from . import phantoms
+from . import stack as stk
 from . import velocity as vel
 from .errors import InputError, WssNlpError
 from .reconstruct import METHODS, ReconstructionOptions, reconstruct
@@ -62,7 +63,8 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     v.add_argument("--laplacian-power", type=int, choices=[1, 2], default=_V.laplacian_power,
                    help="t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5 (default %(default)s)")
     v.add_argument("--basis", choices=["zernike", "eigen"], default=_V.basis,
-                   help="(1-|xi|^2) x Zernike polynomials, or the paper's Dirichlet eigenfunctions (default %(default)s)")
+                   help="(1-|xi|^2) x Zernike polynomials, or the paper's Dirichlet eigenfunctions "
+                        "(default %(default)s)")
     v.add_argument("--degree", type=int, default=_V.degree, help="Zernike degree (default %(default)s)")
     v.add_argument("--angular-order", type=int, default=_V.angular_order,
                    help="highest angular order |m| of the Zernike functions (default %(default)s)")
@@ -84,6 +86,16 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
                         "from the estimated noise levels)")
     c.add_argument("--coupled-quad-order", type=int, default=cpl.CoupledOptions().quad_order,
                    help="coupled: sub-voxel points per axis of the velocity misfit (default %(default)s)")
+    z = p.add_argument_group("stacks of slices (Sec. 5)")
+    z.add_argument("--z-smoothing", type=float, default=None,
+                   help="length in mm along the vessel over which neighbouring slices are pooled (z-regularization "
+                        "of geometry and velocity); 0 = independent slices (default: one slice spacing)")
+    z.add_argument("--z-order", type=int, choices=[1, 2], default=2,
+                   help="order of the z-derivative penalized: 2 (default) keeps linear tapers unbiased, 1 = first "
+                        "derivative")
+    z.add_argument("--stack-strategy", choices=list(stk.STRATEGIES), default="auto",
+                   help=f"one coupled NLP, Kaczmarz sweeps, or auto (coupled up to {stk.COUPLED_MAX_SLICES} "
+                        "slices)")
     w = p.add_argument_group("wall shear stress (Sec. 4)")
     w.add_argument("--viscosity", type=float, default=None,
                    help="dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'")
@@ -133,13 +145,19 @@ def options_from_args(args) -> ReconstructionOptions:
                                  dephasing_beta_rule=args.dephasing_beta, uncertainty=args.uncertainty,
                                  noise_sigma=args.noise_sigma, alpha_rule=alpha_rule,
                                  beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,
-                                 noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity)
+                                 noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity,
+                                 stack=stk.StackOptions(z_smoothing_mm=args.z_smoothing, z_order=args.z_order,
+                                                        strategy=args.stack_strategy))
 
 
 def _progress(stream):
     t0 = time.perf_counter()
 
     def report(done, total, res):
+        if isinstance(res, wio.FailedSlice):
+            stream.write(f"  slice {done}/{total}: FAILED ({res.reason})\n")
+            stream.flush()
+            return
         flag = "" if res.converged else "  [NOT CONVERGED]"
         stream.write(f"  slice {done}/{total}: mean WSS {res.wss.mean:.4g} Pa, "
                      f"{time.perf_counter() - t0:.1f} s elapsed{flag}\n")
@@ -155,26 +173,31 @@ def _warn(results, stream) -> None:
 
 
 def _write_truth(path, truth) -> None:
-    s = metrics.truth_samples(truth)
+    """Exact geometry and WSS of a phantom (one group per slice for a stack phantom)."""
+    from . import radius as rad
+
+    stack = isinstance(truth, phantoms.StackTruth)
+    slices = truth.slices if stack else [truth]
+    cases = phantoms.STACK_CASES if stack else phantoms.CASES
     with wio.atomic_h5(path) as f:
         for k, v in wio.provenance({"truth": truth.parameters}).items():
             f.attrs[k] = v
         f.attrs["case"] = truth.name
-        f.attrs["description"] = phantoms.CASES[truth.name][1]
-        g = f.create_group("slice_000")
-        g["geometry/center_mm"] = s["center"]
-        g["geometry/phi"] = s["phi"]
-        g["geometry/radius_mm"] = s["radius"]
-        from . import radius as rad
-
-        g["geometry/coefficients"] = rad.fit(s["phi"], s["radius"], 32)
-        g["geometry"].attrs["note"] = "coefficients: least-squares projection onto V_32 of the exact radius"
-        g["wss/phi"] = s["phi"]
-        g["wss/tau_pa"] = s["tau"]
-        g["wss"].attrs["mean_pa"] = s["mean_tau"]
-        g["velocity_true_m_s"] = truth.velocity_image
-        g.attrs["alpha"] = np.nan
-        g.attrs["beta"] = np.nan
+        f.attrs["description"] = cases[truth.name][1]
+        for i, sl in enumerate(slices):
+            s = metrics.truth_samples(sl)
+            g = f.create_group(f"slice_{i:03d}")
+            g["geometry/center_mm"] = s["center"]
+            g["geometry/phi"] = s["phi"]
+            g["geometry/radius_mm"] = s["radius"]
+            g["geometry/coefficients"] = rad.fit(s["phi"], s["radius"], 32)
+            g["geometry"].attrs["note"] = "coefficients: least-squares projection onto V_32 of the exact radius"
+            g["wss/phi"] = s["phi"]
+            g["wss/tau_pa"] = s["tau"]
+            g["wss"].attrs["mean_pa"] = s["mean_tau"]
+            g["velocity_true_m_s"] = sl.velocity_image
+            g.attrs["alpha"] = np.nan
+            g.attrs["beta"] = np.nan
 
 
 def _error_table(rows) -> str:
@@ -197,14 +220,21 @@ def _errors_rows(err: metrics.Errors):
 
 # ------------------------------------------------------------------ commands
 def cmd_phantom(args) -> int:
-    acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=None if args.snr <= 0 else args.snr,
-                                       seed=args.seed, venc=args.venc, as_phase=not args.velocity)
+    snr = None if args.snr <= 0 else args.snr
+    if args.stack:
+        acq, truth = phantoms.make_stack(args.stack, nz=args.nz, h_mm=args.h, spacing_mm=args.spacing, snr=snr,
+                                         seed=args.seed, venc=args.venc)
+        args.case = f"{args.stack} stack ({args.nz} slices, {args.spacing:g} mm apart)"
+    else:
+        acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=snr, seed=args.seed, venc=args.venc,
+                                           as_phase=not args.velocity)
     wio.write_acquisition(args.output, acq)
     print(f"wrote {args.output}: {args.case}, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
           f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels")
     if args.truth:
         _write_truth(args.truth, truth)
-        print(f"wrote {args.truth}: exact radius and WSS (mean {truth.mean_wss:.5g} Pa)")
+        means = [t.mean_wss for t in getattr(truth, "slices", [truth])]
+        print(f"wrote {args.truth}: exact radius and WSS (mean {min(means):.5g}-{max(means):.5g} Pa)")
     return 0
 
 
@@ -217,22 +247,40 @@ def cmd_reconstruct(args) -> int:
     wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv])
     _warn(results, sys.stderr)
     for r in results:
+        if isinstance(r, wio.FailedSlice):
+            print(f"slice {r.index}: FAILED: {r.reason}")
+            continue
         print(f"slice {r.index}: mean WSS {r.wss.mean:.5g} Pa, mean radius {r.geometry.coefficients[0]:.4f} mm, "
               f"converged: {r.converged}")
+    if results.stack is not None:
+        st = results.stack
+        print(f"stack: z-regularized over {st.z_smoothing_mm:g} mm ({st.strategy}; segments "
+              f"{[f'{s[0]}-{s[-1]}' for s in st.segments]})" + ("" if st.converged else "; NOT CONVERGED"))
     print(f"wrote {args.output}")
     if args.figures:
         from .plotting import save_figures
 
         for r in results:
-            save_figures(r, args.figures, prefix=f"slice_{r.index:03d}_")
+            if not isinstance(r, wio.FailedSlice):
+                save_figures(r, args.figures, prefix=f"slice_{r.index:03d}_")
+        if len(results) > 1:
+            from .plotting import figure_stack, save_figure
+
+            save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(args.figures, "stack_wall_maps.png"))
         print(f"figures in {args.figures}")
     return 0
 
 
 def cmd_compare(args) -> int:
-    truth = metrics.TruthTable.from_file(args.truth)
+    truths = metrics.TruthTable.all_from_file(args.truth)
     rec = wio.read_result(args.result)
-    for d in rec:
+    if len(truths) > 1 and len(truths) != len(rec):
+        raise InputError(f"{args.truth} has {len(truths)} slices but {args.result} has {len(rec)}")
+    for i, d in enumerate(rec):
+        truth = truths[i] if len(truths) > 1 else truths[0]
+        if d.get("failed"):
+            print(f"{d['name']}: FAILED slice, nothing to compare")
+            continue
         if "wall_x" not in d:
             raise InputError(f"{args.result}: {d['name']} has no wss/wall_x_mm; was it written by wss-nlp?")
         err = metrics.compare(d["center"], d["phi"], d["radius"], d["wall_x"], d["wall_y"], d["tau"],
@@ -432,6 +480,10 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--seed", type=int, default=0)
     ph.add_argument("--venc", type=float, default=None, help="velocity encoding in m/s (default 1.25 x peak)")
     ph.add_argument("--velocity", action="store_true", help="store 'velocity' instead of 'phase' + venc")
+    ph.add_argument("--stack", choices=list(phantoms.STACK_CASES), default=None,
+                    help="a 3D stack phantom instead of one slice")
+    ph.add_argument("--nz", type=int, default=10, help="stack: number of slices (default %(default)s)")
+    ph.add_argument("--spacing", type=float, default=2.0, help="stack: slice spacing in mm (default %(default)g)")
     ph.add_argument("-o", "--output", required=True, help="input file to write")
     ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
     ph.set_defaults(func=cmd_phantom)

@@ -232,7 +232,7 @@ def polar_basis(basis, angles: np.ndarray, tol: float = 1e-12) -> PolarBasis:
                      "lower its size or use --method decoupled")
 
 
-def _sparse_dm(matrix: np.ndarray) -> ca.DM:
+def sparse_dm(matrix: np.ndarray) -> ca.DM:
     """A CasADi DM with the sparsity of ``matrix`` (products skip the structural zeros)."""
     sp = scipy.sparse.csc_matrix(matrix)
     return ca.DM(ca.Sparsity(sp.shape[0], sp.shape[1], sp.indptr.tolist(), sp.indices.tolist()), sp.data.tolist())
@@ -313,7 +313,7 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
     transform = ca.DM(basis.transform)
     c_raw = ca.mtimes(transform, c_v)  # v = c_v^T transform^T raw
     # v_p = sum_a angular_a(t_p) sum_r Q_ar radial_r(rho_p),  Q = S_a^T diag(c_raw) S_r
-    sel_a, sel_r = _sparse_dm(pb.select_angular), _sparse_dm(pb.select_radial)  # one-hot: keep them sparse
+    sel_a, sel_r = sparse_dm(pb.select_angular), sparse_dm(pb.select_radial)  # one-hot: keep them sparse
     q_mat = ca.mtimes(sel_a.T, ca.repmat(c_raw, 1, pb.n_radial) * sel_r)
     v = sign * ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb)), tk))  # (1, n_pts)
     agg = ca.DM(model.sum_matrix)

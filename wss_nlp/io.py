@@ -51,6 +51,15 @@ class Acquisition:
             return self.velocity
         return self.venc_m_s * self.phase / np.pi
 
+    def nonfinite_slices(self) -> list[int]:
+        """Indices of slices with NaN or Inf in any image."""
+        arrays = [a for a in (self.magnitude, self.velocity, self.phase) if a is not None]
+        bad = np.zeros(self.magnitude.shape[0], dtype=bool)
+        for a in arrays:
+            if a.shape[:1] == bad.shape:
+                bad |= ~np.all(np.isfinite(a.reshape(a.shape[0], -1)), axis=1)
+        return np.nonzero(bad)[0].tolist()
+
     def validate(self) -> None:
         """Check shapes, finiteness and attributes; raise :class:`InputError`."""
         src = self.source
@@ -64,11 +73,15 @@ class Acquisition:
             raise InputError(f"{src}: shape mismatch: 'magnitude' {mag.shape} but '{name}' {other.shape}")
         if min(mag.shape[1:]) < 4:
             raise InputError(f"{src}: images of {mag.shape[1:]} voxels are too small to hold a vessel")
-        for nm, arr in (("magnitude", mag), (name, other)):
-            bad = ~np.isfinite(arr)
-            if bad.any():
-                iz = sorted(set(np.nonzero(bad)[0].tolist()))
-                raise InputError(f"{src}: '{nm}' contains NaN or Inf ({int(bad.sum())} voxels, slices {iz[:10]})")
+        bad_slices = self.nonfinite_slices()
+        # in a stack, a corrupt slice is reported and skipped by the reconstruction; only all-bad data is an error
+        if bad_slices and (self.nz == 1 or len(bad_slices) == self.nz):
+            for nm, arr in (("magnitude", mag), (name, other)):
+                bad = ~np.isfinite(arr)
+                if bad.any():
+                    iz = sorted(set(np.nonzero(bad)[0].tolist()))
+                    raise InputError(f"{src}: '{nm}' contains NaN or Inf ({int(bad.sum())} voxels, "
+                                     f"slices {iz[:10]})")
         vs = np.asarray(self.voxel_size_mm, dtype=float)
         if vs.shape != (2,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
             raise InputError(f"{src}: 'voxel_size_mm' must be two positive numbers [dy, dx], got {self.voxel_size_mm}")
@@ -257,8 +270,15 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
             f.attrs[k] = v
         f.attrs["n_slices"] = len(results)
         f.attrs["all_converged"] = bool(all(r.converged for r in results))
+        failed = [r.index for r in results if isinstance(r, FailedSlice)]
+        f.attrs["failed_slices"] = np.asarray(failed, dtype=int)
+        if getattr(results, "stack", None) is not None:
+            f.attrs["stack_json"] = json.dumps(results.stack.as_dict(), default=float)
         for r in results:
             s = f.create_group(f"slice_{r.index:03d}")
+            if isinstance(r, FailedSlice):
+                _write_failed(s, r)
+                continue
             _write_core(s, r)
             if not hasattr(r, "velocity"):  # a classical method (wss_nlp.baselines): no velocity model to store
                 s.attrs["baseline_json"] = json.dumps(r.info)
@@ -298,6 +318,37 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
                 ag.attrs.update({"rule": ch.rule, "chosen": float(ch.chosen), "noise": float(ch.noise),
                                  "noise_method": ch.noise_method, "tau": float(ch.tau),
                                  "satisfied": bool(ch.satisfied)})
+
+
+@dataclass
+class FailedSlice:
+    """A slice of a stack that could not be reconstructed; its group holds NaN and says why."""
+
+    index: int
+    reason: str
+    n_phi: int = 360
+    n_fourier: int = 8
+
+    converged = False
+
+    @property
+    def warnings(self) -> list[str]:
+        return [f"slice {self.index}: FAILED, not reconstructed: {self.reason}"]
+
+
+def _write_failed(s, r: FailedSlice) -> None:
+    """The required datasets filled with NaN, and ``failed = True`` with the reason."""
+    phi = 2 * np.pi * np.arange(r.n_phi) / r.n_phi
+    nan = np.full(r.n_phi, np.nan)
+    s.attrs.update({"failed": True, "error": r.reason, "converged": False, "alpha": np.nan, "beta": np.nan,
+                    "warnings": json.dumps(r.warnings), "method": "none"})
+    s["geometry/center_mm"] = np.full(2, np.nan)
+    s["geometry/coefficients"] = np.full(2 * r.n_fourier + 1, np.nan)
+    s["geometry/phi"] = phi
+    s["geometry/radius_mm"] = nan
+    s["wss/phi"] = phi
+    s["wss/tau_pa"] = nan
+    s["wss"].attrs["mean_pa"] = np.nan
 
 
 def _write_core(s, r) -> None:
@@ -406,6 +457,7 @@ def read_result(path) -> list[dict]:
                     "alpha": float(s.attrs.get("alpha", np.nan)),
                     "beta": float(s.attrs.get("beta", np.nan)),
                     "converged": bool(s.attrs.get("converged", True)),
+                    "failed": bool(s.attrs.get("failed", False)),
                 }
             except KeyError as exc:
                 raise InputError(f"{src}: group {name} lacks {exc}") from exc

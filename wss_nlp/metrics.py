@@ -75,6 +75,13 @@ class TruthTable:
         d = read_result(path)[0]
         return cls(d["center"], d["phi"], d["radius"], d["tau"], d["mean_tau"])
 
+    @classmethod
+    def all_from_file(cls, path) -> list:
+        """One :class:`TruthTable` per slice of a truth file."""
+        from .io import read_result
+
+        return [cls(d["center"], d["phi"], d["radius"], d["tau"], d["mean_tau"]) for d in read_result(path)]
+
     @staticmethod
     def _periodic(phi_s, vals, phi):
         p = np.concatenate([phi_s - 2 * np.pi, phi_s, phi_s + 2 * np.pi])

@@ -260,3 +260,30 @@ def figure_sweep(rows: list, x: str, y: str, by: str | None = None, where: dict 
         fig.suptitle(title)
     fig.tight_layout()
     return fig
+
+
+def figure_stack(results, spacing_mm: float):
+    """Radius and WSS over the unrolled wall (angle x z) of a stack; failed slices are blank rows."""
+    n = len(results)
+    ok = [r for r in results if hasattr(r, "wss")]
+    phi = ok[0].wss.phi
+    rmap = np.full((n, phi.size), np.nan)
+    tmap = np.full((n, phi.size), np.nan)
+    for r in ok:
+        rmap[r.index] = r.geometry.radius(r.wss.phi)
+        tmap[r.index] = r.wss.tau
+    z = np.arange(n) * spacing_mm
+    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), sharey=True)
+    extent = (0, 360, z[0] - spacing_mm / 2, z[-1] + spacing_mm / 2)
+    for ax, data, label, cmap in ((axes[0], rmap, "radius R [mm]", "viridis"),
+                                  (axes[1], tmap, r"wall shear stress $\tau$ [Pa]", "magma")):
+        im = ax.imshow(np.ma.masked_invalid(data), origin="lower", aspect="auto", extent=extent, cmap=cmap,
+                       interpolation="nearest")
+        fig.colorbar(im, ax=ax, label=label)
+        ax.set(xlabel=r"angle $\varphi$ [deg] (unrolled wall)", title=label)
+    axes[0].set_ylabel("z [mm] (slice position)")
+    failed = [i for i in range(n) if not hasattr(results[i], "wss")]
+    if failed:
+        fig.suptitle(f"blank rows: slices {failed} failed (see the result file)")
+    fig.tight_layout()
+    return fig

@@ -20,10 +20,11 @@ from . import geometry as geo
 from . import measurement as meas
 from . import preprocess as pp
 from . import sensitivity as sens
+from . import stack as stk
 from . import velocity as vel
 from . import wss as wss_mod
 from .errors import InputError, WssNlpError
-from .io import Acquisition
+from .io import Acquisition, FailedSlice
 from .measurement import VoxelGrid
 
 
@@ -59,6 +60,7 @@ class ReconstructionOptions:
     method: str = "decoupled"  # "coupled": one NLP for geometry and velocity, started from the decoupled solution
     coupled: cpl.CoupledOptions = field(default_factory=cpl.CoupledOptions)
     baseline: bl.BaselineOptions = field(default_factory=bl.BaselineOptions)  # method "oyre" / "stalder"
+    stack: stk.StackOptions = field(default_factory=stk.StackOptions)  # nz > 1: z-regularization (wss_nlp.stack)
     n_phi: int = 360
     viscosity_pa_s: float | None = None  # overrides the file's value when set
     dephasing_correction: bool = True  # needs venc; see measurement.dephasing_factors
@@ -347,8 +349,33 @@ def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.Para
     return an.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
 
 
-def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> list:
-    """Reconstruct every slice of an acquisition independently.
+class Results(list):
+    """The per-slice results of :func:`reconstruct`, with ``stack`` (a :class:`wss_nlp.stack.StackInfo` or None)."""
+
+    stack = None
+
+
+def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
+    """Whether a stack is reconstructed with z-regularization (else slice by slice)."""
+    ell = options.stack.z_smoothing_mm
+    if acq.nz == 1 or ell == 0:
+        return False
+    supported = options.method == "decoupled" and options.alpha_rule == "fixed" and options.beta_rule == "fixed"
+    if ell is not None and not supported:
+        raise InputError(f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled method "
+                         "with fixed alpha and beta; pass --z-smoothing 0 for independent slices")
+    return supported
+
+
+def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> Results:
+    """Reconstruct every slice of an acquisition.
+
+    A stack (``nz > 1``) is reconstructed with z-regularization
+    (:mod:`wss_nlp.stack`) when the options allow it (decoupled method, fixed
+    alpha and beta, ``options.stack.z_smoothing_mm != 0``), else slice by
+    slice. In a stack, a slice that cannot be reconstructed (NaN or Inf, no
+    vessel, solver failure) becomes a :class:`wss_nlp.io.FailedSlice` and
+    the others are still solved; a single slice raises instead.
 
     Returns :class:`SliceResult` objects, or :class:`wss_nlp.baselines.BaselineResult`
     for the classical methods (``options.method`` "oyre" or "stalder").
@@ -361,16 +388,32 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     options = options or ReconstructionOptions()
     acq.validate()
     mu = resolve_viscosity(acq, options)
+    out = Results()
+    if stack_applies(acq, options):
+        results, info = stk.reconstruct_stack(acq, options, options.stack, progress)
+        out.extend(r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
+                   for k, r in enumerate(results))
+        out.stack = info
+        return out
     velocity = acq.velocity_images()
-    out = []
+    bad = set(acq.nonfinite_slices())
     for iz in range(acq.nz):
-        if options.method in bl.METHODS:
-            res = bl.reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options.method, options.baseline,
-                                       options.n_phi, acq.source, iz)
-        else:
-            res = reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz,
-                                    acq.venc_m_s)
+        try:
+            if iz in bad:
+                raise InputError(f"{acq.source} slice {iz}: the images contain NaN or Inf")
+            if options.method in bl.METHODS:
+                res = bl.reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options.method,
+                                           options.baseline, options.n_phi, acq.source, iz)
+            else:
+                res = reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz,
+                                        acq.venc_m_s)
+        except WssNlpError as exc:
+            if acq.nz == 1:
+                raise
+            res = FailedSlice(iz, str(exc), options.n_phi, options.geometry.n_fourier)
         out.append(res)
         if progress is not None:
             progress(iz + 1, acq.nz, res)
+    if all(isinstance(r, FailedSlice) for r in out):
+        raise WssNlpError(f"{acq.source}: no slice could be reconstructed: " + "; ".join(r.reason for r in out))
     return out

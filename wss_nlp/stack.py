@@ -1,0 +1,489 @@
+"""Stacks of slices regularized along the vessel (paper Sec. 5): fully coupled or by Kaczmarz sweeps.
+
+Geometry and velocity coefficients of all slices are fitted together, with a
+penalty on their m-th difference along z (m = ``z_order``, default 2) added
+to the 2D functionals of Secs. 2 and 3:
+
+``sum_k J_k(c_k) + kappa sum_k ||(D_m R)_k||^2_{L2(0, 2pi)}`` (geometry),
+``sum_k Q_k(v_k) + kappa_v sum_k ||(D_m v)_k||^2_{L2(B)} / pi`` (velocity),
+
+``D_1 R_k = R_{k+1} - R_k``, ``D_2 R_k = R_{k+2} - 2 R_{k+1} + R_k``. In
+coefficients this is ``C^T (L x W) C`` with ``L = D_m^T D_m`` and the L2 Gram
+matrix W of the radius (``W0``) or velocity (``G0``) basis.
+
+The weights come from one interpretable length, ``z_smoothing_mm`` = l: the
+misfit of one slice changes by about ``2 pi R delta^2 / h`` when the wall
+moves by delta (a band of wall voxels of width h), and by about
+``||delta v||^2_{L2(B)} / pi`` when the velocity changes by delta v, so
+``kappa = (l / dz)^(2m) R / h`` and ``kappa_v = (l / dz)^(2m)`` make l the
+length along the vessel over which data of neighbouring slices are pooled.
+l = 0 gives independent slices.
+
+Two solvers of the same problem:
+
+* ``coupled``: one CasADi NLP over all geometry coefficients (IPOPT, box
+  per slice, Gauss-Newton Hessian: block diagonal plus the z-Laplacian), then
+  one CasADi QP over all velocity coefficients (IPOPT);
+* ``kaczmarz``: sweeps over the slices (forward then backward), each a 2D
+  problem with its neighbours fixed, until the coupled optimality residual
+  is below ``tol`` (geometry: Gauss-Newton steps per slice, residual = the
+  relative Newton step of every slice for the coupled functional with the
+  final neighbours; velocity: block Gauss-Seidel on the normal equations,
+  factorized once, residual = relative residual of the coupled equations).
+
+A slice whose data are unusable (NaN or Inf, no vessel found) is reported by
+index, left out, and splits the stack into independent segments.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import casadi as ca
+import numpy as np
+import scipy.linalg
+
+from . import geometry as geo
+from . import measurement as meas
+from . import preprocess as pp
+from . import radius as rad
+from . import velocity as vel
+from . import wss as wss_mod
+from .errors import InputError, SolverError, WssNlpError
+from .io import Acquisition
+from .coupled import sparse_dm
+from .solver import SolverStats, ipopt_options, run_nlpsol
+
+STRATEGIES = ("auto", "coupled", "kaczmarz")
+
+#: ``strategy = "auto"`` solves segments of at most this many slices fully coupled.
+COUPLED_MAX_SLICES = 8
+
+
+@dataclass(frozen=True)
+class StackOptions:
+    """How the slices of a stack are tied together.
+
+    Attributes
+    ----------
+    z_smoothing_mm : float or None
+        Length l along the vessel over which neighbouring slices are pooled
+        (module notes); None means one slice spacing; 0 independent slices.
+    z_order : {1, 2}
+        Order of the z-derivative penalized. 2 (default) leaves a linear taper
+        unbiased and has no pull at the ends of the stack; 1 (the first
+        derivative) biases a radius that changes along z by about
+        ``l R'`` at the ends and ``l^2 R''`` inside (measured in the README).
+    strategy : {"auto", "coupled", "kaczmarz"}
+        "auto": coupled for segments of at most :data:`COUPLED_MAX_SLICES`.
+    tol : float
+        Kaczmarz: relative coupled optimality residual at which the sweeps stop.
+    max_sweeps : int
+    """
+
+    z_smoothing_mm: float | None = None
+    z_order: int = 2
+    strategy: str = "auto"
+    tol: float = 1e-7
+    max_sweeps: int = 300
+
+    def __post_init__(self):
+        if self.strategy not in STRATEGIES:
+            raise InputError(f"stack strategy must be one of {STRATEGIES}, got {self.strategy!r}")
+        if self.z_smoothing_mm is not None and not self.z_smoothing_mm >= 0:
+            raise InputError(f"z smoothing must be >= 0 mm, got {self.z_smoothing_mm}")
+        if self.z_order not in (1, 2):
+            raise InputError(f"z order must be 1 or 2, got {self.z_order}")
+        if not self.tol > 0 or self.max_sweeps < 1:
+            raise InputError("stack tol must be > 0 and max_sweeps >= 1")
+
+
+@dataclass
+class StackInfo:
+    """What the stack solve did (stored in the result file)."""
+
+    strategy: str
+    z_smoothing_mm: float
+    kappa: float  # geometry z weight, mm^2 (per unit L2 of R differences)
+    kappa_velocity: float
+    segments: list  # lists of slice indices solved together
+    failed: dict  # slice index -> reason
+    sweeps: dict = field(default_factory=dict)  # "geometry"/"velocity" -> sweeps per segment
+    residuals: dict = field(default_factory=dict)  # "geometry"/"velocity" -> residual history of the last segment
+    converged: bool = True
+    dephasing_pass: bool = False  # a second pass on dephasing-corrected magnitudes was run
+    seconds: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {k: (v if not isinstance(v, dict) else {str(a): b for a, b in v.items()}) for k, v in vars(self).items()}
+
+
+@dataclass
+class _Slice:
+    index: int
+    problem: geo.GeometryProblem
+    norm: pp.Normalization
+    lumen: pp.Lumen
+    magnitude: np.ndarray  # normalized
+    velocity_image: np.ndarray
+
+
+# ------------------------------------------------------------------ geometry
+class SliceGeometry:
+    """The CasADi pieces of one slice's geometry functional, with the z-coupling to fixed neighbours.
+
+    The slice's part of the coupled functional, as a function of ``c_k`` alone
+    (neighbours fixed), is ``J_k(c) + kappa (L_kk c^T W0 c - 2 c^T W0 s)`` up
+    to a constant, ``s = -sum_{j != k} L_kj c_j`` (:func:`neighbour_terms`;
+    for m = 1 inside the stack ``L_kk = 2`` and ``s`` is the sum of the two
+    neighbours). :meth:`newton` minimizes it by Gauss-Newton steps with a
+    backtracking line search (exact CasADi gradient and Gauss-Newton
+    Hessian); when a step would leave the box it hands over to IPOPT
+    (:meth:`solve`, built on first use), which handles the box.
+    """
+
+    def __init__(self, problem: geo.GeometryProblem, options: geo.GeometryOptions, kappa: float):
+        self.problem, self.options, self.kappa = problem, options, kappa
+        nlp = self.nlp = geo.build_tikhonov(problem, options)
+        c, alpha = nlp.c, nlp.alpha
+        n = c.numel()
+        self.w0 = rad.sobolev_weights(options.n_fourier, 0)
+        jac = ca.jacobian(nlp.residual, c)
+        gn = 2 * ca.mtimes(jac.T, jac) + 2 * alpha * ca.diag(ca.DM(nlp.weights))
+        self.parts = ca.Function("slice", [c, alpha], [nlp.f, nlp.g, gn])
+        s, cnt = ca.MX.sym("s", n), ca.MX.sym("l_kk")
+        w0 = ca.DM(self.w0)
+        self._f = nlp.f + kappa * (cnt * ca.dot(w0 * c, c) - 2 * ca.dot(w0 * s, c))
+        self._hess = gn + 2 * kappa * cnt * ca.diag(w0)
+        self._c, self._p = c, ca.vertcat(alpha, cnt, s)
+        self.objective = ca.Function("f", [c, self._p], [self._f])
+        self.local = ca.Function("fgh", [c, self._p], [self._f, ca.gradient(self._f, c), self._hess])
+        self.box = ca.DM(rad.design_matrix(options.box_angles(), options.n_fourier)).full()
+        self._solver = None
+        self.lam_g = np.zeros(self.box.shape[0])
+
+    def solve(self, alpha: float, s: np.ndarray, n_nb: float, x0: np.ndarray):
+        """IPOPT on the slice's part of the coupled functional (the box as constraints)."""
+        if self._solver is None:
+            sigma = ca.MX.sym("sigma")
+            opts = ipopt_options(self.options.tol, self.options.max_iter, {
+                "clip_inactive_lam": True,
+                "hess_lag": ca.Function("h", {"x": self._c, "p": self._p, "lam_f": sigma,
+                                              "hess_gamma_x_x": sigma * ca.triu(self._hess)},
+                                        ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])})
+            self._solver = ca.nlpsol("slice_z", "ipopt", {"x": self._c, "p": self._p, "f": self._f,
+                                                          "g": self.nlp.g}, opts)
+        sol, stats = run_nlpsol(self._solver, "stack geometry slice (IPOPT)", x0=x0,
+                                p=np.concatenate([[alpha, n_nb], s]), lbg=self.problem.r0, ubg=self.problem.r1)
+        self.lam_g = np.asarray(sol["lam_g"]).ravel()
+        return np.asarray(sol["x"]).ravel(), stats
+
+    def newton(self, alpha: float, s: np.ndarray, n_nb: float, c: np.ndarray, steps: int, tol: float):
+        """Up to ``steps`` Gauss-Newton steps; ``(c, stats)``, or IPOPT's answer if the box gets in the way."""
+        p = np.concatenate([[alpha, n_nb], s])
+        t0 = time.perf_counter()
+        for it in range(1, steps + 1):
+            f, g, hmat = self.local(c, p)
+            f, g, hmat = float(f), np.asarray(g).ravel(), np.asarray(hmat)
+            d = np.linalg.solve(hmat, g)
+            t, slope = 1.0, float(g @ d)
+            while t > 1e-6 and float(self.objective(c - t * d, p)) > f - 1e-4 * t * slope:
+                t *= 0.5
+            new = c - t * d
+            r = self.box @ new
+            if np.any(r < self.problem.r0) or np.any(r > self.problem.r1) or np.any(self.lam_g != 0):
+                return self.solve(alpha, s, n_nb, c)
+            step = np.sqrt(np.sum(self.w0 * (new - c) ** 2) / np.sum(self.w0 * new**2))
+            c = new
+            if step < tol:
+                break
+        obj = float(self.objective(c, p))
+        return c, SolverStats("gauss-newton (stack)", "Solve_Succeeded", True, it, obj, time.perf_counter() - t0)
+
+    def newton_decrement(self, alpha: float, s: np.ndarray, n_nb: float, c: np.ndarray) -> float:
+        """``||H^-1 (grad + S^T lambda)||_{W0} / ||c||_{W0}``: the relative distance to the slice's optimum.
+
+        Evaluated with the current neighbours, this is the coupled functional's optimality residual for
+        ``c_k`` in coefficient units (``lambda``: the box multipliers of the last IPOPT solve, if any).
+        """
+        _, g, hmat = (np.asarray(v) for v in self.local(c, np.concatenate([[alpha, n_nb], s])))
+        kkt = np.ravel(g) + self.box.T @ self.lam_g
+        d = np.linalg.solve(hmat, kkt)
+        return float(np.sqrt(np.sum(self.w0 * d**2) / np.sum(self.w0 * c**2)))
+
+
+def z_operator(n: int, order: int) -> np.ndarray:
+    """``L = D^T D`` with ``D`` the ``order``-th forward difference on ``n`` slices (zero if ``n <= order``)."""
+    d = np.diff(np.eye(n), order, axis=0)
+    return d.T @ d
+
+
+def neighbour_terms(zop: np.ndarray, c: np.ndarray, k: int) -> tuple[np.ndarray, float]:
+    """``(s_k, L_kk)`` with ``s_k = -sum_{j != k} L_kj c_j``: slice k's view of the z-penalty ``C^T (L x W) C``."""
+    row = zop[k].copy()
+    diag = float(row[k])
+    row[k] = 0.0
+    return -(row @ c), diag
+
+
+def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, order: int):
+    """All slices' geometry as one IPOPT NLP; returns ``(coefficients (n_slices, n), stats)``."""
+    n, ns = slices[0].w0.size, len(slices)
+    big = ca.MX.sym("C", n * ns)
+    parts = [sl.parts(big[k * n:(k + 1) * n], alpha) for k, sl in enumerate(slices)]
+    kappa = slices[0].kappa
+    zlap = np.kron(z_operator(ns, order), np.diag(slices[0].w0))  # sum_k ||(D C)_k||^2_{W0} = C^T zlap C
+    zl = sparse_dm(zlap)
+    f = sum(p[0] for p in parts) + kappa * ca.dot(big, ca.mtimes(zl, big))
+    g = ca.vertcat(*[p[1] for p in parts])
+    hess = ca.diagcat(*[p[2] for p in parts]) + 2 * kappa * zl
+    sigma = ca.MX.sym("sigma")
+    opts = ipopt_options(slices[0].options.tol, slices[0].options.max_iter, {
+        "clip_inactive_lam": True,
+        "hess_lag": ca.Function("h", {"x": big, "lam_f": sigma, "hess_gamma_x_x": sigma * ca.triu(hess)},
+                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])})
+    solver = ca.nlpsol("stack_geometry", "ipopt", {"x": big, "f": f, "g": g}, opts)
+    nb = [sl.nlp.g.numel() for sl in slices]
+    lbg = np.concatenate([np.full(m, sl.problem.r0) for m, sl in zip(nb, slices)])
+    ubg = np.concatenate([np.full(m, sl.problem.r1) for m, sl in zip(nb, slices)])
+    sol, stats = run_nlpsol(solver, "stack geometry (coupled IPOPT)", x0=np.ravel(x0), lbg=lbg, ubg=ubg)
+    return np.asarray(sol["x"]).reshape(ns, n), stats
+
+
+def kaczmarz_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, tol: float, max_sweeps: int,
+                      order: int):
+    """Forward-backward sweeps of slice solves; returns ``(coefficients, sweeps, residual history, stats)``.
+
+    The first sweep solves each slice to ``tol`` given its neighbours; later
+    sweeps take one Gauss-Newton step per slice (an inexact block
+    Gauss-Seidel: the fixed point is the coupled optimum). After each sweep
+    the residual is ``max_k`` of :meth:`SliceGeometry.newton_decrement` with
+    the final neighbours, the coupled optimality residual.
+    """
+    c = np.array(x0, dtype=float)
+    ns = len(slices)
+    zop = z_operator(ns, order)
+
+    def nb_sum(k):
+        return neighbour_terms(zop, c, k)
+
+    history, stats = [], [None] * ns
+    order = list(range(ns)) + list(range(ns - 2, 0, -1))  # forward, then backward without repeating the ends
+    for sweep in range(1, max_sweeps + 1):
+        for k in order if ns > 1 else [0]:
+            s, cnt = nb_sum(k)
+            c[k], stats[k] = slices[k].newton(alpha, s, cnt, c[k], 50 if sweep == 1 else 1, tol)
+        res = max(sl.newton_decrement(alpha, *nb_sum(k), c[k]) for k, sl in enumerate(slices))
+        history.append(float(res))
+        if res < tol:
+            return c, sweep, history, stats
+    return c, max_sweeps, history, stats
+
+
+# ------------------------------------------------------------------ velocity
+def _velocity_system(vps, beta, kappa_v, gram0, zop):
+    """Per-slice normal matrices ``H_k + kappa_v L_kk G0 / pi`` and right-hand sides."""
+    out = []
+    for k, vp in enumerate(vps):
+        hmat, g = vp.normal_equations(beta)
+        out.append((hmat + kappa_v * zop[k, k] * gram0 / np.pi, g))
+    return out
+
+
+def coupled_velocity(vps, beta: float, kappa_v: float, gram0: np.ndarray, order: int):
+    """All slices' velocity as one CasADi QP (IPOPT); returns ``(coefficients, stats)``."""
+    ns, nb = len(vps), vps[0].operator.shape[1]
+    big = ca.MX.sym("V", nb * ns)
+    f = 0
+    for k, vp in enumerate(vps):
+        ck = big[k * nb:(k + 1) * nb]
+        hmat, g = vp.normal_equations(beta)
+        f += ca.dot(ck, ca.mtimes(ca.DM(hmat), ck)) - 2 * ca.dot(ca.DM(g), ck)
+    zlap = np.kron(z_operator(ns, order), gram0 / np.pi)
+    f += kappa_v * ca.dot(big, ca.mtimes(sparse_dm(zlap), big))
+    solver = ca.nlpsol("stack_velocity", "ipopt", {"x": big, "f": f},
+                       ipopt_options(1e-12, 50, {"ipopt.hessian_constant": "yes"}))
+    sol, stats = run_nlpsol(solver, "stack velocity (coupled IPOPT)", x0=np.zeros(nb * ns))
+    return np.asarray(sol["x"]).reshape(ns, nb), stats
+
+
+def kaczmarz_velocity(vps, beta: float, kappa_v: float, gram0: np.ndarray, tol: float, max_sweeps: int,
+                      order: int):
+    """Block Gauss-Seidel sweeps (forward, backward) on the coupled normal equations."""
+    zop = z_operator(len(vps), order)
+    system = _velocity_system(vps, beta, kappa_v, gram0, zop)
+    factors = [scipy.linalg.cho_factor(h) for h, _ in system]
+    ns = len(vps)
+    c = np.array([scipy.linalg.cho_solve(fc, g) for fc, (_, g) in zip(factors, system)])
+    if ns == 1:
+        return c, 0, [0.0]
+    coupling = kappa_v * gram0 / np.pi
+    sweep_order = list(range(ns)) + list(range(ns - 2, 0, -1))
+    history = []
+    for sweep in range(1, max_sweeps + 1):
+        for k in sweep_order:
+            c[k] = scipy.linalg.cho_solve(factors[k], system[k][1] + coupling @ neighbour_terms(zop, c, k)[0])
+        # relative residual of the coupled normal equations
+        r = max(np.linalg.norm(system[k][0] @ c[k] - system[k][1] - coupling @ neighbour_terms(zop, c, k)[0])
+                / max(np.linalg.norm(system[k][1]), 1e-300) for k in range(ns))
+        history.append(float(r))
+        if r < tol:
+            return c, sweep, history
+    return c, max_sweeps, history
+
+
+# ------------------------------------------------------------------ driver
+def _prepare(acq: Acquisition, iz: int, magnitude, velocity) -> _Slice:
+    where = f"{acq.source} slice {iz}"
+    if not (np.all(np.isfinite(magnitude)) and np.all(np.isfinite(velocity))):
+        raise InputError(f"{where}: the images contain NaN or Inf")
+    norm = pp.histogram_peaks(magnitude, where)
+    m = pp.normalize_magnitude(magnitude, norm)
+    lumen = pp.find_lumen(m, acq.grid, where)
+    problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area)
+    return _Slice(iz, problem, norm, lumen, m, np.asarray(velocity, dtype=float))
+
+
+def segments_of(ok: list[int]) -> list[list[int]]:
+    """Runs of consecutive slice indices."""
+    out = []
+    for i in ok:
+        if out and out[-1][-1] == i - 1:
+            out[-1].append(i)
+        else:
+            out.append([i])
+    return out
+
+
+def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = None, progress=None):
+    """Reconstruct all slices of a stack with z-regularization.
+
+    Parameters
+    ----------
+    acq : Acquisition with ``nz >= 1`` and ``slice_spacing_mm`` when ``nz > 1``.
+    options : :class:`wss_nlp.reconstruct.ReconstructionOptions` (alpha, beta, bases, ...).
+    stack : StackOptions
+
+    Returns
+    -------
+    (results, info): ``results[k]`` is a :class:`wss_nlp.reconstruct.SliceResult`
+    or None for a slice that failed (``info.failed[k]`` says why).
+    """
+    from .reconstruct import DEPHASING_THRESHOLD, SliceResult, gcv_beta, resolve_viscosity
+
+    stack = stack or StackOptions()
+    if options.method != "decoupled" or options.alpha_rule != "fixed" or options.beta_rule not in ("fixed",):
+        raise InputError("stacks with z-regularization support the decoupled method with fixed alpha and beta; "
+                         "pass --z-smoothing 0 for independent slices with other settings")
+    mu = resolve_viscosity(acq, options)
+    dz = float(acq.slice_spacing_mm) if acq.nz > 1 else 1.0
+    ell = dz if stack.z_smoothing_mm is None else float(stack.z_smoothing_mm)
+    velocity = acq.velocity_images()
+    t = {"preprocess": time.perf_counter()}
+    prepared, failed = {}, {}
+    for iz in range(acq.nz):
+        try:
+            prepared[iz] = _prepare(acq, iz, acq.magnitude[iz], velocity[iz])
+        except WssNlpError as exc:
+            failed[iz] = str(exc)
+    if not prepared:
+        raise InputError(f"{acq.source}: no usable slice: " + "; ".join(f"{k}: {v}" for k, v in failed.items()))
+    t["preprocess"] = time.perf_counter() - t["preprocess"]
+    r_ref = float(np.mean([s.lumen.r_area for s in prepared.values()]))
+    h = acq.grid.h
+    m = stack.z_order
+    kappa = (ell / dz) ** (2 * m) * r_ref / h
+    kappa_v = (ell / dz) ** (2 * m)
+    segs = segments_of(sorted(prepared))
+    info = StackInfo("", ell, kappa, kappa_v, segs, failed)
+    results: list = [None] * acq.nz
+    gopt, vopt = options.geometry, options.velocity
+    basis = vopt.make_basis()
+    gram0 = basis.laplacian_gram(0)
+    done = 0
+    def solve_segment(seg, problems, x0, strategy):
+        """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats)``."""
+        t0 = time.perf_counter()
+        sg = [SliceGeometry(pb, gopt, kappa) for pb in problems]
+        t["geometry_build"] = t.get("geometry_build", 0.0) + time.perf_counter() - t0
+        t0 = time.perf_counter()
+        if strategy == "coupled":
+            coef, gstats = coupled_geometry(sg, gopt.alpha, x0, m)
+            gstats = [gstats] * len(seg)
+            info.sweeps.setdefault("geometry", []).append(0)
+        else:
+            coef, sweeps, hist, gstats = kaczmarz_geometry(sg, gopt.alpha, x0, stack.tol, stack.max_sweeps, m)
+            info.sweeps.setdefault("geometry", []).append(sweeps)
+            info.residuals["geometry"] = hist
+            if hist[-1] >= stack.tol and len(seg) > 1:
+                info.converged = False
+        t["geometry"] = t.get("geometry", 0.0) + time.perf_counter() - t0
+        t0 = time.perf_counter()
+        geoms = [geo.finish(pb, gopt, sl.nlp, coef[i], gstats[i], gopt.alpha)
+                 for i, (pb, sl) in enumerate(zip(problems, sg))]
+        vps = [vel.assemble(acq.grid, prepared[k].velocity_image, g.coefficients, g.center, vopt, basis=basis)
+               for k, g in zip(seg, geoms)]
+        if strategy == "coupled":
+            vcoef, vstats = coupled_velocity(vps, vopt.beta, kappa_v, gram0, m)
+            vstats = [vstats] * len(seg)
+        else:
+            vcoef, sweeps, hist = kaczmarz_velocity(vps, vopt.beta, kappa_v, gram0, stack.tol, stack.max_sweeps, m)
+            info.sweeps.setdefault("velocity", []).append(sweeps)
+            info.residuals["velocity"] = hist
+            ok = hist[-1] < stack.tol or len(seg) == 1
+            info.converged &= ok
+            vstats = [SolverStats("kaczmarz (block Gauss-Seidel, Cholesky)", "Solve_Succeeded" if ok
+                                  else "Maximum_Iterations_Exceeded", ok, sweeps, float("nan"), 0.0)] * len(seg)
+        t["velocity"] = t.get("velocity", 0.0) + time.perf_counter() - t0
+        return coef, geoms, vps, vcoef, vstats
+
+    for seg in segs:
+        strategy = stack.strategy
+        if strategy == "auto":
+            strategy = "coupled" if len(seg) <= COUPLED_MAX_SLICES else "kaczmarz"
+        info.strategy = strategy if not info.strategy or info.strategy == strategy else "mixed"
+        problems = [prepared[k].problem for k in seg]
+        x0 = np.array([geo.initial_guess(pb, gopt.n_fourier) for pb in problems])
+        coef, geoms, vps, vcoef, vstats = solve_segment(seg, problems, x0, strategy)
+        factors = [None] * len(seg)
+        if options.dephasing_correction and acq.venc_m_s is not None:
+            # as reconstruct_slice: predict wall-voxel signal loss from a GCV-beta velocity, then one more pass
+            t0 = time.perf_counter()
+            for i, vp in enumerate(vps):
+                v_deph = vel.solve(vp, replace(vopt, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
+                factors[i] = meas.dephasing_factors(vp.voxels, v_deph.evaluate_physical, acq.venc_m_s,
+                                                    near_wall=(geoms[i].coefficients, acq.grid.h))
+            t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
+            if min(float(np.min(f)) for f in factors) < 1 - DEPHASING_THRESHOLD:
+                corrected = []
+                for i, (k, vp) in enumerate(zip(seg, vps)):
+                    m_corr = prepared[k].magnitude.copy().ravel()
+                    m_corr[vp.voxels.index] = np.clip(m_corr[vp.voxels.index] / np.maximum(factors[i], 1e-3), 0, 1)
+                    pb = problems[i]
+                    corrected.append(geo.GeometryProblem(pb.grid, m_corr.reshape(pb.magnitude.shape), pb.center,
+                                                         pb.r0, pb.r1, pb.r_ref))
+                coef, geoms, vps, vcoef, vstats = solve_segment(seg, corrected, coef, strategy)
+                info.dephasing_pass = True
+        for i, k in enumerate(seg):
+            v = vel.result(vps[i], vopt, vcoef[i], vopt.beta, vstats[i])
+            w = wss_mod.from_reconstruction(v, options.n_phi, mu)
+            if not np.all(np.isfinite(w.tau)):
+                raise SolverError(f"{acq.source} slice {k}: wall shear stress is not finite")
+            p = prepared[k]
+            sec = {"min_dephasing_factor": float(np.min(factors[i])) if factors[i] is not None else 1.0}
+            results[k] = SliceResult(k, geoms[i], v, w, p.norm, p.lumen, acq.grid, p.magnitude, p.velocity_image,
+                                     sec, None, None, "decoupled", {}, None, [])
+            done += 1
+            if progress is not None:
+                progress(done, len(prepared), results[k])
+    if options.uncertainty:
+        first = next(r for r in results if r is not None)
+        first.notes.append("stack: the uncertainty band is not computed for z-regularized stacks (yet)")
+    if not info.converged:
+        for r in results:
+            if r is not None:
+                r.notes.append("stack: Kaczmarz sweeps stopped before the coupled optimality residual reached "
+                               f"{stack.tol:g}")
+    info.seconds = t
+    return results, info
