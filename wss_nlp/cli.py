@@ -243,7 +243,8 @@ def cmd_reconstruct(args) -> int:
     acq = wio.read_acquisition(args.input)
     print(f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
           f"h = {acq.grid.h:g} mm", file=sys.stderr)
-    results = reconstruct(acq, options, progress=_progress(sys.stderr))
+    results = reconstruct(acq, options, progress=_progress(sys.stderr),
+                          log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
     wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv])
     _warn(results, sys.stderr)
     for r in results:

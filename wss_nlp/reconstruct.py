@@ -367,7 +367,7 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     return supported
 
 
-def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> Results:
+def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None, log=None) -> Results:
     """Reconstruct every slice of an acquisition.
 
     A stack (``nz > 1``) is reconstructed with z-regularization
@@ -384,13 +384,15 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     ----------
     progress : callable or None
         Called as ``progress(done, total, slice_result)`` after each slice.
+    log : callable or None
+        Called with a message as a z-regularized stack solve proceeds.
     """
     options = options or ReconstructionOptions()
     acq.validate()
     mu = resolve_viscosity(acq, options)
     out = Results()
     if stack_applies(acq, options):
-        results, info = stk.reconstruct_stack(acq, options, options.stack, progress)
+        results, info = stk.reconstruct_stack(acq, options, options.stack, progress, log)
         out.extend(r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
                    for k, r in enumerate(results))
         out.stack = info

@@ -260,7 +260,7 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
 
 
 def kaczmarz_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, tol: float, max_sweeps: int,
-                      order: int):
+                      order: int, log=None):
     """Forward-backward sweeps of slice solves; returns ``(coefficients, sweeps, residual history, stats)``.
 
     The first sweep solves each slice to ``tol`` given its neighbours; later
@@ -288,6 +288,8 @@ def kaczmarz_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray,
             old = c[k].copy()
             c[k], stats[k] = slices[k].newton(alpha, s, cnt, c[k], 50 if sweep == 1 else 1, tol)
             step = max(step, float(np.sqrt(np.sum(w0 * (c[k] - old) ** 2) / np.sum(w0 * c[k] ** 2))))
+        if log is not None:
+            log(f"geometry sweep {sweep}: largest relative update {step:.2e} (stops below {tol:g})")
         # the largest relative update of the sweep is a cheap proxy; the exact residual is evaluated once it is small
         if step < tol:
             res = max(sl.newton_decrement(alpha, *nb_sum(k), c[k]) for k, sl in enumerate(slices))
@@ -375,7 +377,7 @@ def segments_of(ok: list[int]) -> list[list[int]]:
     return out
 
 
-def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = None, progress=None):
+def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = None, progress=None, log=None):
     """Reconstruct all slices of a stack with z-regularization.
 
     Parameters
@@ -383,6 +385,8 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     acq : Acquisition with ``nz >= 1`` and ``slice_spacing_mm`` when ``nz > 1``.
     options : :class:`wss_nlp.reconstruct.ReconstructionOptions` (alpha, beta, bases, ...).
     stack : StackOptions
+    progress : callable ``(done, total, slice_result)`` or None, called per finished slice.
+    log : callable ``(message)`` or None, told what a long solve is doing (segments, sweeps).
 
     Returns
     -------
@@ -432,7 +436,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             gstats = [gstats] * len(seg)
             info.sweeps.setdefault("geometry", []).append(0)
         else:
-            coef, sweeps, hist, gstats = kaczmarz_geometry(sg, gopt.alpha, x0, stack.tol, stack.max_sweeps, m)
+            coef, sweeps, hist, gstats = kaczmarz_geometry(sg, gopt.alpha, x0, stack.tol, stack.max_sweeps, m, log)
             info.sweeps.setdefault("geometry", []).append(sweeps)
             info.residuals["geometry"] = hist
             if hist[-1] >= stack.tol and len(seg) > 1:
@@ -462,6 +466,8 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
         if strategy == "auto":
             strategy = "coupled" if len(seg) <= COUPLED_MAX_SLICES else "kaczmarz"
         info.strategy = strategy if not info.strategy or info.strategy == strategy else "mixed"
+        if log is not None:
+            log(f"slices {seg[0]}-{seg[-1]}: {strategy} solve of {len(seg)} slice(s)")
         problems = [prepared[k].problem for k in seg]
         x0 = np.array([geo.initial_guess(pb, gopt.n_fourier) for pb in problems])
         coef, geoms, vps, vcoef, vstats = solve_segment(seg, problems, x0, strategy)
@@ -475,6 +481,8 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                                                     near_wall=(geoms[i].coefficients, acq.grid.h))
             t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
             if min(float(np.min(f)) for f in factors) < 1 - DEPHASING_THRESHOLD:
+                if log is not None:
+                    log(f"slices {seg[0]}-{seg[-1]}: second pass on dephasing-corrected magnitudes")
                 corrected = []
                 for i, (k, vp) in enumerate(zip(seg, vps)):
                     m_corr = prepared[k].magnitude.copy().ravel()
