@@ -223,7 +223,7 @@ def cmd_phantom(args) -> int:
     snr = None if args.snr <= 0 else args.snr
     if args.stack:
         acq, truth = phantoms.make_stack(args.stack, nz=args.nz, h_mm=args.h, spacing_mm=args.spacing, snr=snr,
-                                         seed=args.seed, venc=args.venc)
+                                         seed=args.seed, venc=args.venc, swirl_per_s=args.swirl)
         args.case = f"{args.stack} stack ({args.nz} slices, {args.spacing:g} mm apart)"
     else:
         acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=snr, seed=args.seed, venc=args.venc,
@@ -485,6 +485,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a 3D stack phantom instead of one slice")
     ph.add_argument("--nz", type=int, default=10, help="stack: number of slices (default %(default)s)")
     ph.add_argument("--spacing", type=float, default=2.0, help="stack: slice spacing in mm (default %(default)g)")
+    ph.add_argument("--swirl", type=float, default=None,
+                    help="stack: add in-plane velocity components (4D flow) of a swirl with this rate in 1/s")
     ph.add_argument("-o", "--output", required=True, help="input file to write")
     ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
     ph.set_defaults(func=cmd_phantom)

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import radius as rad
+
 from .errors import InputError
 from .measurement import VoxelGrid
 
@@ -36,6 +38,7 @@ class Acquisition:
     viscosity_pa_s: float | None = None
     source: str = "<memory>"
     extra_attrs: dict = field(default_factory=dict)
+    velocity_inplane: np.ndarray | None = None  # (2, nz, ny, nx): in-plane components x, y in m/s (4D flow)
 
     @property
     def nz(self) -> int:
@@ -54,6 +57,8 @@ class Acquisition:
     def nonfinite_slices(self) -> list[int]:
         """Indices of slices with NaN or Inf in any image."""
         arrays = [a for a in (self.magnitude, self.velocity, self.phase) if a is not None]
+        if self.velocity_inplane is not None:
+            arrays += list(self.velocity_inplane)
         bad = np.zeros(self.magnitude.shape[0], dtype=bool)
         for a in arrays:
             if a.shape[:1] == bad.shape:
@@ -73,6 +78,9 @@ class Acquisition:
             raise InputError(f"{src}: shape mismatch: 'magnitude' {mag.shape} but '{name}' {other.shape}")
         if min(mag.shape[1:]) < 4:
             raise InputError(f"{src}: images of {mag.shape[1:]} voxels are too small to hold a vessel")
+        if self.velocity_inplane is not None and self.velocity_inplane.shape != (2, *mag.shape):
+            raise InputError(f"{src}: in-plane velocity must have shape (2, nz, ny, nx) = (2, *{mag.shape}), got "
+                             f"{self.velocity_inplane.shape}")
         bad_slices = self.nonfinite_slices()
         # in a stack, a corrupt slice is reported and skipped by the reconstruction; only all-bad data is an error
         if bad_slices and (self.nz == 1 or len(bad_slices) == self.nz):
@@ -112,6 +120,42 @@ def _attr(f, name, src, required=False, size=None):
     return tuple(val.tolist()) if size and size > 1 else float(val[0])
 
 
+def _velocity_components(f, dataset, src, shape):
+    """``(through-plane velocity or None, in-plane (2, ...) or None)`` from the velocity layouts.
+
+    Layouts: ``velocity`` (nz, ny, nx), the through-plane component; ``velocity``
+    (3, nz, ny, nx), components x, y, z of the image frame (z through-plane);
+    ``velocity_x`` and ``velocity_y`` (nz, ny, nx) next to ``velocity`` or
+    ``phase`` (through-plane), or with ``velocity_z`` in place of ``velocity``.
+    """
+    vel = f["velocity"][()] if "velocity" in f else None
+    if vel is not None and np.ndim(vel) == 4:
+        if vel.shape[0] != 3:
+            raise InputError(f"{src}: a 4D 'velocity' must have shape (3, nz, ny, nx), got {vel.shape}")
+        if any(k in f for k in ("velocity_x", "velocity_y", "velocity_z")):
+            raise InputError(f"{src}: give the components either as a 4D 'velocity' or as 'velocity_x/_y/_z', "
+                             "not both")
+        vel = np.asarray(vel, dtype=float)
+        return vel[2], vel[:2]
+    through = dataset("velocity")
+    vz = dataset("velocity_z")
+    if vz is not None:
+        if through is not None:
+            raise InputError(f"{src}: both 'velocity' and 'velocity_z' given; 'velocity_z' replaces 'velocity'")
+        through = vz
+    vx, vy = dataset("velocity_x"), dataset("velocity_y")
+    if (vx is None) != (vy is None):
+        raise InputError(f"{src}: 'velocity_x' and 'velocity_y' come together; one of them is missing")
+    if vx is None:
+        if vz is not None:
+            raise InputError(f"{src}: 'velocity_z' needs 'velocity_x' and 'velocity_y' (else name it 'velocity')")
+        return through, None
+    for name, arr in (("velocity_x", vx), ("velocity_y", vy)):
+        if arr.shape != tuple(shape):
+            raise InputError(f"{src}: shape mismatch: 'magnitude' {tuple(shape)} but '{name}' {arr.shape}")
+    return through, np.stack([vx, vy])
+
+
 def read_acquisition(path) -> Acquisition:
     """Read and validate an input file (see the format document)."""
     import h5py
@@ -138,9 +182,11 @@ def read_acquisition(path) -> Acquisition:
         mag = dataset("magnitude")
         if mag is None:
             raise InputError(f"{src}: missing dataset 'magnitude'")
+        velocity, inplane = _velocity_components(f, dataset, src, mag.shape)
         acq = Acquisition(
             magnitude=mag,
-            velocity=dataset("velocity"),
+            velocity=velocity,
+            velocity_inplane=inplane,
             phase=dataset("phase"),
             voxel_size_mm=_attr(f, "voxel_size_mm", src, required=True, size=2),
             origin_mm=_attr(f, "origin_mm", src, required=True, size=2),
@@ -197,6 +243,9 @@ def write_acquisition(path, acq: Acquisition) -> None:
             f.create_dataset("velocity", data=acq.velocity)
         if acq.phase is not None:
             f.create_dataset("phase", data=acq.phase)
+        if acq.velocity_inplane is not None:  # extra datasets: readers of the single-component layout ignore them
+            f.create_dataset("velocity_x", data=acq.velocity_inplane[0])
+            f.create_dataset("velocity_y", data=acq.velocity_inplane[1])
         f.attrs["voxel_size_mm"] = np.asarray(acq.voxel_size_mm, dtype=float)
         f.attrs["origin_mm"] = np.asarray(acq.origin_mm, dtype=float)
         for name in ("slice_spacing_mm", "venc_m_s", "viscosity_pa_s"):
@@ -293,6 +342,15 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
                              "penalty_mm2": g.penalty, "options_json": json.dumps(g.options, default=str)})
             _stats_attrs(gg, g.stats, "solver_")
             wg = s["wss"]
+            vec = getattr(w, "vector", None)
+            if vec is not None:  # stacks with three velocity components (wss_nlp.wss.wss_vector)
+                for name, arr in (("vector_pa", vec.vector), ("normal_3d", vec.normal), ("axial_pa", vec.axial),
+                                  ("circumferential_pa", vec.circumferential), ("normal_part_pa", vec.normal_part),
+                                  ("magnitude_pa", vec.magnitude)):
+                    wg[name] = arr
+                wg.attrs["mean_axial_pa"] = rad.arc_length_mean(vec.axial, g.radius(w.phi), g.radius(w.phi, 1))
+                wg.attrs["mean_magnitude_pa"] = rad.arc_length_mean(vec.magnitude, g.radius(w.phi),
+                                                                    g.radius(w.phi, 1))
             if getattr(w, "tau_std", None) is not None:
                 wg["tau_std_pa"] = w.tau_std
                 wg.attrs["mean_std_pa"] = float(w.mean_std)
@@ -461,7 +519,9 @@ def read_result(path) -> list[dict]:
                 }
             except KeyError as exc:
                 raise InputError(f"{src}: group {name} lacks {exc}") from exc
-            for key, ds in (("wall_x", "wss/wall_x_mm"), ("wall_y", "wss/wall_y_mm"), ("tau_std", "wss/tau_std_pa")):
+            for key, ds in (("wall_x", "wss/wall_x_mm"), ("wall_y", "wss/wall_y_mm"), ("tau_std", "wss/tau_std_pa"),
+                            ("tau_vector", "wss/vector_pa"), ("tau_axial", "wss/axial_pa"),
+                            ("tau_circumferential", "wss/circumferential_pa")):
                 if ds in s:
                     d[key] = s[ds][()]
             if "mean_std_pa" in s["wss"].attrs:

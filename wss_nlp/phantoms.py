@@ -503,6 +503,25 @@ def _curved(z):
     return Ellipse(a=11.0, b=9.0, angle=0.3), (3.0 * np.sin(s), 3.0 * (1 - np.cos(s)))
 
 
+@dataclass
+class SwirlComponent(Flow):
+    """In-plane component ``which`` (0: x, 1: y) of the swirl ``u_theta = Omega r (1 - r^2 / R(theta)^2)``.
+
+    Vanishes on the wall; ``-d u_theta / dr = 2 Omega`` there for a circular lumen (in m/s per m, Omega in 1/s).
+    """
+
+    omega: float = 0.0  # 1/s
+    which: int = 0
+
+    def velocity(self, x, y):
+        l = self.lumen
+        dx, dy = np.asarray(x) - l.center[0], np.asarray(y) - l.center[1]
+        r, t = np.hypot(dx, dy), np.arctan2(dy, dx)
+        big_r = l.radius(t.ravel()).reshape(np.shape(r))
+        u_t = np.where(r < big_r, self.omega * r / PER_MM * (1 - r**2 / big_r**2), 0.0)
+        return -u_t * np.sin(t) if self.which == 0 else u_t * np.cos(t)
+
+
 #: 3D phantom cases: name -> (lumen at height z, description).
 STACK_CASES = {
     "tapered": (_tapered, "circular tube narrowing smoothly 10 -> 8 -> 10 mm over 80 mm; Poiseuille-type flow"),
@@ -512,7 +531,8 @@ STACK_CASES = {
 
 def make_stack(case: str = "tapered", nz: int = 10, h_mm: float = 1.0, spacing_mm: float = 2.0,
                snr: float | None = 25.0, seed: int = 0, venc: float | None = None,
-               flow_rate_ml_s: float = 40.0, viscosity_pa_s: float = 3.5e-3) -> tuple[Acquisition, StackTruth]:
+               flow_rate_ml_s: float = 40.0, viscosity_pa_s: float = 3.5e-3, swirl_per_s: float | None = None
+               ) -> tuple[Acquisition, StackTruth]:
     """Seeded stack factory: ``nz`` slices ``spacing_mm`` apart through a 3D phantom.
 
     Notes
@@ -524,6 +544,13 @@ def make_stack(case: str = "tapered", nz: int = 10, h_mm: float = 1.0, spacing_m
     ``mu 2 U_k sqrt(R^2 + R'^2) / R^2``, a manufactured solution (the in-plane
     velocity of a real tapered tube is neglected). One random sub-voxel grid
     offset for the stack; fresh noise in every slice.
+
+    With ``swirl_per_s = Omega`` the acquisition also has the in-plane
+    components (4D flow) of the swirl ``u_theta = Omega r (1 - r^2/R^2)``
+    (:class:`SwirlComponent`), each acquired as its own phase-contrast
+    encoding with fresh noise. For the circular ``tapered`` tube the exact
+    WSS vector is then known: axial ``2 mu U / R`` and circumferential
+    ``2 mu Omega sqrt(1 + R'(z)^2)`` (README, "Stacks of slices").
     """
     if case not in STACK_CASES:
         raise InputError(f"unknown stack phantom {case!r}; choose from {', '.join(STACK_CASES)}")
@@ -546,15 +573,23 @@ def make_stack(case: str = "tapered", nz: int = 10, h_mm: float = 1.0, spacing_m
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
     if venc is None:
         venc = 1.25 * max(f.u_max for f in flows)
-    mags, phases, truths = [], [], []
+    mags, phases, truths, inplane = [], [], [], []
     for k, flow in enumerate(flows):
         mag, phase, u_mean, _ = acquire(flow, grid, snr, rng, venc=venc)
         mags.append(mag)
         phases.append(phase)
         truths.append(Truth(name=f"{case}[{k}]", flow=flow, velocity_image=u_mean))
+        if swirl_per_s is not None:
+            comps = []
+            for which in (0, 1):
+                sw = SwirlComponent(lumen=flow.lumen, viscosity_pa_s=viscosity_pa_s, omega=swirl_per_s, which=which)
+                _, ph, _, _ = acquire(sw, grid, snr, rng, venc=venc)
+                comps.append(venc * ph / np.pi)
+            inplane.append(comps)
     acq = Acquisition(magnitude=np.array(mags), phase=np.array(phases), voxel_size_mm=(h_mm, h_mm), origin_mm=origin,
                       slice_spacing_mm=float(spacing_mm), venc_m_s=venc, viscosity_pa_s=viscosity_pa_s,
-                      source=f"phantom:{case}-stack")
-    params = {"case": case, "nz": nz, "h_mm": h_mm, "spacing_mm": spacing_mm,
+                      source=f"phantom:{case}-stack",
+                      velocity_inplane=np.transpose(np.array(inplane), (1, 0, 2, 3)) if inplane else None)
+    params = {"case": case, "nz": nz, "h_mm": h_mm, "spacing_mm": spacing_mm, "swirl_per_s": swirl_per_s,
               "snr": -1.0 if snr is None else float(snr), "seed": seed, "venc_m_s": venc}
     return acq, StackTruth(case, truths, z, params)

@@ -263,20 +263,27 @@ def figure_sweep(rows: list, x: str, y: str, by: str | None = None, where: dict 
 
 
 def figure_stack(results, spacing_mm: float):
-    """Radius and WSS over the unrolled wall (angle x z) of a stack; failed slices are blank rows."""
+    """Radius and WSS over the unrolled wall (angle x z) of a stack; failed slices are blank rows.
+
+    With three velocity components the axial and circumferential WSS are drawn too.
+    """
     n = len(results)
     ok = [r for r in results if hasattr(r, "wss")]
     phi = ok[0].wss.phi
-    rmap = np.full((n, phi.size), np.nan)
-    tmap = np.full((n, phi.size), np.nan)
-    for r in ok:
-        rmap[r.index] = r.geometry.radius(r.wss.phi)
-        tmap[r.index] = r.wss.tau
+    vector = all(getattr(r.wss, "vector", None) is not None for r in ok)
+    maps = {"radius R [mm]": lambda r: r.geometry.radius(r.wss.phi),
+            r"wall shear stress $\tau$ [Pa]": lambda r: r.wss.tau}
+    if vector:
+        maps = {"radius R [mm]": maps["radius R [mm]"],
+                r"axial WSS $\tau \cdot e_a$ [Pa]": lambda r: r.wss.vector.axial,
+                r"circumferential WSS $\tau \cdot e_c$ [Pa]": lambda r: r.wss.vector.circumferential}
     z = np.arange(n) * spacing_mm
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.6), sharey=True)
+    fig, axes = plt.subplots(1, len(maps), figsize=(6 * len(maps), 4.6), sharey=True)
     extent = (0, 360, z[0] - spacing_mm / 2, z[-1] + spacing_mm / 2)
-    for ax, data, label, cmap in ((axes[0], rmap, "radius R [mm]", "viridis"),
-                                  (axes[1], tmap, r"wall shear stress $\tau$ [Pa]", "magma")):
+    for ax, (label, get), cmap in zip(axes, maps.items(), ("viridis", "magma", "coolwarm")):
+        data = np.full((n, phi.size), np.nan)
+        for r in ok:
+            data[r.index] = get(r)
         im = ax.imshow(np.ma.masked_invalid(data), origin="lower", aspect="auto", extent=extent, cmap=cmap,
                        interpolation="nearest")
         fig.colorbar(im, ax=ax, label=label)

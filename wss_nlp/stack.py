@@ -366,6 +366,24 @@ def _prepare(acq: Acquisition, iz: int, magnitude, velocity) -> _Slice:
     return _Slice(iz, problem, norm, lumen, m, np.asarray(velocity, dtype=float))
 
 
+def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray):
+    """z-derivatives at the slices of the cubic-spline interpolants (in z) of the radius coefficients and centres.
+
+    The stack's wall model between slices; differentiated exactly (a straight line through two slices, zero
+    for a single slice).
+    """
+    if len(z) == 1:
+        return np.zeros_like(coefficients), np.zeros_like(centers)
+    import scipy.interpolate
+
+    kind = "not-a-knot" if len(z) > 3 else "natural"
+    out = []
+    for values in (coefficients, centers):
+        spline = scipy.interpolate.CubicSpline(z, values, axis=0, bc_type=kind)
+        out.append(spline.derivative()(z))
+    return out[0], out[1]
+
+
 def segments_of(ok: list[int]) -> list[list[int]]:
     """Runs of consecutive slice indices."""
     out = []
@@ -425,6 +443,20 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     basis = vopt.make_basis()
     gram0 = basis.laplacian_gram(0)
     done = 0
+    def fit_velocity(vps, strategy, record=True):
+        """The z-coupled velocity fit of one segment (any component: the data sit in ``vps``)."""
+        if strategy == "coupled":
+            vcoef, vstats = coupled_velocity(vps, vopt.beta, kappa_v, gram0, m)
+            return vcoef, [vstats] * len(vps)
+        vcoef, sweeps, hist = kaczmarz_velocity(vps, vopt.beta, kappa_v, gram0, stack.tol, stack.max_sweeps, m)
+        ok = hist[-1] < stack.tol or len(vps) == 1
+        if record:
+            info.sweeps.setdefault("velocity", []).append(sweeps)
+            info.residuals["velocity"] = hist
+        info.converged &= ok
+        return vcoef, [SolverStats("kaczmarz (block Gauss-Seidel, Cholesky)", "Solve_Succeeded" if ok
+                                   else "Maximum_Iterations_Exceeded", ok, sweeps, float("nan"), 0.0)] * len(vps)
+
     def solve_segment(seg, problems, x0, strategy):
         """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats)``."""
         t0 = time.perf_counter()
@@ -447,17 +479,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                  for i, (pb, sl) in enumerate(zip(problems, sg))]
         vps = [vel.assemble(acq.grid, prepared[k].velocity_image, g.coefficients, g.center, vopt, basis=basis)
                for k, g in zip(seg, geoms)]
-        if strategy == "coupled":
-            vcoef, vstats = coupled_velocity(vps, vopt.beta, kappa_v, gram0, m)
-            vstats = [vstats] * len(seg)
-        else:
-            vcoef, sweeps, hist = kaczmarz_velocity(vps, vopt.beta, kappa_v, gram0, stack.tol, stack.max_sweeps, m)
-            info.sweeps.setdefault("velocity", []).append(sweeps)
-            info.residuals["velocity"] = hist
-            ok = hist[-1] < stack.tol or len(seg) == 1
-            info.converged &= ok
-            vstats = [SolverStats("kaczmarz (block Gauss-Seidel, Cholesky)", "Solve_Succeeded" if ok
-                                  else "Maximum_Iterations_Exceeded", ok, sweeps, float("nan"), 0.0)] * len(seg)
+        vcoef, vstats = fit_velocity(vps, strategy)
         t["velocity"] = t.get("velocity", 0.0) + time.perf_counter() - t0
         return coef, geoms, vps, vcoef, vstats
 
@@ -492,9 +514,25 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                                                          pb.r0, pb.r1, pb.r_ref))
                 coef, geoms, vps, vcoef, vstats = solve_segment(seg, corrected, coef, strategy)
                 info.dephasing_pass = True
+        planar = None
+        if acq.velocity_inplane is not None:
+            t0 = time.perf_counter()
+            planar = []
+            for comp in acq.velocity_inplane:
+                vps_c = [replace(vp, data=comp[k].ravel()[vp.voxels.index], data_image=comp[k])
+                         for k, vp in zip(seg, vps)]
+                coef_c, st_c = fit_velocity(vps_c, strategy, record=False)
+                planar.append([wss_mod.from_reconstruction(vel.result(vp, vopt, cc, vopt.beta, st), options.n_phi,
+                                                           mu).tau for vp, cc, st in zip(vps_c, coef_c, st_c)])
+            dcoef, dcenter = _z_derivatives(np.array([g.coefficients for g in geoms]),
+                                            np.array([g.center for g in geoms]), np.array(seg) * dz)
+            t["velocity_inplane"] = t.get("velocity_inplane", 0.0) + time.perf_counter() - t0
         for i, k in enumerate(seg):
             v = vel.result(vps[i], vopt, vcoef[i], vopt.beta, vstats[i])
             w = wss_mod.from_reconstruction(v, options.n_phi, mu)
+            if planar is not None:
+                w.vector = wss_mod.wss_vector(w.phi, geoms[i].coefficients, dcoef[i], dcenter[i],
+                                              np.stack([planar[0][i], planar[1][i], w.tau], axis=1), mu)
             if not np.all(np.isfinite(w.tau)):
                 raise SolverError(f"{acq.source} slice {k}: wall shear stress is not finite")
             p = prepared[k]

@@ -33,6 +33,7 @@ class WssResult:
     viscosity_pa_s: float
     tau_std: np.ndarray | None = None  # linearized standard deviation from the data noise, Pa (wss_nlp.sensitivity)
     mean_std: float = float("nan")
+    vector: "WssVector | None" = None  # the 3D WSS vector of a stack with three velocity components
 
 
 def wss_expression(velocity_of_xi, n_fourier: int, r_in: float | None, eta: float):
@@ -128,3 +129,58 @@ def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tupl
     g = ca.Function("g", [ph, cc, ce], [ca.jacobian(tau, p), xw]).map(n_phi)
     a, xw = g(rad.uniform_angles(n_phi)[None, :], dm.coefficients, np.array(dm.center))
     return np.asarray(a).reshape(n_phi, basis.size), np.asarray(xw)
+
+
+@dataclass
+class WssVector:
+    """The WSS vector ``tau = -mu (grad u + grad u^T) n`` on the wall of a stack (Sec. 5), at the slice's angles.
+
+    Arrays of shape ``(n_phi, 3)`` (x, y, z of the image frame) or ``(n_phi,)``; Pa.
+    """
+
+    vector: np.ndarray
+    normal: np.ndarray  # outward unit normal of the 3D wall
+    axial: np.ndarray  # tau . e_a, e_a the wall tangent along the vessel (through-plane direction)
+    circumferential: np.ndarray  # tau . e_c, e_c = e_a x n (counter-clockwise about the centre)
+    normal_part: np.ndarray  # tau . n: 2 mu div(u) on the wall, zero for incompressible flow
+    magnitude: np.ndarray
+
+
+def wss_vector(phi, coefficients, dcoef_dz, dcenter_dz, tau_planar, viscosity_pa_s: float) -> WssVector:
+    """WSS vector from the in-plane WSS of each velocity component and the wall's slope along the vessel.
+
+    Parameters
+    ----------
+    phi : (n,) angles of the wall points about the slice's centre.
+    coefficients, dcoef_dz : radius coefficients of the slice and their z-derivative (1/mm units per mm).
+    dcenter_dz : (2,) z-derivative of the centre line.
+    tau_planar : (n, 3) ``-mu nu . grad_xy u_i`` for the components i = x, y, z at the wall of the slice
+        (``nu``: outward normal of the slice contour), each from its own 2D reconstruction (:func:`from_reconstruction`).
+
+    Notes
+    -----
+    The wall is ``X(phi, z) = c(z) + R(phi, z)(cos phi, sin phi, 0) + z e_z``
+    with outward normal ``n = X_phi x X_z / |...|``. No-slip makes every
+    tangential derivative of ``u`` vanish on the wall, so ``grad u = g n^T``
+    with ``g = du/dn``; the in-plane part gives ``nu . grad_xy u_i = g_i |n_xy|``,
+    hence ``g = -tau_planar / (mu |n_xy|)`` and, exactly,
+    ``tau = -mu (g + n (g . n))`` (eq. of Sec. 5). No derivative of the data
+    along z is taken: the z-slope of the wall comes from the stack's radius
+    and centre-line model.
+    """
+    phi = np.asarray(phi, dtype=float)
+    r, dr = rad.evaluate(coefficients, phi), rad.evaluate(coefficients, phi, 1)
+    rz = rad.evaluate(dcoef_dz, phi)
+    c, s = np.cos(phi), np.sin(phi)
+    x_phi = np.stack([dr * c - r * s, dr * s + r * c, np.zeros_like(phi)], axis=1)
+    x_z = np.stack([dcenter_dz[0] + rz * c, dcenter_dz[1] + rz * s, np.ones_like(phi)], axis=1)
+    n = np.cross(x_phi, x_z)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n_xy = np.linalg.norm(n[:, :2], axis=1)
+    g = -np.asarray(tau_planar, dtype=float) / (viscosity_pa_s * n_xy[:, None])  # in (m/s)/m, i.e. 1/s
+    tau = -viscosity_pa_s * (g + n * np.sum(g * n, axis=1, keepdims=True))
+    e_a = x_z / np.linalg.norm(x_z, axis=1, keepdims=True)
+    e_c = np.cross(e_a, n)
+    return WssVector(vector=tau, normal=n, axial=np.sum(tau * e_a, axis=1),
+                     circumferential=np.sum(tau * e_c, axis=1), normal_part=np.sum(tau * n, axis=1),
+                     magnitude=np.linalg.norm(tau, axis=1))
