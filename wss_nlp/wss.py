@@ -155,7 +155,8 @@ def wss_vector(phi, coefficients, dcoef_dz, dcenter_dz, tau_planar, viscosity_pa
     coefficients, dcoef_dz : radius coefficients of the slice and their z-derivative (1/mm units per mm).
     dcenter_dz : (2,) z-derivative of the centre line.
     tau_planar : (n, 3) ``-mu nu . grad_xy u_i`` for the components i = x, y, z at the wall of the slice
-        (``nu``: outward normal of the slice contour), each from its own 2D reconstruction (:func:`from_reconstruction`).
+        (``nu``: outward normal of the slice contour), each from its own 2D reconstruction
+        (:func:`from_reconstruction`).
 
     Notes
     -----
