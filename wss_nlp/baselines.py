@@ -297,9 +297,7 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
     where = f"{source} slice {index}"
     t = {}
     t0 = time.perf_counter()
-    norm = pp.histogram_peaks(magnitude, where)
-    m = pp.normalize_magnitude(magnitude, norm)
-    lumen = pp.find_lumen(m, grid, where)
+    norm, m, lumen = pp.preprocess(magnitude, grid, where)
     geom = segment(m, grid, lumen, options.n_fourier, where)
     t["segmentation"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -164,3 +164,10 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "") -> Lumen:
         r0=max(r_min - 2 * h, 0.25 * r_area),
         r1=r_max + 2 * h,
     )
+
+
+def preprocess(magnitude: np.ndarray, grid: VoxelGrid, source: str = "") -> tuple[Normalization, np.ndarray, Lumen]:
+    """Appendix B for one slice: histogram peaks, the normalized magnitude and the lumen found in it."""
+    norm = histogram_peaks(magnitude, source)
+    m = normalize_magnitude(magnitude, norm)
+    return norm, m, find_lumen(m, grid, source)

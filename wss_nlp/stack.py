@@ -359,9 +359,7 @@ def _prepare(acq: Acquisition, iz: int, magnitude, velocity) -> _Slice:
     where = f"{acq.source} slice {iz}"
     if not (np.all(np.isfinite(magnitude)) and np.all(np.isfinite(velocity))):
         raise InputError(f"{where}: the images contain NaN or Inf")
-    norm = pp.histogram_peaks(magnitude, where)
-    m = pp.normalize_magnitude(magnitude, norm)
-    lumen = pp.find_lumen(m, acq.grid, where)
+    norm, m, lumen = pp.preprocess(magnitude, acq.grid, where)
     problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area)
     return _Slice(iz, problem, norm, lumen, m, np.asarray(velocity, dtype=float))
 
