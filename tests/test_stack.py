@@ -233,3 +233,11 @@ def test_velocity_component_layouts(tmp_path):
         with pytest.raises(InputError, match=match) as exc:
             wio.read_acquisition(path)
         assert "bad.h5" in str(exc.value)
+
+
+def test_nan_in_an_inplane_component_fails_only_that_slice():
+    acq, _ = phantoms.make_stack("tapered", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=5, swirl_per_s=10.0)
+    acq.velocity_inplane[1, 1, 4, 4] = np.nan
+    res = reconstruct(acq, FAST)
+    assert [type(r).__name__ for r in res] == ["SliceResult", "FailedSlice", "SliceResult"]
+    assert "NaN" in res[1].reason and res.stack.failed == {1: res[1].reason}

@@ -70,10 +70,7 @@ class TruthTable:
     @classmethod
     def from_file(cls, path) -> "TruthTable":
         """The truth stored by ``wss-nlp phantom --truth`` (first slice)."""
-        from .io import read_result
-
-        d = read_result(path)[0]
-        return cls(d["center"], d["phi"], d["radius"], d["tau"], d["mean_tau"])
+        return cls.all_from_file(path)[0]
 
     @classmethod
     def all_from_file(cls, path) -> list:

@@ -358,7 +358,7 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     ell = options.stack.z_smoothing_mm
     if acq.nz == 1 or ell == 0:
         return False
-    supported = options.method == "decoupled" and options.alpha_rule == "fixed" and options.beta_rule == "fixed"
+    supported = stk.supports(options)
     if ell is not None and not supported:
         raise InputError(f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled method "
                          "with fixed alpha and beta; pass --z-smoothing 0 for independent slices")

@@ -221,6 +221,11 @@ class SliceGeometry:
         return float(np.sqrt(np.sum(self.w0 * d**2) / np.sum(self.w0 * c**2)))
 
 
+def sweep_order(n: int) -> list[int]:
+    """Slices of one symmetric sweep: forward, then backward without repeating the ends."""
+    return list(range(n)) + list(range(n - 2, 0, -1))
+
+
 def z_operator(n: int, order: int) -> np.ndarray:
     """``L = D^T D`` with ``D`` the ``order``-th forward difference on ``n`` slices (zero if ``n <= order``)."""
     d = np.diff(np.eye(n), order, axis=0)
@@ -280,10 +285,9 @@ def kaczmarz_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray,
         return neighbour_terms(zop, c, k)
 
     history, stats = [], [None] * ns
-    order = list(range(ns)) + list(range(ns - 2, 0, -1))  # forward, then backward without repeating the ends
     for sweep in range(1, max_sweeps + 1):
         step = 0.0
-        for k in order if ns > 1 else [0]:
+        for k in sweep_order(ns):
             s, cnt = nb_sum(k)
             old = c[k].copy()
             c[k], stats[k] = slices[k].newton(alpha, s, cnt, c[k], 50 if sweep == 1 else 1, tol)
@@ -339,10 +343,9 @@ def kaczmarz_velocity(vps, beta: float, kappa_v: float, gram0: np.ndarray, tol: 
     if ns == 1:
         return c, 0, [0.0]
     coupling = kappa_v * gram0 / np.pi
-    sweep_order = list(range(ns)) + list(range(ns - 2, 0, -1))
     history = []
     for sweep in range(1, max_sweeps + 1):
-        for k in sweep_order:
+        for k in sweep_order(ns):
             new = scipy.linalg.cho_solve(factors[k], system[k][1] + coupling @ neighbour_terms(zop, c, k)[0])
             c[k] = c[k] + RELAX * (new - c[k])
         # relative residual of the coupled normal equations
@@ -355,9 +358,9 @@ def kaczmarz_velocity(vps, beta: float, kappa_v: float, gram0: np.ndarray, tol: 
 
 
 # ------------------------------------------------------------------ driver
-def _prepare(acq: Acquisition, iz: int, magnitude, velocity) -> _Slice:
+def _prepare(acq: Acquisition, iz: int, magnitude, velocity, finite: bool) -> _Slice:
     where = f"{acq.source} slice {iz}"
-    if not (np.all(np.isfinite(magnitude)) and np.all(np.isfinite(velocity))):
+    if not finite:
         raise InputError(f"{where}: the images contain NaN or Inf")
     norm, m, lumen = pp.preprocess(magnitude, acq.grid, where)
     problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area)
@@ -380,6 +383,11 @@ def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray)
         spline = scipy.interpolate.CubicSpline(z, values, axis=0, bc_type=kind)
         out.append(spline.derivative()(z))
     return out[0], out[1]
+
+
+def supports(options) -> bool:
+    """Whether z-regularization applies to these reconstruction options (decoupled, fixed alpha and beta)."""
+    return options.method == "decoupled" and options.alpha_rule == "fixed" and options.beta_rule == "fixed"
 
 
 def segments_of(ok: list[int]) -> list[list[int]]:
@@ -412,7 +420,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     from .reconstruct import DEPHASING_THRESHOLD, SliceResult, gcv_beta, resolve_viscosity
 
     stack = stack or StackOptions()
-    if options.method != "decoupled" or options.alpha_rule != "fixed" or options.beta_rule not in ("fixed",):
+    if not supports(options):
         raise InputError("stacks with z-regularization support the decoupled method with fixed alpha and beta; "
                          "pass --z-smoothing 0 for independent slices with other settings")
     mu = resolve_viscosity(acq, options)
@@ -421,9 +429,10 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     velocity = acq.velocity_images()
     t = {"preprocess": time.perf_counter()}
     prepared, failed = {}, {}
+    bad = set(acq.nonfinite_slices())  # any image of the slice, in-plane velocity components included
     for iz in range(acq.nz):
         try:
-            prepared[iz] = _prepare(acq, iz, acq.magnitude[iz], velocity[iz])
+            prepared[iz] = _prepare(acq, iz, acq.magnitude[iz], velocity[iz], iz not in bad)
         except WssNlpError as exc:
             failed[iz] = str(exc)
     if not prepared:
