@@ -7,10 +7,14 @@ the grid value with the smallest WSS error (truth known). Reported: the
 oracle error and, for each rule, the ratio of its WSS error to the oracle's
 (1.00 = as good as the oracle; the issue asks for <= 1.25). Rules: the fixed
 default, the discrepancy principle with tau = 1.1 (default) and with the
-paper's tau = 2 (estimated noise), GCV and the L-curve. Also the estimated
-over the true noise level. Writes ``scripts/results/parameter_rules.md``.
+paper's tau = 2 (estimated noise), GCV, the L-curve and the balancing
+principle on the WSS (kappa = 2). Also the estimated over the true noise level.
 
-    python scripts/parameter_rules.py [--seeds 3] [--cases laminar,turbulent]   (about 3 minutes)
+A second table asks what the data can determine at all: noise-free data and
+the exact geometry (true centre and radius; circle phantom only), WSS error
+against beta. Writes ``scripts/results/parameter_rules.md``.
+
+    python scripts/parameter_rules.py [--seeds 3] [--cases laminar,turbulent]   (about 5 minutes)
 """
 
 
@@ -21,10 +25,12 @@ from wss_nlp import analysis as an
 from wss_nlp import geometry as geo
 from wss_nlp import phantoms
 from wss_nlp import preprocess as pp
+from wss_nlp import radius as rad
 from wss_nlp import velocity as vel
 from wss_nlp import wss
 
-RULES = ("fixed", "DP tau=1.1", "DP tau=2", "GCV", "L-curve")
+RULES = ("fixed", "DP tau=1.1", "DP tau=2", "GCV", "L-curve", "balance")
+FLOOR_BETAS = (1e-7, 1e-9, 1e-11, 1e-13, 1e-14)
 
 
 def main(argv=None):
@@ -52,7 +58,8 @@ def main(argv=None):
                         return np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt)
 
                     _, e_or = an.oracle(grid, [err(b) for b in grid])
-                    eps = an.velocity_noise(u, mag, lum.mask, vp.voxels.index, vp.weights, acq.venc_m_s).value
+                    noise = an.velocity_noise(u, mag, lum.mask, vp.voxels.index, vp.weights, acq.venc_m_s)
+                    eps = noise.value
                     clean = truth.velocity_image.ravel()[vp.voxels.index]
                     noise_ratio.append(eps / np.sqrt(np.sum(vp.weights * (vp.data - clean) ** 2) / vp.area))
 
@@ -67,6 +74,8 @@ def main(argv=None):
                         "DP tau=2": an.discrepancy_search(solve, 1e-2, eps, 2.0)[1].chosen,
                         "GCV": grid[int(np.argmin(gcv))],
                         "L-curve": grid[an.lcurve_corner(res, pen)[0]],
+                        "balance": grid[an.wss_balance(vp.operator, vp.weights, vp.data, vp.gram, grid, a,
+                                                       noise.details["per_voxel"], 2.0)[0]],
                     }
                     for r in RULES:
                         ratios[r].append(err(chosen[r]) / e_or)
@@ -84,7 +93,41 @@ def main(argv=None):
     within = {k: np.mean([r[k] <= 1.25 for *_, r, _ in rows]) for k in RULES}
     lines += ["", "Share of rows within 1.25x of the oracle: "
               + ", ".join(f"{k} {v:.0%}" for k, v in within.items()) + "."]
+    lines += ["", *floor_table(args)]
     write_report(args.out, "parameter_rules.md", lines)
+
+
+def floor_table(args) -> list[str]:
+    """WSS error against beta for noise-free data on the exact geometry (what no parameter rule can beat)."""
+    lines = ["WSS error against beta with noise-free data (seed 0); turbulent on the exact geometry (the true "
+             "circle), laminar on the geometry reconstructed from the noise-free magnitude:",
+             "",
+             "| phantom | h [mm] | " + " | ".join(f"beta = {b:g}" for b in FLOOR_BETAS) + " | best on grid (beta) |",
+             "|---|---|" + "---|" * (len(FLOOR_BETAS) + 1)]
+    grid = an.geometric_grid(1e-2, 1e-14)
+    for case in args.cases.split(","):
+        for h in (float(x) for x in args.h.split(",")):
+            acq, truth = phantoms.make_phantom(case, h_mm=h, snr=None, seed=0)
+            if case == "turbulent":
+                coef = np.zeros(rad.n_coefficients(geo.GeometryOptions().n_fourier))
+                coef[0], centre = truth.lumen.r, np.asarray(truth.center, float)
+            else:
+                m = pp.normalize_magnitude(acq.magnitude[0], pp.histogram_peaks(acq.magnitude[0]))
+                lum = pp.find_lumen(m, acq.grid)
+                g = geo.solve(geo.GeometryProblem(acq.grid, m, lum.center, lum.r0, lum.r1, lum.r_area),
+                              geo.GeometryOptions())
+                coef, centre = g.coefficients, g.center
+            vp = vel.assemble(acq.grid, truth.velocity_image, coef, centre, vel.VelocityOptions())
+            a, xw = wss.wss_matrix(vp.basis, vp.disk_map, acq.viscosity_pa_s)
+            tt = truth.wss_at_points(xw[0], xw[1])
+
+            def err(b):
+                return np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt)
+
+            b_or, e_or = an.oracle(grid, [err(b) for b in grid])
+            lines.append(f"| {case} | {h:g} | " + " | ".join(f"{err(b):.1%}" for b in FLOOR_BETAS)
+                         + f" | {e_or:.1%} ({b_or:.1e}) |")
+    return lines
 
 
 if __name__ == "__main__":

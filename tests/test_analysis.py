@@ -78,6 +78,78 @@ def test_gcv_minimum_on_a_diagonal_problem_with_known_optimum():
     assert abs(np.log10(b_gcv / b_risk)) <= 0.5  # GCV is asymptotically risk-optimal; half a decade on n = 400
 
 
+def test_balancing_principle_known_answer():
+    """Scalar estimates with bias 8, 4, ..., 0.25 and independent noise sd 0.5..1.0, kappa 2.
+
+    By hand: index 0 fails (|8 - 0.25| = 7.75 > 2 sqrt(0.25 + 1)), index 1 fails (3.75 > 2 sqrt(0.36 + 1) =
+    2.33), index 2 passes against 3, 4, 5 (1, 1.5, 1.75 <= 2.13, 2.28, 2.44): the choice is 2, with largest ratio
+    1.75 / sqrt(0.49 + 1).
+    """
+    b = np.array([8, 4, 2, 1, 0.5, 0.25])
+    sd = np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0])
+    j, ratio = an.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=2.0)
+    assert j == 2
+    assert ratio[2] == pytest.approx(max(abs(2 - b[k]) / np.sqrt(0.49 + sd[k] ** 2) for k in (3, 4, 5)), rel=1e-12)
+    assert ratio[-1] == 0 and np.all(ratio[:2] > 2)
+    assert an.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=100.0)[0] == 0  # everything admissible
+    with pytest.raises(InputError):
+        an.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=0.0)
+
+
+def test_balance_noise_gram_matches_monte_carlo(rng):
+    """E<e_j, e_k> of the closed form against 4000 noise draws of a small heteroscedastic linear problem.
+
+    The Monte-Carlo mean of a product of two Gaussians has relative standard error about
+    sqrt(2 / 4000) = 2.2 % on the diagonal; 8 % (3.5 standard errors) keeps the test deterministic in effect
+    (seeded) and still fails for a missing weight or a wrong square (errors of 30 % and more here).
+    """
+    n, k, m = 60, 8, 5
+    t = rng.normal(size=(n, k))
+    w = rng.uniform(0.2, 1.0, n)
+    g = np.diag(np.arange(1, k + 1.0) ** 4)
+    s_mat = rng.normal(size=(m, k))
+    sig = rng.uniform(0.05, 0.3, n)
+    betas = np.array([1e-1, 1e-2, 1e-3])
+    clean = t @ rng.normal(size=k)
+    g_est, g_noise, res = an.balance_grams(t, w, clean, g, betas, s_mat, sig)
+    ww = w / w.sum()
+    ests = [s_mat @ np.linalg.solve(t.T @ (ww[:, None] * t) + b / np.pi * g, t.T @ (ww * clean)) for b in betas]
+    assert np.allclose(g_est, np.array(ests) @ np.array(ests).T, rtol=1e-10)
+    draws = rng.normal(size=(4000, n)) * sig
+    noise = [np.linalg.solve(t.T @ (ww[:, None] * t) + b / np.pi * g, (t.T * ww) @ draws.T).T @ s_mat.T
+             for b in betas]  # (draws, m) per beta
+    emp = np.array([[np.mean(np.sum(a * c, axis=1)) for c in noise] for a in noise])
+    assert np.allclose(g_noise, emp, rtol=0.08)
+
+
+def test_balance_beta_on_laminar_phantom_is_close_to_the_oracle():
+    """Laminar ellipse, h = 1 mm, SNR 25, seed 21: the balancing beta's WSS error against the best on its grid.
+
+    Measured over 36 laminar cases (scripts/parameter_rules.py) the worst ratio was 1.56; 2 leaves room for
+    other seeds while a rule that over- or under-smooths by 100x (ratios 5-20 here) fails. The issue's absolute
+    target (laminar WSS error <= 5 % at SNR 25) is checked as well.
+    """
+    from wss_nlp import phantoms
+    from wss_nlp import wss
+    from wss_nlp.reconstruct import BETA_STOP, ReconstructionOptions, reconstruct
+    from wss_nlp import velocity as vel
+
+    acq, truth = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=21)
+    res = reconstruct(acq, ReconstructionOptions(beta_rule="balance", uncertainty=False,
+                                                 dephasing_correction=False))[0]
+    ch = res.beta_choice
+    assert ch.rule == "balance" and ch.criterion[list(ch.parameters).index(ch.chosen)] <= ch.tau
+    vp = vel.assemble(acq.grid, acq.velocity_images()[0], res.geometry.coefficients, res.geometry.center,
+                      vel.VelocityOptions())
+    a, xw = wss.wss_matrix(vp.basis, vp.disk_map, acq.viscosity_pa_s)
+    tt = truth.wss_at_points(xw[0], xw[1])
+    errs = {b: np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt)
+            for b in an.geometric_grid(1e-2, BETA_STOP)}
+    chosen = errs[min(errs, key=lambda b: abs(np.log(b / ch.chosen)))]
+    assert chosen <= 2 * min(errs.values())
+    assert chosen <= 0.05
+
+
 def test_lcurve_corner_of_a_known_curve():
     """Points on y = x^2 (t in [-1, 1]): the largest curvature is at the vertex t = 0."""
     t = np.linspace(-1, 1, 41)
@@ -120,7 +192,7 @@ def test_no_background_names_the_option():
                           np.ones(3), None)
 
 
-@pytest.mark.parametrize("beta", ["auto", "gcv", "lcurve"])
+@pytest.mark.parametrize("beta", ["auto", "gcv", "lcurve", "balance"])
 def test_reconstruct_records_choice_and_analyze_prints_it(tmp_path, capsys, beta):
     inp, out = tmp_path / "in.h5", tmp_path / "out.h5"
     assert main(["phantom", "--case", "circle", "--h", "1.0", "--seed", "3", "-o", str(inp)]) == 0

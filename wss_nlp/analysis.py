@@ -6,7 +6,9 @@
 * :func:`discrepancy_search`: ``p = max{p0 2^-n : residual(p) <= tau * noise}``,
   each solve warm-started from the previous one.
 * For the linear velocity problem: :func:`gcv_curve` (generalized
-  cross-validation, closed form) and :func:`lcurve_corner`.
+  cross-validation, closed form), :func:`lcurve_corner` and
+  :func:`balancing_principle` (Lepskii: compare the WSS estimates of
+  neighbouring betas with their exact noise propagation, :func:`wss_balance`).
 * :func:`oracle` picks the error-minimizing value when the truth is known
   (phantoms only; used to judge the rules, never as a rule).
 
@@ -22,6 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.linalg
 import scipy.ndimage
 
 from .errors import InputError
@@ -95,6 +98,16 @@ def complex_noise_sigma(raw: np.ndarray, mask: np.ndarray) -> float:
     return float(np.sqrt(np.mean(raw[outer] ** 2) / 2))
 
 
+def phase_noise_std(raw_at_voxels: np.ndarray, sigma: float, venc: float) -> np.ndarray:
+    """Velocity noise per voxel, ``venc sigma / (pi |d_i|)`` capped at ``venc / sqrt(3)`` (Appendix B).
+
+    ``sigma`` is the complex noise per channel in raw units; the cap is the
+    standard deviation of a uniform phase (no signal). Units: those of ``venc``.
+    """
+    mag = np.maximum(np.asarray(raw_at_voxels, float), 1e-300)
+    return np.minimum(venc * sigma / (np.pi * mag), venc / np.sqrt(3))
+
+
 def velocity_noise(velocity: np.ndarray, raw: np.ndarray, mask: np.ndarray, voxel_index: np.ndarray,
                    weights: np.ndarray, venc: float | None, source: str = "") -> NoiseEstimate:
     """Noise level ``epsilon`` of the velocity, in the units of the velocity misfit.
@@ -116,11 +129,10 @@ def velocity_noise(velocity: np.ndarray, raw: np.ndarray, mask: np.ndarray, voxe
     where = where_prefix(source)
     sigma = complex_noise_sigma(raw, mask)
     if venc is not None and np.isfinite(sigma):
-        mag = np.maximum(raw.ravel()[voxel_index], 1e-300)
-        su = np.minimum(venc * sigma / (np.pi * mag), venc / np.sqrt(3))
+        su = phase_noise_std(raw.ravel()[voxel_index], sigma, venc)
         eps = float(np.sqrt(np.sum(weights * su**2) / np.sum(weights)))
         return NoiseEstimate(eps, "phase noise: venc sigma / (pi |d_i|), sigma from the Rayleigh background",
-                             {"sigma_complex": sigma, "venc_m_s": venc})
+                             {"sigma_complex": sigma, "venc_m_s": venc, "per_voxel": su})
     inner, _ = _plateaus(mask)
     inner &= scipy.ndimage.binary_erosion(np.ones_like(mask), iterations=1)
     if inner.sum() < MIN_PLATEAU_VOXELS:
@@ -130,7 +142,8 @@ def velocity_noise(velocity: np.ndarray, raw: np.ndarray, mask: np.ndarray, voxe
     nb = 0.25 * (np.roll(u, 1, 0) + np.roll(u, -1, 0) + np.roll(u, 1, 1) + np.roll(u, -1, 1))
     r = (u - nb)[inner]
     s = robust_std(r) / np.sqrt(1.25)
-    return NoiseEstimate(s, "high-pass: MAD of u minus its 4-neighbour mean on the lumen plateau", {})
+    return NoiseEstimate(s, "high-pass: MAD of u minus its 4-neighbour mean on the lumen plateau",
+                         {"per_voxel": np.full(np.size(voxel_index), s)})
 
 
 @dataclass
@@ -236,6 +249,95 @@ def gcv_curve(operator, weights, data, gram, betas):
         out_r.append(np.sqrt(r2))
         out_p.append(float(c @ gram @ c / np.pi))
     return np.array(out_g), np.array(out_r), np.array(out_p)
+
+
+def balancing_principle(gram_estimates: np.ndarray, gram_noise: np.ndarray, kappa: float) -> tuple[int, np.ndarray]:
+    """Lepskii's balancing principle from the Gram matrices of the estimates and of their noise parts.
+
+    Parameters
+    ----------
+    gram_estimates : (n, n) array
+        ``<x_j, x_k>`` of the estimates, ordered from the most to the least
+        regularized parameter.
+    gram_noise : (n, n) array
+        ``E<e_j, e_k>`` of their noise parts (``x_j = E x_j + e_j``).
+    kappa : float
+        How many noise standard deviations a difference may reach.
+
+    Returns
+    -------
+    (j, ratio)
+        ``j`` is the first (most regularized) index with
+        ``|x_j - x_k| <= kappa s_jk`` for every ``k > j``, where
+        ``s_jk^2 = E|e_j - e_k|^2``; ``ratio[j] = max_k |x_j - x_k| / s_jk``
+        (0 for the last index).
+
+    Notes
+    -----
+    Less regularized estimates have less bias and more noise; a difference
+    larger than the noise can explain is bias of the more regularized one,
+    so the choice is the largest parameter whose estimate agrees with every
+    less regularized one within their noise (Mathé & Pereverzev 2003; Mathé,
+    "The Lepskii principle revisited", 2006). Only differences of estimates
+    enter, so model error that is common to all parameters does not bias
+    the choice the way it biases a residual (discrepancy principle).
+    """
+    if not kappa > 0:
+        raise InputError(f"the balancing principle needs kappa > 0, got {kappa}")
+    d_est = np.diag(gram_estimates)
+    d_noise = np.diag(gram_noise)
+    diff = np.sqrt(np.maximum(d_est[:, None] + d_est[None, :] - 2 * gram_estimates, 0.0))
+    sd = np.sqrt(np.maximum(d_noise[:, None] + d_noise[None, :] - 2 * gram_noise, 0.0))
+    n = d_est.size
+    ratio = np.zeros(n)
+    for j in range(n - 1):
+        s = sd[j, j + 1:]
+        ratio[j] = float(np.max(np.where(s > 0, diff[j, j + 1:] / np.where(s > 0, s, 1.0), np.inf)))
+    return int(np.flatnonzero(ratio <= kappa)[0]), ratio
+
+
+def balance_grams(operator, weights, data, gram, betas, functional, sigma_u):
+    """Gram matrices of ``S c_beta`` and of their noise parts for the linear velocity problem, and the residuals.
+
+    Notes
+    -----
+    ``c_beta = H_beta^{-1} T^T W u`` with ``H_beta = T^T W T + (beta/pi) G``
+    and ``W = diag(w)/A`` (:func:`gcv_curve`). With independent voxel noise
+    of standard deviations ``sigma_u``, the noise part of ``S c_j`` is
+    ``M_j n`` with ``M_j = S H_j^{-1} T^T W diag(sigma_u)`` and ``n`` standard
+    normal, so ``E<e_j, e_k> = tr(M_j M_k^T)``; with a Cholesky factor
+    ``L L^T = T^T W Sigma W T`` everything is ``n_basis``-sized:
+    ``tr(M_j M_k^T) = <S H_j^{-1} L, S H_k^{-1} L>_F``.
+    Returns ``(gram_estimates, gram_noise, residual_norms)``.
+    """
+    w = weights / np.sum(weights)
+    tw = operator * w[:, None]
+    ktk = tw.T @ operator
+    rhs = tw.T @ data
+    noise_gram = (tw * np.asarray(sigma_u)[:, None] ** 2).T @ tw
+    jitter = 1e-14 * np.trace(noise_gram) / len(noise_gram)  # rank-deficient when voxels < basis functions
+    root = np.linalg.cholesky(noise_gram + jitter * np.eye(len(noise_gram)))
+    est, noise, res = [], [], []
+    for beta in betas:
+        cho = scipy.linalg.cho_factor(ktk + beta / np.pi * gram)
+        c = scipy.linalg.cho_solve(cho, rhs)
+        est.append(functional @ c)
+        noise.append((functional @ scipy.linalg.cho_solve(cho, root)).ravel())
+        res.append(np.sqrt(np.sum(w * (operator @ c - data) ** 2)))
+    est, noise = np.array(est), np.array(noise)
+    return est @ est.T, noise @ noise.T, np.array(res)
+
+
+def wss_balance(operator, weights, data, gram, betas, wss_matrix, sigma_u, kappa: float):
+    """The balancing principle for beta on the WSS ``tau = S c`` (``wss_matrix``, Pa, at the wall points).
+
+    ``betas`` must decrease; ``sigma_u`` (m/s) per voxel. Returns
+    ``(index, ratio, residual_norms)``: see :func:`balancing_principle`
+    and :func:`balance_grams`.
+    """
+    g_est, g_noise, res = balance_grams(operator, weights, data, gram, betas, wss_matrix, sigma_u)
+    j, ratio = balancing_principle(g_est, g_noise, kappa)
+    return j, ratio, res
 
 
 def curvature(x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ from . import phantoms
 from . import stack as stk
 from . import velocity as vel
 from .errors import InputError, WssNlpError
-from .reconstruct import METHODS, ReconstructionOptions, reconstruct
+from .reconstruct import BETA_RULES, METHODS, ReconstructionOptions, reconstruct
 
 _G = geo.GeometryOptions()
 _V = vel.VelocityOptions()
@@ -55,7 +55,9 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     v.add_argument("--beta", default=str(_V.beta),
                    help="Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless; default %(default)s), "
                         "or a rule: 'gcv' (generalized cross-validation), 'auto' (discrepancy principle, "
-                        "eq. (disc2)), 'lcurve'")
+                        "eq. (disc2)), 'lcurve', 'balance' (Lepskii balancing on the WSS; see README)")
+    v.add_argument("--kappa-beta", type=float, default=ReconstructionOptions.kappa_beta,
+                   help="balancing rule: WSS differences allowed, in noise standard deviations (default %(default)g)")
     v.add_argument("--tau-beta", type=float, default=ReconstructionOptions.tau_beta,
                    help="discrepancy factor for beta (default %(default)g; the paper's theory uses 2)")
     v.add_argument("--noise-velocity", type=float, default=None,
@@ -130,7 +132,7 @@ def _rule(text: str, rules: tuple, name: str):
 
 def options_from_args(args) -> ReconstructionOptions:
     alpha_rule, alpha = _rule(args.alpha, ("fixed", "discrepancy"), "alpha")
-    beta_rule, beta = _rule(args.beta, ("fixed", "discrepancy", "gcv", "lcurve"), "beta")
+    beta_rule, beta = _rule(args.beta, BETA_RULES, "beta")
     gopt = geo.GeometryOptions(
         n_fourier=args.n_fourier, alpha=alpha if alpha is not None else _G.alpha, sobolev_s=args.sobolev,
         prior=args.prior, gamma=args.gamma, heaviside=args.heaviside, quad_order=args.quad_order,
@@ -145,6 +147,7 @@ def options_from_args(args) -> ReconstructionOptions:
                                  dephasing_beta_rule=args.dephasing_beta, uncertainty=args.uncertainty,
                                  noise_sigma=args.noise_sigma, alpha_rule=alpha_rule,
                                  beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,
+                                 kappa_beta=args.kappa_beta,
                                  noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity,
                                  stack=stk.StackOptions(z_smoothing_mm=args.z_smoothing, z_order=args.z_order,
                                                         strategy=args.stack_strategy))
@@ -302,6 +305,9 @@ def cmd_analyze(args) -> int:
             if ch.rule == "discrepancy":
                 print(f"    noise {ch.noise:.4g} ({ch.noise_method}); threshold tau x noise = {ch.threshold:.4g}"
                       + ("" if ch.satisfied else "; NOT reached (model error dominates)"))
+            if ch.rule == "balance":
+                print(f"    velocity noise {ch.noise:.4g} m/s ({ch.noise_method}); criterion = largest WSS difference "
+                      f"to a smaller beta in noise standard deviations, admissible <= kappa = {ch.tau:g}")
             if ch.parameters.size:
                 head = f"    {'parameter':>12} {'residual':>12}" + (f" {'criterion':>12}" if ch.criterion.size else "")
                 print(head)

@@ -160,6 +160,12 @@ def figure_parameter_choice(choice):
     elif choice.rule == "gcv" and choice.criterion.size:
         ax.loglog(choice.parameters, choice.criterion, "o-", ms=3, label="GCV")
         ax.set_ylabel("GCV")
+    elif choice.rule == "balance" and choice.criterion.size:
+        keep = choice.criterion > 0  # the last (least regularized) value has nothing to compare with
+        ax.loglog(choice.parameters[keep], choice.criterion[keep], "o-", ms=3,
+                  label="largest WSS difference to a smaller beta / its noise sd")
+        ax.axhline(choice.tau, color="tab:red", ls="--", label=rf"$\kappa$ = {choice.tau:g}")
+        ax.set_ylabel("difference / noise sd")
     ax.axvline(choice.chosen, color="tab:green", label=rf"chosen ${sym}$ = {choice.chosen:.3g}")
     ax.set(xlabel=rf"${sym}$", title=f"{choice.name}: rule '{choice.rule}'"
            + ("" if choice.satisfied else " (inequality not reached)"))

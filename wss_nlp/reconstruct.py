@@ -36,7 +36,7 @@ DEPHASING_THRESHOLD = 0.01
 
 
 ALPHA_RULES = ("fixed", "discrepancy")
-BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve")
+BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve", "balance")
 DEPHASING_BETA_RULES = ("gcv", "same")
 METHODS = ("decoupled", "coupled") + bl.METHODS
 
@@ -49,7 +49,8 @@ class ReconstructionOptions:
     "fixed" uses ``geometry.alpha`` / ``velocity.beta``; "discrepancy"
     searches ``p0 2^-n`` for the largest value whose residual is at most
     ``tau`` times the estimated (or given) noise level, eqs. (disc),
-    (disc2); for beta also "gcv" and "lcurve" (see :mod:`wss_nlp.analysis`).
+    (disc2); for beta also "gcv", "lcurve" and "balance" (Lepskii's balancing
+    principle on the WSS with ``kappa_beta``; see :mod:`wss_nlp.analysis`).
     The defaults (fixed alpha and beta) and tau = 1.1 come from
     ``scripts/parameter_rules.py`` (README, "Choosing alpha and beta"): no
     data-driven rule has yet beaten the fixed values on every phantom.
@@ -69,6 +70,7 @@ class ReconstructionOptions:
     beta_rule: str = "fixed"
     tau_alpha: float = 1.1
     tau_beta: float = 1.1
+    kappa_beta: float = 2.0  # balancing principle: differences up to two noise standard deviations
     alpha_start: float = 1.0
     beta_start: float = 1e-2
     noise_magnitude: float | None = None  # delta in mm; estimated when None
@@ -88,7 +90,7 @@ class ReconstructionOptions:
                              f"got {self.dephasing_beta_rule!r}")
         if self.beta_rule not in BETA_RULES:
             raise InputError(f"beta rule must be one of {BETA_RULES}, got {self.beta_rule!r}")
-        for name in ("tau_alpha", "tau_beta", "alpha_start", "beta_start"):
+        for name in ("tau_alpha", "tau_beta", "kappa_beta", "alpha_start", "beta_start"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("noise_magnitude", "noise_velocity"):
@@ -177,7 +179,7 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
 
     t0 = time.perf_counter()
     vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity)
-    beta_choice = choose_beta(vp, magnitude, lumen, venc, options, where)
+    beta_choice = choose_beta(vp, magnitude, lumen, venc, options, where, viscosity_pa_s)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
 
@@ -307,8 +309,9 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
     return g, choice
 
 
-def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str):
-    """beta fixed, from the discrepancy principle (eq. (disc2), with the residual), GCV or the L-curve.
+def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str,
+                viscosity_pa_s: float):
+    """beta fixed, from the discrepancy principle (eq. (disc2), with the residual), GCV, the L-curve or balancing.
 
     The searches use direct Cholesky solves of the (linear) velocity problem;
     the chosen beta is then solved with the configured solver.
@@ -316,27 +319,32 @@ def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: Reconstructi
     rule = options.beta_rule
     if rule == "fixed":
         return an.ParameterChoice("beta", "fixed", options.velocity.beta)
-    if rule == "discrepancy":
-        if options.noise_velocity is not None:
-            noise = an.NoiseEstimate(options.noise_velocity, "given (--noise-velocity)")
-        else:
-            noise = an.velocity_noise(vp.data_image, raw, lumen.mask, vp.voxels.index, vp.weights, venc,
-                                      where.rstrip())
-
-        def solve(beta, prev):
-            c = vel.solve_cholesky(vp, beta)
-            return c, vp.residual_norm(c)
-
-        _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta,
-                                          smallest=BETA_STOP)
-        choice.name, choice.noise_method = "beta", noise.method
-        return choice
     if rule == "gcv":
         return gcv_beta(vp, options)
     betas = an.geometric_grid(options.beta_start, BETA_STOP)
-    _, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
-    i, k = an.lcurve_corner(res, pen)
-    return an.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
+    if rule == "lcurve":
+        _, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
+        i, k = an.lcurve_corner(res, pen)
+        return an.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
+    if options.noise_velocity is not None:
+        noise = an.NoiseEstimate(options.noise_velocity, "given (--noise-velocity)",
+                                 {"per_voxel": np.full(vp.data.size, options.noise_velocity)})
+    else:
+        noise = an.velocity_noise(vp.data_image, raw, lumen.mask, vp.voxels.index, vp.weights, venc, where.rstrip())
+    if rule == "balance":
+        smat, _ = wss_mod.wss_matrix(vp.basis, vp.disk_map, viscosity_pa_s, options.n_phi)
+        i, ratio, res = an.wss_balance(vp.operator, vp.weights, vp.data, vp.gram, betas, smat,
+                                       noise.details["per_voxel"], options.kappa_beta)
+        return an.ParameterChoice("beta", "balance", float(betas[i]), betas, res, noise.value, noise.method,
+                                  options.kappa_beta, criterion=ratio)
+
+    def solve(beta, prev):
+        c = vel.solve_cholesky(vp, beta)
+        return c, vp.residual_norm(c)
+
+    _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta, smallest=BETA_STOP)
+    choice.name, choice.noise_method = "beta", noise.method
+    return choice
 
 
 def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.ParameterChoice:

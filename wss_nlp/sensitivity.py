@@ -47,7 +47,7 @@ from . import measurement as meas
 from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
-from .analysis import NoiseEstimationError, complex_noise_sigma
+from .analysis import NoiseEstimationError, complex_noise_sigma, phase_noise_std
 from .errors import InputError, SolverError
 
 SCALARS = ("alpha", "beta", "gamma", "center_x", "center_y")
@@ -538,7 +538,6 @@ def noise_levels(raw_magnitude: np.ndarray, mask: np.ndarray, m0: float, m1: flo
                                    "in the field of view); pass --noise-sigma")
     if venc is None:
         raise NoiseEstimationError("the uncertainty band needs venc (phase data) to convert phase noise to velocity")
-    mag = np.maximum(np.asarray(raw_magnitude, float).ravel()[u_index], 1e-300)
-    sigma_u = np.minimum(venc * sigma / (np.pi * mag), venc / np.sqrt(3))
+    sigma_u = phase_noise_std(np.asarray(raw_magnitude, float).ravel()[u_index], sigma, venc)
     return float(sigma / (m1 - m0)), sigma_u, f"sigma = {sigma:.4g} ({how}); sigma_m = sigma/(m1-m0), " \
                                              "sigma_u,i = venc sigma/(pi |d_i|)"

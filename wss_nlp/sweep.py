@@ -74,6 +74,7 @@ PARAMETERS = {
     "velocity_weight": ("coupled", "velocity_weight"),
     "tau_alpha": (None, "tau_alpha"),
     "tau_beta": (None, "tau_beta"),
+    "kappa_beta": (None, "kappa_beta"),
     "dephasing_correction": (None, "dephasing_correction"),
     "uncertainty": (None, "uncertainty"),
     "n_phi": (None, "n_phi"),
@@ -250,7 +251,7 @@ def options_for(params: dict, where: str = "") -> ReconstructionOptions:
             top["alpha_rule"] = "discrepancy"
             continue
         if key == "beta" and isinstance(value, str):
-            rules = {"auto": "discrepancy", "gcv": "gcv", "lcurve": "lcurve"}
+            rules = {"auto": "discrepancy", "gcv": "gcv", "lcurve": "lcurve", "balance": "balance"}
             if value not in rules:
                 raise InputError(f"{where}: beta must be a number or one of {list(rules)}, got {value!r}")
             top["beta_rule"] = rules[value]
