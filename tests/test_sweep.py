@@ -68,7 +68,10 @@ M = [10, 14]
     assert len(set(ids)) == len(ids)
     assert ids == [sweep.case_id(dict(c)) for c in sweep.expand(sweep.load_study(tmp_path / "s.toml"))]  # stable
     o = sweep.options_for({"case": "circle", "alpha": "auto", "N": 6, "M": 14, "beta": "gcv", "quad_order": 3})
-    assert o.alpha_rule == "discrepancy" and o.beta_rule == "gcv"
+    assert o.alpha_rule == "balance" and o.beta_rule == "gcv"  # 'auto' = the balancing principle
+    assert sweep.options_for({"alpha": "discrepancy", "beta": "discrepancy"}).beta_rule == "discrepancy"
+    with pytest.raises(InputError, match="beta must be a number or one of auto"):
+        sweep.options_for({"beta": "magic"})
     assert o.geometry.n_fourier == 6 and o.velocity.degree == 14
     assert o.geometry.quad_order == o.velocity.quad_order == 3
     assert sweep.options_for({"basis": "eigen", "M": 300.0}).velocity.max_eigenvalue == 300.0

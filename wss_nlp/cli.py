@@ -21,7 +21,7 @@ from . import phantoms
 from . import stack as stk
 from . import velocity as vel
 from .errors import InputError, WssNlpError
-from .reconstruct import BETA_RULES, METHODS, ReconstructionOptions, reconstruct
+from .reconstruct import ALPHA_RULES, BETA_RULES, METHODS, parse_rule, ReconstructionOptions, reconstruct
 
 _G = geo.GeometryOptions()
 _V = vel.VelocityOptions()
@@ -30,8 +30,12 @@ _V = vel.VelocityOptions()
 def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("geometry (Sec. 2, 7.1)")
     g.add_argument("--alpha", default=str(_G.alpha),
-                   help="Tikhonov parameter of the H^s radius penalty (dimensionless), or 'auto' for the "
-                        "discrepancy principle, eq. (disc) (default %(default)s)")
+                   help="Tikhonov parameter of the H^s radius penalty (dimensionless), or a rule: 'auto' = "
+                        "'balance' (Lepskii balancing on the radius), 'discrepancy' (eq. (disc)) "
+                        "(default %(default)s)")
+    g.add_argument("--kappa-alpha", type=float, default=ReconstructionOptions.kappa_alpha,
+                   help="balancing rule: radius differences allowed, in noise standard deviations "
+                        "(default %(default)g)")
     g.add_argument("--tau-alpha", type=float, default=ReconstructionOptions.tau_alpha,
                    help="discrepancy factor for alpha (default %(default)g; the paper's theory uses 4)")
     g.add_argument("--noise-magnitude", type=float, default=None,
@@ -54,8 +58,8 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     v = p.add_argument_group("velocity (Sec. 3, 7.2)")
     v.add_argument("--beta", default=str(_V.beta),
                    help="Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless; default %(default)s), "
-                        "or a rule: 'gcv' (generalized cross-validation), 'auto' (discrepancy principle, "
-                        "eq. (disc2)), 'lcurve', 'balance' (Lepskii balancing on the WSS; see README)")
+                        "or a rule: 'auto' = 'balance' (Lepskii balancing on the WSS; see README), "
+                        "'discrepancy' (eq. (disc2)), 'gcv' (generalized cross-validation), 'lcurve'")
     v.add_argument("--kappa-beta", type=float, default=ReconstructionOptions.kappa_beta,
                    help="balancing rule: WSS differences allowed, in noise standard deviations (default %(default)g)")
     v.add_argument("--tau-beta", type=float, default=ReconstructionOptions.tau_beta,
@@ -116,22 +120,15 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _rule(text: str, rules: tuple, name: str):
-    """``(rule, value)`` from an option that is a number or a rule name ('auto' = discrepancy)."""
-    word = text.strip().lower()
-    if word == "auto":
-        return "discrepancy", None
-    if word in rules:
-        return word, None
+    """``(rule, value)`` from an option that is a number or a rule name (see :func:`parse_rule`)."""
     try:
-        value = float(word)
+        return "fixed", float(text)
     except ValueError:
-        words = ["auto"] + [r for r in rules if r not in ("fixed", "discrepancy")]
-        raise InputError(f"--{name} must be a number or one of {', '.join(words)}; got {text!r}") from None
-    return "fixed", value
+        return parse_rule(text, rules, f"--{name}"), None
 
 
 def options_from_args(args) -> ReconstructionOptions:
-    alpha_rule, alpha = _rule(args.alpha, ("fixed", "discrepancy"), "alpha")
+    alpha_rule, alpha = _rule(args.alpha, ALPHA_RULES, "alpha")
     beta_rule, beta = _rule(args.beta, BETA_RULES, "beta")
     gopt = geo.GeometryOptions(
         n_fourier=args.n_fourier, alpha=alpha if alpha is not None else _G.alpha, sobolev_s=args.sobolev,
@@ -147,7 +144,7 @@ def options_from_args(args) -> ReconstructionOptions:
                                  dephasing_beta_rule=args.dephasing_beta, uncertainty=args.uncertainty,
                                  noise_sigma=args.noise_sigma, alpha_rule=alpha_rule,
                                  beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,
-                                 kappa_beta=args.kappa_beta,
+                                 kappa_alpha=args.kappa_alpha, kappa_beta=args.kappa_beta,
                                  noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity,
                                  stack=stk.StackOptions(z_smoothing_mm=args.z_smoothing, z_order=args.z_order,
                                                         strategy=args.stack_strategy))
@@ -306,8 +303,9 @@ def cmd_analyze(args) -> int:
                 print(f"    noise {ch.noise:.4g} ({ch.noise_method}); threshold tau x noise = {ch.threshold:.4g}"
                       + ("" if ch.satisfied else "; NOT reached (model error dominates)"))
             if ch.rule == "balance":
-                print(f"    velocity noise {ch.noise:.4g} m/s ({ch.noise_method}); criterion = largest WSS difference "
-                      f"to a smaller beta in noise standard deviations, admissible <= kappa = {ch.tau:g}")
+                what, unit = ("radius", "mm") if ch.name == "alpha" else ("WSS", "m/s")
+                print(f"    noise {ch.noise:.4g} {unit} ({ch.noise_method}); criterion = largest {what} difference "
+                      f"to a smaller {ch.name} in noise standard deviations, admissible <= kappa = {ch.tau:g}")
             if ch.parameters.size:
                 head = f"    {'parameter':>12} {'residual':>12}" + (f" {'criterion':>12}" if ch.criterion.size else "")
                 print(head)

@@ -162,8 +162,9 @@ def figure_parameter_choice(choice):
         ax.set_ylabel("GCV")
     elif choice.rule == "balance" and choice.criterion.size:
         keep = choice.criterion > 0  # the last (least regularized) value has nothing to compare with
+        what = "radius" if choice.name == "alpha" else "WSS"
         ax.loglog(choice.parameters[keep], choice.criterion[keep], "o-", ms=3,
-                  label="largest WSS difference to a smaller beta / its noise sd")
+                  label=f"largest {what} difference to a smaller {choice.name} / its noise sd")
         ax.axhline(choice.tau, color="tab:red", ls="--", label=rf"$\kappa$ = {choice.tau:g}")
         ax.set_ylabel("difference / noise sd")
     ax.axvline(choice.chosen, color="tab:green", label=rf"chosen ${sym}$ = {choice.chosen:.3g}")

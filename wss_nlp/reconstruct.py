@@ -19,6 +19,7 @@ from . import coupled as cpl
 from . import geometry as geo
 from . import measurement as meas
 from . import preprocess as pp
+from . import radius as rad
 from . import sensitivity as sens
 from . import stack as stk
 from . import velocity as vel
@@ -35,9 +36,23 @@ BETA_STOP = 1e-14
 DEPHASING_THRESHOLD = 0.01
 
 
-ALPHA_RULES = ("fixed", "discrepancy")
+ALPHA_RULES = ("fixed", "discrepancy", "balance")
+ALPHA_STOP = 1e-6  # smallest alpha a balancing search tries (V_N with N = 8 hardly amplifies noise below it)
 BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve", "balance")
 DEPHASING_BETA_RULES = ("gcv", "same")
+#: What ``auto`` means for alpha and beta: the rule closest to the oracle in scripts/accuracy.py --auto (README).
+AUTO_RULE = "balance"
+
+
+def parse_rule(word: str, rules: tuple, name: str) -> str:
+    """The rule a user's word names (``auto`` -> :data:`AUTO_RULE`); InputError lists the accepted words."""
+    word = word.strip().lower()
+    if word == "auto":
+        return AUTO_RULE
+    if word in rules and word != "fixed":
+        return word
+    words = ["auto"] + [r for r in rules if r != "fixed"]
+    raise InputError(f"{name} must be a number or one of {', '.join(words)}; got {word!r}")
 METHODS = ("decoupled", "coupled") + bl.METHODS
 
 
@@ -49,8 +64,9 @@ class ReconstructionOptions:
     "fixed" uses ``geometry.alpha`` / ``velocity.beta``; "discrepancy"
     searches ``p0 2^-n`` for the largest value whose residual is at most
     ``tau`` times the estimated (or given) noise level, eqs. (disc),
-    (disc2); for beta also "gcv", "lcurve" and "balance" (Lepskii's balancing
-    principle on the WSS with ``kappa_beta``; see :mod:`wss_nlp.analysis`).
+    (disc2); "balance" is Lepskii's balancing principle (on the radius for
+    alpha, on the WSS for beta; ``kappa_alpha``, ``kappa_beta``); for beta
+    also "gcv" and "lcurve" (see :mod:`wss_nlp.analysis`).
     The defaults (fixed alpha and beta) and tau = 1.1 come from
     ``scripts/parameter_rules.py`` (README, "Choosing alpha and beta"): no
     data-driven rule has yet beaten the fixed values on every phantom.
@@ -70,7 +86,8 @@ class ReconstructionOptions:
     beta_rule: str = "fixed"
     tau_alpha: float = 1.1
     tau_beta: float = 1.1
-    kappa_beta: float = 2.0  # balancing principle: differences up to two noise standard deviations
+    kappa_alpha: float = 2.0  # balancing principle: differences up to two noise standard deviations
+    kappa_beta: float = 2.0
     alpha_start: float = 1.0
     beta_start: float = 1e-2
     noise_magnitude: float | None = None  # delta in mm; estimated when None
@@ -90,7 +107,7 @@ class ReconstructionOptions:
                              f"got {self.dephasing_beta_rule!r}")
         if self.beta_rule not in BETA_RULES:
             raise InputError(f"beta rule must be one of {BETA_RULES}, got {self.beta_rule!r}")
-        for name in ("tau_alpha", "tau_beta", "kappa_beta", "alpha_start", "beta_start"):
+        for name in ("tau_alpha", "tau_beta", "kappa_alpha", "kappa_beta", "alpha_start", "beta_start"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)}")
         for name in ("noise_magnitude", "noise_velocity"):
@@ -273,7 +290,7 @@ def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options
 
 
 def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str):
-    """Geometry solve with alpha fixed or from the discrepancy principle (eq. (disc)).
+    """Geometry solve with alpha fixed, from the discrepancy principle (eq. (disc)) or from balancing.
 
     The residual and the noise level are both taken on the annulus voxels
     (see :mod:`wss_nlp.analysis`); each solve starts from the previous one.
@@ -299,6 +316,8 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
     else:
         noise = an.magnitude_noise(problem.magnitude, raw, lumen.mask, norm.m0, norm.m1, problem.grid.voxel_area,
                                    annulus, where.rstrip())
+    if options.alpha_rule == "balance":
+        return balance_alpha(problem, gopt, run, noise, annulus.size, options)
 
     def solve(alpha, prev):
         r = run(alpha, prev)
@@ -307,6 +326,40 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
     g, choice = an.discrepancy_search(solve, options.alpha_start, noise.value, options.tau_alpha)
     choice.name, choice.noise_method = "alpha", noise.method
     return g, choice
+
+
+def balance_alpha(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, run, noise: an.NoiseEstimate,
+                  n_annulus: int, options: ReconstructionOptions):
+    """alpha by the balancing principle on the radius ``R(phi_j)`` (:func:`wss_nlp.analysis.balancing_principle`).
+
+    Notes
+    -----
+    On the grid ``alpha_start 2^-n`` down to :data:`ALPHA_STOP`, each solve
+    warm-started from the previous one. The noise part of ``R_alpha`` is
+    linearized, ``e_alpha = D (dc/dm) n_m`` with ``dc/dm`` from the implicit
+    function theorem on the KKT system (:func:`wss_nlp.sensitivity.geometry_kkt`,
+    CasADi derivatives, active box rows included) and independent voxel noise
+    of standard deviation ``sigma_m = delta / sqrt(|V| n_annulus)`` (the
+    per-voxel level behind ``delta``, eq. (disc)). Units: R in mm.
+    """
+    alphas = an.geometric_grid(options.alpha_start, ALPHA_STOP)
+    sigma_m = noise.value / np.sqrt(problem.grid.voxel_area * n_annulus)
+    design = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
+    n_box = design.shape[0]
+    results, radii, maps, res = [], [], [], []
+    prev = None
+    for alpha in alphas:
+        prev = run(alpha, prev)
+        lam = prev.box_multipliers if prev.box_multipliers.size == n_box else np.zeros(n_box)
+        dc, annulus = sens.geometry_kkt(problem, gopt, prev.coefficients, alpha, prev.gamma, lam)
+        results.append(prev)
+        radii.append(design @ prev.coefficients)
+        maps.append((design @ dc[:, :annulus.size] * sigma_m).ravel())
+        res.append(prev.annulus_residual_norm)
+    radii, maps = np.array(radii), np.array(maps)
+    j, ratio = an.balancing_principle(radii @ radii.T, maps @ maps.T, options.kappa_alpha)
+    return results[j], an.ParameterChoice("alpha", "balance", float(alphas[j]), alphas, np.array(res), noise.value,
+                                          noise.method, options.kappa_alpha, criterion=ratio)
 
 
 def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str,

@@ -41,7 +41,7 @@ from . import metrics as met
 from . import phantoms
 from . import velocity as vel
 from .errors import InputError, WssNlpError
-from .reconstruct import METHODS, ReconstructionOptions, reconstruct
+from .reconstruct import ALPHA_RULES, BETA_RULES, METHODS, ReconstructionOptions, parse_rule, reconstruct
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -74,6 +74,7 @@ PARAMETERS = {
     "velocity_weight": ("coupled", "velocity_weight"),
     "tau_alpha": (None, "tau_alpha"),
     "tau_beta": (None, "tau_beta"),
+    "kappa_alpha": (None, "kappa_alpha"),
     "kappa_beta": (None, "kappa_beta"),
     "dephasing_correction": (None, "dephasing_correction"),
     "uncertainty": (None, "uncertainty"),
@@ -245,16 +246,8 @@ def options_for(params: dict, where: str = "") -> ReconstructionOptions:
         if key in DATA_KEYS:
             continue
         part, name = PARAMETERS[key]
-        if key == "alpha" and isinstance(value, str):
-            if value != "auto":
-                raise InputError(f"{where}: alpha must be a number or 'auto', got {value!r}")
-            top["alpha_rule"] = "discrepancy"
-            continue
-        if key == "beta" and isinstance(value, str):
-            rules = {"auto": "discrepancy", "gcv": "gcv", "lcurve": "lcurve", "balance": "balance"}
-            if value not in rules:
-                raise InputError(f"{where}: beta must be a number or one of {list(rules)}, got {value!r}")
-            top["beta_rule"] = rules[value]
+        if key in ("alpha", "beta") and isinstance(value, str):
+            top[f"{key}_rule"] = parse_rule(value, ALPHA_RULES if key == "alpha" else BETA_RULES, f"{where}: {key}")
             continue
         if key == "M" and params.get("basis") == "eigen":
             name = "max_eigenvalue"
