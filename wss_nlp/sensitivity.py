@@ -32,6 +32,7 @@ the dephasing factors of the second pass.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -96,6 +97,7 @@ class Sensitivity:
 
 
 # --------------------------------------------------------------------------- symbolic pieces
+@functools.lru_cache(maxsize=16)  # the balancing alpha rule evaluates it at ~20 alphas; building it is the cost
 def voxel_model_function(n_fourier: int, order: int, heaviside: str) -> ca.Function:
     """Per-voxel ``F_i(z)`` with ``z = [c_R; gamma; c_x; c_y]``, its gradient and Hessian in z (SX).
 
