@@ -36,7 +36,7 @@ def main():
     acq, truth = phantoms.make_phantom("circle", h_mm=0.6, snr=None, seed=1)
     for t in (1, 2):
         vo = vel.VelocityOptions(degree=10, angular_order=None, inner_fraction=1.0, laplacian_power=t, beta=1e-4)
-        res = reconstruct(acq, ReconstructionOptions(velocity=vo))[0]
+        res = reconstruct(acq, ReconstructionOptions(velocity=vo, beta_rule="fixed"))[0]
         lines.append(f"| t = {t} | {metrics.compare_slice(res, truth).mean_wss_rel:+.3%} |")
     lines += ["", "Geometry alpha, laminar phantom, SNR 25, seeds 0-2: radius rel. L2 error (max over seeds):", "",
               "| h [mm] | " + " | ".join(f"alpha {a:g}" for a in (1e-4, 1e-3, 4e-3, 1e-2)) + " |",
@@ -57,7 +57,8 @@ def main():
     for beta in (5e-8, 1e-9, 3e-11):
         cells = []
         for method in ("decoupled", "coupled"):
-            opts = ReconstructionOptions(method=method, uncertainty=False, velocity=vel.VelocityOptions(beta=beta))
+            opts = ReconstructionOptions(method=method, uncertainty=False, velocity=vel.VelocityOptions(beta=beta),
+                                         beta_rule="fixed")
             e = metrics.compare_slice(reconstruct(acq, opts)[0], truth)
             cells.append(f"{e.radius_rel_l2:.2%} / {e.wss_rel_l2:.1%}")
         lines.append(f"| {beta:g} | " + " | ".join(cells) + " |")
@@ -73,12 +74,12 @@ def main():
     for snr in (None, 25.0):
         acq, truth = phantoms.make_stack("tapered", nz=10, h_mm=1.0, spacing_mm=2.0, snr=snr, seed=0,
                                          swirl_per_s=20.0)
-        variants = [("default", vel.VelocityOptions())]
+        variants = [("beta 5e-8 (former default)", vel.VelocityOptions(), "fixed")]
         if snr is None:
-            variants += [("beta 1e-11", vel.VelocityOptions(beta=1e-11)),
-                         ("inner fraction 1", vel.VelocityOptions(inner_fraction=1.0))]
-        for name, vo in variants:
-            res = reconstruct(acq, ReconstructionOptions(uncertainty=False, velocity=vo))
+            variants += [("beta 1e-11", vel.VelocityOptions(beta=1e-11), "fixed"),
+                         ("inner fraction 1", vel.VelocityOptions(inner_fraction=1.0), "balance")]
+        for name, vo, rule in variants:
+            res = reconstruct(acq, ReconstructionOptions(uncertainty=False, velocity=vo, beta_rule=rule))
             errs = []
             for k, r in enumerate(res):
                 z = 2.0 * k

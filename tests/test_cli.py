@@ -123,6 +123,7 @@ def test_demo(tmp_path, capsys):
     assert main(["demo", "--h", "1.5", "-o", str(tmp_path / "demo")]) == 0
     text = capsys.readouterr().out
     assert "radius rel. L2 error" in text and "WSS rel. L2 error" in text
+    assert "alpha (fixed)" in text and "beta (balance)" in text  # the defaults, and the chosen value
     assert (tmp_path / "demo" / "result.h5").exists()
     assert len(list((tmp_path / "demo").glob("*.png"))) == 4
 

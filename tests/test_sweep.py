@@ -72,6 +72,10 @@ M = [10, 14]
     assert sweep.options_for({"alpha": "discrepancy", "beta": "discrepancy"}).beta_rule == "discrepancy"
     with pytest.raises(InputError, match="beta must be a number or one of auto"):
         sweep.options_for({"beta": "magic"})
+    fixed = sweep.options_for({"beta": 1e-7, "alpha": 4e-3})  # numbers are used as given, not replaced by a rule
+    assert (fixed.beta_rule, fixed.velocity.beta, fixed.alpha_rule, fixed.geometry.alpha) == ("fixed", 1e-7,
+                                                                                               "fixed", 4e-3)
+    assert sweep.options_for({}).beta_rule == "balance"  # the default
     assert o.geometry.n_fourier == 6 and o.velocity.degree == 14
     assert o.geometry.quad_order == o.velocity.quad_order == 3
     assert sweep.options_for({"basis": "eigen", "M": 300.0}).velocity.max_eigenvalue == 300.0

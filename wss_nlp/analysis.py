@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 import scipy.ndimage
+import scipy.stats
 
 from .errors import InputError
 from .preprocess import robust_std, where_prefix
@@ -60,9 +61,16 @@ def magnitude_noise(m: np.ndarray, raw: np.ndarray, mask: np.ndarray, m0: float,
     ``delta^2 = |V| sum_{i in region} E[(m_i - f_i)^2]`` with ``f_i`` the
     noise-free volume fraction. On the lumen plateau (two voxels inside the
     bright region) ``f = 1`` and on the background plateau ``f = 0``, so
-    their mean squares are measured directly (they include the truncation
-    ``T``); wall voxels are not truncated, so they get the variance of the
-    raw lumen signal, ``(1.4826 MAD(raw on the lumen plateau) / (m1 - m0))^2``.
+    their mean squares are measured there (they include the truncation
+    ``T`` and the Rayleigh shape of the background) and applied to every
+    voxel more than one voxel inside or outside the bright region. The two
+    one-voxel rings at its edge, where the wall crosses, get the mean square
+    of truncated Gaussian noise, ``truncated_error_msq(m_i, s)``, with the
+    spread of the raw lumen signal
+    ``s = 1.4826 MAD(raw on the lumen plateau) / (m1 - m0)`` and their own
+    value ``m_i`` in place of the unknown ``f_i``. (Counting the full
+    ``s^2`` on a band two voxels wide, as before, over-estimated delta by up
+    to 1.47x: most of that band is not crossed by the wall.)
     Units: mm (an L^2(D) norm of a dimensionless image).
     """
     inner, outer = _plateaus(mask)
@@ -75,16 +83,44 @@ def magnitude_noise(m: np.ndarray, raw: np.ndarray, mask: np.ndarray, m0: float,
                                    "pass --noise-magnitude (delta, mm) or a fixed --alpha")
     msq_in = float(np.mean((1 - m[inner]) ** 2))
     msq_out = float(np.mean(m[outer] ** 2))
-    var_wall = (robust_std(raw[inner]) / (m1 - m0)) ** 2
-    flat_in, flat_out = inner.ravel()[region], outer.ravel()[region]
+    s_wall = robust_std(raw[inner]) / (m1 - m0)
+    inside, outside = _plateaus(mask, width=1)
+    flat_in, flat_out = inside.ravel()[region], outside.ravel()[region]
     flat_wall = ~(flat_in | flat_out)
-    total = msq_in * flat_in.sum() + msq_out * flat_out.sum() + var_wall * flat_wall.sum()
+    msq_wall = truncated_error_msq(m.ravel()[region][flat_wall], s_wall)
+    total = msq_in * flat_in.sum() + msq_out * flat_out.sum() + float(np.sum(msq_wall))
     return NoiseEstimate(
         value=float(np.sqrt(voxel_area * total)),
-        method="plateaus: mean squares on lumen and background plateaus, raw lumen spread on wall voxels",
-        details={"msq_lumen": msq_in, "msq_background": msq_out, "var_wall": var_wall,
+        method="plateaus: mean squares on lumen and background plateaus; one-voxel rings at the edge: truncated "
+               "Gaussian with the raw lumen spread, at their own value",
+        details={"msq_lumen": msq_in, "msq_background": msq_out, "var_wall": s_wall**2,
+                 "msq_wall": float(np.mean(msq_wall)) if msq_wall.size else float("nan"),
                  "n_lumen": int(flat_in.sum()), "n_background": int(flat_out.sum()), "n_wall": int(flat_wall.sum())},
     )
+
+
+def truncated_error_msq(f: np.ndarray, s: float) -> np.ndarray:
+    """``E[(T(f + s Z) - f)^2]`` for ``Z ~ N(0, 1)`` and ``T`` the truncation to [0, 1].
+
+    Notes
+    -----
+    With ``a = -f/s`` and ``b = (1 - f)/s``,
+    ``s^2 (G(b) - G(a)) + f^2 Phi(a) + (1 - f)^2 (1 - Phi(b))``, where
+    ``G(c) = Phi(c) - c phi(c)`` is the integral of ``z^2 phi(z)`` up to
+    ``c``. It equals ``s^2`` for ``f`` far from 0 and 1 and ``s^2 / 2`` at
+    ``f = 0`` or ``f = 1``: a voxel the wall does not cross loses the half
+    of its noise that the truncation removes.
+    """
+    f = np.clip(np.asarray(f, float), 0.0, 1.0)
+    if s <= 0:
+        return np.zeros_like(f)
+    a, b = -f / s, (1 - f) / s
+    norm = scipy.stats.norm
+
+    def g(c):
+        return norm.cdf(c) - c * norm.pdf(c)
+
+    return s**2 * (g(b) - g(a)) + f**2 * norm.cdf(a) + (1 - f) ** 2 * norm.sf(b)
 
 
 def complex_noise_sigma(raw: np.ndarray, mask: np.ndarray) -> float:
@@ -310,11 +346,16 @@ def balance_grams(operator, weights, data, gram, betas, functional, sigma_u):
     ``tr(M_j M_k^T) = <S H_j^{-1} L, S H_k^{-1} L>_F``.
     Returns ``(gram_estimates, gram_noise, residual_norms)``.
     """
+    sigma_u = np.asarray(sigma_u, float)
+    if not (np.all(np.isfinite(sigma_u)) and np.any(sigma_u > 0)):
+        raise NoiseEstimationError("the balancing principle needs a positive, finite velocity noise level; got "
+                                   f"{'zero' if np.all(sigma_u == 0) else 'non-finite values'} "
+                                   "(pass --noise-velocity or a fixed --beta)")
     w = weights / np.sum(weights)
     tw = operator * w[:, None]
     ktk = tw.T @ operator
     rhs = tw.T @ data
-    noise_gram = (tw * np.asarray(sigma_u)[:, None] ** 2).T @ tw
+    noise_gram = (tw * sigma_u[:, None] ** 2).T @ tw
     jitter = 1e-14 * np.trace(noise_gram) / len(noise_gram)  # rank-deficient when voxels < basis functions
     root = np.linalg.cholesky(noise_gram + jitter * np.eye(len(noise_gram)))
     est, noise, res = [], [], []

@@ -56,9 +56,9 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--hessian", choices=["gauss-newton", "exact", "limited-memory"], default=_G.hessian,
                    help="Hessian used by IPOPT (default %(default)s)")
     v = p.add_argument_group("velocity (Sec. 3, 7.2)")
-    v.add_argument("--beta", default=str(_V.beta),
-                   help="Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless; default %(default)s), "
-                        "or a rule: 'auto' = 'balance' (Lepskii balancing on the WSS; see README), "
+    v.add_argument("--beta", default="auto",
+                   help=f"Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless, e.g. {_V.beta:g}), "
+                        "or a rule: 'auto' = 'balance' (Lepskii balancing on the WSS; see README; the default), "
                         "'discrepancy' (eq. (disc2)), 'gcv' (generalized cross-validation), 'lcurve'")
     v.add_argument("--kappa-beta", type=float, default=ReconstructionOptions.kappa_beta,
                    help="balancing rule: WSS differences allowed, in noise standard deviations (default %(default)g)")
@@ -372,8 +372,10 @@ def cmd_demo(args) -> int:
     res = results[0]
     err = metrics.compare_slice(res, truth)
     if hasattr(res, "velocity"):
-        solvers = [("geometry solver", f"{res.geometry.stats.status}"),
-                   ("velocity solver", f"{res.velocity.stats.status}")]
+        solvers = [(f"{ch.name} ({ch.rule})", f"{ch.chosen:.3g}") for ch in (res.alpha_choice, res.beta_choice)
+                   if ch is not None]
+        solvers += [("geometry solver", f"{res.geometry.stats.status}"),
+                    ("velocity solver", f"{res.velocity.stats.status}")]
     else:
         solvers = [("method", f"{res.method} (closed-form fits)")]
     rows = _errors_rows(err) + solvers + [("time [s]", f"{seconds:.2f}")]

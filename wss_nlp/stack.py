@@ -44,6 +44,7 @@ import casadi as ca
 import numpy as np
 import scipy.linalg
 
+from . import analysis as an
 from . import geometry as geo
 from . import measurement as meas
 from . import preprocess as pp
@@ -306,23 +307,23 @@ def kaczmarz_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray,
 
 
 # ------------------------------------------------------------------ velocity
-def _velocity_system(vps, beta, kappa_v, gram0, zop):
-    """Per-slice normal matrices ``H_k + kappa_v L_kk G0 / pi`` and right-hand sides."""
+def _velocity_system(vps, betas, kappa_v, gram0, zop):
+    """Per-slice normal matrices ``H_k + kappa_v L_kk G0 / pi`` and right-hand sides (``betas[k]`` in ``H_k``)."""
     out = []
     for k, vp in enumerate(vps):
-        hmat, g = vp.normal_equations(beta)
+        hmat, g = vp.normal_equations(betas[k])
         out.append((hmat + kappa_v * zop[k, k] * gram0 / np.pi, g))
     return out
 
 
-def coupled_velocity(vps, beta: float, kappa_v: float, gram0: np.ndarray, order: int):
-    """All slices' velocity as one CasADi QP (IPOPT); returns ``(coefficients, stats)``."""
+def coupled_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, order: int):
+    """All slices' velocity as one CasADi QP (IPOPT), beta ``betas[k]`` in slice k; ``(coefficients, stats)``."""
     ns, nb = len(vps), vps[0].operator.shape[1]
     big = ca.MX.sym("V", nb * ns)
     f = 0
     for k, vp in enumerate(vps):
         ck = big[k * nb:(k + 1) * nb]
-        hmat, g = vp.normal_equations(beta)
+        hmat, g = vp.normal_equations(betas[k])
         f += ca.dot(ck, ca.mtimes(ca.DM(hmat), ck)) - 2 * ca.dot(ca.DM(g), ck)
     zlap = np.kron(z_operator(ns, order), gram0 / np.pi)
     f += kappa_v * ca.dot(big, ca.mtimes(sparse_dm(zlap), big))
@@ -332,11 +333,11 @@ def coupled_velocity(vps, beta: float, kappa_v: float, gram0: np.ndarray, order:
     return np.asarray(sol["x"]).reshape(ns, nb), stats
 
 
-def kaczmarz_velocity(vps, beta: float, kappa_v: float, gram0: np.ndarray, tol: float, max_sweeps: int,
+def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float, max_sweeps: int,
                       order: int):
-    """Block Gauss-Seidel sweeps (forward, backward) on the coupled normal equations."""
+    """Block Gauss-Seidel sweeps (forward, backward) on the coupled normal equations (``betas`` per slice)."""
     zop = z_operator(len(vps), order)
-    system = _velocity_system(vps, beta, kappa_v, gram0, zop)
+    system = _velocity_system(vps, betas, kappa_v, gram0, zop)
     factors = [scipy.linalg.cho_factor(h) for h, _ in system]
     ns = len(vps)
     c = np.array([scipy.linalg.cho_solve(fc, g) for fc, (_, g) in zip(factors, system)])
@@ -386,8 +387,22 @@ def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray)
 
 
 def supports(options) -> bool:
-    """Whether z-regularization applies to these reconstruction options (decoupled, fixed alpha and beta)."""
-    return options.method == "decoupled" and options.alpha_rule == "fixed" and options.beta_rule == "fixed"
+    """Whether z-regularization applies to these reconstruction options (decoupled method, fixed alpha).
+
+    beta may come from any rule: a segment is fitted with one beta, the
+    median (on a log scale) of its slices' own choices (:func:`segment_beta`).
+    """
+    return options.method == "decoupled" and options.alpha_rule == "fixed"
+
+
+def segment_beta(choices) -> float:
+    """One beta for a z-coupled segment from its slices' choices: their geometric median.
+
+    The z-penalty pools neighbouring slices, so they need a common beta; the
+    median keeps one slice with an outlying choice (a noisier image, a
+    fallback) from setting it, and the log scale matches the 2^-n grids.
+    """
+    return float(np.exp(np.median(np.log([c.chosen for c in choices]))))
 
 
 def segments_of(ok: list[int]) -> list[list[int]]:
@@ -417,11 +432,11 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     (results, info): ``results[k]`` is a :class:`wss_nlp.reconstruct.SliceResult`
     or None for a slice that failed (``info.failed[k]`` says why).
     """
-    from .reconstruct import DEPHASING_THRESHOLD, SliceResult, gcv_beta, resolve_viscosity
+    from .reconstruct import DEPHASING_THRESHOLD, SliceResult, choose_beta, gcv_beta, resolve_viscosity
 
     stack = stack or StackOptions()
     if not supports(options):
-        raise InputError("stacks with z-regularization support the decoupled method with fixed alpha and beta; "
+        raise InputError("stacks with z-regularization support the decoupled method with a fixed alpha; "
                          "pass --z-smoothing 0 for independent slices with other settings")
     mu = resolve_viscosity(acq, options)
     dz = float(acq.slice_spacing_mm) if acq.nz > 1 else 1.0
@@ -450,12 +465,20 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     basis = vopt.make_basis()
     gram0 = basis.laplacian_gram(0)
     done = 0
-    def fit_velocity(vps, strategy, record=True):
+    def choose_betas(seg, vps):
+        """Each slice's own beta choice (the rule of ``options``) and the betas used: one per segment if coupled."""
+        choices = [choose_beta(vp, acq.magnitude[k], prepared[k].lumen, acq.venc_m_s, options,
+                               f"{acq.source} slice {k}", mu) for k, vp in zip(seg, vps)]
+        if kappa_v == 0 or len({c.chosen for c in choices}) == 1:
+            return choices, [c.chosen for c in choices]
+        return choices, [segment_beta(choices)] * len(seg)
+
+    def fit_velocity(vps, strategy, betas, record=True):
         """The z-coupled velocity fit of one segment (any component: the data sit in ``vps``)."""
         if strategy == "coupled":
-            vcoef, vstats = coupled_velocity(vps, vopt.beta, kappa_v, gram0, m)
+            vcoef, vstats = coupled_velocity(vps, betas, kappa_v, gram0, m)
             return vcoef, [vstats] * len(vps)
-        vcoef, sweeps, hist = kaczmarz_velocity(vps, vopt.beta, kappa_v, gram0, stack.tol, stack.max_sweeps, m)
+        vcoef, sweeps, hist = kaczmarz_velocity(vps, betas, kappa_v, gram0, stack.tol, stack.max_sweeps, m)
         ok = hist[-1] < stack.tol or len(vps) == 1
         if record:
             info.sweeps.setdefault("velocity", []).append(sweeps)
@@ -465,7 +488,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                                    else "Maximum_Iterations_Exceeded", ok, sweeps, float("nan"), 0.0)] * len(vps)
 
     def solve_segment(seg, problems, x0, strategy):
-        """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats)``."""
+        """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats, beta choices, betas)``."""
         t0 = time.perf_counter()
         sg = [SliceGeometry(pb, gopt, kappa) for pb in problems]
         t["geometry_build"] = t.get("geometry_build", 0.0) + time.perf_counter() - t0
@@ -486,9 +509,10 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                  for i, (pb, sl) in enumerate(zip(problems, sg))]
         vps = [vel.assemble(acq.grid, prepared[k].velocity_image, g.coefficients, g.center, vopt, basis=basis)
                for k, g in zip(seg, geoms)]
-        vcoef, vstats = fit_velocity(vps, strategy)
+        choices, betas = choose_betas(seg, vps)
+        vcoef, vstats = fit_velocity(vps, strategy, betas)
         t["velocity"] = t.get("velocity", 0.0) + time.perf_counter() - t0
-        return coef, geoms, vps, vcoef, vstats
+        return coef, geoms, vps, vcoef, vstats, choices, betas
 
     for seg in segs:
         strategy = stack.strategy
@@ -499,7 +523,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             log(f"slices {seg[0]}-{seg[-1]}: {strategy} solve of {len(seg)} slice(s)")
         problems = [prepared[k].problem for k in seg]
         x0 = np.array([geo.initial_guess(pb, gopt.n_fourier) for pb in problems])
-        coef, geoms, vps, vcoef, vstats = solve_segment(seg, problems, x0, strategy)
+        coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(seg, problems, x0, strategy)
         factors = [None] * len(seg)
         if options.dephasing_correction and acq.venc_m_s is not None:
             # as reconstruct_slice: predict wall-voxel signal loss from a GCV-beta velocity, then one more pass
@@ -519,7 +543,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                     pb = problems[i]
                     corrected.append(geo.GeometryProblem(pb.grid, m_corr.reshape(pb.magnitude.shape), pb.center,
                                                          pb.r0, pb.r1, pb.r_ref))
-                coef, geoms, vps, vcoef, vstats = solve_segment(seg, corrected, coef, strategy)
+                coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(seg, corrected, coef, strategy)
                 info.dephasing_pass = True
         planar = None
         if acq.velocity_inplane is not None:
@@ -528,14 +552,14 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             for comp in acq.velocity_inplane:
                 vps_c = [replace(vp, data=comp[k].ravel()[vp.voxels.index], data_image=comp[k])
                          for k, vp in zip(seg, vps)]
-                coef_c, st_c = fit_velocity(vps_c, strategy, record=False)
-                planar.append([wss_mod.from_reconstruction(vel.result(vp, vopt, cc, vopt.beta, st), options.n_phi,
-                                                           mu).tau for vp, cc, st in zip(vps_c, coef_c, st_c)])
+                coef_c, st_c = fit_velocity(vps_c, strategy, betas, record=False)
+                planar.append([wss_mod.from_reconstruction(vel.result(vp, vopt, cc, b, st), options.n_phi, mu).tau
+                               for vp, cc, st, b in zip(vps_c, coef_c, st_c, betas)])
             dcoef, dcenter = _z_derivatives(np.array([g.coefficients for g in geoms]),
                                             np.array([g.center for g in geoms]), np.array(seg) * dz)
             t["velocity_inplane"] = t.get("velocity_inplane", 0.0) + time.perf_counter() - t0
         for i, k in enumerate(seg):
-            v = vel.result(vps[i], vopt, vcoef[i], vopt.beta, vstats[i])
+            v = vel.result(vps[i], vopt, vcoef[i], betas[i], vstats[i])
             w = wss_mod.from_reconstruction(v, options.n_phi, mu)
             if planar is not None:
                 w.vector = wss_mod.wss_vector(w.phi, geoms[i].coefficients, dcoef[i], dcenter[i],
@@ -544,8 +568,13 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                 raise SolverError(f"{acq.source} slice {k}: wall shear stress is not finite")
             p = prepared[k]
             sec = {"min_dephasing_factor": float(np.min(factors[i])) if factors[i] is not None else 1.0}
+            notes = []
+            if betas[i] != choices[i].chosen:
+                notes.append(f"stack: beta = {betas[i]:.3g}, the geometric median of the {choices[i].rule} choices "
+                             f"of slices {seg[0]}-{seg[-1]} (this slice alone: {choices[i].chosen:.3g})")
             results[k] = SliceResult(k, geoms[i], v, w, p.norm, p.lumen, acq.grid, p.magnitude, p.velocity_image,
-                                     sec, None, None, "decoupled", {}, None, [])
+                                     sec, an.ParameterChoice("alpha", "fixed", gopt.alpha),
+                                     replace(choices[i], chosen=betas[i]), "decoupled", {}, None, notes)
             done += 1
             if progress is not None:
                 progress(done, len(prepared), results[k])

@@ -249,6 +249,8 @@ def options_for(params: dict, where: str = "") -> ReconstructionOptions:
         if key in ("alpha", "beta") and isinstance(value, str):
             top[f"{key}_rule"] = parse_rule(value, ALPHA_RULES if key == "alpha" else BETA_RULES, f"{where}: {key}")
             continue
+        if key in ("alpha", "beta"):
+            top[f"{key}_rule"] = "fixed"  # a number is used as given
         if key == "M" and params.get("basis") == "eigen":
             name = "max_eigenvalue"
         if part is None:
