@@ -94,9 +94,9 @@ class ReconstructionOptions:
     tau_alpha: float = 1.1
     tau_beta: float = 1.1
     kappa_alpha: float = 2.0  # balancing principle: differences up to two noise standard deviations
-    # beta: noise alone stays below 2 (Monte Carlo, README), but the least regularized WSS estimates carry a bias
-    # of their own (the voxel means do not fix every coefficient), which the rule reads as bias of the more
-    # regularized ones; 2.5 is the margin that absorbed it on held-out seeds (README, "Choosing alpha and beta")
+    # beta: noise alone stays below 2, but the least regularized WSS estimates carry a bias of their own (the
+    # voxel means do not fix every coefficient), which the rule reads as bias of the more regularized ones; 2.5 is
+    # the margin that absorbed it on held-out seeds (scripts/parameter_rules.py --kappa, README)
     kappa_beta: float = 2.5
     alpha_start: float = 1.0
     beta_start: float = 1e-2
