@@ -307,6 +307,17 @@ def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options
     return res, info
 
 
+def _noise_free_choice(name: str, rule: str, fixed: float, noise: an.NoiseEstimate) -> an.ParameterChoice:
+    """The fixed value, recorded as such, when the estimated noise is zero (noise-free synthetic data).
+
+    There is no noise to balance against or to match a residual to; the
+    choice says so (``SliceResult.warnings`` reports it) instead of guessing.
+    """
+    return an.ParameterChoice(name, "fixed", fixed, noise=0.0,
+                              noise_method=f"{rule} needs noise, the estimate is zero ({noise.method}); "
+                                           "the fixed value is used")
+
+
 def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str):
     """Geometry solve with alpha fixed, from the discrepancy principle (eq. (disc)) or from balancing.
 
@@ -336,9 +347,7 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
                                    annulus, where.rstrip())
     if not noise.value > 0:
         g = geo.solve(problem, gopt)
-        return g, an.ParameterChoice("alpha", "fixed", g.alpha, noise=0.0,
-                                     noise_method=f"{options.alpha_rule} needs noise, the estimate is zero "
-                                                  f"({noise.method}); the fixed value is used")
+        return g, _noise_free_choice("alpha", options.alpha_rule, g.alpha, noise)
     if options.alpha_rule == "balance":
         return balance_alpha(problem, gopt, run, noise, annulus.size, options)
 
@@ -408,10 +417,7 @@ def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: Reconstructi
     else:
         noise = an.velocity_noise(vp.data_image, raw, lumen.mask, vp.voxels.index, vp.weights, venc, where.rstrip())
     if not noise.value > 0:
-        # noise-free (synthetic) data: no noise to balance against or to discrepancy-match; say so, do not guess
-        return an.ParameterChoice("beta", "fixed", options.velocity.beta, noise=0.0,
-                                  noise_method=f"{rule} needs noise, the estimate is zero ({noise.method}); "
-                                               "the fixed value is used")
+        return _noise_free_choice("beta", rule, options.velocity.beta, noise)
     if rule == "balance":
         smat, _ = wss_mod.wss_matrix(vp.basis, vp.disk_map, viscosity_pa_s, options.n_phi)
         i, ratio, res = an.wss_balance(vp.operator, vp.weights, vp.data, vp.gram, betas, smat,
