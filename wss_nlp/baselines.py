@@ -138,6 +138,7 @@ class BaselineResult:
     seconds: dict = field(default_factory=dict)
     info: dict = field(default_factory=dict)  # fit details (ranges, knots, smoothing, GCV)
     notes: list = field(default_factory=list)
+    screen: dict = field(default_factory=dict)  # what wss_nlp.plausibility found (vessels, aliasing)
 
     converged = True  # closed-form fits; failures raise instead
 
@@ -293,12 +294,12 @@ def stalder_wss(geom: ContourGeometry, velocity: np.ndarray, grid: VoxelGrid, ph
 
 def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: VoxelGrid, viscosity_pa_s: float,
                       method: str, options: BaselineOptions, n_phi: int = 360, source: str = "<memory>",
-                      index: int = 0) -> BaselineResult:
+                      index: int = 0, vessel=None) -> BaselineResult:
     """Segment the wall and estimate WSS with a classical method (``"oyre"`` or ``"stalder"``)."""
     where = f"{source} slice {index}"
     t = {}
     t0 = time.perf_counter()
-    norm, m, lumen = pp.preprocess(magnitude, grid, where)
+    norm, m, lumen = pp.preprocess(magnitude, grid, where, vessel)
     geom = segment(m, grid, lumen, options.n_fourier, where)
     t["segmentation"] = time.perf_counter() - t0
     t0 = time.perf_counter()

@@ -17,7 +17,9 @@ from . import coupled as cpl
 from . import geometry as geo
 from . import io as wio
 from . import metrics
+from . import outputs
 from . import phantoms
+from . import plausibility as plaus
 from . import stack as stk
 from . import velocity as vel
 from .errors import InputError, WssNlpError
@@ -92,6 +94,13 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
                         "from the estimated noise levels)")
     c.add_argument("--coupled-quad-order", type=int, default=cpl.CoupledOptions().quad_order,
                    help="coupled: sub-voxel points per axis of the velocity misfit (default %(default)s)")
+    s = p.add_argument_group("input checks")
+    s.add_argument("--vessel", default=None, metavar="X,Y",
+                   help="with several vessels in view, reconstruct the one at this point (mm, image frame; default: "
+                        "the largest lumen; the others are reported)")
+    s.add_argument("--no-unwrap", dest="unwrap", action="store_false",
+                   help="use the velocities as given: no phase unwrapping (aliasing is then only reported) and no "
+                        "[-venc, venc] range check (for data unwrapped by other software)")
     z = p.add_argument_group("stacks of slices (Sec. 5)")
     z.add_argument("--z-smoothing", type=float, default=None,
                    help="length in mm along the vessel over which neighbouring slices are pooled (z-regularization "
@@ -127,6 +136,16 @@ def _rule(text: str, rules: tuple, name: str):
         return parse_rule(text, rules, f"--{name}"), None
 
 
+def _point(text: str | None, name: str):
+    if text is None:
+        return None
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise InputError(f"{name} takes two numbers X,Y in mm, e.g. {name} 12.5,-3; got {text!r}") from None
+    return (x, y)
+
+
 def options_from_args(args) -> ReconstructionOptions:
     alpha_rule, alpha = _rule(args.alpha, ALPHA_RULES, "alpha")
     beta_rule, beta = _rule(args.beta, BETA_RULES, "beta")
@@ -147,7 +166,9 @@ def options_from_args(args) -> ReconstructionOptions:
                                  kappa_alpha=args.kappa_alpha, kappa_beta=args.kappa_beta,
                                  noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity,
                                  stack=stk.StackOptions(z_smoothing_mm=args.z_smoothing, z_order=args.z_order,
-                                                        strategy=args.stack_strategy))
+                                                        strategy=args.stack_strategy),
+                                 screen=plaus.ScreenOptions(vessel=_point(args.vessel, "--vessel"),
+                                                            unwrap=args.unwrap))
 
 
 def _progress(stream):
@@ -220,6 +241,7 @@ def _errors_rows(err: metrics.Errors):
 
 # ------------------------------------------------------------------ commands
 def cmd_phantom(args) -> int:
+    outputs.check_outputs(files={"-o": args.output, "--truth": args.truth})
     snr = None if args.snr <= 0 else args.snr
     if args.stack:
         acq, truth = phantoms.make_stack(args.stack, nz=args.nz, h_mm=args.h, spacing_mm=args.spacing, snr=snr,
@@ -228,11 +250,20 @@ def cmd_phantom(args) -> int:
     else:
         acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=snr, seed=args.seed, venc=args.venc,
                                            as_phase=not args.velocity)
+    peak = max(phantoms.peak_velocity(t.flow) for t in getattr(truth, "slices", [truth]))
+    if acq.venc_m_s < peak:
+        print(f"wss-nlp: warning: venc {acq.venc_m_s:g} m/s is below the peak velocity {peak:.3g} m/s: the phase "
+              "wraps (aliasing); 'reconstruct' unwraps it (or refuses it when it cannot)", file=sys.stderr)
     wio.write_acquisition(args.output, acq)
+    if args.truth:
+        try:
+            _write_truth(args.truth, truth)
+        except BaseException:
+            os.remove(args.output)  # the pair is written whole or not at all
+            raise
     print(f"wrote {args.output}: {args.case}, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
           f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels")
     if args.truth:
-        _write_truth(args.truth, truth)
         means = [t.mean_wss for t in getattr(truth, "slices", [truth])]
         print(f"wrote {args.truth}: exact radius and WSS (mean {min(means):.5g}-{max(means):.5g} Pa)")
     return 0
@@ -240,12 +271,17 @@ def cmd_phantom(args) -> int:
 
 def cmd_reconstruct(args) -> int:
     options = options_from_args(args)
+    outputs.check_outputs(files={"-o": args.output}, folders={"--figures": args.figures}, inputs=[args.input])
     acq = wio.read_acquisition(args.input)
     print(f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
           f"h = {acq.grid.h:g} mm", file=sys.stderr)
     results = reconstruct(acq, options, progress=_progress(sys.stderr),
                           log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
-    wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv])
+    with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
+        if staged.path:
+            _slice_figures(results, acq, staged.path)
+        wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv])
+        staged.commit()
     _warn(results, sys.stderr)
     for r in results:
         if isinstance(r, wio.FailedSlice):
@@ -259,17 +295,18 @@ def cmd_reconstruct(args) -> int:
               f"{[f'{s[0]}-{s[-1]}' for s in st.segments]})" + ("" if st.converged else "; NOT CONVERGED"))
     print(f"wrote {args.output}")
     if args.figures:
-        from .plotting import save_figures
-
-        for r in results:
-            if not isinstance(r, wio.FailedSlice):
-                save_figures(r, args.figures, prefix=f"slice_{r.index:03d}_")
-        if len(results) > 1:
-            from .plotting import figure_stack, save_figure
-
-            save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(args.figures, "stack_wall_maps.png"))
         print(f"figures in {args.figures}")
     return 0
+
+
+def _slice_figures(results, acq, folder: str) -> None:
+    from .plotting import figure_stack, save_figure, save_figures
+
+    for r in results:
+        if not isinstance(r, wio.FailedSlice):
+            save_figures(r, folder, prefix=f"slice_{r.index:03d}_")
+    if len(results) > 1:
+        save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, "stack_wall_maps.png"))
 
 
 def cmd_compare(args) -> int:
@@ -292,6 +329,7 @@ def cmd_compare(args) -> int:
 
 
 def cmd_analyze(args) -> int:
+    outputs.check_outputs(folders={"--figures": args.figures}, inputs=[args.result])
     choices = wio.read_choices(args.result)
     for name, per in choices.items():
         print(f"{name}:")
@@ -316,7 +354,9 @@ def cmd_analyze(args) -> int:
     if args.figures:
         from .plotting import save_parameter_figures
 
-        paths = save_parameter_figures(choices, args.figures)
+        with outputs.StagedFolder(args.figures) as staged:
+            save_parameter_figures(choices, staged.path)
+            paths = staged.commit()
         print(f"{len(paths)} figure(s) in {args.figures}")
     return 0
 
@@ -355,8 +395,16 @@ def cmd_sensitivity(args) -> int:
 
 def cmd_demo(args) -> int:
     out = args.output_dir
-    os.makedirs(out, exist_ok=True)
     options = options_from_args(args)
+    outputs.check_outputs(folders={"-o": out})
+    with outputs.StagedFolder(out) as staged:  # a failed demo leaves nothing half-written
+        _demo(args, options, staged.path)
+        staged.commit()
+    print(f"wrote input.h5 (input), truth.h5 (truth), result.h5 (result) and the figures in {out}")
+    return 0
+
+
+def _demo(args, options, out: str) -> None:
     snr = None if args.snr <= 0 else args.snr
     print(f"wss-nlp {__version__} demo: phantom '{args.case}' ({phantoms.CASES[args.case][1]})")
     print(f"  voxel size h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}")
@@ -387,9 +435,7 @@ def cmd_demo(args) -> int:
 
     figs = save_figures(res, out, truth=truth)
     print()
-    print(f"wrote {in_path} (input), {truth_path} (truth), {res_path} (result)")
-    print("figures: " + ", ".join(os.path.basename(f) for f in figs) + f" in {out}")
-    return 0
+    print("figures: " + ", ".join(os.path.basename(f) for f in figs))
 
 
 def _where(items) -> dict:
@@ -407,6 +453,7 @@ def cmd_sweep(args) -> int:
 
     study = sweep.load_study(args.study)
     out = args.output_dir or os.path.join("runs", study.name)
+    outputs.check_outputs(folders={"-o": out}, inputs=[args.study])
     try:
         s = sweep.run_study(study, out, workers=args.workers, scheduler=args.scheduler,
                             retry_failed=args.retry_failed)
@@ -427,6 +474,7 @@ def cmd_sweep(args) -> int:
 def cmd_table(args) -> int:
     from . import sweep
 
+    outputs.check_outputs(files={"-o": args.output})
     rows = sweep.read_csv(args.outdir)
     md, tex = sweep.table(rows, args.rows, args.cols, args.metric, _where(args.where), args.agg,
                           source=os.path.join(args.outdir, "results.csv"), bold=not args.no_bold)
@@ -441,6 +489,7 @@ def cmd_plot(args) -> int:
     from . import sweep
     from .plotting import figure_sweep, save_figure
 
+    outputs.check_outputs(files={"-o": args.output})
     rows = sweep.read_csv(args.outdir)
     where = _where(args.where)
     if not sweep.select(rows, where):
@@ -560,11 +609,24 @@ def main(argv=None) -> int:
     try:
         return int(args.func(args) or 0)
     except WssNlpError as exc:
-        print(f"wss-nlp: error: {exc}", file=sys.stderr)
+        print(f"wss-nlp: error: {_one_line(exc)}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
         print("wss-nlp: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # the file system refused (disk full, permissions changed during the run)
+        print(f"wss-nlp: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug: one line for the user, the traceback for the report
+        if os.environ.get("WSS_NLP_DEBUG"):
+            raise
+        print(f"wss-nlp: internal error: {type(exc).__name__}: {_one_line(exc)}; please report it with the "
+              "command line (WSS_NLP_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return 1
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -71,6 +71,8 @@ class Acquisition:
         mag = self.magnitude
         if mag.ndim != 3:
             raise InputError(f"{src}: 'magnitude' must have shape (nz, ny, nx), got {mag.shape}")
+        if mag.shape[0] == 0:
+            raise InputError(f"{src}: 'magnitude' has no slices (shape {mag.shape}); nz must be >= 1")
         if (self.velocity is None) == (self.phase is None):
             raise InputError(f"{src}: exactly one of 'velocity' and 'phase' must be present")
         name, other = ("velocity", self.velocity) if self.velocity is not None else ("phase", self.phase)
@@ -90,6 +92,10 @@ class Acquisition:
                     iz = sorted(set(np.nonzero(bad)[0].tolist()))
                     raise InputError(f"{src}: '{nm}' contains NaN or Inf ({int(bad.sum())} voxels, "
                                      f"slices {iz[:10]})")
+        finite_mag = mag[np.isfinite(mag)]
+        if finite_mag.size and float(finite_mag.min()) < -1e-6 * max(float(np.abs(finite_mag).max()), 1e-300):
+            raise InputError(f"{src}: 'magnitude' has negative values (min {float(finite_mag.min()):.4g}); a "
+                             "magnitude image is >= 0: store the modulus of the complex image, not its real part")
         vs = np.asarray(self.voxel_size_mm, dtype=float)
         if vs.shape != (2,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
             raise InputError(f"{src}: 'voxel_size_mm' must be two positive numbers [dy, dx], got {self.voxel_size_mm}")
@@ -101,8 +107,13 @@ class Acquisition:
         if self.phase is not None:
             if self.venc_m_s is None or not self.venc_m_s > 0:
                 raise InputError(f"{src}: attribute 'venc_m_s' (> 0) is required with 'phase'")
-            if np.any(np.abs(self.phase) > np.pi + 1e-6):
-                raise InputError(f"{src}: 'phase' must lie in (-pi, pi] radians")
+            finite_phase = np.abs(self.phase[np.isfinite(self.phase)])
+            if finite_phase.size and float(finite_phase.max()) > np.pi + 1e-6:
+                big = float(finite_phase.max())
+                hint = ("; the values look like degrees (multiply by pi/180)" if big <= 180 + 1e-6 else
+                        "; the values look like raw scanner integers (apply the rescale slope and intercept "
+                        "to radians, or use 'wss-nlp import')")
+                raise InputError(f"{src}: 'phase' must lie in (-pi, pi] radians, found |phase| up to {big:.4g}{hint}")
         if self.viscosity_pa_s is not None and not self.viscosity_pa_s > 0:
             raise InputError(f"{src}: 'viscosity_pa_s' must be > 0, got {self.viscosity_pa_s}")
 
@@ -112,7 +123,10 @@ def _attr(f, name, src, required=False, size=None):
         if required:
             raise InputError(f"{src}: missing attribute '{name}'")
         return None
-    val = np.asarray(f.attrs[name], dtype=float).ravel()
+    try:
+        val = np.asarray(f.attrs[name], dtype=float).ravel()
+    except (TypeError, ValueError):
+        raise InputError(f"{src}: attribute '{name}' must be numeric, got {f.attrs[name]!r}") from None
     if size is not None and val.size != size:
         raise InputError(f"{src}: attribute '{name}' must have {size} values, got {val.size}")
     if not np.all(np.isfinite(val)):
@@ -128,16 +142,15 @@ def _velocity_components(f, dataset, src, shape):
     ``velocity_x`` and ``velocity_y`` (nz, ny, nx) next to ``velocity`` or
     ``phase`` (through-plane), or with ``velocity_z`` in place of ``velocity``.
     """
-    vel = f["velocity"][()] if "velocity" in f else None
+    vel = dataset("velocity")
     if vel is not None and np.ndim(vel) == 4:
         if vel.shape[0] != 3:
             raise InputError(f"{src}: a 4D 'velocity' must have shape (3, nz, ny, nx), got {vel.shape}")
         if any(k in f for k in ("velocity_x", "velocity_y", "velocity_z")):
             raise InputError(f"{src}: give the components either as a 4D 'velocity' or as 'velocity_x/_y/_z', "
                              "not both")
-        vel = np.asarray(vel, dtype=float)
         return vel[2], vel[:2]
-    through = dataset("velocity")
+    through = vel
     vz = dataset("velocity_z")
     if vz is not None:
         if through is not None:
@@ -168,12 +181,22 @@ def read_acquisition(path) -> Acquisition:
     except OSError as exc:
         raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
     with f:
+        if "trigger_times_ms" in f.attrs:
+            raise InputError(f"{src}: a time-resolved (cine) file ('trigger_times_ms'); this version reads single "
+                             "frames only: write one frame per file")
+
         def dataset(name):
             if name not in f:
                 return None
             obj = f[name]
             if not isinstance(obj, h5py.Dataset):
                 raise InputError(f"{src}: '{name}' must be a dataset")
+            kind = obj.dtype.kind
+            if kind == "c":
+                fix = "its modulus (np.abs)" if name == "magnitude" else "real values (np.angle of the complex image)"
+                raise InputError(f"{src}: '{name}' is complex ({obj.dtype}); store {fix}")
+            if kind not in "fiub":
+                raise InputError(f"{src}: '{name}' must hold numbers, got dtype {obj.dtype}")
             arr = np.asarray(obj[()], dtype=float)
             if arr.ndim == 2:  # a single slice stored without the nz axis
                 arr = arr[None]
@@ -329,6 +352,8 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
                 _write_failed(s, r)
                 continue
             _write_core(s, r)
+            if getattr(r, "screen", None):
+                s.attrs["screen_json"] = json.dumps(r.screen, default=float)
             if not hasattr(r, "velocity"):  # a classical method (wss_nlp.baselines): no velocity model to store
                 s.attrs["baseline_json"] = json.dumps(r.info)
                 s["geometry"].attrs["segmentation_threshold"] = r.geometry.threshold

@@ -3,14 +3,16 @@
 * magnitude normalization ``m = T((m_raw - m0) / (m1 - m0))`` from the two
   histogram peaks ``m0`` (background) and ``m1`` (lumen), ``T`` truncation
   to [0, 1];
-* the lumen: the largest connected region of ``m > 1/2``, its centre (the
-  barycenter of ``m`` over that region and a two-voxel rim), its
-  equal-area radius and an admissible box ``[r0, r1]`` for R.
+* the lumen: the largest connected region of ``m > 1/2`` (or the one a
+  user names by a point, ``--vessel X,Y``), its centre (the barycenter of
+  ``m`` over that region and a two-voxel rim), its equal-area radius and an
+  admissible box ``[r0, r1]`` for R. Other regions large enough to be
+  vessels are reported (:attr:`Lumen.others`), never silently dropped.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.ndimage
@@ -113,10 +115,40 @@ class Lumen:
     r_max: float  # largest distance centre -> region boundary, mm
     r0: float  # box lower bound, mm
     r1: float  # box upper bound, mm
+    others: list = field(default_factory=list)  # other vessels in view: dicts center_mm, equal_area_radius_mm, voxels
+    chosen_by: str = "the largest lumen"
+    others_mask: np.ndarray | None = None  # (ny, nx) bool, the regions of the other vessels
+
+    @property
+    def noise_mask(self) -> np.ndarray:
+        """Every vessel in view: what a noise estimate must keep out of its background."""
+        return self.mask if self.others_mask is None else self.mask | self.others_mask
+
+    def others_note(self) -> str:
+        """One line on the vessels in view that were not chosen, or ``""``."""
+        if not self.others:
+            return ""
+        where = "; ".join(f"({o['center_mm'][0]:.1f}, {o['center_mm'][1]:.1f}) mm, "
+                          f"r ~ {o['equal_area_radius_mm']:.2g} mm" for o in self.others)
+        return (f"{len(self.others)} other vessel(s) in view, not reconstructed: {where}; reconstructed "
+                f"{self.chosen_by} (pass --vessel X,Y to choose another)")
 
 
-def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "") -> Lumen:
+def _region_summary(region: np.ndarray, grid: VoxelGrid) -> dict:
+    xc, yc = grid.centers()
+    n = int(region.sum())
+    return {"center_mm": [float(xc[region].mean()), float(yc[region].mean())],
+            "equal_area_radius_mm": float(np.sqrt(n * grid.voxel_area / np.pi)), "voxels": n}
+
+
+def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "", vessel=None) -> Lumen:
     """Locate the lumen in a normalized magnitude image.
+
+    Parameters
+    ----------
+    vessel : (x, y) in mm or None
+        Take the bright region containing (or, failing that, nearest to)
+        this point instead of the largest one.
 
     Notes
     -----
@@ -134,6 +166,8 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "") -> Lumen:
         raise NoVesselError(f"{src}no voxel of the normalized magnitude exceeds 1/2: no vessel in view")
     sizes = scipy.ndimage.sum_labels(np.ones_like(m), labels, index=np.arange(1, n + 1))
     k = int(np.argmax(sizes)) + 1
+    if vessel is not None:
+        k = _label_at(labels, sizes, grid, vessel, src)
     mask = labels == k
     if mask.sum() < MIN_LUMEN_VOXELS:
         raise NoVesselError(
@@ -144,6 +178,12 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "") -> Lumen:
             f"{src}the lumen touches the border of the field of view; crop or re-centre the images"
         )
     grown = scipy.ndimage.binary_dilation(mask, iterations=2)
+    # a region counts as another vessel when it could be fitted on its own; specks and pieces of the chosen
+    # lumen's own rim (within two voxels of it) do not
+    other_labels = [j for j in range(1, n + 1)
+                    if j != k and sizes[j - 1] >= MIN_LUMEN_VOXELS and not np.any(grown & (labels == j))]
+    others = [_region_summary(labels == j, grid) for j in other_labels]
+    others_mask = np.isin(labels, other_labels) if other_labels else None
     xc, yc = grid.centers()
     w = m * grown
     cx, cy = float(np.sum(w * xc) / np.sum(w)), float(np.sum(w * yc) / np.sum(w))
@@ -163,11 +203,38 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "") -> Lumen:
         r_max=r_max,
         r0=max(r_min - 2 * h, 0.25 * r_area),
         r1=r_max + 2 * h,
+        others=others,
+        others_mask=others_mask,
+        chosen_by="the largest lumen" if vessel is None else f"the vessel at ({vessel[0]:g}, {vessel[1]:g}) mm",
     )
 
 
-def preprocess(magnitude: np.ndarray, grid: VoxelGrid, source: str = "") -> tuple[Normalization, np.ndarray, Lumen]:
-    """Appendix B for one slice: histogram peaks, the normalized magnitude and the lumen found in it."""
+def _label_at(labels: np.ndarray, sizes: np.ndarray, grid: VoxelGrid, point, src: str) -> int:
+    """Label of the region of at least :data:`MIN_LUMEN_VOXELS` voxels that contains ``point`` (mm) or lies nearest."""
+    xc, yc = grid.centers()
+    px, py = (float(v) for v in point)
+    d = np.hypot(xc - px, yc - py)
+    best, best_d = 0, np.inf
+    for j in range(1, len(sizes) + 1):
+        if sizes[j - 1] < MIN_LUMEN_VOXELS:
+            continue
+        dj = float(d[labels == j].min())
+        if dj < best_d:
+            best, best_d = j, dj
+    if best == 0 or best_d > 2 * grid.h:
+        found = [_region_summary(labels == j, grid)["center_mm"] for j in range(1, len(sizes) + 1)
+                 if sizes[j - 1] >= MIN_LUMEN_VOXELS]
+        listed = ", ".join(f"({c[0]:.1f}, {c[1]:.1f})" for c in found) or "none"
+        raise NoVesselError(f"{src}no vessel at --vessel ({px:g}, {py:g}) mm; vessels found at {listed} mm")
+    return best
+
+
+def preprocess(magnitude: np.ndarray, grid: VoxelGrid, source: str = "",
+               vessel=None) -> tuple[Normalization, np.ndarray, Lumen]:
+    """Appendix B for one slice: histogram peaks, the normalized magnitude and the lumen found in it.
+
+    ``vessel`` (x, y in mm) chooses among several vessels (:func:`find_lumen`).
+    """
     norm = histogram_peaks(magnitude, source)
     m = normalize_magnitude(magnitude, norm)
-    return norm, m, find_lumen(m, grid, source)
+    return norm, m, find_lumen(m, grid, source, vessel)

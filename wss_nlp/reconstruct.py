@@ -18,6 +18,7 @@ from . import baselines as bl
 from . import coupled as cpl
 from . import geometry as geo
 from . import measurement as meas
+from . import plausibility as plaus
 from . import preprocess as pp
 from . import radius as rad
 from . import sensitivity as sens
@@ -85,6 +86,7 @@ class ReconstructionOptions:
     coupled: cpl.CoupledOptions = field(default_factory=cpl.CoupledOptions)
     baseline: bl.BaselineOptions = field(default_factory=bl.BaselineOptions)  # method "oyre" / "stalder"
     stack: stk.StackOptions = field(default_factory=stk.StackOptions)  # nz > 1: z-regularization (wss_nlp.stack)
+    screen: plaus.ScreenOptions = field(default_factory=plaus.ScreenOptions)  # vessel choice, unwrapping
     n_phi: int = 360
     viscosity_pa_s: float | None = None  # overrides the file's value when set
     dephasing_correction: bool = True  # needs venc; see measurement.dephasing_factors
@@ -155,6 +157,7 @@ class SliceResult:
     coupled_info: dict = field(default_factory=dict)  # weight, how it was chosen, the decoupled start's numbers
     sensitivity: sens.Sensitivity | None = None
     notes: list = field(default_factory=list)  # things the user should know that are not failures
+    screen: dict = field(default_factory=dict)  # what wss_nlp.plausibility found (vessels, aliasing)
 
     @property
     def converged(self) -> bool:
@@ -204,7 +207,7 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
     where = f"{source} slice {index}"
     t = {}
     t0 = time.perf_counter()
-    norm, m, lumen = pp.preprocess(magnitude, grid, where)
+    norm, m, lumen = pp.preprocess(magnitude, grid, where, options.screen.vessel)
     t["preprocess"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -278,7 +281,7 @@ def uncertainty(problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, op
             s = sens.coupled(coupled_result, problem, options.geometry, options.velocity, viscosity_pa_s, w.phi.size)
         else:
             s = sens.decoupled(problem, options.geometry, g, vp, options.velocity, v, viscosity_pa_s, w.phi.size)
-        sigma_m, sigma_u, how = sens.noise_levels(raw, lumen.mask, norm.m0, norm.m1, s.u_index, venc,
+        sigma_m, sigma_u, how = sens.noise_levels(raw, lumen.noise_mask, norm.m0, norm.m1, s.u_index, venc,
                                                   options.noise_sigma)
     except WssNlpError as exc:
         return None, f"no uncertainty band: {exc}"
@@ -298,7 +301,7 @@ def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options
     if copt.velocity_weight is not None:
         weight, how = copt.velocity_weight, {"weight_method": "given (--velocity-weight)"}
     else:
-        weight, how = cpl.weight_from_data(problem, options.geometry, raw, norm, lumen.mask, velocity_image, venc,
+        weight, how = cpl.weight_from_data(problem, options.geometry, raw, norm, lumen.noise_mask, velocity_image, venc,
                                            where.rstrip())
         how["weight_method"] = "likelihood: W sigma_m^2 / sigma_u^2 from the estimated noise levels"
     res = cpl.solve(problem, options.geometry, velocity_image, options.velocity, g, v, weight, copt)
@@ -343,7 +346,7 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
     if options.noise_magnitude is not None:
         noise = an.NoiseEstimate(options.noise_magnitude, "given (--noise-magnitude)")
     else:
-        noise = an.magnitude_noise(problem.magnitude, raw, lumen.mask, norm.m0, norm.m1, problem.grid.voxel_area,
+        noise = an.magnitude_noise(problem.magnitude, raw, lumen.noise_mask, norm.m0, norm.m1, problem.grid.voxel_area,
                                    annulus, where.rstrip())
     if not noise.value > 0:
         g = geo.solve(problem, gopt)
@@ -415,7 +418,8 @@ def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: Reconstructi
         noise = an.NoiseEstimate(options.noise_velocity, "given (--noise-velocity)",
                                  {"per_voxel": np.full(vp.data.size, options.noise_velocity)})
     else:
-        noise = an.velocity_noise(vp.data_image, raw, lumen.mask, vp.voxels.index, vp.weights, venc, where.rstrip())
+        noise = an.velocity_noise(vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc,
+                                  where.rstrip())
     if not noise.value > 0:
         return _noise_free_choice("beta", rule, options.velocity.beta, noise)
     if rule == "balance":
@@ -483,13 +487,14 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     options = options or ReconstructionOptions()
     acq.validate()
     mu = resolve_viscosity(acq, options)
+    acq, screens = plaus.screen(acq, options.screen)
     out = Results()
     if stack_applies(acq, options):
         results, info = stk.reconstruct_stack(acq, options, options.stack, progress, log)
         out.extend(r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
                    for k, r in enumerate(results))
         out.stack = info
-        return out
+        return _with_screens(out, screens)
     velocity = acq.velocity_images()
     bad = set(acq.nonfinite_slices())
     for iz in range(acq.nz):
@@ -498,7 +503,7 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
                 raise InputError(f"{acq.source} slice {iz}: the images contain NaN or Inf")
             if options.method in bl.METHODS:
                 res = bl.reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options.method,
-                                           options.baseline, options.n_phi, acq.source, iz)
+                                           options.baseline, options.n_phi, acq.source, iz, options.screen.vessel)
             else:
                 res = reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz,
                                         acq.venc_m_s)
@@ -506,9 +511,20 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
             if acq.nz == 1:
                 raise
             res = FailedSlice(iz, str(exc), options.n_phi, options.geometry.n_fourier)
+        _with_screens([res], screens)
         out.append(res)
         if progress is not None:
             progress(iz + 1, acq.nz, res)
     if all(isinstance(r, FailedSlice) for r in out):
         raise WssNlpError(f"{acq.source}: no slice could be reconstructed: " + "; ".join(r.reason for r in out))
     return out
+
+
+def _with_screens(results, screens: dict):
+    """Attach what the plausibility screen found to each slice's notes and record."""
+    for r in results:
+        found = screens.get(r.index)
+        if found is not None and not isinstance(r, FailedSlice):
+            r.notes.extend(n for n in found.notes if n not in r.notes)
+            r.screen = found.record
+    return results

@@ -359,11 +359,11 @@ def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float,
 
 
 # ------------------------------------------------------------------ driver
-def _prepare(acq: Acquisition, iz: int, magnitude, velocity, finite: bool) -> _Slice:
+def _prepare(acq: Acquisition, iz: int, magnitude, velocity, finite: bool, vessel=None) -> _Slice:
     where = f"{acq.source} slice {iz}"
     if not finite:
         raise InputError(f"{where}: the images contain NaN or Inf")
-    norm, m, lumen = pp.preprocess(magnitude, acq.grid, where)
+    norm, m, lumen = pp.preprocess(magnitude, acq.grid, where, vessel)
     problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area)
     return _Slice(iz, problem, norm, lumen, m, np.asarray(velocity, dtype=float))
 
@@ -447,7 +447,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     bad = set(acq.nonfinite_slices())  # any image of the slice, in-plane velocity components included
     for iz in range(acq.nz):
         try:
-            prepared[iz] = _prepare(acq, iz, acq.magnitude[iz], velocity[iz], iz not in bad)
+            prepared[iz] = _prepare(acq, iz, acq.magnitude[iz], velocity[iz], iz not in bad, options.screen.vessel)
         except WssNlpError as exc:
             failed[iz] = str(exc)
     if not prepared:

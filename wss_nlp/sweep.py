@@ -164,6 +164,10 @@ def load_study(path) -> Study:
             doc = tomllib.load(fh)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(f"{src}: not valid TOML ({exc})") from exc
+    except UnicodeDecodeError:
+        raise InputError(f"{src}: not a TOML study file (not UTF-8 text); see problems/README.md") from None
+    except IsADirectoryError:
+        raise InputError(f"{src}: is a folder; name a study file (problems/*.toml)") from None
     unknown_tables = set(doc) - {"study", "grid", "tables", "plots"}
     if unknown_tables:
         raise InputError(f"{src}: unknown table(s) {sorted(unknown_tables)}; expected [study], [grid], "
