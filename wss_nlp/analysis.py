@@ -24,19 +24,15 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 import scipy.ndimage
 import scipy.stats
 
-from .errors import InputError
+from .errors import InputError, NoiseEstimationError
 from .preprocess import robust_std, where_prefix
+from .tikhonov import LinearTikhonov
 
 #: Fewest plateau voxels on which a noise level is estimated.
 MIN_PLATEAU_VOXELS = 20
-
-
-class NoiseEstimationError(InputError):
-    """The data do not allow a noise estimate; the message names the option that supplies one."""
 
 
 @dataclass
@@ -267,24 +263,11 @@ def gcv_curve(operator, weights, data, gram, betas):
     With ``W = diag(w)/A``, ``H = T^T W T + (beta/pi) G`` and the influence
     matrix ``A_beta = W^{1/2} T H^{-1} T^T W^{1/2}``,
     ``GCV(beta) = n |W^{1/2}(T c_beta - u)|^2 / (n - tr A_beta)^2``,
-    ``tr A_beta = tr(H^{-1} T^T W T)``; everything is ``n_basis``-sized.
+    ``tr A_beta = tr(H^{-1} T^T W T)``; the whole grid from one generalized
+    eigendecomposition (:meth:`wss_nlp.tikhonov.LinearTikhonov.gcv`).
     Returns ``(gcv, residual_norms, penalties)`` arrays.
     """
-    w = weights / np.sum(weights)
-    tw = operator * w[:, None]
-    ktk = tw.T @ operator
-    rhs = tw.T @ data
-    n = data.size
-    out_g, out_r, out_p = [], [], []
-    for beta in betas:
-        h = ktk + beta / np.pi * gram
-        c = np.linalg.solve(h, rhs)
-        r2 = float(np.sum(w * (operator @ c - data) ** 2))
-        tr = float(np.trace(np.linalg.solve(h, ktk)))
-        out_g.append(n * r2 / (n - tr) ** 2)
-        out_r.append(np.sqrt(r2))
-        out_p.append(float(c @ gram @ c / np.pi))
-    return np.array(out_g), np.array(out_r), np.array(out_p)
+    return LinearTikhonov(operator, weights, data, gram).gcv(betas)
 
 
 def balancing_principle(gram_estimates: np.ndarray, gram_noise: np.ndarray, kappa: float) -> tuple[int, np.ndarray]:
@@ -341,32 +324,11 @@ def balance_grams(operator, weights, data, gram, betas, functional, sigma_u):
     and ``W = diag(w)/A`` (:func:`gcv_curve`). With independent voxel noise
     of standard deviations ``sigma_u``, the noise part of ``S c_j`` is
     ``M_j n`` with ``M_j = S H_j^{-1} T^T W diag(sigma_u)`` and ``n`` standard
-    normal, so ``E<e_j, e_k> = tr(M_j M_k^T)``; with a Cholesky factor
-    ``L L^T = T^T W Sigma W T`` everything is ``n_basis``-sized:
-    ``tr(M_j M_k^T) = <S H_j^{-1} L, S H_k^{-1} L>_F``.
+    normal, so ``E<e_j, e_k> = tr(M_j M_k^T)``; the whole beta grid from one
+    generalized eigendecomposition (:meth:`wss_nlp.tikhonov.LinearTikhonov.balance_grams`).
     Returns ``(gram_estimates, gram_noise, residual_norms)``.
     """
-    sigma_u = np.asarray(sigma_u, float)
-    if not (np.all(np.isfinite(sigma_u)) and np.any(sigma_u > 0)):
-        raise NoiseEstimationError("the balancing principle needs a positive, finite velocity noise level; got "
-                                   f"{'zero' if np.all(sigma_u == 0) else 'non-finite values'} "
-                                   "(pass --noise-velocity or a fixed --beta)")
-    w = weights / np.sum(weights)
-    tw = operator * w[:, None]
-    ktk = tw.T @ operator
-    rhs = tw.T @ data
-    noise_gram = (tw * sigma_u[:, None] ** 2).T @ tw
-    jitter = 1e-14 * np.trace(noise_gram) / len(noise_gram)  # rank-deficient when voxels < basis functions
-    root = np.linalg.cholesky(noise_gram + jitter * np.eye(len(noise_gram)))
-    est, noise, res = [], [], []
-    for beta in betas:
-        cho = scipy.linalg.cho_factor(ktk + beta / np.pi * gram)
-        c = scipy.linalg.cho_solve(cho, rhs)
-        est.append(functional @ c)
-        noise.append((functional @ scipy.linalg.cho_solve(cho, root)).ravel())
-        res.append(np.sqrt(np.sum(w * (operator @ c - data) ** 2)))
-    est, noise = np.array(est), np.array(noise)
-    return est @ est.T, noise @ noise.T, np.array(res)
+    return LinearTikhonov(operator, weights, data, gram).balance_grams(betas, functional, sigma_u)
 
 
 def wss_balance(operator, weights, data, gram, betas, wss_matrix, sigma_u, kappa: float):

@@ -21,6 +21,10 @@ class LumenTouchesBorderError(InputError):
     """The lumen is cut by the border of the field of view."""
 
 
+class NoiseEstimationError(InputError):
+    """The data do not allow a noise estimate; the message names the option that supplies one."""
+
+
 class SolverError(WssNlpError):
     """A numerical solver failed and returned nothing usable."""
 

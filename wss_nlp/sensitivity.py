@@ -49,6 +49,7 @@ from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
 from .analysis import NoiseEstimationError, complex_noise_sigma, phase_noise_std
+from .tikhonov import LinearTikhonov
 from .errors import InputError, SolverError
 
 SCALARS = ("alpha", "beta", "gamma", "center_x", "center_y")
@@ -375,9 +376,9 @@ def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry:
     od, r_in, dr_in = operator_derivatives(vp, vopt, c_r0, ctr)
     t_op = od.op
     wt = vp.weights / vp.area
-    hmat = t_op.T @ (wt[:, None] * t_op) + velocity.beta / np.pi * vp.gram
-    cho = scipy.linalg.cho_factor(hmat)
-    cv0 = scipy.linalg.cho_solve(cho, t_op.T @ (wt * vp.data))
+    tik = LinearTikhonov(t_op, vp.weights, vp.data, vp.gram)
+    cho = scipy.linalg.cho_factor(tik.hessian(velocity.beta))
+    cv0 = scipy.linalg.cho_solve(cho, tik.rhs)
     resid = t_op @ cv0 - vp.data
     dcv_du = scipy.linalg.cho_solve(cho, t_op.T * wt[None, :])
     dcv_db = -scipy.linalg.cho_solve(cho, vp.gram @ cv0 / np.pi)

@@ -16,18 +16,18 @@ paper's parameter is ``beta_paper = beta |Omega| / pi`` for a misfit in mm^2.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
-import scipy.linalg
-import scipy.sparse
 
 import casadi as ca
 
 from . import measurement as meas
 from . import radius as rad
-from .errors import InputError, SolverError
+from .errors import InputError
 from .mapping import DiskMap
 from .solver import SolverStats, ipopt_options, run_nlpsol
+from .tikhonov import LinearTikhonov
 from .velocity_basis import BASES, make_basis
 
 
@@ -134,10 +134,14 @@ class VelocityProblem:
         """``sqrt(sum_i |V_i cap Omega| (T_i c - u_i)^2 / |Omega|)`` in m/s: the misfit the rules compare with epsilon."""
         return float(np.sqrt(np.sum(self.weights * (self.operator @ coefficients - self.data) ** 2) / self.area))
 
+    @cached_property
+    def tikhonov(self) -> LinearTikhonov:
+        """The problem's normal equations and parameter grids (:class:`wss_nlp.tikhonov.LinearTikhonov`)."""
+        return LinearTikhonov(self.operator, self.weights, self.data, self.gram)
+
     def normal_equations(self, beta: float) -> tuple[np.ndarray, np.ndarray]:
         """``H c = g`` with ``H = T^T W T / A + beta G / pi``, ``g = T^T W u / A``."""
-        wt = self.operator * (self.weights / self.area)[:, None]
-        return wt.T @ self.operator + beta / np.pi * self.gram, wt.T @ self.data
+        return self.tikhonov.hessian(beta), self.tikhonov.rhs
 
 
 @dataclass
@@ -208,9 +212,8 @@ def build_tikhonov(problem: VelocityProblem, beta: float):
     operator; the value is the same functional.
     """
     c = ca.MX.sym("c", problem.operator.shape[1])  # MX: matrix products stay single nodes
-    wt = problem.operator * (problem.weights / problem.area)[:, None]
-    quad = ca.DM(wt.T @ problem.operator + beta / np.pi * problem.gram)
-    lin = ca.DM(wt.T @ problem.data)
+    hmat, g = problem.normal_equations(beta)
+    quad, lin = ca.DM(hmat), ca.DM(g)
     const = float(problem.data @ (problem.weights * problem.data) / problem.area)
     f = ca.dot(c, ca.mtimes(quad, c)) - 2 * ca.dot(lin, c) + const
     return c, f
@@ -218,11 +221,7 @@ def build_tikhonov(problem: VelocityProblem, beta: float):
 
 def solve_cholesky(problem: VelocityProblem, beta: float) -> np.ndarray:
     """Direct solve of the normal equations by Cholesky factorization."""
-    hmat, g = problem.normal_equations(beta)
-    try:
-        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(hmat), g)
-    except np.linalg.LinAlgError as exc:
-        raise SolverError(f"velocity: normal matrix is not positive definite ({exc}); increase beta") from exc
+    return problem.tikhonov.solve(beta)
 
 
 def solve(problem: VelocityProblem, options: VelocityOptions, beta: float | None = None) -> VelocityResult:

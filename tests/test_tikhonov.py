@@ -1,0 +1,90 @@
+"""The one-decomposition Tikhonov object against per-beta Cholesky solves (two independent solvers)."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+from wss_nlp import analysis as an
+from wss_nlp import phantoms
+from wss_nlp import velocity as vel
+from wss_nlp import wss as wss_mod
+from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.tikhonov import LinearTikhonov
+
+BETAS = an.geometric_grid(1e-2, 1e-14)
+
+
+def _reference(op, weights, data, gram, betas, functional, sigma):
+    """The former implementation: one Cholesky factorization per beta, noise through a Cholesky root."""
+    w = weights / np.sum(weights)
+    tw = op * w[:, None]
+    ktk, rhs = tw.T @ op, tw.T @ data
+    noise_gram = (tw * sigma[:, None] ** 2).T @ tw
+    jitter = 1e-14 * np.trace(noise_gram) / len(noise_gram)
+    root = np.linalg.cholesky(noise_gram + jitter * np.eye(len(noise_gram)))
+    est, noise, res, gcv, pen = [], [], [], [], []
+    for beta in betas:
+        h = ktk + beta / np.pi * gram
+        cho = scipy.linalg.cho_factor(h)
+        c = scipy.linalg.cho_solve(cho, rhs)
+        est.append(functional @ c)
+        noise.append((functional @ scipy.linalg.cho_solve(cho, root)).ravel())
+        r2 = float(np.sum(w * (op @ c - data) ** 2))
+        res.append(np.sqrt(r2))
+        tr = float(np.trace(np.linalg.solve(h, ktk)))
+        gcv.append(data.size * r2 / (data.size - tr) ** 2)
+        pen.append(float(c @ gram @ c / np.pi))
+    est, noise = np.array(est), np.array(noise)
+    return est @ est.T, noise @ noise.T, np.array(res), np.array(gcv), np.array(pen)
+
+
+@pytest.fixture(scope="module", params=[("laminar", 1.0, 71), ("turbulent", 0.6, 72)])
+def problem(request):
+    case, h, seed = request.param
+    acq, _ = phantoms.make_phantom(case, h_mm=h, snr=25, seed=seed)
+    res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+    opts = vel.VelocityOptions()
+    vp = vel.assemble(acq.grid, acq.velocity_images()[0], res.geometry.coefficients, res.geometry.center, opts)
+    smat, _ = wss_mod.wss_matrix(vp.basis, vp.disk_map, 3.5e-3, 360)
+    sigma = np.random.default_rng(seed).uniform(0.005, 0.05, vp.data.size)
+    return vp, smat, sigma
+
+
+def test_pencil_equals_per_beta_cholesky(problem):
+    vp, smat, sigma = problem
+    tik = LinearTikhonov(vp.operator, vp.weights, vp.data, vp.gram)
+    g_est, g_noise, res, gcv, pen = _reference(vp.operator, vp.weights, vp.data, vp.gram, BETAS, smat, sigma)
+    e, n, r = tik.balance_grams(BETAS, smat, sigma)
+    # relative to the largest entry: both are double-precision solves of the same systems (cond <= ~1e12)
+    assert np.max(np.abs(e - g_est)) <= 1e-10 * np.max(np.abs(g_est))
+    assert np.max(np.abs(n - g_noise)) <= 1e-10 * np.max(np.abs(g_noise))
+    assert np.allclose(r, res, rtol=1e-10, atol=0)
+    g2, r2, p2 = tik.gcv(BETAS)
+    assert np.allclose(g2, gcv, rtol=1e-9) and np.allclose(r2, res, rtol=1e-10) and np.allclose(p2, pen, rtol=1e-8)
+    for k in (0, len(BETAS) // 2, len(BETAS) - 1):
+        c = tik.coefficients(BETAS[k:k + 1])[0]
+        assert np.allclose(c, tik.solve(BETAS[k]), rtol=0, atol=1e-9 * np.max(np.abs(c)))
+
+
+def test_fast_balancing_choice_equals_the_former_one(problem):
+    vp, smat, sigma = problem
+    g_est, g_noise, _, _, _ = _reference(vp.operator, vp.weights, vp.data, vp.gram, BETAS, smat, sigma)
+    j_ref, ratio_ref = an.balancing_principle(g_est, g_noise, 2.5)
+    j, ratio, _ = an.wss_balance(vp.operator, vp.weights, vp.data, vp.gram, BETAS, smat, sigma, 2.5)
+    assert j == j_ref
+    # the ratio is |x_j - x_k| / s_jk from Gram entries, |x_j - x_k|^2 = G_jj + G_kk - 2 G_jk: it inherits a
+    # cancellation error of about eps |x|^2 / |x_j - x_k|^2 (~1e-8 between neighbouring large betas) from either
+    # solver, so it is compared at 1e-6; the Gram matrices themselves agree to 1e-10 (test above)
+    finite = np.isfinite(ratio_ref)
+    assert np.allclose(ratio[finite], ratio_ref[finite], rtol=1e-6, atol=0)
+
+
+def test_rank_deficient_normal_matrix():
+    # fewer data than unknowns: K is singular, the pencil still holds (B = K + b0 G is definite)
+    rng = np.random.default_rng(73)
+    op = rng.normal(size=(6, 10))
+    root = rng.normal(size=(10, 10))
+    gram = root @ root.T
+    tik = LinearTikhonov(op, rng.uniform(0.5, 1, 6), rng.normal(size=6), gram)
+    for beta in (1e-2, 1e-5, 1e-8):  # where cond(H) <= ~1e10, so both solutions carry >= 6 digits
+        assert np.allclose(tik.coefficients([beta])[0], tik.solve(beta), rtol=1e-6, atol=1e-9)
