@@ -1,21 +1,28 @@
-"""Figures in the layout of the paper's Figures 1-5 (the only module using pyplot).
+"""Figures in the layout of the paper's Figures 1-5 (the only module drawing with matplotlib).
 
 1. magnitude with the reconstructed contour (and the true wall when known);
 2. R(phi), reconstructed and true;
 3. raw velocity and the truncated velocity actually used;
 4. reconstructed velocity (next to the true one when known);
 5. WSS against angle with its mean (and the truth, and a band when known).
+
+Figures are :class:`matplotlib.figure.Figure` objects made without pyplot:
+the user's backend is never changed, no global figure registry fills up,
+and they display in notebooks and save anywhere (``fig.savefig``).
 """
 
 from __future__ import annotations
 
 import os
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+
+def _subplots(*args, figsize, **kwargs):
+    """``Figure.subplots`` on a figure of its own (what ``pyplot.subplots`` does, without pyplot's state)."""
+    fig = Figure(figsize=figsize)
+    return fig, fig.subplots(*args, **kwargs)
 
 
 def _contour(ax, res, **kw):
@@ -31,7 +38,7 @@ def _image(ax, img, grid, **kw):
 
 def figure_geometry(res, truth=None):
     """Fig. 1 and 2: magnitude with contour; R(phi)."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+    fig, axes = _subplots(1, 2, figsize=(11, 4.6))
     ax = axes[0]
     im = _image(ax, res.magnitude, res.grid, cmap="gray", vmin=0, vmax=1)
     _contour(ax, res, color="tab:red", lw=1.2, label="reconstructed wall")
@@ -63,7 +70,7 @@ def figure_geometry(res, truth=None):
 
 def figure_velocity_data(res):
     """Fig. 3: raw velocity and the truncated velocity used in the fit."""
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+    fig, axes = _subplots(1, 2, figsize=(11, 4.6))
     raw = res.velocity_image
     lim = np.max(np.abs(raw))
     im = _image(axes[0], raw, res.grid, cmap="RdBu_r", vmin=-lim, vmax=lim)
@@ -83,7 +90,7 @@ def figure_velocity_data(res):
 def figure_velocity(res, truth=None):
     """Fig. 4: reconstructed velocity (and the true one)."""
     n = 2 if truth is not None else 1
-    fig, axes = plt.subplots(1, n, figsize=(5.6 * n, 4.6), squeeze=False)
+    fig, axes = _subplots(1, n, figsize=(5.6 * n, 4.6), squeeze=False)
     xc, yc = res.grid.centers()
     rec = res.velocity.evaluate_physical(xc, yc)
     vmax = float(np.max(rec))
@@ -103,7 +110,7 @@ def figure_velocity(res, truth=None):
 
 def figure_wss(res, truth=None):
     """Fig. 5: WSS against angle with its arc-length mean."""
-    fig, ax = plt.subplots(figsize=(8, 4.2))
+    fig, ax = _subplots(figsize=(8, 4.2))
     w = res.wss
     ax.plot(w.phi, w.tau, color="tab:red", lw=1.2, label=r"$\tau$ reconstructed")
     ax.axhline(w.mean, color="tab:red", ls=":", label=rf"mean {w.mean:.4g} Pa")
@@ -142,14 +149,13 @@ def save_figures(res, folder, truth=None, prefix: str = "") -> list[str]:
         fig = make(res, truth)
         path = os.path.join(folder, prefix + name)
         fig.savefig(path, dpi=110)
-        plt.close(fig)
         paths.append(path)
     return paths
 
 
 def figure_parameter_choice(choice):
     """Residual (or criterion) against the parameter, with the threshold and the choice marked."""
-    fig, ax = plt.subplots(figsize=(7, 4.2))
+    fig, ax = _subplots(figsize=(7, 4.2))
     sym = r"\alpha" if choice.name == "alpha" else r"\beta"
     if choice.rule in ("discrepancy", "lcurve") and choice.residuals.size:
         ax.loglog(choice.parameters, choice.residuals, "o-", ms=3, label="residual")
@@ -186,14 +192,13 @@ def save_parameter_figures(choices: dict, folder: str) -> list[str]:
             fig = figure_parameter_choice(ch)
             path = os.path.join(folder, f"{slice_name}_{ch.name}_{ch.rule}.png")
             fig.savefig(path, dpi=110)
-            plt.close(fig)
             paths.append(path)
     return paths
 
 
 def figure_band_check(phi, linearized, sampled, n_draws: int):
     """Linearized WSS standard deviation against a Monte-Carlo estimate, per angle."""
-    fig, ax = plt.subplots(figsize=(8, 3.8))
+    fig, ax = _subplots(figsize=(8, 3.8))
     ax.plot(phi, sampled, color="tab:gray", lw=1.2, label=f"Monte Carlo ({n_draws} noise draws)")
     ax.plot(phi, linearized, color="tab:red", lw=1.2, ls="--", label="linearized (CasADi sensitivities)")
     ax.set(xlabel=r"$\varphi$ [rad]", ylabel=r"std of $\tau$ [Pa]", xlim=(0, 2 * np.pi), ylim=(0, None),
@@ -204,18 +209,17 @@ def figure_band_check(phi, linearized, sampled, n_draws: int):
 
 
 def save_figure(fig, path: str) -> str:
-    """Write one figure as PNG and close it."""
+    """Write one figure as PNG."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = path + ".part.png"  # never a half-written figure under the final name
     fig.savefig(tmp, dpi=120)
-    plt.close(fig)
     os.replace(tmp, path)
     return path
 
 
 def figure_rates(deltas, curves: dict):
     """Log-log error against noise level, one panel per Sobolev index r; ``curves[(k, rule)]`` is (n_delta, 3)."""
-    fig, axes = plt.subplots(1, 3, figsize=(12, 3.8))
+    fig, axes = _subplots(1, 3, figsize=(12, 3.8))
     for r, ax in enumerate(axes):
         for (k, rule), errs in curves.items():
             ax.loglog(deltas, errs[:, r], "o-" if rule == "a priori" else "s--", label=f"k = {k}, {rule}")
@@ -240,7 +244,7 @@ def figure_sweep(rows: list, x: str, y: str, by: str | None = None, where: dict 
 
     sel = select(rows, where or {})
     pvals = list(dict.fromkeys(r[panels] for r in sel)) if panels else [None]
-    fig, axes = plt.subplots(1, len(pvals), figsize=(5.6 * len(pvals), 4.3), squeeze=False)
+    fig, axes = _subplots(1, len(pvals), figsize=(5.6 * len(pvals), 4.3), squeeze=False)
     for ax, pv in zip(axes[0], pvals):
         part = [r for r in sel if panels is None or r[panels] == pv]
         for k, bv in enumerate(dict.fromkeys(r[by] for r in part) if by else [None]):
@@ -285,7 +289,7 @@ def figure_stack(results, spacing_mm: float):
                 r"axial WSS $\tau \cdot e_a$ [Pa]": lambda r: r.wss.vector.axial,
                 r"circumferential WSS $\tau \cdot e_c$ [Pa]": lambda r: r.wss.vector.circumferential}
     z = np.arange(n) * spacing_mm
-    fig, axes = plt.subplots(1, len(maps), figsize=(6 * len(maps), 4.6), sharey=True)
+    fig, axes = _subplots(1, len(maps), figsize=(6 * len(maps), 4.6), sharey=True)
     extent = (0, 360, z[0] - spacing_mm / 2, z[-1] + spacing_mm / 2)
     for ax, (label, get), cmap in zip(axes, maps.items(), ("viridis", "magma", "coolwarm")):
         data = np.full((n, phi.size), np.nan)
