@@ -26,7 +26,7 @@ import time
 import numpy as np
 
 from _report import RESULTS, write_report
-from wss_nlp import io as wio
+from wss_nlp import files as wio
 from wss_nlp import metrics, phantoms
 from wss_nlp.cli import main as cli
 
@@ -121,7 +121,8 @@ def main(argv=None):
              f"- runs: {len(rows)} ({sum(r['stack'] for r in rows)} stacks, {len(aliased)} with venc below the peak "
              "velocity)",
              f"- failures (non-zero exit): **{len(failed)}**",
-             f"- runs with warnings: {sum(bool(r['warnings']) for r in rows)}", "",
+             f"- runs with warnings: {sum(bool(r['warnings']) for r in rows)}; flagged SUSPECT (velocity residual "
+             f"> 3 x noise): {sum(any('SUSPECT' in w for w in r['warnings']) for r in rows)}", "",
              "## Failures", ""]
     lines += [f"- {describe(r)}: exit {r['rc']}: {r['error']}" for r in failed] or ["none"]
     lines += ["", "## WSS relative L2 error by case (worst slice of each run)", "",

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from wss_nlp import geometry as geo
-from wss_nlp import io as wio
+from wss_nlp import files as wio
 from wss_nlp import phantoms
 from wss_nlp.cli import main
 from wss_nlp.errors import SolverError

@@ -26,7 +26,7 @@ import h5py
 import numpy as np
 import pytest
 
-from wss_nlp import io as wio
+from wss_nlp import files as wio
 from wss_nlp import phantoms
 from wss_nlp.cli import main
 

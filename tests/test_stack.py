@@ -4,7 +4,7 @@ import h5py
 import numpy as np
 import pytest
 
-from wss_nlp import io as wio
+from wss_nlp import files as wio
 from wss_nlp import metrics, phantoms, stack
 from wss_nlp.cli import main
 from wss_nlp.errors import InputError

@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from wss_nlp import io as wio
+from wss_nlp import files as wio
 from wss_nlp import phantoms
 from wss_nlp import sweep
 from wss_nlp.cli import main

@@ -13,162 +13,21 @@ import time
 import numpy as np
 
 from . import __version__
-from . import coupled as cpl
-from . import geometry as geo
-from . import io as wio
+from . import files as wio
 from . import metrics
 from . import outputs
 from . import phantoms
-from . import plausibility as plaus
-from . import stack as stk
-from . import velocity as vel
+from . import schema
 from .errors import InputError, WssNlpError
-from .reconstruct import ALPHA_RULES, BETA_RULES, METHODS, parse_rule, ReconstructionOptions, reconstruct
-
-_G = geo.GeometryOptions()
-_V = vel.VelocityOptions()
-
+from .reconstruct import ReconstructionOptions, reconstruct
 
 def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("geometry (Sec. 2, 7.1)")
-    g.add_argument("--alpha", default=str(_G.alpha),
-                   help="Tikhonov parameter of the H^s radius penalty (dimensionless), or a rule: 'auto' = "
-                        "'balance' (Lepskii balancing on the radius), 'discrepancy' (eq. (disc)) "
-                        "(default %(default)s)")
-    g.add_argument("--kappa-alpha", type=float, default=ReconstructionOptions.kappa_alpha,
-                   help="balancing rule: radius differences allowed, in noise standard deviations "
-                        "(default %(default)g)")
-    g.add_argument("--tau-alpha", type=float, default=ReconstructionOptions.tau_alpha,
-                   help="discrepancy factor for alpha (default %(default)g; the paper's theory uses 4)")
-    g.add_argument("--noise-magnitude", type=float, default=None,
-                   help="noise level delta of the normalized magnitude in mm (default: estimated)")
-    g.add_argument("--n-fourier", type=int, default=_G.n_fourier,
-                   help="highest harmonic N of the radius R(phi) (default %(default)s)")
-    g.add_argument("--sobolev", type=int, default=_G.sobolev_s, help="order s of the H^s penalty (default %(default)s)")
-    g.add_argument("--prior", choices=["area", "zero"], default=_G.prior,
-                   help="penalize R - R_area (default, unbiased) or R itself as in eq. (tik1)")
-    g.add_argument("--gamma", type=float, default=None,
-                   help="width of the smoothed Heaviside in mm (default: h / q)")
-    g.add_argument("--heaviside", choices=["erf", "arctan"], default=_G.heaviside,
-                   help="smoothed Heaviside: erf (default, Gaussian tails) or the paper's arctan")
-    g.add_argument("--quad-order", type=int, default=None,
-                   help="sub-voxel quadrature points per axis, q x q per voxel (default: clip(ceil(60 h / R), 2, 6))")
-    g.add_argument("--geometry-solver", choices=["ipopt", "gauss-newton"], default=_G.solver,
-                   help="IPOPT (default) or the paper's projected Gauss-Newton")
-    g.add_argument("--hessian", choices=["gauss-newton", "exact", "limited-memory"], default=_G.hessian,
-                   help="Hessian used by IPOPT (default %(default)s)")
-    v = p.add_argument_group("velocity (Sec. 3, 7.2)")
-    v.add_argument("--beta", default="auto",
-                   help=f"Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless, e.g. {_V.beta:g}), "
-                        "or a rule: 'auto' = 'balance' (Lepskii balancing on the WSS; see README; the default), "
-                        "'discrepancy' (eq. (disc2)), 'gcv' (generalized cross-validation), 'lcurve'")
-    v.add_argument("--kappa-beta", type=float, default=ReconstructionOptions.kappa_beta,
-                   help="balancing rule: WSS differences allowed, in noise standard deviations (default %(default)g)")
-    v.add_argument("--tau-beta", type=float, default=ReconstructionOptions.tau_beta,
-                   help="discrepancy factor for beta (default %(default)g; the paper's theory uses 2)")
-    v.add_argument("--noise-velocity", type=float, default=None,
-                   help="noise level epsilon of the velocity in m/s (default: estimated)")
-    v.add_argument("--laplacian-power", type=int, choices=[1, 2], default=_V.laplacian_power,
-                   help="t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5 (default %(default)s)")
-    v.add_argument("--basis", choices=["zernike", "eigen"], default=_V.basis,
-                   help="(1-|xi|^2) x Zernike polynomials, or the paper's Dirichlet eigenfunctions "
-                        "(default %(default)s)")
-    v.add_argument("--degree", type=int, default=_V.degree, help="Zernike degree (default %(default)s)")
-    v.add_argument("--angular-order", type=int, default=_V.angular_order,
-                   help="highest angular order |m| of the Zernike functions (default %(default)s)")
-    v.add_argument("--max-eigenvalue", type=float, default=_V.max_eigenvalue,
-                   help="eigenvalue cut-off M of the eigenfunction basis (default %(default)g)")
-    v.add_argument("--eta", type=float, default=_V.eta, help="exponent of the map phi_R, >= 2 (default %(default)g)")
-    v.add_argument("--inner-fraction", type=float, default=_V.inner_fraction,
-                   help="inner radius of phi_R as a fraction of min R (default %(default)g)")
-    v.add_argument("--velocity-solver", choices=["ipopt", "cholesky"], default=_V.solver,
-                   help="CasADi/IPOPT (default) or direct Cholesky solve")
-    c = p.add_argument_group("method")
-    c.add_argument("--method", choices=list(METHODS), default="decoupled",
-                   help="decoupled: geometry, then velocity (the paper's); coupled: both as one NLP started from "
-                        "the decoupled solution, so the velocity data inform the wall too; oyre / stalder: the "
-                        "classical baselines (cubic near-wall profile fits / smoothing B-spline on a 50 %% "
-                        "magnitude segmentation; README, 'Classical baselines')")
-    c.add_argument("--velocity-weight", type=float, default=None,
-                   help="coupled: weight of the velocity misfit in mm^2/(m/s)^2 (default: the likelihood weight "
-                        "from the estimated noise levels)")
-    c.add_argument("--coupled-quad-order", type=int, default=cpl.CoupledOptions().quad_order,
-                   help="coupled: sub-voxel points per axis of the velocity misfit (default %(default)s)")
-    s = p.add_argument_group("input checks")
-    s.add_argument("--vessel", default=None, metavar="X,Y",
-                   help="with several vessels in view, reconstruct the one at this point (mm, image frame; default: "
-                        "the largest lumen; the others are reported)")
-    s.add_argument("--no-unwrap", dest="unwrap", action="store_false",
-                   help="use the velocities as given: no phase unwrapping (aliasing is then only reported) and no "
-                        "[-venc, venc] range check (for data unwrapped by other software)")
-    z = p.add_argument_group("stacks of slices (Sec. 5)")
-    z.add_argument("--z-smoothing", type=float, default=None,
-                   help="length in mm along the vessel over which neighbouring slices are pooled (z-regularization "
-                        "of geometry and velocity); 0 = independent slices (default: one slice spacing)")
-    z.add_argument("--z-order", type=int, choices=[1, 2], default=2,
-                   help="order of the z-derivative penalized: 2 (default) keeps linear tapers unbiased, 1 = first "
-                        "derivative")
-    z.add_argument("--stack-strategy", choices=list(stk.STRATEGIES), default="auto",
-                   help=f"one coupled NLP, Kaczmarz sweeps, or auto (coupled up to {stk.COUPLED_MAX_SLICES} "
-                        "slices)")
-    w = p.add_argument_group("wall shear stress (Sec. 4)")
-    w.add_argument("--viscosity", type=float, default=None,
-                   help="dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'")
-    w.add_argument("--n-phi", type=int, default=360, help="angles at which tau is reported, >= 360 (default 360)")
-    w.add_argument("--no-dephasing-correction", dest="dephasing_correction", action="store_false",
-                   help="skip the second pass that corrects the magnitude for intra-voxel dephasing (needs venc)")
-    w.add_argument("--no-uncertainty", dest="uncertainty", action="store_false",
-                   help="skip the linearized WSS band and the sensitivities (about 1-3x the "
-                        "time of the solve)")
-    w.add_argument("--noise-sigma", type=float, default=None,
-                   help="complex noise per channel in raw magnitude units for the band (default: from the "
-                        "Rayleigh background)")
-    w.add_argument("--dephasing-beta", choices=["gcv", "same"], default="gcv",
-                   help="beta of the velocity fit that predicts dephasing: GCV (default; keeps steep boundary "
-                        "layers) or the same beta as the WSS fit")
-
-
-def _rule(text: str, rules: tuple, name: str):
-    """``(rule, value)`` from an option that is a number or a rule name (see :func:`parse_rule`)."""
-    try:
-        return "fixed", float(text)
-    except ValueError:
-        return parse_rule(text, rules, f"--{name}"), None
-
-
-def _point(text: str | None, name: str):
-    if text is None:
-        return None
-    try:
-        x, y = (float(v) for v in text.split(","))
-    except ValueError:
-        raise InputError(f"{name} takes two numbers X,Y in mm, e.g. {name} 12.5,-3; got {text!r}") from None
-    return (x, y)
+    """Every reconstruction option, from the options schema (:mod:`wss_nlp.schema`)."""
+    schema.add_arguments(p, ReconstructionOptions)
 
 
 def options_from_args(args) -> ReconstructionOptions:
-    alpha_rule, alpha = _rule(args.alpha, ALPHA_RULES, "alpha")
-    beta_rule, beta = _rule(args.beta, BETA_RULES, "beta")
-    gopt = geo.GeometryOptions(
-        n_fourier=args.n_fourier, alpha=alpha if alpha is not None else _G.alpha, sobolev_s=args.sobolev,
-        prior=args.prior, gamma=args.gamma, heaviside=args.heaviside, quad_order=args.quad_order,
-        solver=args.geometry_solver, hessian=args.hessian)
-    vopt = vel.VelocityOptions(
-        basis=args.basis, degree=args.degree, angular_order=args.angular_order, max_eigenvalue=args.max_eigenvalue,
-        beta=beta if beta is not None else _V.beta, laplacian_power=args.laplacian_power, eta=args.eta,
-        inner_fraction=args.inner_fraction, quad_order=args.quad_order, solver=args.velocity_solver)
-    copt = cpl.CoupledOptions(velocity_weight=args.velocity_weight, quad_order=args.coupled_quad_order)
-    return ReconstructionOptions(geometry=gopt, velocity=vopt, method=args.method, coupled=copt, n_phi=args.n_phi,
-                                 viscosity_pa_s=args.viscosity, dephasing_correction=args.dephasing_correction,
-                                 dephasing_beta_rule=args.dephasing_beta, uncertainty=args.uncertainty,
-                                 noise_sigma=args.noise_sigma, alpha_rule=alpha_rule,
-                                 beta_rule=beta_rule, tau_alpha=args.tau_alpha, tau_beta=args.tau_beta,
-                                 kappa_alpha=args.kappa_alpha, kappa_beta=args.kappa_beta,
-                                 noise_magnitude=args.noise_magnitude, noise_velocity=args.noise_velocity,
-                                 stack=stk.StackOptions(z_smoothing_mm=args.z_smoothing, z_order=args.z_order,
-                                                        strategy=args.stack_strategy),
-                                 screen=plaus.ScreenOptions(vessel=_point(args.vessel, "--vessel"),
-                                                            unwrap=args.unwrap))
+    return schema.from_args(ReconstructionOptions, args)
 
 
 def _progress(stream):
@@ -487,7 +346,7 @@ def cmd_table(args) -> int:
 
 def cmd_plot(args) -> int:
     from . import sweep
-    from .plotting import figure_sweep, save_figure
+    from .plotting import save_figure
 
     outputs.check_outputs(files={"-o": args.output})
     rows = sweep.read_csv(args.outdir)
@@ -497,7 +356,7 @@ def cmd_plot(args) -> int:
     for k in (args.x, args.y, args.by, args.panels):
         if k is not None and k not in rows[0]:
             raise InputError(f"{args.outdir}/results.csv: no column {k!r}; columns: {', '.join(rows[0])}")
-    fig = figure_sweep(rows, args.x, args.y, by=args.by, where=where, panels=args.panels, logx=args.logx)
+    fig = sweep.plot(rows, args.x, args.y, by=args.by, where=where, panels=args.panels, logx=args.logx)
     out = args.output or os.path.join(args.outdir, f"{args.y}_vs_{args.x}.png")
     print(f"wrote {save_figure(fig, out)}")
     return 0

@@ -38,6 +38,7 @@ from . import measurement as meas
 from . import radius as rad
 from . import velocity as vel
 from .errors import InputError
+from .schema import option
 from .solver import SolverStats, ipopt_options, run_nlpsol
 
 
@@ -69,9 +70,14 @@ class CoupledOptions:
         solution with Newton steps anyway (:func:`wss_nlp.sensitivity.coupled`).
     """
 
-    velocity_weight: float | None = None
+    schema_group = "method and parameter choice"
+
+    velocity_weight: float | None = option(None, "coupled: weight of the velocity misfit in mm^2/(m/s)^2 (default: "
+                                           "the likelihood weight from the estimated noise levels)",
+                                           cli="--velocity-weight", toml=("velocity_weight",))
     hessian: str = "gauss-newton"
-    quad_order: int = 3
+    quad_order: int = option(3, "coupled: sub-voxel points per axis of the velocity misfit",
+                             cli="--coupled-quad-order")
     tol: float = 1e-6
     max_iter: int = 200
 

@@ -24,6 +24,7 @@ import casadi as ca
 from . import measurement as meas
 from . import radius as rad
 from .errors import InputError, SolverError
+from .schema import option
 from .solver import SolverStats, ipopt_options, run_nlpsol
 
 
@@ -66,15 +67,24 @@ class GeometryOptions:
         Stopping rules.
     """
 
-    n_fourier: int = 8
-    alpha: float = 1e-3
-    sobolev_s: int = 2
-    prior: str = "area"
-    gamma: float | None = None
-    heaviside: str = "erf"
-    quad_order: int | None = None
-    solver: str = "ipopt"
-    hessian: str = "gauss-newton"
+    schema_group = "geometry (Sec. 2, 7.1)"
+
+    n_fourier: int = option(8, "highest harmonic N of the radius R(phi)", cli="--n-fourier", toml=("N", "n_fourier"))
+    alpha: float = 1e-3  # on the command line and in studies through --alpha (ReconstructionOptions.alpha_rule)
+    sobolev_s: int = option(2, "order s of the H^s penalty", cli="--sobolev", toml=("sobolev",))
+    prior: str = option("area", "penalize R - R_area (unbiased) or R itself as in eq. (tik1)", cli="--prior",
+                        toml=("prior",), choices=("area", "zero"))
+    gamma: float | None = option(None, "width of the smoothed Heaviside in mm (default: h / q)", cli="--gamma",
+                                 toml=("gamma",))
+    heaviside: str = option("erf", "smoothed Heaviside: erf (Gaussian tails) or the paper's arctan",
+                            cli="--heaviside", toml=("heaviside",), choices=meas.HEAVISIDES)
+    quad_order: int | None = option(None, "sub-voxel quadrature points per axis, q x q per voxel (default: "
+                                    "clip(ceil(60 h / R), 2, 6))", cli="--quad-order", toml=("quad_order",),
+                                    also=("velocity.quad_order",))
+    solver: str = option("ipopt", "IPOPT or the paper's projected Gauss-Newton", cli="--geometry-solver",
+                         choices=("ipopt", "gauss-newton"))
+    hessian: str = option("gauss-newton", "Hessian used by IPOPT", cli="--hessian",
+                          choices=("gauss-newton", "exact", "limited-memory"))
     n_box: int = 0
     tol: float = 1e-9
     max_iter: int = 200

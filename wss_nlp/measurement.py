@@ -69,6 +69,10 @@ class VoxelGrid:
         return (x0 - self.dx / 2, x0 + (nx - 0.5) * self.dx, y0 - self.dy / 2, y0 + (ny - 0.5) * self.dy)
 
 
+#: Smallest predicted magnitude loss (1 - D_i) of a wall voxel that triggers the dephasing pass.
+DEPHASING_THRESHOLD = 0.01
+
+
 def auto_quad_order(order: int | None, grid: VoxelGrid, radius_mm: float) -> int:
     """Sub-voxel points per axis: ``order`` if given, else ``clip(ceil(60 h / R), 2, 6)``.
 

@@ -75,7 +75,7 @@ class TruthTable:
     @classmethod
     def all_from_file(cls, path) -> list:
         """One :class:`TruthTable` per slice of a truth file."""
-        from .io import read_result
+        from .files import read_result
 
         return [cls(d["center"], d["phi"], d["radius"], d["tau"], d["mean_tau"]) for d in read_result(path)]
 

@@ -5,7 +5,7 @@ Every command that writes checks all its output paths first
 nothing behind: an existing directory where a file is wanted (or the
 reverse), a folder that does not exist or cannot be written, an output that
 is one of the inputs, two outputs that are the same file. Files are written
-through :func:`wss_nlp.io.atomic_h5` / :func:`wss_nlp.io.atomic_write`;
+through :func:`wss_nlp.files.atomic_h5` / :func:`wss_nlp.files.atomic_write`;
 figure folders are filled through :class:`StagedFolder`, so a failure half
 way through a figure set removes what that run wrote.
 """

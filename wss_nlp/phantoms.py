@@ -28,7 +28,7 @@ import scipy.optimize
 
 from . import radius as rad
 from .errors import InputError
-from .io import Acquisition
+from .files import Acquisition
 from .measurement import VoxelGrid
 
 #: mm -> m: velocity gradients in (m/s)/mm times this are in 1/s.

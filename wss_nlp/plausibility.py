@@ -22,6 +22,13 @@ wrong number.
   is small. Unwrapped data that still jump by more than ``venc`` between
   bright neighbours are refused (the venc is too low for the resolution).
 * **Several vessels.** Reported from :attr:`wss_nlp.preprocess.Lumen.others`.
+* **Consistency of the fit** (:func:`check_fit`, after the solve). A smooth
+  no-slip velocity fitted at a parameter chosen for the noise leaves a
+  residual of about the noise level. A residual far above it
+  (:data:`MAX_RESIDUAL_TO_NOISE`) means the data contradict the model: a wrap
+  the spatial unwrapping could not see (the velocity rises by more than venc
+  within one voxel all around the wall), a wrong venc, a wrong lumen. The
+  slice is then flagged with a warning, never passed off as a good answer.
 """
 
 from __future__ import annotations
@@ -34,6 +41,7 @@ import scipy.ndimage
 
 from . import preprocess as pp
 from .errors import InputError, WssNlpError
+from .schema import option
 
 #: Fastest plausible blood velocity: jets through severe valve stenoses reach 5-6 m/s.
 MAX_BLOOD_SPEED_M_S = 10.0
@@ -41,8 +49,21 @@ MAX_BLOOD_SPEED_M_S = 10.0
 VENC_TOLERANCE = 0.02
 #: Bright neighbour pairs that may still differ by more than venc after unwrapping (noise) before we refuse.
 MAX_RESIDUAL_JUMPS = 2
+#: Velocity-fit residual / noise level above which a slice is flagged. Measured (scripts/aliasing.py, column
+#: res/eps): at most 1.55 on laminar, manufactured, circle and turbulent phantoms, unaliased or correctly unwrapped,
+#: h 0.6-1.5 mm; 4.8-9.3 where a hidden wrap survived. 3 leaves a factor of about 2 on both sides.
+MAX_RESIDUAL_TO_NOISE = 3.0
 #: Normalized magnitude above which a voxel joins the unwrapping region (its phase noise is below ~0.4 rad at SNR 10).
 UNWRAP_MAGNITUDE = 0.25
+
+
+def parse_point(text) -> tuple[float, float]:
+    """``"X,Y"`` (mm) -> ``(x, y)``; an :class:`InputError` names the expected form."""
+    try:
+        x, y = (float(v) for v in str(text).split(","))
+    except ValueError:
+        raise InputError(f"--vessel takes two numbers X,Y in mm, e.g. --vessel 12.5,-3; got {text!r}") from None
+    return (x, y)
 
 
 @dataclass(frozen=True)
@@ -56,8 +77,14 @@ class ScreenOptions:
     and skips the ``[-venc, venc]`` range check.
     """
 
-    vessel: tuple[float, float] | None = None
-    unwrap: bool = True
+    schema_group = "input checks"
+
+    vessel: tuple[float, float] | None = option(None, "with several vessels in view, reconstruct the one at this "
+                                                "point (mm, image frame; default: the largest lumen; the others "
+                                                "are reported)", cli="--vessel", metavar="X,Y", parse=parse_point)
+    unwrap: bool = option(True, "use the velocities as given: no phase unwrapping (aliasing is then only reported) "
+                          "and no [-venc, venc] range check (for data unwrapped by other software)",
+                          cli="--no-unwrap", flag_off=True)
 
     def __post_init__(self):
         if self.vessel is not None:
@@ -135,10 +162,12 @@ def check_velocity_range(acq, name: str, velocity: np.ndarray) -> None:
         return
     vmax = float(np.max(np.abs(finite)))
     if vmax > venc * (1 + VENC_TOLERANCE):
+        # a few times venc: unwrapped elsewhere, or a wrong venc; tens to thousands of times: another unit
+        hint = (_unit_hint(vmax, venc * (1 + VENC_TOLERANCE)) if vmax > 10 * venc else
+                f"{vmax / venc:.2g} x venc: is venc_m_s right?")
         raise InputError(
             f"{acq.source}: '{name}' reaches {vmax:.4g} but venc_m_s = {venc:g}: a velocity from a phase lies in "
-            f"[-venc, venc] m/s; {_unit_hint(vmax, venc * (1 + VENC_TOLERANCE))}; if the velocities were unwrapped "
-            "by other software, pass --no-unwrap")
+            f"[-venc, venc] m/s; {hint}; if the velocities were unwrapped by other software, pass --no-unwrap")
 
 
 def _check_speed(acq, iz: int, name: str, velocity: np.ndarray, lumen_mask: np.ndarray) -> None:
@@ -229,3 +258,32 @@ def screen(acq, options: ScreenOptions | None = None):
     if fixed is not None:
         acq = replace(acq, velocity=fixed, phase=None)
     return acq, found
+
+
+def check_fit(result, raw_magnitude: np.ndarray, venc: float | None) -> tuple[str, float]:
+    """``(warning or "", residual / noise)`` of a reconstructed slice's velocity fit (see module notes).
+
+    The noise level is the one the parameter rule estimated, or (fixed beta)
+    the same estimate made here (:func:`wss_nlp.analysis.velocity_noise`).
+    """
+    from . import analysis as an
+
+    v = result.velocity
+    noise = result.beta_choice.noise if result.beta_choice is not None else float("nan")
+    if not (np.isfinite(noise) and noise > 0):
+        try:
+            noise = an.velocity_noise(result.velocity_image, raw_magnitude, result.lumen.noise_mask, v.voxel_index,
+                                      v.voxel_fraction * result.grid.voxel_area, venc).value
+        except WssNlpError:
+            return "", float("nan")
+    if not noise > 0:
+        return "", float("nan")
+    ratio = float(v.residual_norm / noise)
+    if ratio <= MAX_RESIDUAL_TO_NOISE:
+        return "", ratio
+    cause = (f"hidden velocity aliasing (venc_m_s = {venc:g}: re-acquire with a higher venc if the flow may exceed "
+             "it)" if venc is not None else "velocities in other units or from another slice")
+    return (f"SUSPECT: the velocity fit leaves a residual {ratio:.1f} x the noise level (> "
+            f"{MAX_RESIDUAL_TO_NOISE:g}): the data contradict a smooth no-slip flow in this lumen; likely {cause}, "
+            "or a wrong lumen; this slice's WSS is not trustworthy"), ratio
+

@@ -232,17 +232,16 @@ def figure_rates(deltas, curves: dict):
     return fig
 
 
-def figure_sweep(rows: list, x: str, y: str, by: str | None = None, where: dict | None = None,
-                 panels: str | None = None, logx: bool = False, title: str = ""):
+def figure_sweep(rows: list, x: str, y: str, by: str | None = None, panels: str | None = None, logx: bool = False,
+                 title: str = "", ylabel: str | None = None):
     """A metric against a parameter from sweep rows: mean over seeds with +-1 standard deviation.
 
     One line per value of ``by`` (e.g. the method), one panel per value of
     ``panels`` (e.g. the phantom); failed cases are left out and counted in
-    the legend.
+    the legend. ``rows`` are the rows to draw (:func:`wss_nlp.sweep.plot`
+    selects them and names the metric).
     """
-    from .sweep import METRICS, select
-
-    sel = select(rows, where or {})
+    sel = rows
     pvals = list(dict.fromkeys(r[panels] for r in sel)) if panels else [None]
     fig, axes = _subplots(1, len(pvals), figsize=(5.6 * len(pvals), 4.3), squeeze=False)
     for ax, pv in zip(axes[0], pvals):
@@ -261,7 +260,7 @@ def figure_sweep(rows: list, x: str, y: str, by: str | None = None, where: dict 
             ax.errorbar(xs, mean, yerr=std, marker="os^dv<>"[k % 7], capsize=3, label=label)
         if y.endswith("_bias"):
             ax.axhline(0.0, color="0.5", lw=0.8)
-        ax.set(xlabel={"h": "voxel size h [mm]"}.get(x, x), ylabel=METRICS.get(y, y),
+        ax.set(xlabel={"h": "voxel size h [mm]"}.get(x, x), ylabel=ylabel or y,
                title=(f"{panels} = {pv}" if panels else title))
         if logx:
             ax.set_xscale("log")

@@ -1,7 +1,7 @@
 """The decoupled reconstruction of one acquisition: geometry -> velocity -> WSS.
 
 :func:`reconstruct_slice` runs the three steps of the paper on one slice;
-:func:`reconstruct` does so for every slice of an :class:`~wss_nlp.io.Acquisition`,
+:func:`reconstruct` does so for every slice of an :class:`~wss_nlp.files.Acquisition`,
 reporting progress, and returns :class:`SliceResult` objects that carry the
 numbers, the solver statistics and what was assumed.
 """
@@ -13,52 +13,42 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
-from . import analysis as an
 from . import baselines as bl
 from . import coupled as cpl
 from . import geometry as geo
 from . import measurement as meas
 from . import plausibility as plaus
 from . import preprocess as pp
-from . import radius as rad
 from . import sensitivity as sens
 from . import stack as stk
 from . import velocity as vel
 from . import wss as wss_mod
+from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are part of this module's API)
+    ALPHA_RULES, ALPHA_STOP, AUTO_RULE, BETA_RULES, BETA_STOP, DEPHASING_BETA_RULES, balance_alpha, choose_alpha,
+    choose_beta, gcv_beta, parse_rule)
 from .errors import InputError, WssNlpError
-from .io import Acquisition, FailedSlice
-from .measurement import VoxelGrid
+from .files import Acquisition, FailedSlice
+from .measurement import DEPHASING_THRESHOLD, VoxelGrid
+from .results import SliceResult
+from .schema import option
 
 
-#: Smallest beta of the GCV and L-curve grids (below it the normal matrix loses definiteness in double precision).
-BETA_STOP = 1e-14
-
-#: Smallest predicted magnitude loss (1 - D_i) that triggers the dephasing pass.
-DEPHASING_THRESHOLD = 0.01
-
-
-ALPHA_RULES = ("fixed", "discrepancy", "balance")
-ALPHA_STOP = 1e-6  # smallest alpha a balancing search tries (V_N with N = 8 hardly amplifies noise below it)
-BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve", "balance")
-DEPHASING_BETA_RULES = ("gcv", "same")
-#: What ``auto`` means for alpha and beta: the rule closest to the oracle in scripts/accuracy.py --auto (README).
-AUTO_RULE = "balance"
-
-
-def parse_rule(word: str, rules: tuple, name: str) -> str:
-    """The rule a user's word names (``auto`` -> :data:`AUTO_RULE`); InputError lists the accepted words."""
-    word = word.strip().lower()
-    if word == "auto":
-        return AUTO_RULE
-    if word in rules and word != "fixed":
-        return word
-    words = ["auto"] + [r for r in rules if r != "fixed"]
-    raise InputError(f"{name} must be a number or one of {', '.join(words)}; got {word!r}")
 METHODS = ("decoupled", "coupled") + bl.METHODS
 
 
 _DEFAULT_ALPHA = geo.GeometryOptions().alpha
 _DEFAULT_BETA = vel.VelocityOptions().beta
+WSS_GROUP = "wall shear stress (Sec. 4)"
+
+
+def _parameter_word(text, name: str) -> dict:
+    """``--alpha`` / ``--beta`` (or a study key): a number is used as given (fixed rule), a word names a rule."""
+    rules = ALPHA_RULES if name == "alpha" else BETA_RULES
+    part = "geometry" if name == "alpha" else "velocity"
+    try:
+        return {f"{name}_rule": "fixed", f"{part}.{name}": float(text)}
+    except ValueError:
+        return {f"{name}_rule": parse_rule(str(text), rules, f"--{name}")}
 
 
 @dataclass(frozen=True)
@@ -80,32 +70,62 @@ class ReconstructionOptions:
     about three times a solve and gains nothing measurable over the fixed value.
     """
 
+    schema_group = "method and parameter choice"
+
     geometry: geo.GeometryOptions = field(default_factory=geo.GeometryOptions)
     velocity: vel.VelocityOptions = field(default_factory=vel.VelocityOptions)
-    method: str = "decoupled"  # "coupled": one NLP for geometry and velocity, started from the decoupled solution
+    method: str = option("decoupled", "decoupled: geometry, then velocity (the paper's); coupled: both as one NLP "
+                         "started from the decoupled solution, so the velocity data inform the wall too; oyre / "
+                         "stalder: the classical baselines (cubic near-wall profile fits / smoothing B-spline on a "
+                         "50 % magnitude segmentation; README, 'Classical baselines')", cli="--method",
+                         toml=("method",), choices=METHODS)
     coupled: cpl.CoupledOptions = field(default_factory=cpl.CoupledOptions)
     baseline: bl.BaselineOptions = field(default_factory=bl.BaselineOptions)  # method "oyre" / "stalder"
     stack: stk.StackOptions = field(default_factory=stk.StackOptions)  # nz > 1: z-regularization (wss_nlp.stack)
     screen: plaus.ScreenOptions = field(default_factory=plaus.ScreenOptions)  # vessel choice, unwrapping
-    n_phi: int = 360
-    viscosity_pa_s: float | None = None  # overrides the file's value when set
-    dephasing_correction: bool = True  # needs venc; see measurement.dephasing_factors
-    dephasing_beta_rule: str = "gcv"  # beta of the velocity that predicts dephasing: "gcv" or "same"
-    alpha_rule: str = "fixed"
-    beta_rule: str = "balance"
-    tau_alpha: float = 1.1
-    tau_beta: float = 1.1
-    kappa_alpha: float = 2.0  # balancing principle: differences up to two noise standard deviations
+    n_phi: int = option(360, "angles at which tau is reported, >= 360", cli="--n-phi", toml=("n_phi",),
+                        group=WSS_GROUP)
+    viscosity_pa_s: float | None = option(None, "dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'",
+                                          cli="--viscosity", toml=("viscosity",), group=WSS_GROUP)
+    dephasing_correction: bool = option(True, "skip the second pass that corrects the magnitude for intra-voxel "
+                                        "dephasing (needs venc)", cli="--no-dephasing-correction",
+                                        toml=("dephasing_correction",), flag_off=True, group=WSS_GROUP)
+    dephasing_beta_rule: str = option("gcv", "beta of the velocity fit that predicts dephasing: GCV (keeps steep "
+                                      "boundary layers) or the same beta as the WSS fit", cli="--dephasing-beta",
+                                      choices=DEPHASING_BETA_RULES, group=WSS_GROUP)
+    alpha_rule: str = option("fixed", "Tikhonov parameter of the H^s radius penalty (dimensionless), or a rule: "
+                             "'auto' = 'balance' (Lepskii balancing on the radius), 'discrepancy' (eq. (disc))",
+                             cli="--alpha", toml=("alpha",), parse=lambda text: _parameter_word(text, "alpha"),
+                             default_text=str(_DEFAULT_ALPHA), group=geo.GeometryOptions.schema_group)
+    beta_rule: str = option("balance", "Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless, e.g. "
+                            f"{_DEFAULT_BETA:g}), or a rule: 'auto' = 'balance' (Lepskii balancing on the WSS; see "
+                            "README), 'discrepancy' (eq. (disc2)), 'gcv' (generalized cross-validation), 'lcurve'",
+                            cli="--beta", toml=("beta",), parse=lambda text: _parameter_word(text, "beta"),
+                            default_text="auto", group=vel.VelocityOptions.schema_group)
+    tau_alpha: float = option(1.1, "discrepancy factor for alpha (the paper's theory uses 4)", cli="--tau-alpha",
+                              toml=("tau_alpha",), group=geo.GeometryOptions.schema_group)
+    tau_beta: float = option(1.1, "discrepancy factor for beta (the paper's theory uses 2)", cli="--tau-beta",
+                             toml=("tau_beta",), group=vel.VelocityOptions.schema_group)
+    kappa_alpha: float = option(2.0, "balancing rule: radius differences allowed, in noise standard deviations",
+                                cli="--kappa-alpha", toml=("kappa_alpha",), group=geo.GeometryOptions.schema_group)
     # beta: noise alone stays below 2, but the least regularized WSS estimates carry a bias of their own (the
     # voxel means do not fix every coefficient), which the rule reads as bias of the more regularized ones; 2.5 is
     # the margin that absorbed it on held-out seeds (scripts/parameter_rules.py --kappa, README)
-    kappa_beta: float = 2.5
+    kappa_beta: float = option(2.5, "balancing rule: WSS differences allowed, in noise standard deviations",
+                               cli="--kappa-beta", toml=("kappa_beta",), group=vel.VelocityOptions.schema_group)
     alpha_start: float = 1.0
     beta_start: float = 1e-2
-    noise_magnitude: float | None = None  # delta in mm; estimated when None
-    noise_velocity: float | None = None  # epsilon in m/s; estimated when None
-    uncertainty: bool = True  # linearized WSS band and sensitivities (wss_nlp.sensitivity)
-    noise_sigma: float | None = None  # complex noise per channel (raw units) for the band; estimated when None
+    noise_magnitude: float | None = option(None, "noise level delta of the normalized magnitude in mm (default: "
+                                           "estimated)", cli="--noise-magnitude",
+                                           group=geo.GeometryOptions.schema_group)
+    noise_velocity: float | None = option(None, "noise level epsilon of the velocity in m/s (default: estimated)",
+                                          cli="--noise-velocity", group=vel.VelocityOptions.schema_group)
+    uncertainty: bool = option(True, "skip the linearized WSS band and the sensitivities (about 1-3x the time of "
+                               "the solve)", cli="--no-uncertainty", toml=("uncertainty",), flag_off=True,
+                               group=WSS_GROUP)
+    noise_sigma: float | None = option(None, "complex noise per channel in raw magnitude units for the band "
+                                       "(default: from the Rayleigh background)", cli="--noise-sigma",
+                                       group=WSS_GROUP)
 
     def __post_init__(self):
         if self.n_phi < 360:
@@ -135,62 +155,6 @@ class ReconstructionOptions:
 
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-@dataclass
-class SliceResult:
-    """Result of one slice, with everything needed to write, plot and judge it."""
-
-    index: int
-    geometry: geo.GeometryResult
-    velocity: vel.VelocityResult
-    wss: wss_mod.WssResult
-    normalization: pp.Normalization
-    lumen: pp.Lumen
-    grid: VoxelGrid
-    magnitude: np.ndarray  # normalized, (ny, nx)
-    velocity_image: np.ndarray  # measured velocity, (ny, nx)
-    seconds: dict = field(default_factory=dict)
-    alpha_choice: an.ParameterChoice | None = None
-    beta_choice: an.ParameterChoice | None = None
-    method: str = "decoupled"
-    coupled_info: dict = field(default_factory=dict)  # weight, how it was chosen, the decoupled start's numbers
-    sensitivity: sens.Sensitivity | None = None
-    notes: list = field(default_factory=list)  # things the user should know that are not failures
-    screen: dict = field(default_factory=dict)  # what wss_nlp.plausibility found (vessels, aliasing)
-
-    @property
-    def converged(self) -> bool:
-        return bool(self.geometry.stats.converged and self.velocity.stats.converged)
-
-    @property
-    def warnings(self) -> list[str]:
-        out = []
-        for name, st in (("geometry", self.geometry.stats), ("velocity", self.velocity.stats)):
-            if not st.converged:
-                out.append(f"slice {self.index}: {name} solve did not converge ({st.solver}: {st.status})")
-        for ch in (self.alpha_choice, self.beta_choice):
-            if ch is not None and ch.noise == 0:
-                out.append(f"slice {self.index}: {ch.name}: {ch.noise_method}: {ch.name} = {ch.chosen:g}")
-            if ch is not None and ch.rule == "discrepancy" and not ch.satisfied:
-                out.append(f"slice {self.index}: no {ch.name} reached residual <= {ch.tau:g} x noise "
-                           f"({ch.noise:.3g}); model error dominates, took {ch.name} = {ch.chosen:.3g} where the "
-                           "residual stopped falling")
-        out.extend(f"slice {self.index}: {n}" for n in self.notes)
-        if self.geometry.box_active:
-            out.append(f"slice {self.index}: the radius reached the box [{self.geometry.box[0]:.3g}, "
-                       f"{self.geometry.box[1]:.3g}] mm; the lumen may not be star-shaped about the centre")
-        return out
-
-
-def resolve_viscosity(acq: Acquisition, options: ReconstructionOptions) -> float:
-    mu = options.viscosity_pa_s if options.viscosity_pa_s is not None else acq.viscosity_pa_s
-    if mu is None:
-        raise InputError(f"{acq.source}: no viscosity: the file has no 'viscosity_pa_s' attribute; "
-                         "pass --viscosity (Pa*s, e.g. 3.5e-3 for blood)")
-    if not mu > 0:
-        raise InputError(f"{acq.source}: viscosity must be > 0 Pa*s, got {mu}")
-    return float(mu)
 
 
 def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: VoxelGrid, viscosity_pa_s: float,
@@ -310,142 +274,6 @@ def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options
     return res, info
 
 
-def _noise_free_choice(name: str, rule: str, fixed: float, noise: an.NoiseEstimate) -> an.ParameterChoice:
-    """The fixed value, recorded as such, when the estimated noise is zero (noise-free synthetic data).
-
-    There is no noise to balance against or to match a residual to; the
-    choice says so (``SliceResult.warnings`` reports it) instead of guessing.
-    """
-    return an.ParameterChoice(name, "fixed", fixed, noise=0.0,
-                              noise_method=f"{rule} needs noise, the estimate is zero ({noise.method}); "
-                                           "the fixed value is used")
-
-
-def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str):
-    """Geometry solve with alpha fixed, from the discrepancy principle (eq. (disc)) or from balancing.
-
-    The residual and the noise level are both taken on the annulus voxels
-    (see :mod:`wss_nlp.analysis`); each solve starts from the previous one.
-    """
-    gopt = options.geometry
-    if options.alpha_rule == "fixed":
-        g = geo.solve(problem, gopt)
-        return g, an.ParameterChoice("alpha", "fixed", g.alpha)
-    if gopt.solver == "ipopt":
-        solver = geo.IpoptGeometrySolver(problem, gopt)
-        annulus = solver.nlp.model.annulus
-
-        def run(alpha, prev):
-            return solver.solve(alpha, None if prev is None else prev.coefficients)
-    else:
-        annulus = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1,
-                                     geo.quad_order(problem, gopt)).annulus
-
-        def run(alpha, prev):
-            return geo.solve_projected_gauss_newton(problem, gopt, None if prev is None else prev.coefficients, alpha)
-    if options.noise_magnitude is not None:
-        noise = an.NoiseEstimate(options.noise_magnitude, "given (--noise-magnitude)")
-    else:
-        noise = an.magnitude_noise(problem.magnitude, raw, lumen.noise_mask, norm.m0, norm.m1, problem.grid.voxel_area,
-                                   annulus, where.rstrip())
-    if not noise.value > 0:
-        g = geo.solve(problem, gopt)
-        return g, _noise_free_choice("alpha", options.alpha_rule, g.alpha, noise)
-    if options.alpha_rule == "balance":
-        return balance_alpha(problem, gopt, run, noise, annulus.size, options)
-
-    def solve(alpha, prev):
-        r = run(alpha, prev)
-        return r, r.annulus_residual_norm
-
-    g, choice = an.discrepancy_search(solve, options.alpha_start, noise.value, options.tau_alpha)
-    choice.name, choice.noise_method = "alpha", noise.method
-    return g, choice
-
-
-def balance_alpha(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, run, noise: an.NoiseEstimate,
-                  n_annulus: int, options: ReconstructionOptions):
-    """alpha by the balancing principle on the radius ``R(phi_j)`` (:func:`wss_nlp.analysis.balancing_principle`).
-
-    Notes
-    -----
-    On the grid ``alpha_start 2^-n`` down to :data:`ALPHA_STOP`, each solve
-    warm-started from the previous one. The noise part of ``R_alpha`` is
-    linearized, ``e_alpha = D (dc/dm) n_m`` with ``dc/dm`` from the implicit
-    function theorem on the KKT system (:func:`wss_nlp.sensitivity.geometry_kkt`,
-    CasADi derivatives, active box rows included) and independent voxel noise
-    of standard deviation ``sigma_m = delta / sqrt(|V| n_annulus)`` (the
-    per-voxel level behind ``delta``, eq. (disc)). Units: R in mm.
-    """
-    alphas = an.geometric_grid(options.alpha_start, ALPHA_STOP)
-    sigma_m = noise.value / np.sqrt(problem.grid.voxel_area * n_annulus)
-    design = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
-    n_box = design.shape[0]
-    results, radii, maps, res = [], [], [], []
-    prev = None
-    for alpha in alphas:
-        prev = run(alpha, prev)
-        lam = prev.box_multipliers if prev.box_multipliers.size == n_box else np.zeros(n_box)
-        dc, annulus = sens.geometry_kkt(problem, gopt, prev.coefficients, alpha, prev.gamma, lam)
-        results.append(prev)
-        radii.append(design @ prev.coefficients)
-        maps.append((design @ dc[:, :annulus.size] * sigma_m).ravel())
-        res.append(prev.annulus_residual_norm)
-    radii, maps = np.array(radii), np.array(maps)
-    j, ratio = an.balancing_principle(radii @ radii.T, maps @ maps.T, options.kappa_alpha)
-    return results[j], an.ParameterChoice("alpha", "balance", float(alphas[j]), alphas, np.array(res), noise.value,
-                                          noise.method, options.kappa_alpha, criterion=ratio)
-
-
-def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str,
-                viscosity_pa_s: float):
-    """beta fixed, from the discrepancy principle (eq. (disc2), with the residual), GCV, the L-curve or balancing.
-
-    The searches use direct Cholesky solves of the (linear) velocity problem;
-    the chosen beta is then solved with the configured solver.
-    """
-    rule = options.beta_rule
-    if rule == "fixed":
-        return an.ParameterChoice("beta", "fixed", options.velocity.beta)
-    if rule == "gcv":
-        return gcv_beta(vp, options)
-    betas = an.geometric_grid(options.beta_start, BETA_STOP)
-    if rule == "lcurve":
-        _, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
-        i, k = an.lcurve_corner(res, pen)
-        return an.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
-    if options.noise_velocity is not None:
-        noise = an.NoiseEstimate(options.noise_velocity, "given (--noise-velocity)",
-                                 {"per_voxel": np.full(vp.data.size, options.noise_velocity)})
-    else:
-        noise = an.velocity_noise(vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc,
-                                  where.rstrip())
-    if not noise.value > 0:
-        return _noise_free_choice("beta", rule, options.velocity.beta, noise)
-    if rule == "balance":
-        smat, _ = wss_mod.wss_matrix(vp.basis, vp.disk_map, viscosity_pa_s, options.n_phi)
-        i, ratio, res = an.wss_balance(vp.operator, vp.weights, vp.data, vp.gram, betas, smat,
-                                       noise.details["per_voxel"], options.kappa_beta)
-        return an.ParameterChoice("beta", "balance", float(betas[i]), betas, res, noise.value, noise.method,
-                                  options.kappa_beta, criterion=ratio)
-
-    def solve(beta, prev):
-        c = vel.solve_cholesky(vp, beta)
-        return c, vp.residual_norm(c)
-
-    _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta, smallest=BETA_STOP)
-    choice.name, choice.noise_method = "beta", noise.method
-    return choice
-
-
-def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.ParameterChoice:
-    """beta minimizing GCV on the grid ``beta_start 2^-n`` down to ``BETA_STOP``."""
-    betas = an.geometric_grid(options.beta_start, BETA_STOP)
-    gcv, res, _ = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
-    i = int(np.argmin(gcv))
-    return an.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
-
-
 class Results(list):
     """The per-slice results of :func:`reconstruct`, with ``stack`` (a :class:`wss_nlp.stack.StackInfo` or None)."""
 
@@ -471,7 +299,7 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     (:mod:`wss_nlp.stack`) when the options allow it (decoupled method, fixed
     alpha and beta, ``options.stack.z_smoothing_mm != 0``), else slice by
     slice. In a stack, a slice that cannot be reconstructed (NaN or Inf, no
-    vessel, solver failure) becomes a :class:`wss_nlp.io.FailedSlice` and
+    vessel, solver failure) becomes a :class:`wss_nlp.files.FailedSlice` and
     the others are still solved; a single slice raises instead.
 
     Returns :class:`SliceResult` objects, or :class:`wss_nlp.baselines.BaselineResult`
@@ -486,7 +314,7 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     """
     options = options or ReconstructionOptions()
     acq.validate()
-    mu = resolve_viscosity(acq, options)
+    mu = acq.viscosity(options.viscosity_pa_s)
     acq, screens = plaus.screen(acq, options.screen)
     out = Results()
     if stack_applies(acq, options):
@@ -494,7 +322,7 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
         out.extend(r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
                    for k, r in enumerate(results))
         out.stack = info
-        return _with_screens(out, screens)
+        return _with_screens(out, screens, acq)
     velocity = acq.velocity_images()
     bad = set(acq.nonfinite_slices())
     for iz in range(acq.nz):
@@ -511,7 +339,7 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
             if acq.nz == 1:
                 raise
             res = FailedSlice(iz, str(exc), options.n_phi, options.geometry.n_fourier)
-        _with_screens([res], screens)
+        _with_screens([res], screens, acq)
         out.append(res)
         if progress is not None:
             progress(iz + 1, acq.nz, res)
@@ -520,11 +348,18 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     return out
 
 
-def _with_screens(results, screens: dict):
-    """Attach what the plausibility screen found to each slice's notes and record."""
+def _with_screens(results, screens: dict, acq: Acquisition):
+    """Attach what the plausibility screen found, and the fit's consistency check, to each slice."""
     for r in results:
+        if isinstance(r, FailedSlice):
+            continue
         found = screens.get(r.index)
-        if found is not None and not isinstance(r, FailedSlice):
+        if found is not None:
             r.notes.extend(n for n in found.notes if n not in r.notes)
-            r.screen = found.record
+            r.screen = dict(found.record)
+        if isinstance(r, SliceResult):
+            warning, ratio = plaus.check_fit(r, acq.magnitude[r.index], acq.venc_m_s)
+            r.screen.update(velocity_residual_to_noise=ratio, suspect=bool(warning))
+            if warning:
+                r.notes.append(warning)
     return results

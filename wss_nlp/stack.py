@@ -52,8 +52,12 @@ from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
 from .errors import InputError, SolverError, WssNlpError
-from .io import Acquisition
+from .files import Acquisition
+from .measurement import DEPHASING_THRESHOLD
+from .results import SliceResult
+from .choice import choose_beta, gcv_beta
 from .coupled import sparse_dm
+from .schema import option
 from .solver import SolverStats, ipopt_options, run_nlpsol
 
 STRATEGIES = ("auto", "coupled", "kaczmarz")
@@ -88,9 +92,15 @@ class StackOptions:
     max_sweeps : int
     """
 
-    z_smoothing_mm: float | None = None
-    z_order: int = 2
-    strategy: str = "auto"
+    schema_group = "stacks of slices (Sec. 5)"
+
+    z_smoothing_mm: float | None = option(None, "length in mm along the vessel over which neighbouring slices are "
+                                          "pooled (z-regularization of geometry and velocity); 0 = independent "
+                                          "slices (default: one slice spacing)", cli="--z-smoothing")
+    z_order: int = option(2, "order of the z-derivative penalized: 2 keeps linear tapers unbiased, 1 = first "
+                          "derivative", cli="--z-order", choices=(1, 2))
+    strategy: str = option("auto", f"one coupled NLP, Kaczmarz sweeps, or auto (coupled up to "
+                           f"{COUPLED_MAX_SLICES} slices)", cli="--stack-strategy", choices=STRATEGIES)
     tol: float = 1e-6
     max_sweeps: int = 300
 
@@ -432,13 +442,11 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     (results, info): ``results[k]`` is a :class:`wss_nlp.reconstruct.SliceResult`
     or None for a slice that failed (``info.failed[k]`` says why).
     """
-    from .reconstruct import DEPHASING_THRESHOLD, SliceResult, choose_beta, gcv_beta, resolve_viscosity
-
     stack = stack or StackOptions()
     if not supports(options):
         raise InputError("stacks with z-regularization support the decoupled method with a fixed alpha; "
                          "pass --z-smoothing 0 for independent slices with other settings")
-    mu = resolve_viscosity(acq, options)
+    mu = acq.viscosity(options.viscosity_pa_s)
     dz = float(acq.slice_spacing_mm) if acq.nz > 1 else 1.0
     ell = dz if stack.z_smoothing_mm is None else float(stack.z_smoothing_mm)
     velocity = acq.velocity_images()

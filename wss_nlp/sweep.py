@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import csv
 import hashlib
-import io as _io
+import io
 import json
 import os
 import sys
@@ -34,14 +34,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import __version__
-from . import coupled as cpl
-from . import geometry as geo
-from . import io as wio
+from . import files as wio
 from . import metrics as met
 from . import phantoms
-from . import velocity as vel
+from . import schema
 from .errors import InputError, WssNlpError
-from .reconstruct import ALPHA_RULES, BETA_RULES, METHODS, ReconstructionOptions, parse_rule, reconstruct
+from .reconstruct import METHODS, ReconstructionOptions, reconstruct
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -51,36 +49,10 @@ else:  # pragma: no cover
 #: Data keys: which acquisition a case reconstructs.
 DATA_KEYS = ("case", "h", "snr", "seed", "venc", "input")
 
-#: Option keys -> (options part, field). Aliases: N = n_fourier, M = degree (Zernike) or max_eigenvalue (eigen basis).
-PARAMETERS = {
-    "method": (None, "method"),
-    "alpha": ("geometry", "alpha"),
-    "N": ("geometry", "n_fourier"),
-    "n_fourier": ("geometry", "n_fourier"),
-    "sobolev": ("geometry", "sobolev_s"),
-    "prior": ("geometry", "prior"),
-    "gamma": ("geometry", "gamma"),
-    "heaviside": ("geometry", "heaviside"),
-    "beta": ("velocity", "beta"),
-    "M": ("velocity", "degree"),
-    "degree": ("velocity", "degree"),
-    "angular_order": ("velocity", "angular_order"),
-    "max_eigenvalue": ("velocity", "max_eigenvalue"),
-    "basis": ("velocity", "basis"),
-    "laplacian_power": ("velocity", "laplacian_power"),
-    "eta": ("velocity", "eta"),
-    "inner_fraction": ("velocity", "inner_fraction"),
-    "quad_order": ("both", "quad_order"),
-    "velocity_weight": ("coupled", "velocity_weight"),
-    "tau_alpha": (None, "tau_alpha"),
-    "tau_beta": (None, "tau_beta"),
-    "kappa_alpha": (None, "kappa_alpha"),
-    "kappa_beta": (None, "kappa_beta"),
-    "dephasing_correction": (None, "dephasing_correction"),
-    "uncertainty": (None, "uncertainty"),
-    "n_phi": (None, "n_phi"),
-    "viscosity": (None, "viscosity_pa_s"),
-}
+#: Option keys of the study grid: every ``toml`` key of the options schema (:func:`wss_nlp.schema.toml_keys`), and
+#: ``M`` = ``degree`` (Zernike basis) or ``max_eigenvalue`` (eigenfunction basis).
+PARAMETERS = (*schema.toml_keys(ReconstructionOptions), "M")
+
 
 #: Metrics of one case (NaN where they do not apply, e.g. velocity_err of a baseline, errors without a truth).
 METRICS = {
@@ -245,30 +217,11 @@ def _input_path(entry) -> str:
 
 def options_for(params: dict, where: str = "") -> ReconstructionOptions:
     """ReconstructionOptions for one case (defaults for everything the case does not set)."""
-    top, parts = {}, {"geometry": {}, "velocity": {}, "coupled": {}}
-    for key, value in params.items():
-        if key in DATA_KEYS:
-            continue
-        part, name = PARAMETERS[key]
-        if key in ("alpha", "beta") and isinstance(value, str):
-            top[f"{key}_rule"] = parse_rule(value, ALPHA_RULES if key == "alpha" else BETA_RULES, f"{where}: {key}")
-            continue
-        if key in ("alpha", "beta"):
-            top[f"{key}_rule"] = "fixed"  # a number is used as given
-        if key == "M" and params.get("basis") == "eigen":
-            name = "max_eigenvalue"
-        if part is None:
-            top[name] = value
-        elif part == "both":
-            parts["geometry"][name] = parts["velocity"][name] = value
-        else:
-            parts[part][name] = value
+    keys = {k: v for k, v in params.items() if k not in DATA_KEYS}
+    if "M" in keys:
+        keys["max_eigenvalue" if params.get("basis") == "eigen" else "degree"] = keys.pop("M")
     try:
-        return ReconstructionOptions(geometry=geo.GeometryOptions(**parts["geometry"]),
-                                     velocity=vel.VelocityOptions(**parts["velocity"]),
-                                     coupled=cpl.CoupledOptions(**parts["coupled"]), **top)
-    except TypeError as exc:
-        raise InputError(f"{where}: bad option in {params}: {exc}") from exc
+        return schema.build(ReconstructionOptions, keys, where)
     except InputError as exc:
         raise InputError(f"{where}: {exc} (case {params})") from exc
 
@@ -484,7 +437,7 @@ def flat_row(record: dict, study: Study) -> dict:
 
 def write_csv(path: str, rows: list, study: Study) -> None:
     cols = list(study.grid) + ["id", *_STATUS_COLUMNS] + list(study.metrics)
-    buf = _io.StringIO()
+    buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore")
     w.writeheader()
     w.writerows(rows)
@@ -647,12 +600,21 @@ def write_views(study: Study, rows: list, outdir: str) -> list[str]:
             wio.atomic_write(path, text)
             out.append(path)
     for i, spec in enumerate(study.plots):
-        from .plotting import figure_sweep, save_figure
+        from .plotting import save_figure
 
         name = spec.get("name", f"plot{i + 1}")
-        fig = figure_sweep(rows, spec["x"], spec["y"], by=spec.get("by"), where=spec.get("where"),
-                           panels=spec.get("panels"), logx=spec.get("logx", False), title=spec.get("title", ""))
+        fig = plot(rows, spec["x"], spec["y"], by=spec.get("by"), where=spec.get("where"), panels=spec.get("panels"),
+                   logx=spec.get("logx", False), title=spec.get("title", ""))
         out.append(save_figure(fig, os.path.join(outdir, f"{name}.png")))
     return out
+
+
+def plot(rows: list, x: str, y: str, by: str | None = None, where: dict | None = None, panels: str | None = None,
+         logx: bool = False, title: str = ""):
+    """Metric ``y`` against parameter ``x`` over the rows matching ``where`` (:func:`wss_nlp.plotting.figure_sweep`)."""
+    from .plotting import figure_sweep
+
+    return figure_sweep(select(rows, where or {}), x, y, by=by, panels=panels, logx=logx, title=title,
+                        ylabel=METRICS.get(y, y))
 
 

@@ -26,6 +26,7 @@ from . import measurement as meas
 from . import radius as rad
 from .errors import InputError
 from .mapping import DiskMap
+from .schema import option
 from .solver import SolverStats, ipopt_options, run_nlpsol
 from .tikhonov import LinearTikhonov
 from .velocity_basis import BASES, make_basis
@@ -80,17 +81,25 @@ class VelocityOptions:
         The CasADi/IPOPT solve of the Tikhonov problem or a direct Cholesky solve.
     """
 
-    basis: str = "zernike"
-    degree: int = 20
-    angular_order: int | None = 6
-    max_eigenvalue: float = 400.0
-    beta: float = 5e-8
-    laplacian_power: int = 2
-    eta: float = 2.0
+    schema_group = "velocity (Sec. 3, 7.2)"
+
+    basis: str = option("zernike", "(1-|xi|^2) x Zernike polynomials, or the paper's Dirichlet eigenfunctions",
+                        cli="--basis", toml=("basis",), choices=BASES)
+    degree: int = option(20, "Zernike degree", cli="--degree", toml=("degree",))
+    angular_order: int | None = option(6, "highest angular order |m| of the Zernike functions",
+                                       cli="--angular-order", toml=("angular_order",))
+    max_eigenvalue: float = option(400.0, "eigenvalue cut-off M of the eigenfunction basis", cli="--max-eigenvalue",
+                                   toml=("max_eigenvalue",))
+    beta: float = 5e-8  # on the command line and in studies through --beta (ReconstructionOptions.beta_rule)
+    laplacian_power: int = option(2, "t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5",
+                                  cli="--laplacian-power", toml=("laplacian_power",), choices=(1, 2))
+    eta: float = option(2.0, "exponent of the map phi_R, >= 2", cli="--eta", toml=("eta",))
     inner_radius: float | None = None
-    inner_fraction: float = 0.5
-    quad_order: int | None = None
-    solver: str = "ipopt"
+    inner_fraction: float = option(0.5, "inner radius of phi_R as a fraction of min R", cli="--inner-fraction",
+                                   toml=("inner_fraction",))
+    quad_order: int | None = None  # set with the geometry's (--quad-order)
+    solver: str = option("ipopt", "CasADi/IPOPT or direct Cholesky solve", cli="--velocity-solver",
+                         choices=("ipopt", "cholesky"))
 
     def __post_init__(self):
         if self.basis not in BASES:

@@ -54,6 +54,16 @@ class Acquisition:
             return self.velocity
         return self.venc_m_s * self.phase / np.pi
 
+    def viscosity(self, override: float | None = None) -> float:
+        """Dynamic viscosity in Pa*s: ``override`` (the command line's) or the file's ``viscosity_pa_s``."""
+        mu = override if override is not None else self.viscosity_pa_s
+        if mu is None:
+            raise InputError(f"{self.source}: no viscosity: the file has no 'viscosity_pa_s' attribute; "
+                             "pass --viscosity (Pa*s, e.g. 3.5e-3 for blood)")
+        if not mu > 0:
+            raise InputError(f"{self.source}: viscosity must be > 0 Pa*s, got {mu}")
+        return float(mu)
+
     def nonfinite_slices(self) -> list[int]:
         """Indices of slices with NaN or Inf in any image."""
         arrays = [a for a in (self.magnitude, self.velocity, self.phase) if a is not None]

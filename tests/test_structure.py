@@ -1,0 +1,75 @@
+"""Package structure: no import cycles (function-level imports included), every module imports on its own."""
+
+import ast
+import pathlib
+import subprocess
+import sys
+
+import pytest
+
+PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "wss_nlp"
+MODULES = sorted(p.stem for p in PACKAGE.glob("*.py") if p.stem != "__init__")
+
+
+def _imports(module: str) -> set:
+    """Package modules that ``module`` imports anywhere in its code, except under ``if TYPE_CHECKING:``."""
+    tree = ast.parse((PACKAGE / f"{module}.py").read_text())
+    skip = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skip.update(id(n) for n in ast.walk(node))
+    out = set()
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.level == 1:
+            names = [node.module] if node.module else [a.name for a in node.names]
+            out.update(n.split(".")[0] for n in names)
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("wss_nlp."):
+            out.add(node.module.split(".")[1])
+        elif isinstance(node, ast.Import):
+            out.update(a.name.split(".")[1] for a in node.names if a.name.startswith("wss_nlp."))
+    return {m for m in out if m in MODULES and m != module}
+
+
+def _cycle(graph: dict):
+    """One import cycle as a list of modules, or None."""
+    state: dict = {}
+
+    def visit(m, path):
+        state[m] = "open"
+        for n in sorted(graph[m]):
+            if state.get(n) == "open":
+                return path[path.index(n):] + [n]
+            if n not in state:
+                found = visit(n, path + [n])
+                if found:
+                    return found
+        state[m] = "done"
+        return None
+
+    for m in MODULES:
+        if m not in state:
+            found = visit(m, [m])
+            if found:
+                return found
+    return None
+
+
+def test_no_import_cycles():
+    graph = {m: _imports(m) for m in MODULES}
+    assert graph["stack"] and graph["reconstruct"]  # the parser sees imports at all
+    assert _cycle(graph) is None, " -> ".join(_cycle(graph))
+
+
+def test_the_cycle_detector_finds_a_cycle():
+    assert _cycle({**{m: set() for m in MODULES}, MODULES[0]: {MODULES[1]}, MODULES[1]: {MODULES[0]}})
+
+
+@pytest.mark.parametrize("module", MODULES)
+def test_module_imports_in_a_fresh_interpreter(module):
+    subprocess.run([sys.executable, "-c", f"import wss_nlp.{module}"], check=True, capture_output=True)
+
+
+def test_no_module_shadows_the_standard_library():
+    assert not set(MODULES) & set(sys.stdlib_module_names)

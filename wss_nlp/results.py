@@ -1,0 +1,82 @@
+"""Per-slice results: what every method returns for a slice, and the record of a reconstruction.
+
+:class:`SliceOutcome` is the protocol every per-slice result satisfies
+(:class:`SliceResult`, :class:`wss_nlp.baselines.BaselineResult`,
+:class:`wss_nlp.files.FailedSlice`): an index, whether its solves converged,
+and the warnings to show the user.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from . import analysis as an
+    from . import geometry as geo
+    from . import preprocess as pp
+    from . import sensitivity as sens
+    from . import velocity as vel
+    from . import wss as wss_mod
+    from .measurement import VoxelGrid
+
+
+@runtime_checkable
+class SliceOutcome(Protocol):
+    """What every per-slice result provides."""
+
+    index: int
+
+    @property
+    def converged(self) -> bool: ...
+
+    @property
+    def warnings(self) -> list[str]: ...
+
+
+@dataclass
+class SliceResult:
+    """Result of one slice, with everything needed to write, plot and judge it."""
+
+    index: int
+    geometry: geo.GeometryResult
+    velocity: vel.VelocityResult
+    wss: wss_mod.WssResult
+    normalization: pp.Normalization
+    lumen: pp.Lumen
+    grid: VoxelGrid
+    magnitude: np.ndarray  # normalized, (ny, nx)
+    velocity_image: np.ndarray  # measured velocity, (ny, nx)
+    seconds: dict = field(default_factory=dict)
+    alpha_choice: an.ParameterChoice | None = None
+    beta_choice: an.ParameterChoice | None = None
+    method: str = "decoupled"
+    coupled_info: dict = field(default_factory=dict)  # weight, how it was chosen, the decoupled start's numbers
+    sensitivity: sens.Sensitivity | None = None
+    notes: list = field(default_factory=list)  # things the user should know that are not failures
+    screen: dict = field(default_factory=dict)  # what wss_nlp.plausibility found (vessels, aliasing)
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.geometry.stats.converged and self.velocity.stats.converged)
+
+    @property
+    def warnings(self) -> list[str]:
+        out = []
+        for name, st in (("geometry", self.geometry.stats), ("velocity", self.velocity.stats)):
+            if not st.converged:
+                out.append(f"slice {self.index}: {name} solve did not converge ({st.solver}: {st.status})")
+        for ch in (self.alpha_choice, self.beta_choice):
+            if ch is not None and ch.noise == 0:
+                out.append(f"slice {self.index}: {ch.name}: {ch.noise_method}: {ch.name} = {ch.chosen:g}")
+            if ch is not None and ch.rule == "discrepancy" and not ch.satisfied:
+                out.append(f"slice {self.index}: no {ch.name} reached residual <= {ch.tau:g} x noise "
+                           f"({ch.noise:.3g}); model error dominates, took {ch.name} = {ch.chosen:.3g} where the "
+                           "residual stopped falling")
+        out.extend(f"slice {self.index}: {n}" for n in self.notes)
+        if self.geometry.box_active:
+            out.append(f"slice {self.index}: the radius reached the box [{self.geometry.box[0]:.3g}, "
+                       f"{self.geometry.box[1]:.3g}] mm; the lumen may not be star-shaped about the centre")
+        return out
