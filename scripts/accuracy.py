@@ -46,12 +46,14 @@ def oracle_wss_error(acq, truth) -> float:
     best = np.inf
     betas = an.geometric_grid(1e-2, 1e-14)
     for k in range(-4, 5):
-        opts = ReconstructionOptions(geometry=geo.GeometryOptions(alpha=1e-3 * 4.0**k), uncertainty=False,
-                                     beta_rule="fixed")  # beta is scanned below; the fixed rule skips a search
+        opts = ReconstructionOptions(
+            geometry=geo.GeometryOptions(alpha=1e-3 * 4.0**k), uncertainty=False, beta_rule="fixed"
+        )  # beta is scanned below; the fixed rule skips a search
         res = reconstruct(acq, opts)[0]
         g = res.geometry
-        vp = vel.assemble(res.grid, res.velocity_image, g.coefficients, g.center, opts.velocity,
-                          basis=res.velocity.basis)
+        vp = vel.assemble(
+            res.grid, res.velocity_image, g.coefficients, g.center, opts.velocity, basis=res.velocity.basis
+        )
         a, xw = wss.wss_matrix(vp.basis, vp.disk_map, acq.viscosity_pa_s)  # tau is linear in the coefficients
         tt = truth.wss_at_points(xw[0], xw[1])
         for b in betas:
@@ -68,12 +70,20 @@ AUTO_RULES = {
 
 def auto_study(args) -> None:
     names = list(AUTO_RULES)
-    lines = ["WSS relative L2 error with alpha and beta from the discrepancy principle, from the balancing "
-             "principle, and with the fixed default alpha and the balancing beta, against the oracle over the "
-             "alpha-beta grid (truth known); mean over 3 seeds, ratio = worst seed.", "",
-             "| phantom | h [mm] | SNR | " + " | ".join(names) + " | oracle | "
-             + " | ".join(f"{k} / oracle" for k in names) + " | within 1.25x (" + ", ".join(names) + ") |",
-             "|---|---|---|" + "---|" * (2 * len(names) + 2)]
+    lines = [
+        "WSS relative L2 error with alpha and beta from the discrepancy principle, from the balancing "
+        "principle, and with the fixed default alpha and the balancing beta, against the oracle over the "
+        "alpha-beta grid (truth known); mean over 3 seeds, ratio = worst seed.",
+        "",
+        "| phantom | h [mm] | SNR | "
+        + " | ".join(names)
+        + " | oracle | "
+        + " | ".join(f"{k} / oracle" for k in names)
+        + " | within 1.25x ("
+        + ", ".join(names)
+        + ") |",
+        "|---|---|---|" + "---|" * (2 * len(names) + 2),
+    ]
     for case in args.cases.split(","):
         for h in (float(x) for x in args.h.split(",")):
             for snr in (10.0, 25.0, 50.0):
@@ -86,9 +96,13 @@ def auto_study(args) -> None:
                     e_or.append(oracle_wss_error(acq, truth))
                 ratio = {k: max(x / y for x, y in zip(v, e_or)) for k, v in errs.items()}
                 ok = ", ".join("yes" if ratio[k] <= TARGET_ORACLE_RATIO else "no" for k in names)
-                lines.append(f"| {case} | {h:g} | {snr:g} | " + " | ".join(f"{np.mean(v):.1%}" for v in errs.values())
-                             + f" | {np.mean(e_or):.1%} | " + " | ".join(f"{r:.2f}" for r in ratio.values())
-                             + f" | {ok} |")
+                lines.append(
+                    f"| {case} | {h:g} | {snr:g} | "
+                    + " | ".join(f"{np.mean(v):.1%}" for v in errs.values())
+                    + f" | {np.mean(e_or):.1%} | "
+                    + " | ".join(f"{r:.2f}" for r in ratio.values())
+                    + f" | {ok} |"
+                )
                 print(lines[-1], file=sys.stderr, flush=True)
     write_report(args.out, "accuracy_auto.md", lines)
 
@@ -100,9 +114,13 @@ UNSEEN_SEEDS = (31, 32, 33)  # used by no other study or test
 def unseen_study(args) -> None:
     """The default (balancing) beta against the former fixed beta 5e-8 on the other phantoms (kappa was set on
     laminar and turbulent; the fixed beta was chosen on manufactured and fourier among others)."""
-    lines = ["WSS relative L2 error, default options (balancing beta) against the fixed beta 5e-8; mean (max) over "
-             f"seeds {', '.join(map(str, UNSEEN_SEEDS))}.", "",
-             "| phantom | h [mm] | SNR | balancing beta (default) | fixed beta 5e-8 |", "|---|---|---|---|---|"]
+    lines = [
+        "WSS relative L2 error, default options (balancing beta) against the fixed beta 5e-8; mean (max) over "
+        f"seeds {', '.join(map(str, UNSEEN_SEEDS))}.",
+        "",
+        "| phantom | h [mm] | SNR | balancing beta (default) | fixed beta 5e-8 |",
+        "|---|---|---|---|---|",
+    ]
     for case in UNSEEN_CASES:
         for h in (float(x) for x in args.h.split(",")):
             for snr in (10.0, 25.0):
@@ -112,8 +130,11 @@ def unseen_study(args) -> None:
                     for rule, v in e.items():
                         res = reconstruct(acq, ReconstructionOptions(uncertainty=False, beta_rule=rule))[0]
                         v.append(metrics.compare_slice(res, truth).wss_rel_l2)
-                lines.append(f"| {case} | {h:g} | {snr:g} | " + " | ".join(
-                    f"{np.mean(v):.1%} ({max(v):.1%})" for v in e.values()) + " |")
+                lines.append(
+                    f"| {case} | {h:g} | {snr:g} | "
+                    + " | ".join(f"{np.mean(v):.1%} ({max(v):.1%})" for v in e.values())
+                    + " |"
+                )
                 print(lines[-1], file=sys.stderr, flush=True)
     write_report(args.out, "accuracy_unseen.md", lines)
 
@@ -122,8 +143,11 @@ def main(argv=None):
     p = study_parser(__doc__, seeds=5, h="1.5,1.0,0.6,0.3")
     p.add_argument("--snr", type=float, default=25.0)
     p.add_argument("--auto", action="store_true", help="auto vs oracle parameters instead (see above)")
-    p.add_argument("--unseen", action="store_true",
-                   help="default vs fixed beta on the manufactured, fourier and circle phantoms instead (see above)")
+    p.add_argument(
+        "--unseen",
+        action="store_true",
+        help="default vs fixed beta on the manufactured, fourier and circle phantoms instead (see above)",
+    )
     args = p.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)
     if args.auto:
@@ -144,13 +168,21 @@ def main(argv=None):
                 e = metrics.compare_slice(res, truth)
                 errs.append((e.radius_rel_l2, e.wss_rel_l2, e.mean_wss_rel, res.converged))
             e = np.array(errs, dtype=float)
-            rows.append({
-                "case": case, "h_mm": h, "snr": args.snr, "seeds": args.seeds,
-                "radius_err_mean": e[:, 0].mean(), "radius_err_max": e[:, 0].max(),
-                "wss_err_mean": e[:, 1].mean(), "wss_err_max": e[:, 1].max(),
-                "mean_wss_err_mean": e[:, 2].mean(), "mean_wss_err_absmax": np.abs(e[:, 2]).max(),
-                "all_converged": bool(e[:, 3].all()),
-            })
+            rows.append(
+                {
+                    "case": case,
+                    "h_mm": h,
+                    "snr": args.snr,
+                    "seeds": args.seeds,
+                    "radius_err_mean": e[:, 0].mean(),
+                    "radius_err_max": e[:, 0].max(),
+                    "wss_err_mean": e[:, 1].mean(),
+                    "wss_err_max": e[:, 1].max(),
+                    "mean_wss_err_mean": e[:, 2].mean(),
+                    "mean_wss_err_absmax": np.abs(e[:, 2]).max(),
+                    "all_converged": bool(e[:, 3].all()),
+                }
+            )
             print(f"{case} h={h}: done in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     with open(os.path.join(args.out, "accuracy.csv"), "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]))
@@ -171,8 +203,11 @@ def main(argv=None):
             f"{r['wss_err_mean']:.1%} ({r['wss_err_max']:.1%}) | {r['mean_wss_err_mean']:+.1%} "
             f"({r['mean_wss_err_absmax']:.1%}) | {'yes' if ok else 'NO'} |"
         )
-    lines += ["", "*Targets checked on every seed: radius error <= 0.5 % (all phantoms) and WSS error <= 5 % "
-              "(laminar only; the issue sets no WSS target for the turbulent phantom)."]
+    lines += [
+        "",
+        "*Targets checked on every seed: radius error <= 0.5 % (all phantoms) and WSS error <= 5 % "
+        "(laminar only; the issue sets no WSS target for the turbulent phantom).",
+    ]
     write_report(args.out, "accuracy.md", lines)
 
 

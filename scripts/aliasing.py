@@ -38,14 +38,20 @@ def main(argv=None):
     args = p.parse_args(argv)
     opts = ReconstructionOptions(uncertainty=False)
     as_given = replace(opts, screen=ScreenOptions(unwrap=False))  # the oracle-unwrapped data exceed venc by design
-    lines = [f"Seeds {SEED0}-{SEED0 + args.seeds - 1}, SNR 25, default options without the band; "
-             "`python scripts/aliasing.py`.", "",
-             "Each cell: WSS relative L2 error (mean over seeds) with the aliased venc, its worst ratio to the same "
-             "seed with the default venc, the error with the same data unwrapped by the truth (`oracle`), the "
-             "largest velocity residual / noise, and how many seeds were flagged SUSPECT (residual > 3 x noise) or "
-             "refused.", "",
-             "| case | h [mm] | unaliased (venc 1.25 x peak) | " + " | ".join(f"venc {f:g} x peak" for f in FRACTIONS)
-             + " |", "|---|---|---|" + "---|" * len(FRACTIONS)]
+    lines = [
+        f"Seeds {SEED0}-{SEED0 + args.seeds - 1}, SNR 25, default options without the band; "
+        "`python scripts/aliasing.py`.",
+        "",
+        "Each cell: WSS relative L2 error (mean over seeds) with the aliased venc, its worst ratio to the same "
+        "seed with the default venc, the error with the same data unwrapped by the truth (`oracle`), the "
+        "largest velocity residual / noise, and how many seeds were flagged SUSPECT (residual > 3 x noise) or "
+        "refused.",
+        "",
+        "| case | h [mm] | unaliased (venc 1.25 x peak) | "
+        + " | ".join(f"venc {f:g} x peak" for f in FRACTIONS)
+        + " |",
+        "|---|---|---|" + "---|" * len(FRACTIONS),
+    ]
     for case in args.cases.split(","):
         for h in (float(v) for v in args.h.split(",")):
             base, cells = [], {f: [] for f in FRACTIONS}
@@ -67,11 +73,17 @@ def main(argv=None):
                     k = np.where(inside, np.round((truth.velocity_image[None] - v) / (2 * acq1.venc_m_s)), 0)
                     oracle = replace(acq1, phase=None, velocity=v + 2 * acq1.venc_m_s * k)
                     e_or = metrics.compare_slice(reconstruct(oracle, as_given)[0], truth).wss_rel_l2
-                    cells[f].append((metrics.compare_slice(r, truth).wss_rel_l2, e0, e_or,
-                                     r.screen["velocity_residual_to_noise"], r.screen["suspect"]))
+                    cells[f].append(
+                        (
+                            metrics.compare_slice(r, truth).wss_rel_l2,
+                            e0,
+                            e_or,
+                            r.screen["velocity_residual_to_noise"],
+                            r.screen["suspect"],
+                        )
+                    )
                 print(f"{case} h {h:g} seed {seed} done", flush=True)
-            row = (f"| {case} | {h:g} | {np.mean([b[0] for b in base]):.1%}, res/eps "
-                   f"{max(b[1] for b in base):.2f} |")
+            row = f"| {case} | {h:g} | {np.mean([b[0] for b in base]):.1%}, res/eps {max(b[1] for b in base):.2f} |"
             for f in FRACTIONS:
                 got = [c for c in cells[f] if c is not None]
                 refused = len(cells[f]) - len(got)
@@ -81,10 +93,13 @@ def main(argv=None):
                 ratio = max(c[0] / c[1] for c in got)
                 mark = "" if ratio <= 1.5 else " **>1.5x**"
                 flagged = sum(c[4] for c in got)
-                row += (f" {np.mean([c[0] for c in got]):.1%} ({ratio:.2f}x{mark}), oracle "
-                        f"{np.mean([c[2] for c in got]):.1%}, res/eps {max(c[3] for c in got):.2f}"
-                        + (f", **{flagged} SUSPECT**" if flagged else "") + (f", {refused} refused" if refused else "")
-                        + " |")
+                row += (
+                    f" {np.mean([c[0] for c in got]):.1%} ({ratio:.2f}x{mark}), oracle "
+                    f"{np.mean([c[2] for c in got]):.1%}, res/eps {max(c[3] for c in got):.2f}"
+                    + (f", **{flagged} SUSPECT**" if flagged else "")
+                    + (f", {refused} refused" if refused else "")
+                    + " |"
+                )
             lines.append(row)
     write_report(args.out, "aliasing.md", lines)
 

@@ -37,11 +37,14 @@ def main(argv=None):
     p.add_argument("--seed", type=int, default=4)
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
     args = p.parse_args(argv)
-    lines = [f"Phantom '{args.case}', SNR {args.snr:g}, {args.draws} Monte-Carlo draws per row (seed {args.seed}); "
-             "linearized band from one draw; cost: median over the draws of the solve and of the band.", "",
-             "| h [mm] | mean-WSS std: linearized | Monte Carlo | ratio | RMS over angles of tau std: linearized | "
-             "Monte Carlo | ratio | band s / solve s | targets (20 %, 3x) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Phantom '{args.case}', SNR {args.snr:g}, {args.draws} Monte-Carlo draws per row (seed {args.seed}); "
+        "linearized band from one draw; cost: median over the draws of the solve and of the band.",
+        "",
+        "| h [mm] | mean-WSS std: linearized | Monte Carlo | ratio | RMS over angles of tau std: linearized | "
+        "Monte Carlo | ratio | band s / solve s | targets (20 %, 3x) |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for h in (float(x) for x in args.h.split(",")):
         acq0, _ = phantoms.make_phantom(args.case, h_mm=h, snr=None, seed=args.seed)
         rng = np.random.default_rng(2024)
@@ -52,20 +55,32 @@ def main(argv=None):
             means.append(r.wss.mean)
             taus.append(r.wss.tau)
             band_s.append(r.seconds.get("uncertainty", np.nan))
-            solve_s.append(sum(v for k, v in r.seconds.items() if k in ("preprocess", "geometry", "velocity",
-                                                                          "dephasing_check", "dephasing_pass", "wss")))
+            solve_s.append(
+                sum(
+                    v
+                    for k, v in r.seconds.items()
+                    if k in ("preprocess", "geometry", "velocity", "dephasing_check", "dephasing_pass", "wss")
+                )
+            )
             if (i + 1) % 20 == 0:
                 print(f"h={h}: {i + 1}/{args.draws} draws", file=sys.stderr, flush=True)
         mc_mean = float(np.std(means, ddof=1))
         mc_tau = np.std(np.array(taus), axis=0, ddof=1)
         lin_rms, mc_rms = float(np.sqrt(np.mean(band.wss.tau_std**2))), float(np.sqrt(np.mean(mc_tau**2)))
         cost = float(np.median(band_s) / np.median(solve_s))
-        ok = (abs(band.wss.mean_std / mc_mean - 1) <= TARGET_REL and abs(lin_rms / mc_rms - 1) <= TARGET_REL
-              and cost <= TARGET_COST)
-        lines.append(f"| {h:g} | {band.wss.mean_std:.3g} | {mc_mean:.3g} | {band.wss.mean_std / mc_mean:.2f} | "
-                     f"{lin_rms:.3g} | {mc_rms:.3g} | {lin_rms / mc_rms:.2f} | {cost:.2f} | {'yes' if ok else 'NO'} |")
-        save_figure(figure_band_check(band.wss.phi, band.wss.tau_std, mc_tau, args.draws),
-                    os.path.join(args.out, f"band_h{h:g}.png"))
+        ok = (
+            abs(band.wss.mean_std / mc_mean - 1) <= TARGET_REL
+            and abs(lin_rms / mc_rms - 1) <= TARGET_REL
+            and cost <= TARGET_COST
+        )
+        lines.append(
+            f"| {h:g} | {band.wss.mean_std:.3g} | {mc_mean:.3g} | {band.wss.mean_std / mc_mean:.2f} | "
+            f"{lin_rms:.3g} | {mc_rms:.3g} | {lin_rms / mc_rms:.2f} | {cost:.2f} | {'yes' if ok else 'NO'} |"
+        )
+        save_figure(
+            figure_band_check(band.wss.phi, band.wss.tau_std, mc_tau, args.draws),
+            os.path.join(args.out, f"band_h{h:g}.png"),
+        )
     write_report(args.out, "band.md", lines)
 
 

@@ -70,9 +70,12 @@ def main(argv=None):
         band_ok = "" if b / total <= TARGET_BAND else " (over 3)"
         coup_ok = ("" if c / total <= TARGET_COUPLED else " (over 5)") if h == 1.0 else ""
         ny, nx = acq.magnitude.shape[1:]
-        lines.append(f"| {h:g} | {nx} x {ny} | " + " | ".join(f"{t:.3f}" for t in med)
-                     + f" | {total:.2f} | {target} | {b:.2f} | {b / total:.1f}{band_ok} | {c:.2f} | "
-                     f"{c / total:.1f}{coup_ok} |")
+        lines.append(
+            f"| {h:g} | {nx} x {ny} | "
+            + " | ".join(f"{t:.3f}" for t in med)
+            + f" | {total:.2f} | {target} | {b:.2f} | {b / total:.1f}{band_ok} | {c:.2f} | "
+            f"{c / total:.1f}{coup_ok} |"
+        )
     write_report(args.out, "bench.md", lines)
 
 

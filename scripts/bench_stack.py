@@ -22,8 +22,9 @@ TARGET_100_S = 60.0  # issue 6: 100 slices at h = 1 mm in under 60 s on 2 cores
 
 def run(acq, strategy):
     t0 = time.perf_counter()
-    _, info = stack.reconstruct_stack(acq, ReconstructionOptions(uncertainty=False, beta_rule="fixed"),
-                                      stack.StackOptions(strategy=strategy))
+    _, info = stack.reconstruct_stack(
+        acq, ReconstructionOptions(uncertainty=False, beta_rule="fixed"), stack.StackOptions(strategy=strategy)
+    )
     return time.perf_counter() - t0, info
 
 
@@ -33,23 +34,29 @@ def main(argv=None):
     p.add_argument("--coupled", default="4,8")
     p.add_argument("--out", default=RESULTS)
     args = p.parse_args(argv)
-    lines = ["Tapered-tube stack, h = 1 mm, slices 2 mm apart, SNR 25, z smoothing over one slice spacing; "
-             "seconds on this machine (2 cores), one run.", "",
-             "| slices | strategy | total [s] | per slice [s] | build [s] | geometry [s] | velocity [s] | "
-             "dephasing check [s] | sweeps (geometry, velocity; per pass) | converged | target |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
-    rows = [(int(n), "coupled") for n in args.coupled.split(",") if n] + \
-           [(int(n), "kaczmarz") for n in args.sizes.split(",") if n]
+    lines = [
+        "Tapered-tube stack, h = 1 mm, slices 2 mm apart, SNR 25, z smoothing over one slice spacing; "
+        "seconds on this machine (2 cores), one run.",
+        "",
+        "| slices | strategy | total [s] | per slice [s] | build [s] | geometry [s] | velocity [s] | "
+        "dephasing check [s] | sweeps (geometry, velocity; per pass) | converged | target |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    rows = [(int(n), "coupled") for n in args.coupled.split(",") if n] + [
+        (int(n), "kaczmarz") for n in args.sizes.split(",") if n
+    ]
     for n, strategy in rows:
         acq, _ = phantoms.make_stack("tapered", nz=n, h_mm=1.0, spacing_mm=2.0, snr=25, seed=0)
         sec, info = run(acq, strategy)
         t = info.seconds
         sweeps = f"{info.sweeps.get('geometry', '-')}, {info.sweeps.get('velocity', '-')}"
         target = ("yes" if sec < TARGET_100_S else "NO") if n == 100 and strategy == "kaczmarz" else ""
-        lines.append(f"| {n} | {strategy} | {sec:.1f} | {sec / n:.3f} | {t.get('geometry_build', 0):.1f} | "
-                     f"{t.get('geometry', 0):.1f} | {t.get('velocity', 0):.1f} | {t.get('dephasing_check', 0):.1f} | "
-                     f"{sweeps} | {info.converged} | "
-                     f"{target} |")
+        lines.append(
+            f"| {n} | {strategy} | {sec:.1f} | {sec / n:.3f} | {t.get('geometry_build', 0):.1f} | "
+            f"{t.get('geometry', 0):.1f} | {t.get('velocity', 0):.1f} | {t.get('dephasing_check', 0):.1f} | "
+            f"{sweeps} | {info.converged} | "
+            f"{target} |"
+        )
         print(f"{n} {strategy}: {sec:.1f} s", flush=True)
     write_report(args.out, "bench_stack.md", lines)
 

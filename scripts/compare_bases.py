@@ -24,7 +24,9 @@ from wss_nlp import preprocess as pp
 CONFIGS = {
     "zernike deg 20 / order 6, t=2, r_in=0.5 min R (default)": dict(degree=20, angular_order=6, laplacian_power=2),
     "zernike deg 20 / order 6, t=1, r_in=0.5 min R": dict(degree=20, angular_order=6, laplacian_power=1),
-    "zernike deg 12 (full), t=2, r_in=min R": dict(degree=12, angular_order=None, laplacian_power=2, inner_fraction=1.0),
+    "zernike deg 12 (full), t=2, r_in=min R": dict(
+        degree=12, angular_order=None, laplacian_power=2, inner_fraction=1.0
+    ),
     "eigen M=400, t=1 (paper), r_in=0.5 min R": dict(basis="eigen", max_eigenvalue=400, laplacian_power=1),
     "eigen M=400, t=2, r_in=0.5 min R": dict(basis="eigen", max_eigenvalue=400, laplacian_power=2),
 }
@@ -48,8 +50,9 @@ def main(argv=None):
                 mag, u = acq.magnitude[0], acq.velocity_images()[0]
                 m = pp.normalize_magnitude(mag, pp.histogram_peaks(mag))
                 lum = pp.find_lumen(m, acq.grid)
-                g = geo.solve(geo.GeometryProblem(acq.grid, m, lum.center, lum.r0, lum.r1, lum.r_area),
-                              geo.GeometryOptions())
+                g = geo.solve(
+                    geo.GeometryProblem(acq.grid, m, lum.center, lum.r0, lum.r1, lum.r_area), geo.GeometryOptions()
+                )
                 for name, kw in CONFIGS.items():
                     vo = vel.VelocityOptions(solver="cholesky", **kw)
                     vp = vel.assemble(acq.grid, u, g.coefficients, g.center, vo)
@@ -60,10 +63,13 @@ def main(argv=None):
                         e = np.linalg.norm(tau - tt) / np.linalg.norm(tt)
                         err[name][b][case] = max(err[name][b].get(case, 0.0), e)
             print(f"{case} done", flush=True)
-    lines = [f"Worst WSS rel. L2 error over h in {hs} mm, seeds {seeds}, SNR 25, at the beta best for the "
-             "laminar-type phantoms (laminar, manufactured, fourier).", "",
-             "| configuration | best beta | laminar-type worst | turbulent worst (same beta) | turbulent best over beta |",
-             "|---|---|---|---|---|"]
+    lines = [
+        f"Worst WSS rel. L2 error over h in {hs} mm, seeds {seeds}, SNR 25, at the beta best for the "
+        "laminar-type phantoms (laminar, manufactured, fourier).",
+        "",
+        "| configuration | best beta | laminar-type worst | turbulent worst (same beta) | turbulent best over beta |",
+        "|---|---|---|---|---|",
+    ]
     for name in CONFIGS:
         best = min(BETAS, key=lambda b: max(err[name][b][c] for c in LAMINAR))
         lam = max(err[name][best][c] for c in LAMINAR)

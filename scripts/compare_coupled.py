@@ -54,18 +54,28 @@ def main(argv=None):
                 if not status:
                     continue
                 e = {m: np.array(v) for m, v in err.items()}
-                rows.append((case, h, snr, e, {m: float(np.median(v)) for m, v in sec.items()},
-                             f"{sum(status)}/{len(status)}" + (f" ({failed} failed)" if failed else "")))
+                rows.append(
+                    (
+                        case,
+                        h,
+                        snr,
+                        e,
+                        {m: float(np.median(v)) for m, v in sec.items()},
+                        f"{sum(status)}/{len(status)}" + (f" ({failed} failed)" if failed else ""),
+                    )
+                )
                 print(f"{case} h={h} snr={snr} done", file=sys.stderr, flush=True)
-    lines = [f"Default options with the fixed beta 5e-8, {args.seeds} seeds per row; errors mean (max) over seeds; "
-             "'better' = share of seeds "
-             "on which the coupled error is smaller; seconds: median per slice (coupled includes its decoupled "
-             "start); 'converged': coupled solves that converged / seeds reconstructed (seeds whose preprocessing "
-             "failed are counted apart).",
-             "",
-             "| phantom | h [mm] | SNR | radius err decoupled | radius err coupled | better | WSS err decoupled | "
-             "WSS err coupled | better | s decoupled | s coupled | ratio | coupled converged |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Default options with the fixed beta 5e-8, {args.seeds} seeds per row; errors mean (max) over seeds; "
+        "'better' = share of seeds "
+        "on which the coupled error is smaller; seconds: median per slice (coupled includes its decoupled "
+        "start); 'converged': coupled solves that converged / seeds reconstructed (seeds whose preprocessing "
+        "failed are counted apart).",
+        "",
+        "| phantom | h [mm] | SNR | radius err decoupled | radius err coupled | better | WSS err decoupled | "
+        "WSS err coupled | better | s decoupled | s coupled | ratio | coupled converged |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for case, h, snr, e, s, ok in rows:
         d, c = e["decoupled"], e["coupled"]
         ratio = s["coupled"] / s["decoupled"]
@@ -75,7 +85,8 @@ def main(argv=None):
             f"{d[:, 1].mean():.1%} ({d[:, 1].max():.1%}) | {c[:, 1].mean():.1%} ({c[:, 1].max():.1%}) | "
             f"{np.mean(c[:, 1] < d[:, 1]):.0%} | {s['decoupled']:.2f} | {s['coupled']:.2f} | {ratio:.1f}"
             f"{'' if h != 1.0 else (' (target <= 5)' if ratio <= TARGET_TIME_RATIO else ' (target 5 MISSED)')} | "
-            f"{ok} |")
+            f"{ok} |"
+        )
     write_report(args.out, "coupled.md", lines)
 
 

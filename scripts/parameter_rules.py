@@ -23,7 +23,6 @@ beta's worst-seed ratio to the oracle for kappa = 2, 2.5, 3, 4 over seeds
 kappa_beta = 2.5 was chosen; about 20 minutes on 2 cores).
 """
 
-
 import numpy as np
 
 from _report import study_parser, write_report
@@ -96,25 +95,45 @@ def main(argv=None):
                         "DP tau=2": an.discrepancy_search(solve, 1e-2, eps, 2.0)[1].chosen,
                         "GCV": grid[int(np.argmin(gcv))],
                         "L-curve": grid[an.lcurve_corner(res, pen)[0]],
-                        "balance": grid[an.wss_balance(vp.operator, vp.weights, vp.data, vp.gram, grid, a,
-                                                       noise.details["per_voxel"], KAPPA)[0]],
+                        "balance": grid[
+                            an.wss_balance(
+                                vp.operator, vp.weights, vp.data, vp.gram, grid, a, noise.details["per_voxel"], KAPPA
+                            )[0]
+                        ],
                     }
                     for r in RULES:
                         ratios[r].append(err(chosen[r]) / e_or)
                     oracle_err.append(e_or)
-                rows.append((case, h, snr, np.mean(oracle_err), {r: max(v) for r, v in ratios.items()},
-                             np.mean(noise_ratio), (min(delta_ratio), max(delta_ratio))))
+                rows.append(
+                    (
+                        case,
+                        h,
+                        snr,
+                        np.mean(oracle_err),
+                        {r: max(v) for r, v in ratios.items()},
+                        np.mean(noise_ratio),
+                        (min(delta_ratio), max(delta_ratio)),
+                    )
+                )
                 print(case, h, snr, "done", flush=True)
-    lines = [f"WSS error of each beta rule divided by the oracle's (worst over {args.seeds} seeds); alpha fixed "
-             "at its default. Oracle: best beta on the grid 1e-2 2^-n (truth known).", "",
-             "| phantom | h [mm] | SNR | oracle WSS err | " + " | ".join(RULES) + " | eps est/true | delta est/true |",
-             "|---|---|---|---|" + "---|" * (len(RULES) + 2)]
+    lines = [
+        f"WSS error of each beta rule divided by the oracle's (worst over {args.seeds} seeds); alpha fixed "
+        "at its default. Oracle: best beta on the grid 1e-2 2^-n (truth known).",
+        "",
+        "| phantom | h [mm] | SNR | oracle WSS err | " + " | ".join(RULES) + " | eps est/true | delta est/true |",
+        "|---|---|---|---|" + "---|" * (len(RULES) + 2),
+    ]
     for case, h, snr, eo, r, nr, dr in rows:
-        lines.append(f"| {case} | {h:g} | {snr:g} | {eo:.1%} | " + " | ".join(f"{r[k]:.2f}" for k in RULES)
-                     + f" | {nr:.2f} | {dr[0]:.2f}-{dr[1]:.2f} |")
+        lines.append(
+            f"| {case} | {h:g} | {snr:g} | {eo:.1%} | "
+            + " | ".join(f"{r[k]:.2f}" for k in RULES)
+            + f" | {nr:.2f} | {dr[0]:.2f}-{dr[1]:.2f} |"
+        )
     within = {k: np.mean([r[k] <= 1.25 for *_, r, _, _ in rows]) for k in RULES}
-    lines += ["", "Share of rows within 1.25x of the oracle: "
-              + ", ".join(f"{k} {v:.0%}" for k, v in within.items()) + "."]
+    lines += [
+        "",
+        "Share of rows within 1.25x of the oracle: " + ", ".join(f"{k} {v:.0%}" for k, v in within.items()) + ".",
+    ]
     lines += ["", *floor_table(args)]
     write_report(args.out, "parameter_rules.md", lines)
 
@@ -127,10 +146,13 @@ def kappa_table(args) -> list[str]:
     """Worst-seed WSS error of the balancing beta over the oracle's, for several kappa, and how often noise alone
     exceeds kappa (noise-only data through the same fit)."""
     grid = an.geometric_grid(1e-2, 1e-14)
-    lines = [f"Balancing beta: WSS error over the oracle's, worst of seeds {', '.join(map(str, KAPPA_SEEDS))}; "
-             "alpha fixed at its default.", "",
-             "| phantom | h [mm] | SNR | " + " | ".join(f"kappa = {k:g}" for k in KAPPAS) + " |",
-             "|---|---|---|" + "---|" * len(KAPPAS)]
+    lines = [
+        f"Balancing beta: WSS error over the oracle's, worst of seeds {', '.join(map(str, KAPPA_SEEDS))}; "
+        "alpha fixed at its default.",
+        "",
+        "| phantom | h [mm] | SNR | " + " | ".join(f"kappa = {k:g}" for k in KAPPAS) + " |",
+        "|---|---|---|" + "---|" * len(KAPPAS),
+    ]
     worst = {}
     for case in args.cases.split(","):
         for h in (float(x) for x in args.h.split(",")):
@@ -139,17 +161,31 @@ def kappa_table(args) -> list[str]:
                 for seed in KAPPA_SEEDS:
                     sl = Slice(case, h, snr, seed)
                     errs = np.array([sl.error(b) for b in grid])
-                    _, crit, _ = an.wss_balance(sl.vp.operator, sl.vp.weights, sl.vp.data, sl.vp.gram, grid,
-                                                sl.wss_matrix, sl.noise.details["per_voxel"], KAPPAS[0])
+                    _, crit, _ = an.wss_balance(
+                        sl.vp.operator,
+                        sl.vp.weights,
+                        sl.vp.data,
+                        sl.vp.gram,
+                        grid,
+                        sl.wss_matrix,
+                        sl.noise.details["per_voxel"],
+                        KAPPAS[0],
+                    )
                     for k in KAPPAS:  # the rule takes the first beta whose criterion is within kappa
                         ratio[k].append(errs[np.flatnonzero(crit <= k)[0]] / errs.min())
-                lines.append(f"| {case} | {h:g} | {snr:g} | " + " | ".join(f"{max(v):.2f}" for v in ratio.values())
-                             + " |")
+                lines.append(
+                    f"| {case} | {h:g} | {snr:g} | " + " | ".join(f"{max(v):.2f}" for v in ratio.values()) + " |"
+                )
                 for k, v in ratio.items():
                     worst.setdefault((case, k), []).append(max(v))
                 print(lines[-1], flush=True)
-    lines += ["", "Range over rows of the worst-seed ratio: " + "; ".join(
-        f"{case} kappa {k:g}: {min(v):.2f}-{max(v):.2f}" for (case, k), v in worst.items()) + ".", ""]
+    lines += [
+        "",
+        "Range over rows of the worst-seed ratio: "
+        + "; ".join(f"{case} kappa {k:g}: {min(v):.2f}-{max(v):.2f}" for (case, k), v in worst.items())
+        + ".",
+        "",
+    ]
     lines += noise_only_exceedance()
     return lines
 
@@ -158,20 +194,39 @@ def noise_only_exceedance(draws: int = 400) -> list[str]:
     """How often the balancing criterion exceeds kappa when the data are noise alone (no bias at all)."""
     rng = np.random.default_rng(0)
     grid = an.geometric_grid(1e-2, 1e-14)
-    lines = [f"Noise-only data ({draws} draws of the estimated per-voxel phase noise through the same fit, "
-             "SNR 25, seed 0): share of draws whose criterion exceeds kappa at beta.", "",
-             "| phantom | h [mm] | beta | " + " | ".join(f"P(> {k:g})" for k in KAPPAS) + " |",
-             "|---|---|---|" + "---|" * len(KAPPAS)]
+    lines = [
+        f"Noise-only data ({draws} draws of the estimated per-voxel phase noise through the same fit, "
+        "SNR 25, seed 0): share of draws whose criterion exceeds kappa at beta.",
+        "",
+        "| phantom | h [mm] | beta | " + " | ".join(f"P(> {k:g})" for k in KAPPAS) + " |",
+        "|---|---|---|" + "---|" * len(KAPPAS),
+    ]
     for case, h in (("laminar", 1.0), ("laminar", 0.3), ("turbulent", 1.0)):
         sl = Slice(case, h, 25.0, 0)
         sigma, vp = sl.noise.details["per_voxel"], sl.vp
         # the rule itself (analysis.wss_balance), fed data that are noise alone
-        crit = np.array([an.wss_balance(vp.operator, vp.weights, sigma * rng.normal(size=sigma.size), vp.gram, grid,
-                                        sl.wss_matrix, sigma, KAPPAS[0])[1] for _ in range(draws)])
+        crit = np.array(
+            [
+                an.wss_balance(
+                    vp.operator,
+                    vp.weights,
+                    sigma * rng.normal(size=sigma.size),
+                    vp.gram,
+                    grid,
+                    sl.wss_matrix,
+                    sigma,
+                    KAPPAS[0],
+                )[1]
+                for _ in range(draws)
+            ]
+        )
         for beta in (1e-6, 1e-7, 1e-8, 1e-9):
             j = int(np.argmin(np.abs(np.log(grid / beta))))
-            lines.append(f"| {case} | {h:g} | {grid[j]:.2g} | "
-                         + " | ".join(f"{np.mean(crit[:, j] > k):.3f}" for k in KAPPAS) + " |")
+            lines.append(
+                f"| {case} | {h:g} | {grid[j]:.2g} | "
+                + " | ".join(f"{np.mean(crit[:, j] > k):.3f}" for k in KAPPAS)
+                + " |"
+            )
     return lines
 
 
@@ -181,10 +236,12 @@ def magnitude_noise_ratio(acq, problem, norm, lum, snr, seed, case, h) -> float:
     The clean magnitude is the same phantom (same seed, hence the same sub-voxel offset) without noise, so
     the difference is the noise alone (after the same normalization and truncation).
     """
-    annulus = meas.annulus_model(acq.grid, problem.center, problem.r0, problem.r1,
-                                 geo.quad_order(problem, geo.GeometryOptions())).annulus
-    est = an.magnitude_noise(problem.magnitude, acq.magnitude[0], lum.mask, norm.m0, norm.m1, acq.grid.voxel_area,
-                             annulus).value
+    annulus = meas.annulus_model(
+        acq.grid, problem.center, problem.r0, problem.r1, geo.quad_order(problem, geo.GeometryOptions())
+    ).annulus
+    est = an.magnitude_noise(
+        problem.magnitude, acq.magnitude[0], lum.mask, norm.m0, norm.m1, acq.grid.voxel_area, annulus
+    ).value
     clean, _ = phantoms.make_phantom(case, h_mm=h, snr=None, seed=seed)
     c = np.clip((clean.magnitude[0] - norm.m0) / (norm.m1 - norm.m0), 0.0, 1.0).ravel()[annulus]
     true = np.sqrt(acq.grid.voxel_area * np.sum((problem.magnitude.ravel()[annulus] - c) ** 2))
@@ -193,11 +250,13 @@ def magnitude_noise_ratio(acq, problem, norm, lum, snr, seed, case, h) -> float:
 
 def floor_table(args) -> list[str]:
     """WSS error against beta for noise-free data on the exact geometry (what no parameter rule can beat)."""
-    lines = ["WSS error against beta with noise-free data (seed 0); turbulent on the exact geometry (the true "
-             "circle), laminar on the geometry reconstructed from the noise-free magnitude:",
-             "",
-             "| phantom | h [mm] | " + " | ".join(f"beta = {b:g}" for b in FLOOR_BETAS) + " | best on grid (beta) |",
-             "|---|---|" + "---|" * (len(FLOOR_BETAS) + 1)]
+    lines = [
+        "WSS error against beta with noise-free data (seed 0); turbulent on the exact geometry (the true "
+        "circle), laminar on the geometry reconstructed from the noise-free magnitude:",
+        "",
+        "| phantom | h [mm] | " + " | ".join(f"beta = {b:g}" for b in FLOOR_BETAS) + " | best on grid (beta) |",
+        "|---|---|" + "---|" * (len(FLOOR_BETAS) + 1),
+    ]
     grid = an.geometric_grid(1e-2, 1e-14)
     for case in args.cases.split(","):
         for h in (float(x) for x in args.h.split(",")):
@@ -208,8 +267,9 @@ def floor_table(args) -> list[str]:
             else:
                 m = pp.normalize_magnitude(acq.magnitude[0], pp.histogram_peaks(acq.magnitude[0]))
                 lum = pp.find_lumen(m, acq.grid)
-                g = geo.solve(geo.GeometryProblem(acq.grid, m, lum.center, lum.r0, lum.r1, lum.r_area),
-                              geo.GeometryOptions())
+                g = geo.solve(
+                    geo.GeometryProblem(acq.grid, m, lum.center, lum.r0, lum.r1, lum.r_area), geo.GeometryOptions()
+                )
                 coef, centre = g.coefficients, g.center
             vp = vel.assemble(acq.grid, truth.velocity_image, coef, centre, vel.VelocityOptions())
             a, xw = wss.wss_matrix(vp.basis, vp.disk_map, acq.viscosity_pa_s)
@@ -219,8 +279,11 @@ def floor_table(args) -> list[str]:
                 return np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt)
 
             b_or, e_or = an.oracle(grid, [err(b) for b in grid])
-            lines.append(f"| {case} | {h:g} | " + " | ".join(f"{err(b):.1%}" for b in FLOOR_BETAS)
-                         + f" | {e_or:.1%} ({b_or:.1e}) |")
+            lines.append(
+                f"| {case} | {h:g} | "
+                + " | ".join(f"{err(b):.1%}" for b in FLOOR_BETAS)
+                + f" | {e_or:.1%} ({b_or:.1e}) |"
+            )
     return lines
 
 

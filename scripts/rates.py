@@ -51,9 +51,13 @@ def main(argv=None):
     deltas = np.array([float(x) for x in args.deltas.split(",")])
     n_side = int(2 * (R0 + 3) / H_MM)
     grid = meas.VoxelGrid((n_side, n_side), (H_MM, H_MM), (-(n_side - 1) * H_MM / 2, -(n_side - 1) * H_MM / 2))
-    lines = ["Geometry rates: fitted exponent of ||R_alpha - R||_{H^r} against delta (Theorem 2.1: 1 - r/k), "
-             f"{args.seeds} seeds per point, h = {H_MM} mm, V_{N_FIT}, noise delta in L^2(D).", "",
-             "| k | rule | r = 0 (theory) | r = 1 (theory) | r = 2 (theory) | within 0.15 |", "|---|---|---|---|---|---|"]
+    lines = [
+        "Geometry rates: fitted exponent of ||R_alpha - R||_{H^r} against delta (Theorem 2.1: 1 - r/k), "
+        f"{args.seeds} seeds per point, h = {H_MM} mm, V_{N_FIT}, noise delta in L^2(D).",
+        "",
+        "| k | rule | r = 0 (theory) | r = 1 (theory) | r = 2 (theory) | within 0.15 |",
+        "|---|---|---|---|---|---|",
+    ]
     curves = {}
     for k in (int(x) for x in args.k.split(",")):
         for rule in ("a priori", "discrepancy"):
@@ -78,20 +82,29 @@ def main(argv=None):
                     else:
                         # the discrepancy is measured on the annulus (the rest is noise no R can change)
                         noise_a = delta * np.linalg.norm(noise[model.annulus]) * np.sqrt(grid.voxel_area)
-                        g, _ = an.discrepancy_search(lambda a, prev: (lambda r: (r, r.annulus_residual_norm))(
-                            solver.solve(a, None if prev is None else prev.coefficients)), 1.0, noise_a, 1.1)
+                        g, _ = an.discrepancy_search(
+                            lambda a, prev: (lambda r: (r, r.annulus_residual_norm))(
+                                solver.solve(a, None if prev is None else prev.coefficients)
+                            ),
+                            1.0,
+                            noise_a,
+                            1.1,
+                        )
                     diff = np.zeros(c_true.size)
                     diff[0] = g.coefficients[0] - c_true[0]
-                    diff[1:N_FIT + 1] = g.coefficients[1:N_FIT + 1]
-                    diff[N_TRUE + 1:N_TRUE + 1 + N_FIT] = g.coefficients[N_FIT + 1:]
+                    diff[1 : N_FIT + 1] = g.coefficients[1 : N_FIT + 1]
+                    diff[N_TRUE + 1 : N_TRUE + 1 + N_FIT] = g.coefficients[N_FIT + 1 :]
                     diff -= np.concatenate([[0.0], c_true[1:]])
                     errs[i] += [rad.sobolev_norm(diff, r) / args.seeds for r in range(3)]
                 print(f"k={k} {rule} seed {seed} done", file=sys.stderr, flush=True)
             slopes = [np.polyfit(np.log(deltas), np.log(errs[:, r]), 1)[0] for r in range(3)]
             theory = [1 - r / k for r in range(3)]
             ok = all(abs(s - t) <= 0.15 for s, t in zip(slopes, theory))
-            lines.append(f"| {k} | {rule} | " + " | ".join(f"{s:.2f} ({t:.2f})" for s, t in zip(slopes, theory))
-                         + f" | {'yes' if ok else 'no'} |")
+            lines.append(
+                f"| {k} | {rule} | "
+                + " | ".join(f"{s:.2f} ({t:.2f})" for s, t in zip(slopes, theory))
+                + f" | {'yes' if ok else 'no'} |"
+            )
             curves[(k, rule)] = errs
     write_report(args.out, "rates.md", lines)
     save_figure(figure_rates(deltas, curves), os.path.join(args.out, "rates.png"))

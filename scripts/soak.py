@@ -37,8 +37,11 @@ def draw(rng, k: int) -> dict:
     stack = rng.random() < 0.15
     p = {"k": k, "stack": bool(stack), "seed": int(rng.integers(0, 10**6)), "snr": float(rng.uniform(10, 40))}
     if stack:
-        p.update(case=str(rng.choice(list(phantoms.STACK_CASES))), nz=int(rng.integers(3, 6)),
-                 h=float(rng.choice([1.5, 1.0])))
+        p.update(
+            case=str(rng.choice(list(phantoms.STACK_CASES))),
+            nz=int(rng.integers(3, 6)),
+            h=float(rng.choice([1.5, 1.0])),
+        )
     else:
         p.update(case=str(rng.choice(SLICE_CASES)), h=float(rng.choice([1.5, 1.0, 0.6])))
     p["venc_factor"] = None if rng.random() < 0.5 else float(rng.uniform(0.55, 1.5))
@@ -66,8 +69,19 @@ def run_one(p, folder) -> dict:
             truths = [truth]
             rc0 = 0
         else:
-            args = ["phantom", "--h", str(p["h"]), "--snr", str(p["snr"]), "--seed", str(p["seed"]), "-o", inp,
-                    "--truth", tru]
+            args = [
+                "phantom",
+                "--h",
+                str(p["h"]),
+                "--snr",
+                str(p["snr"]),
+                "--seed",
+                str(p["seed"]),
+                "-o",
+                inp,
+                "--truth",
+                tru,
+            ]
             args += ["--stack", p["case"], "--nz", str(p["nz"])] if p["stack"] else ["--case", p["case"]]
             args += ["--venc", str(venc)] if venc is not None else []
             rc0 = cli(args)
@@ -76,18 +90,25 @@ def run_one(p, folder) -> dict:
         rc = cli(["reconstruct", inp, "-o", out]) if rc0 == 0 else rc0
         sec = time.perf_counter() - t0
     text = err_stream.getvalue()
-    row = {**p, "rc": rc, "seconds": sec, "warnings": [ln[len("wss-nlp: warning: "):] for ln in text.splitlines()
-                                                       if ln.startswith("wss-nlp: warning:")],
-           "error": next((ln for ln in text.splitlines() if ln.startswith("wss-nlp: error")), ""),
-           "wss_err": float("nan")}
+    row = {
+        **p,
+        "rc": rc,
+        "seconds": sec,
+        "warnings": [ln[len("wss-nlp: warning: ") :] for ln in text.splitlines() if ln.startswith("wss-nlp: warning:")],
+        "error": next((ln for ln in text.splitlines() if ln.startswith("wss-nlp: error")), ""),
+        "wss_err": float("nan"),
+    }
     if rc == 0:
         errs = []
         for i, d in enumerate(wio.read_result(out)):
             if d.get("failed"):
                 continue
             t = truths[i] if len(truths) > 1 else truths[0]  # a phantoms.Truth or a metrics.TruthTable
-            errs.append(metrics.compare(d["center"], d["phi"], d["radius"], d["wall_x"], d["wall_y"], d["tau"],
-                                        d["mean_tau"], t).wss_rel_l2)
+            errs.append(
+                metrics.compare(
+                    d["center"], d["phi"], d["radius"], d["wall_x"], d["wall_y"], d["tau"], d["mean_tau"], t
+                ).wss_rel_l2
+            )
         row["wss_err"] = float(np.max(errs)) if errs else float("nan")
     return row
 
@@ -112,27 +133,45 @@ def main(argv=None):
         for d in draws:
             rows.append(run_one(d, folder))
             r = rows[-1]
-            print(f"{r['k'] + 1}/{args.n} {describe(r)}: rc {r['rc']}, WSS err {r['wss_err']:.1%}, "
-                  f"{len(r['warnings'])} warning(s)", flush=True)
+            print(
+                f"{r['k'] + 1}/{args.n} {describe(r)}: rc {r['rc']}, WSS err {r['wss_err']:.1%}, "
+                f"{len(r['warnings'])} warning(s)",
+                flush=True,
+            )
     failed = [r for r in rows if r["rc"] != 0]
     aliased = [r for r in rows if r["venc_factor"] is not None and r["venc_factor"] < 1]
-    lines = [f"`python scripts/soak.py --n {args.n} --seed {args.seed}`: {args.n} random valid phantoms through "
-             f"`wss-nlp phantom` and `wss-nlp reconstruct` (default options), {time.perf_counter() - t0:.0f} s.", "",
-             f"- runs: {len(rows)} ({sum(r['stack'] for r in rows)} stacks, {len(aliased)} with venc below the peak "
-             "velocity)",
-             f"- failures (non-zero exit): **{len(failed)}**",
-             f"- runs with warnings: {sum(bool(r['warnings']) for r in rows)}; flagged SUSPECT (velocity residual "
-             f"> 3 x noise): {sum(any('SUSPECT' in w for w in r['warnings']) for r in rows)}", "",
-             "## Failures", ""]
+    lines = [
+        f"`python scripts/soak.py --n {args.n} --seed {args.seed}`: {args.n} random valid phantoms through "
+        f"`wss-nlp phantom` and `wss-nlp reconstruct` (default options), {time.perf_counter() - t0:.0f} s.",
+        "",
+        f"- runs: {len(rows)} ({sum(r['stack'] for r in rows)} stacks, {len(aliased)} with venc below the peak "
+        "velocity)",
+        f"- failures (non-zero exit): **{len(failed)}**",
+        f"- runs with warnings: {sum(bool(r['warnings']) for r in rows)}; flagged SUSPECT (velocity residual "
+        f"> 3 x noise): {sum(any('SUSPECT' in w for w in r['warnings']) for r in rows)}",
+        "",
+        "## Failures",
+        "",
+    ]
     lines += [f"- {describe(r)}: exit {r['rc']}: {r['error']}" for r in failed] or ["none"]
-    lines += ["", "## WSS relative L2 error by case (worst slice of each run)", "",
-              "| case | runs | median | max |", "|---|---|---|---|"]
+    lines += [
+        "",
+        "## WSS relative L2 error by case (worst slice of each run)",
+        "",
+        "| case | runs | median | max |",
+        "|---|---|---|---|",
+    ]
     for case in sorted({(r["case"], r["stack"]) for r in rows}):
         e = np.array([r["wss_err"] for r in rows if (r["case"], r["stack"]) == case and np.isfinite(r["wss_err"])])
         if e.size:
             lines.append(f"| {case[0]}{' stack' if case[1] else ''} | {e.size} | {np.median(e):.1%} | {e.max():.1%} |")
-    lines += ["", "## The 15 largest WSS errors and what the run said", "",
-              "| run | WSS err | warnings |", "|---|---|---|"]
+    lines += [
+        "",
+        "## The 15 largest WSS errors and what the run said",
+        "",
+        "| run | WSS err | warnings |",
+        "|---|---|---|",
+    ]
     worst = sorted((r for r in rows if np.isfinite(r["wss_err"])), key=lambda r: -r["wss_err"])[:15]
     for r in worst:
         warn = "; ".join(w.replace("|", "/") for w in r["warnings"]) or "none"

@@ -28,24 +28,30 @@ def main(argv=None):
     p = study_parser(__doc__, seeds=3, h="1.0", snr="10,25")
     p.set_defaults(cases="tapered,curved")
     args = p.parse_args(argv)
-    lines = ["12 slices 2 mm apart, h = 1 mm; mean over slices and seeds (max over slices).", "",
-             "| phantom | SNR | variant | radius rel. L2 err | WSS rel. L2 err | mean-WSS err |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        "12 slices 2 mm apart, h = 1 mm; mean over slices and seeds (max over slices).",
+        "",
+        "| phantom | SNR | variant | radius rel. L2 err | WSS rel. L2 err | mean-WSS err |",
+        "|---|---|---|---|---|---|",
+    ]
     for case in args.cases.split(","):
         for snr in (float(s) for s in args.snr.split(",")):
             for name, st in VARIANTS.items():
                 rad_e, wss_e, bias = [], [], []
                 for seed in range(args.seeds):
-                    acq, truth = phantoms.make_stack(case, nz=12, h_mm=float(args.h), spacing_mm=2.0, snr=snr,
-                                                     seed=seed)
+                    acq, truth = phantoms.make_stack(
+                        case, nz=12, h_mm=float(args.h), spacing_mm=2.0, snr=snr, seed=seed
+                    )
                     res = reconstruct(acq, ReconstructionOptions(uncertainty=False, stack=st, beta_rule="fixed"))
                     for r, t in zip(res, truth.slices):
                         e = metrics.compare_slice(r, t)
                         rad_e.append(e.radius_rel_l2)
                         wss_e.append(e.wss_rel_l2)
                         bias.append(e.mean_wss_rel)
-                lines.append(f"| {case} | {snr:g} | {name} | {np.mean(rad_e):.2%} ({np.max(rad_e):.2%}) | "
-                             f"{np.mean(wss_e):.1%} ({np.max(wss_e):.1%}) | {np.mean(bias):+.1%} |")
+                lines.append(
+                    f"| {case} | {snr:g} | {name} | {np.mean(rad_e):.2%} ({np.max(rad_e):.2%}) | "
+                    f"{np.mean(wss_e):.1%} ({np.max(wss_e):.1%}) | {np.mean(bias):+.1%} |"
+                )
                 print(lines[-1], flush=True)
     write_report(args.out, "stack_accuracy.md", lines)
 

@@ -72,8 +72,9 @@ def test_gcv_minimum_on_a_diagonal_problem_with_known_optimum():
     gcv, _, _ = an.gcv_curve(np.diag(s), np.ones(n), u, np.pi * np.eye(n), betas)
     # weights are normalized to sum 1, so the filter is s^2 / (s^2 + n beta); expected predictive risk
     # sum (nb/(s^2+nb))^2 s^2 x^2 + sigma^2 sum (s^2/(s^2+nb))^2, minimized on the same grid
-    risk = [np.sum((n * b / (s**2 + n * b)) ** 2 * s**2) + sigma**2 * np.sum((s**2 / (s**2 + n * b)) ** 2)
-            for b in betas]
+    risk = [
+        np.sum((n * b / (s**2 + n * b)) ** 2 * s**2) + sigma**2 * np.sum((s**2 / (s**2 + n * b)) ** 2) for b in betas
+    ]
     b_gcv, b_risk = betas[np.argmin(gcv)], betas[np.argmin(risk)]
     assert abs(np.log10(b_gcv / b_risk)) <= 0.5  # GCV is asymptotically risk-optimal; half a decade on n = 400
 
@@ -116,8 +117,9 @@ def test_balance_noise_gram_matches_monte_carlo(rng):
     ests = [s_mat @ np.linalg.solve(t.T @ (ww[:, None] * t) + b / np.pi * g, t.T @ (ww * clean)) for b in betas]
     assert np.allclose(g_est, np.array(ests) @ np.array(ests).T, rtol=1e-10)
     draws = rng.normal(size=(4000, n)) * sig
-    noise = [np.linalg.solve(t.T @ (ww[:, None] * t) + b / np.pi * g, (t.T * ww) @ draws.T).T @ s_mat.T
-             for b in betas]  # (draws, m) per beta
+    noise = [
+        np.linalg.solve(t.T @ (ww[:, None] * t) + b / np.pi * g, (t.T * ww) @ draws.T).T @ s_mat.T for b in betas
+    ]  # (draws, m) per beta
     emp = np.array([[np.mean(np.sum(a * c, axis=1)) for c in noise] for a in noise])
     assert np.allclose(g_noise, emp, rtol=0.08)
 
@@ -135,16 +137,18 @@ def test_balance_beta_on_laminar_phantom_is_close_to_the_oracle():
     from wss_nlp import velocity as vel
 
     acq, truth = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=21)
-    res = reconstruct(acq, ReconstructionOptions(beta_rule="balance", uncertainty=False,
-                                                 dephasing_correction=False))[0]
+    res = reconstruct(acq, ReconstructionOptions(beta_rule="balance", uncertainty=False, dephasing_correction=False))[0]
     ch = res.beta_choice
     assert ch.rule == "balance" and ch.criterion[list(ch.parameters).index(ch.chosen)] <= ch.tau
-    vp = vel.assemble(acq.grid, acq.velocity_images()[0], res.geometry.coefficients, res.geometry.center,
-                      vel.VelocityOptions())
+    vp = vel.assemble(
+        acq.grid, acq.velocity_images()[0], res.geometry.coefficients, res.geometry.center, vel.VelocityOptions()
+    )
     a, xw = wss.wss_matrix(vp.basis, vp.disk_map, acq.viscosity_pa_s)
     tt = truth.wss_at_points(xw[0], xw[1])
-    errs = {b: np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt)
-            for b in an.geometric_grid(1e-2, BETA_STOP)}
+    errs = {
+        b: np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt)
+        for b in an.geometric_grid(1e-2, BETA_STOP)
+    }
     chosen = errs[min(errs, key=lambda b: abs(np.log(b / ch.chosen)))]
     assert chosen <= 2 * min(errs.values())
     assert chosen <= 0.05
@@ -164,8 +168,9 @@ def test_balance_alpha_radius_close_to_the_best_alpha(laminar_snr25):
     from conftest import geometry_problem
 
     acq, truth = laminar_snr25
-    res = reconstruct(acq, ReconstructionOptions(alpha_rule="balance", uncertainty=False,
-                                                 dephasing_correction=False))[0]
+    res = reconstruct(acq, ReconstructionOptions(alpha_rule="balance", uncertainty=False, dephasing_correction=False))[
+        0
+    ]
     ch = res.alpha_choice
     i = list(ch.parameters).index(ch.chosen)
     assert ch.rule == "balance" and ch.criterion[i] <= ch.tau and np.all(ch.criterion[:i] > ch.tau)
@@ -277,8 +282,9 @@ def test_no_background_names_the_option():
     with pytest.raises(an.NoiseEstimationError, match="--noise-magnitude"):
         an.magnitude_noise(np.ones((30, 30)), np.ones((30, 30)), mask, 0.0, 1.0, 1.0, np.arange(900))
     with pytest.raises(an.NoiseEstimationError, match="--noise-velocity"):
-        an.velocity_noise(np.zeros((30, 30)), np.ones((30, 30)), np.zeros((30, 30), bool), np.arange(3),
-                          np.ones(3), None)
+        an.velocity_noise(
+            np.zeros((30, 30)), np.ones((30, 30)), np.zeros((30, 30), bool), np.arange(3), np.ones(3), None
+        )
 
 
 @pytest.mark.parametrize("beta", ["auto", "discrepancy", "gcv", "lcurve"])

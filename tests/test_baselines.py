@@ -76,5 +76,7 @@ def test_baseline_result_file_and_cli(tmp_path, capsys):
         assert "lambda" in f["slice_000"].attrs["baseline_json"]
     assert main(["compare", out, truth]) == 0
     assert "WSS rel. L2 error" in capsys.readouterr().out
-    assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == ["slice_000_fig1_2_geometry.png",
-                                                                   "slice_000_fig5_wss.png"]
+    assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == [
+        "slice_000_fig1_2_geometry.png",
+        "slice_000_fig5_wss.png",
+    ]

@@ -15,7 +15,9 @@ from wss_nlp.errors import SolverError
 def files(tmp_path_factory):
     d = tmp_path_factory.mktemp("cli")
     inp, truth = d / "in.h5", d / "truth.h5"
-    assert main(["phantom", "--case", "laminar", "--h", "1.0", "--seed", "4", "-o", str(inp), "--truth", str(truth)]) == 0
+    assert (
+        main(["phantom", "--case", "laminar", "--h", "1.0", "--seed", "4", "-o", str(inp), "--truth", str(truth)]) == 0
+    )
     return d, inp, truth
 
 
@@ -38,7 +40,14 @@ def test_reconstruct_and_compare(files, capsys):
         assert s["wss/tau_pa"].shape == s["wss/phi"].shape
         assert np.isfinite(s["wss"].attrs["mean_pa"])
         assert {"alpha", "beta", "converged"} <= set(s.attrs)
-        for key in ("wss_nlp_version", "casadi_version", "ipopt_version", "command_line", "created_utc", "options_json"):
+        for key in (
+            "wss_nlp_version",
+            "casadi_version",
+            "ipopt_version",
+            "command_line",
+            "created_utc",
+            "options_json",
+        ):
             assert key in f.attrs
         recorded = json.loads(f.attrs["options_json"])
         assert recorded["geometry"]["alpha"] == geo.GeometryOptions().alpha

@@ -51,10 +51,17 @@ def test_sharp_coupled_operator_is_the_decoupled_one(laminar_coarse):
     _, _, res = laminar_coarse
     g, v = res.geometry, res.velocity
     q = meas.auto_quad_order(None, res.grid, g.coefficients[0])
-    vp = vel.assemble(res.grid, res.velocity_image, g.coefficients, g.center,
-                      replace(vel.VelocityOptions(), inner_radius=v.disk_map.r_in), basis=v.basis)
-    model = cpl.velocity_misfit_model(res.grid, res.velocity_image, res.magnitude, g.center, res.lumen.r1,
-                                      geo.GeometryOptions().n_fourier, q)
+    vp = vel.assemble(
+        res.grid,
+        res.velocity_image,
+        g.coefficients,
+        g.center,
+        replace(vel.VelocityOptions(), inner_radius=v.disk_map.r_in),
+        basis=v.basis,
+    )
+    model = cpl.velocity_misfit_model(
+        res.grid, res.velocity_image, res.magnitude, g.center, res.lumen.r1, geo.GeometryOptions().n_fourier, q
+    )
     c = np.random.default_rng(1).normal(size=v.basis.size)
     c_r, c_v = ca.MX.sym("c_r", g.coefficients.size), ca.MX.sym("c_v", c.size)
     expr = cpl.velocity_residual(model, c_r, c_v, v.basis, v.disk_map.r_in, 1e-9, "erf", floor=1e-12)
@@ -76,11 +83,24 @@ def test_sharp_coupled_operator_is_the_decoupled_one(laminar_coarse):
 def test_chain_rule_jacobian_equals_casadi_ad(laminar_coarse):
     _, _, res = laminar_coarse
     g, v = res.geometry, res.velocity
-    nlp = cpl.build(_problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), v.basis,
-                    v.disk_map.r_in, 1e4, g.alpha, v.beta)
+    nlp = cpl.build(
+        _problem(res),
+        geo.GeometryOptions(),
+        res.velocity_image,
+        vel.VelocityOptions(),
+        v.basis,
+        v.disk_map.r_in,
+        1e4,
+        g.alpha,
+        v.beta,
+    )
     rng = np.random.default_rng(2)
-    x = np.concatenate([g.coefficients + 0.05 * rng.normal(size=g.coefficients.size),
-                        v.coefficients * (1 + 0.1 * rng.normal(size=v.coefficients.size))])
+    x = np.concatenate(
+        [
+            g.coefficients + 0.05 * rng.normal(size=g.coefficients.size),
+            v.coefficients * (1 + 0.1 * rng.normal(size=v.coefficients.size)),
+        ]
+    )
     f = ca.Function("j", [nlp.x, nlp.gamma], [nlp.jacobian, ca.jacobian(nlp.residual, nlp.x)])
     mine, ad = (np.asarray(a) for a in f(x, g.gamma))
     # two exact derivatives of the same expression: they differ by rounding only
@@ -91,12 +111,22 @@ def test_objective_gradient_taylor(laminar_coarse):
     """Taylor test of CasADi's gradient of the coupled functional: remainder O(t^2)."""
     _, _, res = laminar_coarse
     g, v = res.geometry, res.velocity
-    nlp = cpl.build(_problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), v.basis,
-                    v.disk_map.r_in, 1e4, g.alpha, v.beta)
+    nlp = cpl.build(
+        _problem(res),
+        geo.GeometryOptions(),
+        res.velocity_image,
+        vel.VelocityOptions(),
+        v.basis,
+        v.disk_map.r_in,
+        1e4,
+        g.alpha,
+        v.beta,
+    )
     fg = ca.Function("fg", [nlp.x], ca.substitute([nlp.f, ca.gradient(nlp.f, nlp.x)], [nlp.gamma], [ca.MX(g.gamma)]))
     x = np.concatenate([g.coefficients, v.coefficients])
-    d = np.random.default_rng(3).normal(size=x.size) * np.concatenate([np.full(g.coefficients.size, 0.05),
-                                                                        np.abs(v.coefficients) + 1e-3])
+    d = np.random.default_rng(3).normal(size=x.size) * np.concatenate(
+        [np.full(g.coefficients.size, 0.05), np.abs(v.coefficients) + 1e-3]
+    )
     f0, g0 = (np.asarray(a).ravel() for a in fg(x))
     rem = [abs(float(fg(x + t * d)[0]) - f0[0] - t * g0 @ d) for t in (1e-2, 5e-3)]
     assert rem[1] / rem[0] == pytest.approx(0.25, abs=0.03)
@@ -133,8 +163,17 @@ def test_coupled_needs_eta_2(laminar_coarse):
     _, _, res = laminar_coarse
     v = res.velocity
     with pytest.raises(InputError, match="eta = 2"):
-        cpl.build(_problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(eta=3.0), v.basis,
-                  v.disk_map.r_in, 1e4, 1e-3, 1e-8)
+        cpl.build(
+            _problem(res),
+            geo.GeometryOptions(),
+            res.velocity_image,
+            vel.VelocityOptions(eta=3.0),
+            v.basis,
+            v.disk_map.r_in,
+            1e4,
+            1e-3,
+            1e-8,
+        )
 
 
 def test_cli_coupled(tmp_path):
@@ -147,6 +186,5 @@ def test_cli_coupled(tmp_path):
         assert s.attrs["method"] == "coupled"
         info = json.loads(s.attrs["coupled_json"])
         assert info["velocity_weight"] == 2e4 and info["weight_method"].startswith("given")
-    assert main(["reconstruct", str(inp), "-o", str(tmp_path / "bad.h5"), "--method", "coupled",
-                 "--eta", "3"]) == 2
+    assert main(["reconstruct", str(inp), "-o", str(tmp_path / "bad.h5"), "--method", "coupled", "--eta", "3"]) == 2
     assert not (tmp_path / "bad.h5").exists()

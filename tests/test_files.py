@@ -73,9 +73,11 @@ def test_nan_shape_and_phase_range(good, tmp_path):
     src, acq = good
     p = acq.phase.copy()
     p[0, 3, 4] = np.nan
-    for replace, message in (({"phase": p}, "NaN or Inf"),
-                             ({"phase": acq.phase[:, :-1]}, "shape mismatch"),
-                             ({"phase": acq.phase * 2}, "(-pi, pi]")):
+    for replace, message in (
+        ({"phase": p}, "NaN or Inf"),
+        ({"phase": acq.phase[:, :-1]}, "shape mismatch"),
+        ({"phase": acq.phase * 2}, "(-pi, pi]"),
+    ):
         bad = _copy_with(src, tmp_path / "bad.h5", replace=replace)
         with pytest.raises(InputError, match=message.replace("(", r"\(").replace("]", r"\]")):
             wio.read_acquisition(bad)

@@ -63,18 +63,21 @@ def _scale(name, factor, dtype=None):
     def mutate(f, rng):
         a = f[name][()] * factor
         _replace(f, name, a.astype(dtype) if dtype else a)
+
     return mutate
 
 
 def _set_attr(name, value):
     def mutate(f, rng):
         f.attrs[name] = value
+
     return mutate
 
 
 def _del(name, attr=False):
     def mutate(f, rng):
         del (f.attrs if attr else f)[name]
+
     return mutate
 
 
@@ -84,6 +87,7 @@ def _voxel(name, value, n=1):
         for _ in range(n):
             a[tuple(rng.integers(0, s) for s in a.shape)] = value
         _replace(f, name, a)
+
     return mutate
 
 
@@ -94,6 +98,7 @@ def _phase_to_velocity(factor=1.0, dtype=None, keep_venc=True):
         f["velocity"] = v.astype(dtype) if dtype else v
         if not keep_venc:
             del f.attrs["venc_m_s"]
+
     return mutate
 
 
@@ -101,6 +106,7 @@ def _each(*mutations):
     def mutate(f, rng):
         for m in mutations:
             m(f, rng)
+
     return mutate
 
 
@@ -108,6 +114,7 @@ def _crop(sl):
     def mutate(f, rng):
         for k in ("magnitude", "phase"):
             _replace(f, k, f[k][()][(slice(None), *sl)])
+
     return mutate
 
 
@@ -120,6 +127,7 @@ def _stack_slice(name, iz, value):
         a = f[name][()]
         a[iz] = value
         _replace(f, name, a)
+
     return mutate
 
 
@@ -128,6 +136,7 @@ def _stack_noise_slice(iz):
         a = f["magnitude"][()]
         a[iz] = np.abs(rng.normal(size=a[iz].shape) + 1j * rng.normal(size=a[iz].shape)) * 0.04
         _replace(f, "magnitude", a)
+
     return mutate
 
 
@@ -139,8 +148,9 @@ def _unwrapped_elsewhere(f, rng):
     venc = float(f.attrs["venc_m_s"])
     v = venc * f["phase"][()] / np.pi
     mag = f["magnitude"][()]
-    grid = wio.Acquisition(magnitude=mag, velocity=v, voxel_size_mm=tuple(f.attrs["voxel_size_mm"]),
-                           origin_mm=tuple(f.attrs["origin_mm"])).grid
+    grid = wio.Acquisition(
+        magnitude=mag, velocity=v, voxel_size_mm=tuple(f.attrs["voxel_size_mm"]), origin_mm=tuple(f.attrs["origin_mm"])
+    ).grid
     _, m, lumen = pp.preprocess(mag[0], grid)
     rim = lumen.mask & ~np.roll(lumen.mask, 1, 0)
     v[0] = pl.unwrap_velocity(v[0], lumen.mask, venc, rim)
@@ -158,28 +168,66 @@ CASES = {
     "missing_voxel_size": ("slice", _del("voxel_size_mm", attr=True), [], "error"),
     "missing_origin": ("slice", _del("origin_mm", attr=True), [], "error"),
     "missing_venc_with_phase": ("slice", _del("venc_m_s", attr=True), [], "error"),
-    "magnitude_is_group": ("slice", lambda f, r: (f.__delitem__("magnitude"), f.create_group("magnitude")), [],
-                           "error"),
+    "magnitude_is_group": (
+        "slice",
+        lambda f, r: (f.__delitem__("magnitude"), f.create_group("magnitude")),
+        [],
+        "error",
+    ),
     "magnitude_1d": ("slice", lambda f, r: _replace(f, "magnitude", f["magnitude"][()].ravel()), [], "error"),
     "magnitude_4d": ("slice", lambda f, r: _replace(f, "magnitude", f["magnitude"][()][None]), [], "error"),
-    "cine_file": ("slice", _each(lambda f, r: _replace(f, "magnitude", f["magnitude"][()][None]),
-                                 lambda f, r: _replace(f, "phase", f["phase"][()][None]),
-                                 _set_attr("trigger_times_ms", np.array([0.0]))), [], "error"),
-    "nz_zero": ("slice", _each(lambda f, r: _replace(f, "magnitude", f["magnitude"][()][:0]),
-                               lambda f, r: _replace(f, "phase", f["phase"][()][:0])), [], "error"),
+    "cine_file": (
+        "slice",
+        _each(
+            lambda f, r: _replace(f, "magnitude", f["magnitude"][()][None]),
+            lambda f, r: _replace(f, "phase", f["phase"][()][None]),
+            _set_attr("trigger_times_ms", np.array([0.0])),
+        ),
+        [],
+        "error",
+    ),
+    "nz_zero": (
+        "slice",
+        _each(
+            lambda f, r: _replace(f, "magnitude", f["magnitude"][()][:0]),
+            lambda f, r: _replace(f, "phase", f["phase"][()][:0]),
+        ),
+        [],
+        "error",
+    ),
     "shape_mismatch": ("slice", lambda f, r: _replace(f, "phase", f["phase"][()][:, 1:]), [], "error"),
-    "no_nz_axis": ("slice", _each(lambda f, r: _replace(f, "magnitude", f["magnitude"][0]),
-                                  lambda f, r: _replace(f, "phase", f["phase"][0])), [], "ok"),
+    "no_nz_axis": (
+        "slice",
+        _each(
+            lambda f, r: _replace(f, "magnitude", f["magnitude"][0]), lambda f, r: _replace(f, "phase", f["phase"][0])
+        ),
+        [],
+        "ok",
+    ),
     "tiny_image": ("slice", _crop((slice(0, 3), slice(0, 3))), [], "error"),
-    "velocity_x_alone": ("slice", lambda f, r: f.create_dataset("velocity_x", data=np.zeros(f["phase"].shape)), [],
-                         "error"),
-    "velocity_4d_wrong": ("slice", _each(_phase_to_velocity(),
-                                         lambda f, r: _replace(f, "velocity", np.stack([f["velocity"][()]] * 2))), [],
-                          "error"),
-    "velocity_4d_valid": ("slice", _each(_phase_to_velocity(),
-                                         lambda f, r: _replace(f, "velocity", np.stack(
-                                             [0 * f["velocity"][()], 0 * f["velocity"][()], f["velocity"][()]]))), [],
-                          "ok"),
+    "velocity_x_alone": (
+        "slice",
+        lambda f, r: f.create_dataset("velocity_x", data=np.zeros(f["phase"].shape)),
+        [],
+        "error",
+    ),
+    "velocity_4d_wrong": (
+        "slice",
+        _each(_phase_to_velocity(), lambda f, r: _replace(f, "velocity", np.stack([f["velocity"][()]] * 2))),
+        [],
+        "error",
+    ),
+    "velocity_4d_valid": (
+        "slice",
+        _each(
+            _phase_to_velocity(),
+            lambda f, r: _replace(
+                f, "velocity", np.stack([0 * f["velocity"][()], 0 * f["velocity"][()], f["velocity"][()]])
+            ),
+        ),
+        [],
+        "ok",
+    ),
     "extra_datasets": ("slice", lambda f, r: f.create_dataset("notes", data=np.arange(3)), [], "ok"),
     # dtypes
     "magnitude_float32": ("slice", _scale("magnitude", 1.0, np.float32), [], "ok"),
@@ -187,8 +235,12 @@ CASES = {
     "magnitude_uint8": ("slice", _scale("magnitude", 200.0, np.uint8), [], "ok"),
     "magnitude_complex": ("slice", _scale("magnitude", 1.0, np.complex128), [], "error"),
     "phase_complex": ("slice", _scale("phase", 1.0, np.complex64), [], "error"),
-    "magnitude_strings": ("slice", lambda f, r: _replace(f, "magnitude", np.full(f["magnitude"].shape, b"a")), [],
-                          "error"),
+    "magnitude_strings": (
+        "slice",
+        lambda f, r: _replace(f, "magnitude", np.full(f["magnitude"].shape, b"a")),
+        [],
+        "error",
+    ),
     "magnitude_bool": ("slice", lambda f, r: _replace(f, "magnitude", f["magnitude"][()] > 0.5), [], "any"),
     "phase_float16": ("slice", _scale("phase", 1.0, np.float16), [], "ok"),
     "voxel_size_string": ("slice", _set_attr("voxel_size_mm", "1.5,1.5"), [], "error"),
@@ -214,8 +266,12 @@ CASES = {
     "magnitude_times_1e6": ("slice", _scale("magnitude", 1e6), [], "ok"),
     "magnitude_times_1e-6": ("slice", _scale("magnitude", 1e-6), [], "ok"),
     "phase_in_degrees": ("slice", _scale("phase", 180 / np.pi), [], "error"),
-    "phase_raw_12bit": ("slice", lambda f, r: _replace(f, "phase", np.round((f["phase"][()] + np.pi) / (2 * np.pi)
-                                                                            * 4095).astype(np.int16)), [], "error"),
+    "phase_raw_12bit": (
+        "slice",
+        lambda f, r: _replace(f, "phase", np.round((f["phase"][()] + np.pi) / (2 * np.pi) * 4095).astype(np.int16)),
+        [],
+        "error",
+    ),
     "phase_negated": ("slice", _scale("phase", -1.0), [], "ok"),
     "velocity_m_s": ("slice", _phase_to_velocity(), [], "ok"),
     "velocity_cm_s": ("slice", _phase_to_velocity(100.0), [], "error"),
@@ -235,8 +291,12 @@ CASES = {
     "vessel_malformed": ("slice", None, ["--vessel", "3"], "error"),
     "rectangular_image": ("slice", _crop((slice(None), slice(1, None))), [], "ok"),
     "anisotropic_voxels": ("slice", _set_attr("voxel_size_mm", np.array([1.5, 1.4])), [], "any"),
-    "magnitude_phase_swapped": ("slice", lambda f, r: f.move("magnitude", "tmp") or f.move("phase", "magnitude")
-                                or f.move("tmp", "phase"), [], "error"),
+    "magnitude_phase_swapped": (
+        "slice",
+        lambda f, r: f.move("magnitude", "tmp") or f.move("phase", "magnitude") or f.move("tmp", "phase"),
+        [],
+        "error",
+    ),
     "magnitude_offset": ("slice", lambda f, r: _replace(f, "magnitude", f["magnitude"][()] + 10.0), [], "any"),
     "salt_voxels": ("slice", _voxel("magnitude", 1e3, n=5), [], "any"),
     "phase_salt": ("slice", _voxel("phase", np.pi, n=5), [], "any"),
@@ -362,25 +422,29 @@ def test_fuzz_output_path(name, base, tmp_path, capsys):
     assert not _leftovers(tmp_path)
 
 
-@pytest.mark.parametrize("argv, expect", [
-    (["phantom", "-o", "{d}/p.h5", "--truth", "{d}/p.h5"], "error"),
-    (["phantom", "-o", "{d}/nofolder/p.h5"], "error"),
-    (["phantom", "-o", "{d}"], "error"),
-    (["phantom", "--case", "circle", "--h", "1.5", "--venc", "0.2", "-o", "{d}/p.h5"], "warn"),
-    (["phantom", "--h", "-1", "-o", "{d}/p.h5"], "error"),
-    (["analyze", "{d}/in.h5"], "error"),
-    (["compare", "{d}/in.h5", "{d}/in.h5"], "error"),
-    (["sensitivity", "{d}/missing.h5"], "error"),
-    (["table", "{d}", "--rows", "h", "--cols", "snr", "--metric", "wss_err"], "error"),
-    (["sweep", "{d}/in.h5"], "error"),
-    (["sweep", "{d}/study.toml", "-o", "{d}/in.h5"], "error"),
-    (["table", "{d}/runs", "--rows", "h", "--cols", "snr", "--metric", "wss_err", "-o", "{d}/runs"], "error"),
-    (["demo", "-o", "{d}/in.h5"], "error"),
-])
+@pytest.mark.parametrize(
+    "argv, expect",
+    [
+        (["phantom", "-o", "{d}/p.h5", "--truth", "{d}/p.h5"], "error"),
+        (["phantom", "-o", "{d}/nofolder/p.h5"], "error"),
+        (["phantom", "-o", "{d}"], "error"),
+        (["phantom", "--case", "circle", "--h", "1.5", "--venc", "0.2", "-o", "{d}/p.h5"], "warn"),
+        (["phantom", "--h", "-1", "-o", "{d}/p.h5"], "error"),
+        (["analyze", "{d}/in.h5"], "error"),
+        (["compare", "{d}/in.h5", "{d}/in.h5"], "error"),
+        (["sensitivity", "{d}/missing.h5"], "error"),
+        (["table", "{d}", "--rows", "h", "--cols", "snr", "--metric", "wss_err"], "error"),
+        (["sweep", "{d}/in.h5"], "error"),
+        (["sweep", "{d}/study.toml", "-o", "{d}/in.h5"], "error"),
+        (["table", "{d}/runs", "--rows", "h", "--cols", "snr", "--metric", "wss_err", "-o", "{d}/runs"], "error"),
+        (["demo", "-o", "{d}/in.h5"], "error"),
+    ],
+)
 def test_fuzz_other_commands(argv, expect, base, tmp_path, capsys):
     shutil.copy(base["slice"], tmp_path / "in.h5")
-    (tmp_path / "study.toml").write_text('[study]\nname = "t"\n[grid]\ncase = ["circle"]\nh = [1.5]\nsnr = [25]\n'
-                                         'seed = [0]\n')
+    (tmp_path / "study.toml").write_text(
+        '[study]\nname = "t"\n[grid]\ncase = ["circle"]\nh = [1.5]\nsnr = [25]\nseed = [0]\n'
+    )
     (tmp_path / "runs").mkdir()
     before = _digests(tmp_path)
     rc, err = _run([a.format(d=tmp_path) for a in argv], capsys)

@@ -44,8 +44,10 @@ def test_residual_jumps_counts_a_branch_cut():
     assert pl.residual_jumps(np.zeros_like(x), inside, venc) == 0
 
 
-@pytest.mark.parametrize("case, h, venc_fraction, seed", [("laminar", 1.0, 0.6, 41), ("manufactured", 0.6, 0.45, 42),
-                                                          ("circle", 1.5, 0.7, 43)])
+@pytest.mark.parametrize(
+    "case, h, venc_fraction, seed",
+    [("laminar", 1.0, 0.6, 41), ("manufactured", 0.6, 0.45, 42), ("circle", 1.5, 0.7, 43)],
+)
 def test_aliased_phantom_reconstructs_as_well_as_unaliased(case, h, venc_fraction, seed):
     """The issue's criterion: WSS error within 1.5x that of the same phantom without aliasing."""
     acq0, truth = phantoms.make_phantom(case, h_mm=h, snr=25, seed=seed)
@@ -115,8 +117,9 @@ def test_hidden_aliasing_is_flagged_not_passed_off():
     # within one voxel all around the wall, so no spatial unwrapping can see the wrap; the fit cannot follow the data
     # and the slice is flagged (threshold measured on seeds 300-301 in scripts/aliasing.py; seed 49 here)
     acq0, truth = phantoms.make_phantom("turbulent", h_mm=1.5, snr=25, seed=49)
-    acq, _ = phantoms.make_phantom("turbulent", h_mm=1.5, snr=25, seed=49,
-                                   venc=0.45 * phantoms.peak_velocity(truth.flow))
+    acq, _ = phantoms.make_phantom(
+        "turbulent", h_mm=1.5, snr=25, seed=49, venc=0.45 * phantoms.peak_velocity(truth.flow)
+    )
     bad = reconstruct(acq, FAST)[0]
     assert bad.screen["suspect"] and bad.screen["velocity_residual_to_noise"] > pl.MAX_RESIDUAL_TO_NOISE
     assert any("SUSPECT" in w and "venc_m_s" in w for w in bad.warnings)

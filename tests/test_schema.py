@@ -11,10 +11,34 @@ from wss_nlp.errors import InputError
 from wss_nlp.reconstruct import ReconstructionOptions
 
 #: The study keys documented in problems/README.md and the README: none may disappear.
-PUBLIC_STUDY_KEYS = {"method", "alpha", "N", "n_fourier", "sobolev", "prior", "gamma", "heaviside", "beta", "degree",
-                     "angular_order", "max_eigenvalue", "basis", "laplacian_power", "eta", "inner_fraction",
-                     "quad_order", "velocity_weight", "tau_alpha", "tau_beta", "kappa_alpha", "kappa_beta",
-                     "dephasing_correction", "uncertainty", "n_phi", "viscosity"}
+PUBLIC_STUDY_KEYS = {
+    "method",
+    "alpha",
+    "N",
+    "n_fourier",
+    "sobolev",
+    "prior",
+    "gamma",
+    "heaviside",
+    "beta",
+    "degree",
+    "angular_order",
+    "max_eigenvalue",
+    "basis",
+    "laplacian_power",
+    "eta",
+    "inner_fraction",
+    "quad_order",
+    "velocity_weight",
+    "tau_alpha",
+    "tau_beta",
+    "kappa_alpha",
+    "kappa_beta",
+    "dephasing_correction",
+    "uncertainty",
+    "n_phi",
+    "viscosity",
+}
 
 
 def _parse(*argv):
@@ -26,9 +50,30 @@ def test_no_arguments_give_the_default_options():
 
 
 def test_arguments_reach_their_fields():
-    o = _parse("--n-fourier", "6", "--quad-order", "3", "--alpha", "auto", "--beta", "1e-7", "--no-uncertainty",
-               "--vessel", "1.5,-2", "--z-smoothing", "0", "--method", "coupled", "--coupled-quad-order", "2",
-               "--viscosity", "4e-3", "--no-unwrap", "--laplacian-power", "1")
+    o = _parse(
+        "--n-fourier",
+        "6",
+        "--quad-order",
+        "3",
+        "--alpha",
+        "auto",
+        "--beta",
+        "1e-7",
+        "--no-uncertainty",
+        "--vessel",
+        "1.5,-2",
+        "--z-smoothing",
+        "0",
+        "--method",
+        "coupled",
+        "--coupled-quad-order",
+        "2",
+        "--viscosity",
+        "4e-3",
+        "--no-unwrap",
+        "--laplacian-power",
+        "1",
+    )
     assert o.geometry.n_fourier == 6 and o.geometry.quad_order == 3 and o.velocity.quad_order == 3
     assert o.alpha_rule == "balance" and o.geometry.alpha == 1e-3
     assert o.beta_rule == "fixed" and o.velocity.beta == 1e-7

@@ -34,9 +34,17 @@ class Pipeline:
 
     def mean(self, m=None, alpha=None, gamma=None, center=None, u=None, beta=None):
         lum, res, g = self.res.lumen, self.res, self.g
-        pr = geo.GeometryProblem(res.grid, res.magnitude if m is None else m, lum.center if center is None else center,
-                                 lum.r0, self.r1, lum.r_area)
-        go = geo.with_options(GOPT, alpha=g.alpha if alpha is None else alpha, gamma=g.gamma if gamma is None else gamma)
+        pr = geo.GeometryProblem(
+            res.grid,
+            res.magnitude if m is None else m,
+            lum.center if center is None else center,
+            lum.r0,
+            self.r1,
+            lum.r_area,
+        )
+        go = geo.with_options(
+            GOPT, alpha=g.alpha if alpha is None else alpha, gamma=g.gamma if gamma is None else gamma
+        )
         gg = geo.solve(pr, go, x0=g.coefficients)
         vv = vel.assemble(res.grid, res.velocity_image if u is None else u, gg.coefficients, gg.center, VOPT)
         sol = vel.solve(vv, VOPT, beta=self.v.beta if beta is None else beta)
@@ -90,8 +98,9 @@ def test_data_derivatives_match_resolves(laminar):
     _, gg = laminar.mean(m=m0 + 1e-4 * dm.reshape(m0.shape))
     _, gm = laminar.mean(m=m0 - 1e-4 * dm.reshape(m0.shape))
     fd_c = (gg.coefficients - gm.coefficients) / 2e-4
-    np.testing.assert_allclose(s.d_coef_r[:, :s.m_index.size] @ dm[s.m_index], fd_c, rtol=RTOL,
-                               atol=RTOL * np.max(np.abs(fd_c)))
+    np.testing.assert_allclose(
+        s.d_coef_r[:, : s.m_index.size] @ dm[s.m_index], fd_c, rtol=RTOL, atol=RTOL * np.max(np.abs(fd_c))
+    )
 
 
 def test_derivatives_with_the_box_active():
@@ -137,16 +146,24 @@ def test_coupled_derivatives_match_resolves():
     lum = res.lumen
     problem = geo.GeometryProblem(res.grid, res.magnitude, lum.center, lum.r0, lum.r1, lum.r_area)
     start_g = geo.solve(problem, opts.geometry)
-    start_v = vel.solve(vel.assemble(res.grid, res.velocity_image, start_g.coefficients, start_g.center,
-                                     opts.velocity), opts.velocity)
+    start_v = vel.solve(
+        vel.assemble(res.grid, res.velocity_image, start_g.coefficients, start_g.center, opts.velocity), opts.velocity
+    )
     weight = res.coupled_info["velocity_weight"]
 
     def solve(m=None, u=None, center=None, **scalars):
-        pr = geo.GeometryProblem(res.grid, res.magnitude if m is None else m, lum.center if center is None else center,
-                                 lum.r0, lum.r1, lum.r_area)
+        pr = geo.GeometryProblem(
+            res.grid,
+            res.magnitude if m is None else m,
+            lum.center if center is None else center,
+            lum.r0,
+            lum.r1,
+            lum.r_area,
+        )
         gopt = opts.geometry if "gamma" not in scalars else geo.with_options(opts.geometry, gamma=scalars.pop("gamma"))
-        c = cpl.solve(pr, gopt, res.velocity_image if u is None else u, opts.velocity, start_g, start_v, weight,
-                      **scalars)
+        c = cpl.solve(
+            pr, gopt, res.velocity_image if u is None else u, opts.velocity, start_g, start_v, weight, **scalars
+        )
         return sens.coupled(c, pr, gopt, opts.velocity, acq.viscosity_pa_s)
 
     s = solve()
@@ -181,8 +198,9 @@ def test_coupled_derivatives_with_the_box_active():
     r_max = float(np.max(res.geometry.radius(np.linspace(0, 2 * np.pi, 720))))
     problem = geo.GeometryProblem(res.grid, res.magnitude, lum.center, lum.r0, r_max - 0.3, lum.r_area)
     start_g = geo.solve(problem, opts.geometry)
-    start_v = vel.solve(vel.assemble(res.grid, res.velocity_image, start_g.coefficients, start_g.center,
-                                     opts.velocity), opts.velocity)
+    start_v = vel.solve(
+        vel.assemble(res.grid, res.velocity_image, start_g.coefficients, start_g.center, opts.velocity), opts.velocity
+    )
 
     def solve(alpha=None):
         c = cpl.solve(problem, opts.geometry, res.velocity_image, opts.velocity, start_g, start_v, 2e4, alpha=alpha)

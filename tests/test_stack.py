@@ -44,8 +44,12 @@ def test_zero_smoothing_is_the_independent_reconstruction():
     # IPOPT's tolerance, whether found by Gauss-Newton steps or IPOPT).
     acq, _ = phantoms.make_stack("tapered", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=1)
     a, _ = stack.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
-    b = reconstruct(acq, ReconstructionOptions(uncertainty=False, dephasing_correction=False,
-                                               stack=stack.StackOptions(z_smoothing_mm=0.0)))
+    b = reconstruct(
+        acq,
+        ReconstructionOptions(
+            uncertainty=False, dephasing_correction=False, stack=stack.StackOptions(z_smoothing_mm=0.0)
+        ),
+    )
     for ra, rb in zip(a, b):
         np.testing.assert_allclose(ra.geometry.coefficients, rb.geometry.coefficients, rtol=0, atol=1e-6)
         np.testing.assert_allclose(ra.wss.tau, rb.wss.tau, rtol=1e-5)
@@ -81,8 +85,17 @@ def test_velocity_sweeps_solve_the_coupled_normal_equations():
     res, info = stack.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", tol=1e-12))
     from wss_nlp import velocity as vel
 
-    vps = [vel.assemble(acq.grid, r.velocity_image, r.geometry.coefficients, r.geometry.center, FAST.velocity,
-                        basis=r.velocity.basis) for r in res]
+    vps = [
+        vel.assemble(
+            acq.grid,
+            r.velocity_image,
+            r.geometry.coefficients,
+            r.geometry.center,
+            FAST.velocity,
+            basis=r.velocity.basis,
+        )
+        for r in res
+    ]
     gram0 = res[0].velocity.basis.laplacian_gram(0)
     zop = stack.z_operator(4, 2)
     nb = gram0.shape[0]
@@ -90,8 +103,8 @@ def test_velocity_sweeps_solve_the_coupled_normal_equations():
     rhs = np.zeros(4 * nb)
     for k, vp in enumerate(vps):
         hmat, g = vp.normal_equations(res[k].velocity.beta)  # the segment's one (median) beta
-        big[k * nb:(k + 1) * nb, k * nb:(k + 1) * nb] += hmat
-        rhs[k * nb:(k + 1) * nb] = g
+        big[k * nb : (k + 1) * nb, k * nb : (k + 1) * nb] += hmat
+        rhs[k * nb : (k + 1) * nb] = g
     direct = np.linalg.solve(big, rhs).reshape(4, nb)
     swept = np.array([r.velocity.coefficients for r in res])
     assert np.abs(direct - swept).max() <= 1e-8 * np.abs(direct).max()
@@ -161,8 +174,7 @@ def test_data_driven_beta_in_a_z_regularized_stack():
         res, _ = stack.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=z_smoothing))
         # each slice's own choice, recomputed from what the result stores: the first (largest) beta whose
         # balancing ratio is within kappa
-        mine = [r.beta_choice.parameters[np.flatnonzero(r.beta_choice.criterion <= r.beta_choice.tau)[0]]
-                for r in res]
+        mine = [r.beta_choice.parameters[np.flatnonzero(r.beta_choice.criterion <= r.beta_choice.tau)[0]] for r in res]
         used = [r.velocity.beta for r in res]
         assert all(r.beta_choice.rule == "balance" and r.beta_choice.chosen == r.velocity.beta for r in res)
         if z_smoothing is None:
@@ -182,8 +194,22 @@ def test_data_driven_beta_in_a_z_regularized_stack():
 def test_stack_figure_and_cli(tmp_path, capsys):
     inp, out, figs = tmp_path / "in.h5", tmp_path / "out.h5", tmp_path / "figs"
     assert main(["phantom", "--stack", "curved", "--nz", "4", "--h", "1.5", "-o", str(inp)]) == 0
-    assert main(["reconstruct", str(inp), "-o", str(out), "--no-uncertainty", "--figures", str(figs),
-                 "--stack-strategy", "kaczmarz"]) == 0
+    assert (
+        main(
+            [
+                "reconstruct",
+                str(inp),
+                "-o",
+                str(out),
+                "--no-uncertainty",
+                "--figures",
+                str(figs),
+                "--stack-strategy",
+                "kaczmarz",
+            ]
+        )
+        == 0
+    )
     assert "stack: z-regularized over 2 mm (kaczmarz" in capsys.readouterr().out
     assert (figs / "stack_wall_maps.png").stat().st_size > 5000
     with h5py.File(out) as f:
@@ -243,9 +269,11 @@ def test_three_components_end_to_end():
 def test_velocity_component_layouts(tmp_path):
     acq, _ = phantoms.make_stack("tapered", nz=2, h_mm=1.5, spacing_mm=2.0, snr=25, seed=0, swirl_per_s=10.0)
     ux, uy, uz = acq.velocity_inplane[0], acq.velocity_inplane[1], acq.velocity_images()
-    layouts = {"4d": {"velocity": np.stack([ux, uy, uz])},
-               "xyz": {"velocity_x": ux, "velocity_y": uy, "velocity_z": uz},
-               "xy+velocity": {"velocity_x": ux, "velocity_y": uy, "velocity": uz}}
+    layouts = {
+        "4d": {"velocity": np.stack([ux, uy, uz])},
+        "xyz": {"velocity_x": ux, "velocity_y": uy, "velocity_z": uz},
+        "xy+velocity": {"velocity_x": ux, "velocity_y": uy, "velocity": uz},
+    }
     for name, data in layouts.items():
         path = tmp_path / f"{name}.h5"
         with h5py.File(path, "w") as f:
@@ -257,10 +285,12 @@ def test_velocity_component_layouts(tmp_path):
         back = wio.read_acquisition(path)
         np.testing.assert_array_equal(back.velocity_images(), uz)
         np.testing.assert_array_equal(back.velocity_inplane, np.stack([ux, uy]))
-    bad = {"only x": ({"velocity_x": ux, "velocity": uz}, "come together"),
-           "4d wrong": ({"velocity": np.stack([ux, uy])}, r"\(3, nz, ny, nx\)"),
-           "both": ({"velocity": uz, "velocity_z": uz, "velocity_x": ux, "velocity_y": uy}, "replaces")}
-    for name, (data, match) in bad.items():
+    bad = {
+        "only x": ({"velocity_x": ux, "velocity": uz}, "come together"),
+        "4d wrong": ({"velocity": np.stack([ux, uy])}, r"\(3, nz, ny, nx\)"),
+        "both": ({"velocity": uz, "velocity_z": uz, "velocity_x": ux, "velocity_y": uy}, "replaces"),
+    }
+    for data, match in bad.values():
         path = tmp_path / "bad.h5"
         with h5py.File(path, "w") as f:
             f["magnitude"] = acq.magnitude

@@ -40,7 +40,7 @@ def _cycle(graph: dict):
         state[m] = "open"
         for n in sorted(graph[m]):
             if state.get(n) == "open":
-                return path[path.index(n):] + [n]
+                return path[path.index(n) :] + [n]
             if n not in state:
                 found = visit(n, path + [n])
                 if found:

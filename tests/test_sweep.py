@@ -48,7 +48,9 @@ def _metrics(outdir):
 
 
 def test_grid_expansion(tmp_path):
-    s = _study(tmp_path, """
+    s = _study(
+        tmp_path,
+        """
 [study]
 name = "g"
 metrics = ["wss_err"]
@@ -59,7 +61,8 @@ seed = {range = [0, 4, 2]}
 alpha = [1e-3, "auto"]
 N = 6
 M = [10, 14]
-""")
+""",
+    )
     cases = sweep.expand(s)
     assert len(cases) == 2 * 3 * 2 * 2 * 2  # the cross product of the lists; N is fixed
     np.testing.assert_allclose(s.grid["h"], [1.5, np.sqrt(1.5 * 0.3), 0.3])
@@ -73,24 +76,34 @@ M = [10, 14]
     with pytest.raises(InputError, match="beta must be a number or one of auto"):
         sweep.options_for({"beta": "magic"})
     fixed = sweep.options_for({"beta": 1e-7, "alpha": 4e-3})  # numbers are used as given, not replaced by a rule
-    assert (fixed.beta_rule, fixed.velocity.beta, fixed.alpha_rule, fixed.geometry.alpha) == ("fixed", 1e-7,
-                                                                                               "fixed", 4e-3)
+    assert (fixed.beta_rule, fixed.velocity.beta, fixed.alpha_rule, fixed.geometry.alpha) == (
+        "fixed",
+        1e-7,
+        "fixed",
+        4e-3,
+    )
     assert sweep.options_for({}).beta_rule == "balance"  # the default
     assert o.geometry.n_fourier == 6 and o.velocity.degree == 14
     assert o.geometry.quad_order == o.velocity.quad_order == 3
     assert sweep.options_for({"basis": "eigen", "M": 300.0}).velocity.max_eigenvalue == 300.0
 
 
-@pytest.mark.parametrize("text, match", [
-    ("[study]\nname='x'\n[grid]\ncase='circle'\nfoo=[1]\n", "unknown grid key"),
-    ("[study]\nname='x'\n[grid]\nh=[1.0]\n", "exactly one of 'case'"),
-    ("[study]\nname='x'\n[grid]\ncase='circle'\nmethod=['magic']\n", "unknown method"),
-    ("[study]\nname='x'\n[grid]\ncase='nope'\n", "unknown phantom case"),
-    ("[study]\nname='x'\n[grid]\ncase='circle'\nalpha=[-1.0]\n", "alpha"),
-    ("[study]\nname='x'\n[grid]\ncase='circle'\n[[tables]]\nrows='h'\ncols='beta'\nmetric='wss_err'\n", "not a grid"),
-    ("[study]\nname='x'\n[grid]\ncase='circle'\nseed={range=[0.5, 2]}\n", "integers"),
-    ("[study]\nname='x'\n[grid\n", "not valid TOML"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("[study]\nname='x'\n[grid]\ncase='circle'\nfoo=[1]\n", "unknown grid key"),
+        ("[study]\nname='x'\n[grid]\nh=[1.0]\n", "exactly one of 'case'"),
+        ("[study]\nname='x'\n[grid]\ncase='circle'\nmethod=['magic']\n", "unknown method"),
+        ("[study]\nname='x'\n[grid]\ncase='nope'\n", "unknown phantom case"),
+        ("[study]\nname='x'\n[grid]\ncase='circle'\nalpha=[-1.0]\n", "alpha"),
+        (
+            "[study]\nname='x'\n[grid]\ncase='circle'\n[[tables]]\nrows='h'\ncols='beta'\nmetric='wss_err'\n",
+            "not a grid",
+        ),
+        ("[study]\nname='x'\n[grid]\ncase='circle'\nseed={range=[0.5, 2]}\n", "integers"),
+        ("[study]\nname='x'\n[grid\n", "not valid TOML"),
+    ],
+)
 def test_bad_study_files_name_the_file_and_the_problem(tmp_path, text, match):
     with pytest.raises(InputError, match=match) as exc:
         _study(tmp_path, text)
@@ -172,14 +185,17 @@ def test_failed_case_is_recorded_and_the_rest_run(tmp_path):
     wio.write_acquisition(tmp_path / "bad.h5", acq)
     with h5py.File(tmp_path / "bad.h5", "r+") as f:
         f["magnitude"][...] = bad
-    s = _study(tmp_path, """
+    s = _study(
+        tmp_path,
+        """
 [study]
 name = "files"
 [grid]
 input = [{file = "good.h5", truth = "good_truth.h5"}, "bad.h5"]
 method = ["decoupled", "oyre"]
 uncertainty = false
-""")
+""",
+    )
     summary = sweep.run_study(s, str(tmp_path / "out"), workers=1)
     rows = {(r["input"], r["method"]): r for r in summary.rows}
     assert summary.failed == 2
@@ -194,7 +210,9 @@ uncertainty = false
 
 ROWS = [  # a known table: wss_err = h * (method index + 1) + seed / 100
     {"h": h, "method": m, "seed": s, "case": "c", "status": "ok", "wss_err": h * (k + 1) + s / 100, "id": ""}
-    for h in (1.0, 0.5) for k, m in enumerate(("b", "a", "c")) for s in (0, 1)
+    for h in (1.0, 0.5)
+    for k, m in enumerate(("b", "a", "c"))
+    for s in (0, 1)
 ]
 
 
@@ -217,14 +235,30 @@ def test_table_refuses_to_mix_unfixed_parameters():
 
 
 def test_cli_sweep_table_plot(tmp_path, capsys):
-    (tmp_path / "s.toml").write_text(SMALL.replace('h = [1.5, 1.2]', 'h = 1.5').replace("{range = [0, 2]}", "0"))
+    (tmp_path / "s.toml").write_text(SMALL.replace("h = [1.5, 1.2]", "h = 1.5").replace("{range = [0, 2]}", "0"))
     out = str(tmp_path / "o")
     assert main(["sweep", str(tmp_path / "s.toml"), "-o", out, "--workers", "1"]) == 0
     text = capsys.readouterr().out
     assert "3 cases (3 run now, 0 done before), 0 not ok" in text
     assert os.path.exists(os.path.join(out, "t.md")) and os.path.exists(os.path.join(out, "p.png"))
-    assert main(["table", out, "--rows", "h", "--cols", "method", "--metric", "radius_err", "--latex",
-                 "-o", str(tmp_path / "t.tex")]) == 0
+    assert (
+        main(
+            [
+                "table",
+                out,
+                "--rows",
+                "h",
+                "--cols",
+                "method",
+                "--metric",
+                "radius_err",
+                "--latex",
+                "-o",
+                str(tmp_path / "t.tex"),
+            ]
+        )
+        == 0
+    )
     assert r"\textbf" in capsys.readouterr().out and (tmp_path / "t.tex").read_text().startswith(r"\begin{table}")
     assert main(["plot", out, "--x", "h", "--y", "wss_err", "--by", "method", "-o", str(tmp_path / "f.png")]) == 0
     assert (tmp_path / "f.png").stat().st_size > 1000

@@ -62,7 +62,7 @@ def test_pencil_equals_per_beta_cholesky(problem):
     g2, r2, p2 = tik.gcv(BETAS)
     assert np.allclose(g2, gcv, rtol=1e-9) and np.allclose(r2, res, rtol=1e-10) and np.allclose(p2, pen, rtol=1e-8)
     for k in (0, len(BETAS) // 2, len(BETAS) - 1):
-        c = tik.coefficients(BETAS[k:k + 1])[0]
+        c = tik.coefficients(BETAS[k : k + 1])[0]
         assert np.allclose(c, tik.solve(BETAS[k]), rtol=0, atol=1e-9 * np.max(np.abs(c)))
 
 

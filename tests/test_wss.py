@@ -68,7 +68,9 @@ def test_transpose_matters():
 
 def test_mean_of_constant_is_constant():
     phi = rad.uniform_angles(400)
-    assert rad.arc_length_mean(np.full(400, 2.5), rad.evaluate(COEF, phi), rad.evaluate(COEF, phi, 1)) == pytest.approx(2.5)
+    assert rad.arc_length_mean(np.full(400, 2.5), rad.evaluate(COEF, phi), rad.evaluate(COEF, phi, 1)) == pytest.approx(
+        2.5
+    )
 
 
 def test_wss_matrix_equals_direct_evaluation(laminar_snr25):

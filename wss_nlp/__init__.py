@@ -10,7 +10,6 @@ def __getattr__(name: str):
 
         from . import files
 
-        warnings.warn("wss_nlp.io is now wss_nlp.files; the old name will be removed", DeprecationWarning,
-                      stacklevel=2)
+        warnings.warn("wss_nlp.io is now wss_nlp.files; the old name will be removed", DeprecationWarning, stacklevel=2)
         return files
     raise AttributeError(f"module 'wss_nlp' has no attribute {name!r}")

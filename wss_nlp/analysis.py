@@ -48,8 +48,16 @@ def _plateaus(mask: np.ndarray, width: int = 2):
     return inner, outer
 
 
-def magnitude_noise(m: np.ndarray, raw: np.ndarray, mask: np.ndarray, m0: float, m1: float, voxel_area: float,
-                    region: np.ndarray, source: str = "") -> NoiseEstimate:
+def magnitude_noise(
+    m: np.ndarray,
+    raw: np.ndarray,
+    mask: np.ndarray,
+    m0: float,
+    m1: float,
+    voxel_area: float,
+    region: np.ndarray,
+    source: str = "",
+) -> NoiseEstimate:
     """Noise level ``delta`` of the normalized magnitude on the voxels ``region``.
 
     Notes
@@ -72,11 +80,15 @@ def magnitude_noise(m: np.ndarray, raw: np.ndarray, mask: np.ndarray, m0: float,
     inner, outer = _plateaus(mask)
     where = where_prefix(source)
     if outer.sum() < MIN_PLATEAU_VOXELS:
-        raise NoiseEstimationError(f"{where}cannot estimate the magnitude noise: no background in the field of view; "
-                                   "pass --noise-magnitude (delta, mm) or a fixed --alpha")
+        raise NoiseEstimationError(
+            f"{where}cannot estimate the magnitude noise: no background in the field of view; "
+            "pass --noise-magnitude (delta, mm) or a fixed --alpha"
+        )
     if inner.sum() < MIN_PLATEAU_VOXELS:
-        raise NoiseEstimationError(f"{where}cannot estimate the magnitude noise: the lumen is too small for a plateau; "
-                                   "pass --noise-magnitude (delta, mm) or a fixed --alpha")
+        raise NoiseEstimationError(
+            f"{where}cannot estimate the magnitude noise: the lumen is too small for a plateau; "
+            "pass --noise-magnitude (delta, mm) or a fixed --alpha"
+        )
     msq_in = float(np.mean((1 - m[inner]) ** 2))
     msq_out = float(np.mean(m[outer] ** 2))
     s_wall = robust_std(raw[inner]) / (m1 - m0)
@@ -88,10 +100,16 @@ def magnitude_noise(m: np.ndarray, raw: np.ndarray, mask: np.ndarray, m0: float,
     return NoiseEstimate(
         value=float(np.sqrt(voxel_area * total)),
         method="plateaus: mean squares on lumen and background plateaus; one-voxel rings at the edge: truncated "
-               "Gaussian with the raw lumen spread, at their own value",
-        details={"msq_lumen": msq_in, "msq_background": msq_out, "var_wall": s_wall**2,
-                 "msq_wall": float(np.mean(msq_wall)) if msq_wall.size else float("nan"),
-                 "n_lumen": int(flat_in.sum()), "n_background": int(flat_out.sum()), "n_wall": int(flat_wall.sum())},
+        "Gaussian with the raw lumen spread, at their own value",
+        details={
+            "msq_lumen": msq_in,
+            "msq_background": msq_out,
+            "var_wall": s_wall**2,
+            "msq_wall": float(np.mean(msq_wall)) if msq_wall.size else float("nan"),
+            "n_lumen": int(flat_in.sum()),
+            "n_background": int(flat_out.sum()),
+            "n_wall": int(flat_wall.sum()),
+        },
     )
 
 
@@ -140,8 +158,15 @@ def phase_noise_std(raw_at_voxels: np.ndarray, sigma: float, venc: float) -> np.
     return np.minimum(venc * sigma / (np.pi * mag), venc / np.sqrt(3))
 
 
-def velocity_noise(velocity: np.ndarray, raw: np.ndarray, mask: np.ndarray, voxel_index: np.ndarray,
-                   weights: np.ndarray, venc: float | None, source: str = "") -> NoiseEstimate:
+def velocity_noise(
+    velocity: np.ndarray,
+    raw: np.ndarray,
+    mask: np.ndarray,
+    voxel_index: np.ndarray,
+    weights: np.ndarray,
+    venc: float | None,
+    source: str = "",
+) -> NoiseEstimate:
     """Noise level ``epsilon`` of the velocity, in the units of the velocity misfit.
 
     Notes
@@ -163,19 +188,27 @@ def velocity_noise(velocity: np.ndarray, raw: np.ndarray, mask: np.ndarray, voxe
     if venc is not None and np.isfinite(sigma):
         su = phase_noise_std(raw.ravel()[voxel_index], sigma, venc)
         eps = float(np.sqrt(np.sum(weights * su**2) / np.sum(weights)))
-        return NoiseEstimate(eps, "phase noise: venc sigma / (pi |d_i|), sigma from the Rayleigh background",
-                             {"sigma_complex": sigma, "venc_m_s": venc, "per_voxel": su})
+        return NoiseEstimate(
+            eps,
+            "phase noise: venc sigma / (pi |d_i|), sigma from the Rayleigh background",
+            {"sigma_complex": sigma, "venc_m_s": venc, "per_voxel": su},
+        )
     inner, _ = _plateaus(mask)
     inner &= scipy.ndimage.binary_erosion(np.ones_like(mask), iterations=1)
     if inner.sum() < MIN_PLATEAU_VOXELS:
-        raise NoiseEstimationError(f"{where}cannot estimate the velocity noise: no venc and the lumen is too small "
-                                   "for a plateau; pass --noise-velocity (epsilon, m/s) or a fixed --beta")
+        raise NoiseEstimationError(
+            f"{where}cannot estimate the velocity noise: no venc and the lumen is too small "
+            "for a plateau; pass --noise-velocity (epsilon, m/s) or a fixed --beta"
+        )
     u = velocity
     nb = 0.25 * (np.roll(u, 1, 0) + np.roll(u, -1, 0) + np.roll(u, 1, 1) + np.roll(u, -1, 1))
     r = (u - nb)[inner]
     s = robust_std(r) / np.sqrt(1.25)
-    return NoiseEstimate(s, "high-pass: MAD of u minus its 4-neighbour mean on the lumen plateau",
-                         {"per_voxel": np.full(np.size(voxel_index), s)})
+    return NoiseEstimate(
+        s,
+        "high-pass: MAD of u minus its 4-neighbour mean on the lumen plateau",
+        {"per_voxel": np.full(np.size(voxel_index), s)},
+    )
 
 
 @dataclass
@@ -198,8 +231,17 @@ class ParameterChoice:
         return self.tau * self.noise
 
 
-def discrepancy_search(solve, start: float, noise: float, tau: float, factor: float = 0.5, max_steps: int = 60,
-                       stagnation: float = 1e-3, floor_slack: float = 0.02, smallest: float = 0.0):
+def discrepancy_search(
+    solve,
+    start: float,
+    noise: float,
+    tau: float,
+    factor: float = 0.5,
+    max_steps: int = 60,
+    stagnation: float = 1e-3,
+    floor_slack: float = 0.02,
+    smallest: float = 0.0,
+):
     """``p = max{start factor^n : residual(p) <= tau * noise}``, eq. (disc) / (disc2).
 
     Parameters
@@ -240,8 +282,9 @@ def discrepancy_search(solve, start: float, noise: float, tau: float, factor: fl
         residuals.append(float(res))
         results.append(prev)
         if res <= tau * noise:
-            return prev, ParameterChoice("", "discrepancy", p, np.array(params), np.array(residuals), noise, "", tau,
-                                         True)
+            return prev, ParameterChoice(
+                "", "discrepancy", p, np.array(params), np.array(residuals), noise, "", tau, True
+            )
         dropped = res < (1 - 20 * stagnation) * residuals[0]  # flat before the fall is not stagnation
         if dropped and residuals[-2] - res <= stagnation * residuals[-2]:
             flat += 1
@@ -310,8 +353,8 @@ def balancing_principle(gram_estimates: np.ndarray, gram_noise: np.ndarray, kapp
     n = d_est.size
     ratio = np.zeros(n)
     for j in range(n - 1):
-        s = sd[j, j + 1:]
-        ratio[j] = float(np.max(np.where(s > 0, diff[j, j + 1:] / np.where(s > 0, s, 1.0), np.inf)))
+        s = sd[j, j + 1 :]
+        ratio[j] = float(np.max(np.where(s > 0, diff[j, j + 1 :] / np.where(s > 0, s, 1.0), np.inf)))
     return int(np.flatnonzero(ratio <= kappa)[0]), ratio
 
 

@@ -168,8 +168,10 @@ def segment(m: np.ndarray, grid: VoxelGrid, lumen: pp.Lumen, n_fourier: int, sou
         if best is None or area > best[0]:
             best = (area, pts)
     if best is None:
-        raise NoVesselError(f"{pp.where_prefix(source)}no closed 50 % magnitude contour around the lumen centre "
-                            f"({cx:.3g}, {cy:.3g}) mm; the threshold segmentation of the baselines needs one")
+        raise NoVesselError(
+            f"{pp.where_prefix(source)}no closed 50 % magnitude contour around the lumen centre "
+            f"({cx:.3g}, {cy:.3g}) mm; the threshold segmentation of the baselines needs one"
+        )
     pts = best[1][:-1]
     phi = np.mod(np.arctan2(pts[:, 1] - cy, pts[:, 0] - cx), 2 * np.pi)
     r = np.hypot(pts[:, 0] - cx, pts[:, 1] - cy)
@@ -181,12 +183,18 @@ def _interpolate(image: np.ndarray, grid: VoxelGrid, x, y) -> np.ndarray:
     """Bilinear interpolation of an image at physical points (mm)."""
     ix = (np.asarray(x) - grid.origin_mm[0]) / grid.dx
     iy = (np.asarray(y) - grid.origin_mm[1]) / grid.dy
-    return scipy.ndimage.map_coordinates(image, [iy.ravel(), ix.ravel()], order=1, mode="nearest").reshape(
-        np.shape(x))
+    return scipy.ndimage.map_coordinates(image, [iy.ravel(), ix.ravel()], order=1, mode="nearest").reshape(np.shape(x))
 
 
-def oyre_wss(geom: ContourGeometry, velocity: np.ndarray, grid: VoxelGrid, r_area: float, phi: np.ndarray,
-             viscosity_pa_s: float, options: BaselineOptions):
+def oyre_wss(
+    geom: ContourGeometry,
+    velocity: np.ndarray,
+    grid: VoxelGrid,
+    r_area: float,
+    phi: np.ndarray,
+    viscosity_pa_s: float,
+    options: BaselineOptions,
+):
     """Wall shear stress from polynomial fits of the near-wall profile along inward normals.
 
     Notes
@@ -206,8 +214,7 @@ def oyre_wss(geom: ContourGeometry, velocity: np.ndarray, grid: VoxelGrid, r_are
     design = d[:, None] ** np.arange(1, options.oyre_degree + 1)[None, :]
     coef, *_ = np.linalg.lstsq(design, u.T, rcond=None)
     tau = viscosity_pa_s * 1000.0 * coef[0]
-    return tau, {"fit_range_mm": float(length), "samples": int(n_samples),
-                 "degree": int(options.oyre_degree)}
+    return tau, {"fit_range_mm": float(length), "samples": int(n_samples), "degree": int(options.oyre_degree)}
 
 
 def _bspline_basis(t: np.ndarray, x: np.ndarray, nu: int = 0) -> np.ndarray:
@@ -225,8 +232,14 @@ def _second_difference(n: int) -> np.ndarray:
     return np.diff(np.eye(n), 2, axis=0)
 
 
-def stalder_wss(geom: ContourGeometry, velocity: np.ndarray, grid: VoxelGrid, phi: np.ndarray,
-                viscosity_pa_s: float, options: BaselineOptions):
+def stalder_wss(
+    geom: ContourGeometry,
+    velocity: np.ndarray,
+    grid: VoxelGrid,
+    phi: np.ndarray,
+    viscosity_pa_s: float,
+    options: BaselineOptions,
+):
     """Wall shear stress from a smoothing B-spline fit of the velocity over the cross-section.
 
     Notes
@@ -286,15 +299,30 @@ def stalder_wss(geom: ContourGeometry, velocity: np.ndarray, grid: VoxelGrid, ph
     dsdx = np.einsum("il,lk,ik->i", byw, coef, _bspline_basis(tx, x, 1))
     dsdy = np.einsum("il,lk,ik->i", _bspline_basis(ty, y, 1), coef, bxw)
     tau = -viscosity_pa_s * 1000.0 * (dsdx * nxx + dsdy * nyy)
-    info = {"knot_spacing_mm": float(spacing), "n_coefficients": int(nbx * nby), "n_voxels": int(inside.sum()),
-            "n_wall_points": int(n_wall), "lambda": float(ratios[i] * scale), "lambda_relative": float(ratios[i]),
-            "gcv_at_grid_edge": bool(i in (0, len(ratios) - 1))}
+    info = {
+        "knot_spacing_mm": float(spacing),
+        "n_coefficients": int(nbx * nby),
+        "n_voxels": int(inside.sum()),
+        "n_wall_points": int(n_wall),
+        "lambda": float(ratios[i] * scale),
+        "lambda_relative": float(ratios[i]),
+        "gcv_at_grid_edge": bool(i in (0, len(ratios) - 1)),
+    }
     return tau, info
 
 
-def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: VoxelGrid, viscosity_pa_s: float,
-                      method: str, options: BaselineOptions, n_phi: int = 360, source: str = "<memory>",
-                      index: int = 0, vessel=None) -> BaselineResult:
+def reconstruct_slice(
+    magnitude: np.ndarray,
+    velocity_image: np.ndarray,
+    grid: VoxelGrid,
+    viscosity_pa_s: float,
+    method: str,
+    options: BaselineOptions,
+    n_phi: int = 360,
+    source: str = "<memory>",
+    index: int = 0,
+    vessel=None,
+) -> BaselineResult:
     """Segment the wall and estimate WSS with a classical method (``"oyre"`` or ``"stalder"``)."""
     where = f"{source} slice {index}"
     t = {}

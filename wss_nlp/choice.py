@@ -55,9 +55,13 @@ def _noise_free_choice(name: str, rule: str, fixed: float, noise: an.NoiseEstima
     There is no noise to balance against or to match a residual to; the
     choice says so (``SliceResult.warnings`` reports it) instead of guessing.
     """
-    return an.ParameterChoice(name, "fixed", fixed, noise=0.0,
-                              noise_method=f"{rule} needs noise, the estimate is zero ({noise.method}); "
-                                           "the fixed value is used")
+    return an.ParameterChoice(
+        name,
+        "fixed",
+        fixed,
+        noise=0.0,
+        noise_method=f"{rule} needs noise, the estimate is zero ({noise.method}); the fixed value is used",
+    )
 
 
 def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str):
@@ -77,16 +81,19 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
         def run(alpha, prev):
             return solver.solve(alpha, None if prev is None else prev.coefficients)
     else:
-        annulus = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1,
-                                     geo.quad_order(problem, gopt)).annulus
+        annulus = meas.annulus_model(
+            problem.grid, problem.center, problem.r0, problem.r1, geo.quad_order(problem, gopt)
+        ).annulus
 
         def run(alpha, prev):
             return geo.solve_projected_gauss_newton(problem, gopt, None if prev is None else prev.coefficients, alpha)
+
     if options.noise_magnitude is not None:
         noise = an.NoiseEstimate(options.noise_magnitude, "given (--noise-magnitude)")
     else:
-        noise = an.magnitude_noise(problem.magnitude, raw, lumen.noise_mask, norm.m0, norm.m1, problem.grid.voxel_area,
-                                   annulus, where.rstrip())
+        noise = an.magnitude_noise(
+            problem.magnitude, raw, lumen.noise_mask, norm.m0, norm.m1, problem.grid.voxel_area, annulus, where.rstrip()
+        )
     if not noise.value > 0:
         g = geo.solve(problem, gopt)
         return g, _noise_free_choice("alpha", options.alpha_rule, g.alpha, noise)
@@ -102,8 +109,14 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
     return g, choice
 
 
-def balance_alpha(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, run, noise: an.NoiseEstimate,
-                  n_annulus: int, options: ReconstructionOptions):
+def balance_alpha(
+    problem: geo.GeometryProblem,
+    gopt: geo.GeometryOptions,
+    run,
+    noise: an.NoiseEstimate,
+    n_annulus: int,
+    options: ReconstructionOptions,
+):
     """alpha by the balancing principle on the radius ``R(phi_j)`` (:func:`wss_nlp.analysis.balancing_principle`).
 
     Notes
@@ -128,16 +141,26 @@ def balance_alpha(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, run, 
         dc, annulus = sens.geometry_kkt(problem, gopt, prev.coefficients, alpha, prev.gamma, lam)
         results.append(prev)
         radii.append(design @ prev.coefficients)
-        maps.append((design @ dc[:, :annulus.size] * sigma_m).ravel())
+        maps.append((design @ dc[:, : annulus.size] * sigma_m).ravel())
         res.append(prev.annulus_residual_norm)
     radii, maps = np.array(radii), np.array(maps)
     j, ratio = an.balancing_principle(radii @ radii.T, maps @ maps.T, options.kappa_alpha)
-    return results[j], an.ParameterChoice("alpha", "balance", float(alphas[j]), alphas, np.array(res), noise.value,
-                                          noise.method, options.kappa_alpha, criterion=ratio)
+    return results[j], an.ParameterChoice(
+        "alpha",
+        "balance",
+        float(alphas[j]),
+        alphas,
+        np.array(res),
+        noise.value,
+        noise.method,
+        options.kappa_alpha,
+        criterion=ratio,
+    )
 
 
-def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str,
-                viscosity_pa_s: float):
+def choose_beta(
+    vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str, viscosity_pa_s: float
+):
     """beta fixed, from the discrepancy principle (eq. (disc2), with the residual), GCV, the L-curve or balancing.
 
     The searches use direct Cholesky solves of the (linear) velocity problem;
@@ -154,19 +177,33 @@ def choose_beta(vp: vel.VelocityProblem, raw, lumen, venc, options: Reconstructi
         i, k = an.lcurve_corner(res, pen)
         return an.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
     if options.noise_velocity is not None:
-        noise = an.NoiseEstimate(options.noise_velocity, "given (--noise-velocity)",
-                                 {"per_voxel": np.full(vp.data.size, options.noise_velocity)})
+        noise = an.NoiseEstimate(
+            options.noise_velocity,
+            "given (--noise-velocity)",
+            {"per_voxel": np.full(vp.data.size, options.noise_velocity)},
+        )
     else:
-        noise = an.velocity_noise(vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc,
-                                  where.rstrip())
+        noise = an.velocity_noise(
+            vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc, where.rstrip()
+        )
     if not noise.value > 0:
         return _noise_free_choice("beta", rule, options.velocity.beta, noise)
     if rule == "balance":
         smat, _ = wss_mod.wss_matrix(vp.basis, vp.disk_map, viscosity_pa_s, options.n_phi)
-        i, ratio, res = an.wss_balance(vp.operator, vp.weights, vp.data, vp.gram, betas, smat,
-                                       noise.details["per_voxel"], options.kappa_beta)
-        return an.ParameterChoice("beta", "balance", float(betas[i]), betas, res, noise.value, noise.method,
-                                  options.kappa_beta, criterion=ratio)
+        i, ratio, res = an.wss_balance(
+            vp.operator, vp.weights, vp.data, vp.gram, betas, smat, noise.details["per_voxel"], options.kappa_beta
+        )
+        return an.ParameterChoice(
+            "beta",
+            "balance",
+            float(betas[i]),
+            betas,
+            res,
+            noise.value,
+            noise.method,
+            options.kappa_beta,
+            criterion=ratio,
+        )
 
     def solve(beta, prev):
         c = vel.solve_cholesky(vp, beta)

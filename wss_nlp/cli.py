@@ -21,6 +21,7 @@ from . import schema
 from .errors import InputError, WssNlpError
 from .reconstruct import ReconstructionOptions, reconstruct
 
+
 def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
     """Every reconstruction option, from the options schema (:mod:`wss_nlp.schema`)."""
     schema.add_arguments(p, ReconstructionOptions)
@@ -39,8 +40,9 @@ def _progress(stream):
             stream.flush()
             return
         flag = "" if res.converged else "  [NOT CONVERGED]"
-        stream.write(f"  slice {done}/{total}: mean WSS {res.wss.mean:.4g} Pa, "
-                     f"{time.perf_counter() - t0:.1f} s elapsed{flag}\n")
+        stream.write(
+            f"  slice {done}/{total}: mean WSS {res.wss.mean:.4g} Pa, {time.perf_counter() - t0:.1f} s elapsed{flag}\n"
+        )
         stream.flush()
 
     return report
@@ -103,16 +105,28 @@ def cmd_phantom(args) -> int:
     outputs.check_outputs(files={"-o": args.output, "--truth": args.truth})
     snr = None if args.snr <= 0 else args.snr
     if args.stack:
-        acq, truth = phantoms.make_stack(args.stack, nz=args.nz, h_mm=args.h, spacing_mm=args.spacing, snr=snr,
-                                         seed=args.seed, venc=args.venc, swirl_per_s=args.swirl)
+        acq, truth = phantoms.make_stack(
+            args.stack,
+            nz=args.nz,
+            h_mm=args.h,
+            spacing_mm=args.spacing,
+            snr=snr,
+            seed=args.seed,
+            venc=args.venc,
+            swirl_per_s=args.swirl,
+        )
         args.case = f"{args.stack} stack ({args.nz} slices, {args.spacing:g} mm apart)"
     else:
-        acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=snr, seed=args.seed, venc=args.venc,
-                                           as_phase=not args.velocity)
+        acq, truth = phantoms.make_phantom(
+            args.case, h_mm=args.h, snr=snr, seed=args.seed, venc=args.venc, as_phase=not args.velocity
+        )
     peak = max(phantoms.peak_velocity(t.flow) for t in getattr(truth, "slices", [truth]))
     if acq.venc_m_s < peak:
-        print(f"wss-nlp: warning: venc {acq.venc_m_s:g} m/s is below the peak velocity {peak:.3g} m/s: the phase "
-              "wraps (aliasing); 'reconstruct' unwraps it (or refuses it when it cannot)", file=sys.stderr)
+        print(
+            f"wss-nlp: warning: venc {acq.venc_m_s:g} m/s is below the peak velocity {peak:.3g} m/s: the phase "
+            "wraps (aliasing); 'reconstruct' unwraps it (or refuses it when it cannot)",
+            file=sys.stderr,
+        )
     wio.write_acquisition(args.output, acq)
     if args.truth:
         try:
@@ -120,8 +134,10 @@ def cmd_phantom(args) -> int:
         except BaseException:
             os.remove(args.output)  # the pair is written whole or not at all
             raise
-    print(f"wrote {args.output}: {args.case}, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
-          f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels")
+    print(
+        f"wrote {args.output}: {args.case}, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
+        f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels"
+    )
     if args.truth:
         means = [t.mean_wss for t in getattr(truth, "slices", [truth])]
         print(f"wrote {args.truth}: exact radius and WSS (mean {min(means):.5g}-{max(means):.5g} Pa)")
@@ -132,10 +148,14 @@ def cmd_reconstruct(args) -> int:
     options = options_from_args(args)
     outputs.check_outputs(files={"-o": args.output}, folders={"--figures": args.figures}, inputs=[args.input])
     acq = wio.read_acquisition(args.input)
-    print(f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
-          f"h = {acq.grid.h:g} mm", file=sys.stderr)
-    results = reconstruct(acq, options, progress=_progress(sys.stderr),
-                          log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+    print(
+        f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
+        f"h = {acq.grid.h:g} mm",
+        file=sys.stderr,
+    )
+    results = reconstruct(
+        acq, options, progress=_progress(sys.stderr), log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True)
+    )
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
             _slice_figures(results, acq, staged.path)
@@ -146,12 +166,16 @@ def cmd_reconstruct(args) -> int:
         if isinstance(r, wio.FailedSlice):
             print(f"slice {r.index}: FAILED: {r.reason}")
             continue
-        print(f"slice {r.index}: mean WSS {r.wss.mean:.5g} Pa, mean radius {r.geometry.coefficients[0]:.4f} mm, "
-              f"converged: {r.converged}")
+        print(
+            f"slice {r.index}: mean WSS {r.wss.mean:.5g} Pa, mean radius {r.geometry.coefficients[0]:.4f} mm, "
+            f"converged: {r.converged}"
+        )
     if results.stack is not None:
         st = results.stack
-        print(f"stack: z-regularized over {st.z_smoothing_mm:g} mm ({st.strategy}; segments "
-              f"{[f'{s[0]}-{s[-1]}' for s in st.segments]})" + ("" if st.converged else "; NOT CONVERGED"))
+        print(
+            f"stack: z-regularized over {st.z_smoothing_mm:g} mm ({st.strategy}; segments "
+            f"{[f'{s[0]}-{s[-1]}' for s in st.segments]})" + ("" if st.converged else "; NOT CONVERGED")
+        )
     print(f"wrote {args.output}")
     if args.figures:
         print(f"figures in {args.figures}")
@@ -180,8 +204,9 @@ def cmd_compare(args) -> int:
             continue
         if "wall_x" not in d:
             raise InputError(f"{args.result}: {d['name']} has no wss/wall_x_mm; was it written by wss-nlp?")
-        err = metrics.compare(d["center"], d["phi"], d["radius"], d["wall_x"], d["wall_y"], d["tau"],
-                              d["mean_tau"], truth)
+        err = metrics.compare(
+            d["center"], d["phi"], d["radius"], d["wall_x"], d["wall_y"], d["tau"], d["mean_tau"], truth
+        )
         print(f"{d['name']} against {args.truth}:")
         print(_error_table(_errors_rows(err)))
     return 0
@@ -197,12 +222,16 @@ def cmd_analyze(args) -> int:
         for ch in per.values():
             print(f"  {ch.name}: rule '{ch.rule}', chosen {ch.chosen:.4g}")
             if ch.rule == "discrepancy":
-                print(f"    noise {ch.noise:.4g} ({ch.noise_method}); threshold tau x noise = {ch.threshold:.4g}"
-                      + ("" if ch.satisfied else "; NOT reached (model error dominates)"))
+                print(
+                    f"    noise {ch.noise:.4g} ({ch.noise_method}); threshold tau x noise = {ch.threshold:.4g}"
+                    + ("" if ch.satisfied else "; NOT reached (model error dominates)")
+                )
             if ch.rule == "balance":
                 what, unit = ("radius", "mm") if ch.name == "alpha" else ("WSS", "m/s")
-                print(f"    noise {ch.noise:.4g} {unit} ({ch.noise_method}); criterion = largest {what} difference "
-                      f"to a smaller {ch.name} in noise standard deviations, admissible <= kappa = {ch.tau:g}")
+                print(
+                    f"    noise {ch.noise:.4g} {unit} ({ch.noise_method}); criterion = largest {what} difference "
+                    f"to a smaller {ch.name} in noise standard deviations, admissible <= kappa = {ch.tau:g}"
+                )
             if ch.parameters.size:
                 head = f"    {'parameter':>12} {'residual':>12}" + (f" {'criterion':>12}" if ch.criterion.size else "")
                 print(head)
@@ -229,21 +258,22 @@ def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
     """
     d = dict(zip(rec["names"], rec["d_mean"]))
     h = rec["h_mm"]
-    rows = [("alpha +10 %", 0.1 * rec["alpha"] * d["alpha"]),
-            ("beta +10 %", 0.1 * rec["beta"] * d["beta"]),
-            ("gamma +10 %", 0.1 * rec["gamma"] * d["gamma"]),
-            ("centre x + h/2", 0.5 * h * d["center_x"]),
-            ("centre y + h/2", 0.5 * h * d["center_y"]),
-            ("magnitude noise (1 std)", rec["mean_std_magnitude_pa"]),
-            ("velocity noise (1 std)", rec["mean_std_velocity_pa"])]
+    rows = [
+        ("alpha +10 %", 0.1 * rec["alpha"] * d["alpha"]),
+        ("beta +10 %", 0.1 * rec["beta"] * d["beta"]),
+        ("gamma +10 %", 0.1 * rec["gamma"] * d["gamma"]),
+        ("centre x + h/2", 0.5 * h * d["center_x"]),
+        ("centre y + h/2", 0.5 * h * d["center_y"]),
+        ("magnitude noise (1 std)", rec["mean_std_magnitude_pa"]),
+        ("velocity noise (1 std)", rec["mean_std_velocity_pa"]),
+    ]
     return sorted(rows, key=lambda r: -abs(r[1]))
 
 
 def cmd_sensitivity(args) -> int:
     recs = wio.read_sensitivity(args.result)
     if not recs:
-        raise InputError(f"{args.result}: no sensitivity records; reconstruct without "
-                         "--no-uncertainty")
+        raise InputError(f"{args.result}: no sensitivity records; reconstruct without --no-uncertainty")
     for name, rec in recs.items():
         print(f"{name}: mean WSS {rec['mean_pa']:.4g} Pa +- {rec['mean_std_pa']:.2g} Pa (1 std, linearized)")
         print(f"  {'what changes':<26} {'mean WSS change [Pa]':>22} {'relative':>10}")
@@ -279,10 +309,15 @@ def _demo(args, options, out: str) -> None:
     res = results[0]
     err = metrics.compare_slice(res, truth)
     if hasattr(res, "velocity"):
-        solvers = [(f"{ch.name} ({ch.rule})", f"{ch.chosen:.3g}") for ch in (res.alpha_choice, res.beta_choice)
-                   if ch is not None]
-        solvers += [("geometry solver", f"{res.geometry.stats.status}"),
-                    ("velocity solver", f"{res.velocity.stats.status}")]
+        solvers = [
+            (f"{ch.name} ({ch.rule})", f"{ch.chosen:.3g}")
+            for ch in (res.alpha_choice, res.beta_choice)
+            if ch is not None
+        ]
+        solvers += [
+            ("geometry solver", f"{res.geometry.stats.status}"),
+            ("velocity solver", f"{res.velocity.stats.status}"),
+        ]
     else:
         solvers = [("method", f"{res.method} (closed-form fits)")]
     rows = _errors_rows(err) + solvers + [("time [s]", f"{seconds:.2f}")]
@@ -314,19 +349,25 @@ def cmd_sweep(args) -> int:
     out = args.output_dir or os.path.join("runs", study.name)
     outputs.check_outputs(folders={"-o": out}, inputs=[args.study])
     try:
-        s = sweep.run_study(study, out, workers=args.workers, scheduler=args.scheduler,
-                            retry_failed=args.retry_failed)
+        s = sweep.run_study(study, out, workers=args.workers, scheduler=args.scheduler, retry_failed=args.retry_failed)
     except KeyboardInterrupt:
-        print(f"\nwss-nlp: interrupted; finished cases are kept in {out}/cases; run the same command again to "
-              "resume", file=sys.stderr)
+        print(
+            f"\nwss-nlp: interrupted; finished cases are kept in {out}/cases; run the same command again to resume",
+            file=sys.stderr,
+        )
         return 130
-    print(f"{s.total} cases ({s.ran} run now, {s.skipped} done before), {s.failed} not ok; "
-          f"{s.seconds:.0f} s; table: {s.csv_path}")
+    print(
+        f"{s.total} cases ({s.ran} run now, {s.skipped} done before), {s.failed} not ok; "
+        f"{s.seconds:.0f} s; table: {s.csv_path}"
+    )
     for path in s.outputs:
         print(f"wrote {path}")
     if s.failed:
-        print(f"wss-nlp: warning: {s.failed} case(s) failed or did not converge; see the 'status' and 'message' "
-              f"columns of {s.csv_path}", file=sys.stderr)
+        print(
+            f"wss-nlp: warning: {s.failed} case(s) failed or did not converge; see the 'status' and 'message' "
+            f"columns of {s.csv_path}",
+            file=sys.stderr,
+        )
     return 0
 
 
@@ -335,8 +376,16 @@ def cmd_table(args) -> int:
 
     outputs.check_outputs(files={"-o": args.output})
     rows = sweep.read_csv(args.outdir)
-    md, tex = sweep.table(rows, args.rows, args.cols, args.metric, _where(args.where), args.agg,
-                          source=os.path.join(args.outdir, "results.csv"), bold=not args.no_bold)
+    md, tex = sweep.table(
+        rows,
+        args.rows,
+        args.cols,
+        args.metric,
+        _where(args.where),
+        args.agg,
+        source=os.path.join(args.outdir, "results.csv"),
+        bold=not args.no_bold,
+    )
     print(tex if args.latex else md, end="")
     if args.output:
         wio.atomic_write(args.output, tex if args.output.endswith(".tex") else md)
@@ -366,12 +415,16 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="wss-nlp",
         description="Vessel geometry, velocity and wall shear stress from phase-contrast MRI "
-                    "(Egger & Teschner), with every Tikhonov problem posed in CasADi.")
+        "(Egger & Teschner), with every Tikhonov problem posed in CasADi.",
+    )
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
-    d = sub.add_parser("demo", help="reconstruct a built-in phantom and report errors against the truth",
-                       description="Build a phantom, reconstruct it, print errors, write files and figures.")
+    d = sub.add_parser(
+        "demo",
+        help="reconstruct a built-in phantom and report errors against the truth",
+        description="Build a phantom, reconstruct it, print errors, write files and figures.",
+    )
     d.add_argument("--case", choices=list(phantoms.CASES), default="laminar", help="phantom (default %(default)s)")
     d.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
     d.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none (default %(default)g)")
@@ -380,8 +433,11 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reconstruction_arguments(d)
     d.set_defaults(func=cmd_demo)
 
-    r = sub.add_parser("reconstruct", help="reconstruct an acquisition file",
-                       description="Reconstruct geometry, velocity and WSS of every slice of INPUT.")
+    r = sub.add_parser(
+        "reconstruct",
+        help="reconstruct an acquisition file",
+        description="Reconstruct geometry, velocity and WSS of every slice of INPUT.",
+    )
     r.add_argument("input", help="input HDF5 file (format: see README)")
     r.add_argument("-o", "--output", required=True, help="result HDF5 file")
     r.add_argument("--figures", default=None, help="folder for PNG figures of every slice")
@@ -395,12 +451,17 @@ def build_parser() -> argparse.ArgumentParser:
     ph.add_argument("--seed", type=int, default=0)
     ph.add_argument("--venc", type=float, default=None, help="velocity encoding in m/s (default 1.25 x peak)")
     ph.add_argument("--velocity", action="store_true", help="store 'velocity' instead of 'phase' + venc")
-    ph.add_argument("--stack", choices=list(phantoms.STACK_CASES), default=None,
-                    help="a 3D stack phantom instead of one slice")
+    ph.add_argument(
+        "--stack", choices=list(phantoms.STACK_CASES), default=None, help="a 3D stack phantom instead of one slice"
+    )
     ph.add_argument("--nz", type=int, default=10, help="stack: number of slices (default %(default)s)")
     ph.add_argument("--spacing", type=float, default=2.0, help="stack: slice spacing in mm (default %(default)g)")
-    ph.add_argument("--swirl", type=float, default=None,
-                    help="stack: add in-plane velocity components (4D flow) of a swirl with this rate in 1/s")
+    ph.add_argument(
+        "--swirl",
+        type=float,
+        default=None,
+        help="stack: add in-plane velocity components (4D flow) of a swirl with this rate in 1/s",
+    )
     ph.add_argument("-o", "--output", required=True, help="input file to write")
     ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
     ph.set_defaults(func=cmd_phantom)
@@ -414,26 +475,36 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
     se.set_defaults(func=cmd_sensitivity)
 
-    sw = sub.add_parser("sweep", help="run a parameter study from a TOML file (problems/*.toml)",
-                        description="Expand the study's grid, run the cases in parallel (resumable), write "
-                                    "OUTDIR/results.csv, per-case result files and the study's tables and plots.")
+    sw = sub.add_parser(
+        "sweep",
+        help="run a parameter study from a TOML file (problems/*.toml)",
+        description="Expand the study's grid, run the cases in parallel (resumable), write "
+        "OUTDIR/results.csv, per-case result files and the study's tables and plots.",
+    )
     sw.add_argument("study", help="study file (TOML; see problems/README.md)")
     sw.add_argument("-o", "--output-dir", default=None, help="output folder (default runs/STUDY_NAME)")
     sw.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
-    sw.add_argument("--scheduler", default=None,
-                    help="address of a Dask distributed scheduler (tcp://HOST:PORT) to run the cases on")
+    sw.add_argument(
+        "--scheduler",
+        default=None,
+        help="address of a Dask distributed scheduler (tcp://HOST:PORT) to run the cases on",
+    )
     sw.add_argument("--retry-failed", action="store_true", help="run again the cases that failed before")
     sw.set_defaults(func=cmd_sweep)
 
-    tb = sub.add_parser("table", help="a paper-style table from a sweep's results.csv",
-                        description="Pivot a metric over two parameters (mean over seeds); best per row in bold.")
+    tb = sub.add_parser(
+        "table",
+        help="a paper-style table from a sweep's results.csv",
+        description="Pivot a metric over two parameters (mean over seeds); best per row in bold.",
+    )
     tb.add_argument("outdir", help="output folder of 'wss-nlp sweep'")
     tb.add_argument("--rows", required=True, help="parameter of the rows (or 'metric' for a single row)")
     tb.add_argument("--cols", required=True, help="parameter of the columns (or 'metric')")
     tb.add_argument("--metric", required=True, help="metric column, e.g. radius_err_h2, wss_err")
     tb.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="fix other parameters")
-    tb.add_argument("--agg", choices=["mean", "median", "max", "min"], default="mean",
-                    help="over seeds (default %(default)s)")
+    tb.add_argument(
+        "--agg", choices=["mean", "median", "max", "min"], default="mean", help="over seeds (default %(default)s)"
+    )
     tb.add_argument("--latex", action="store_true", help="print LaTeX instead of Markdown")
     tb.add_argument("--no-bold", action="store_true", help="do not mark the best value of each row")
     tb.add_argument("-o", "--output", default=None, help="also write the table (.tex: LaTeX, else Markdown)")
@@ -479,8 +550,11 @@ def main(argv=None) -> int:
     except Exception as exc:  # a bug: one line for the user, the traceback for the report
         if os.environ.get("WSS_NLP_DEBUG"):
             raise
-        print(f"wss-nlp: internal error: {type(exc).__name__}: {_one_line(exc)}; please report it with the "
-              "command line (WSS_NLP_DEBUG=1 shows the traceback)", file=sys.stderr)
+        print(
+            f"wss-nlp: internal error: {type(exc).__name__}: {_one_line(exc)}; please report it with the "
+            "command line (WSS_NLP_DEBUG=1 shows the traceback)",
+            file=sys.stderr,
+        )
         return 1
 
 

@@ -72,12 +72,15 @@ class CoupledOptions:
 
     schema_group = "method and parameter choice"
 
-    velocity_weight: float | None = option(None, "coupled: weight of the velocity misfit in mm^2/(m/s)^2 (default: "
-                                           "the likelihood weight from the estimated noise levels)",
-                                           cli="--velocity-weight", toml=("velocity_weight",))
+    velocity_weight: float | None = option(
+        None,
+        "coupled: weight of the velocity misfit in mm^2/(m/s)^2 (default: "
+        "the likelihood weight from the estimated noise levels)",
+        cli="--velocity-weight",
+        toml=("velocity_weight",),
+    )
     hessian: str = "gauss-newton"
-    quad_order: int = option(3, "coupled: sub-voxel points per axis of the velocity misfit",
-                             cli="--coupled-quad-order")
+    quad_order: int = option(3, "coupled: sub-voxel points per axis of the velocity misfit", cli="--coupled-quad-order")
     tol: float = 1e-6
     max_iter: int = 200
 
@@ -106,24 +109,36 @@ def likelihood_weight(delta: float, n_annulus: int, voxel_area: float, sigma_u: 
     multiplying by ``|V| sigma_m^2`` gives ``lambda`` (mm^2 / (m/s)^2).
     """
     if not (delta > 0 and sigma_u > 0 and n_annulus > 0):
-        raise InputError(f"the likelihood weight needs positive noise levels, got delta = {delta}, "
-                         f"sigma_u = {sigma_u}; pass --velocity-weight")
+        raise InputError(
+            f"the likelihood weight needs positive noise levels, got delta = {delta}, "
+            f"sigma_u = {sigma_u}; pass --velocity-weight"
+        )
     sigma_m2 = delta**2 / (voxel_area * n_annulus)
     return float(weight_sum * sigma_m2 / sigma_u**2)
 
 
-def weight_from_data(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, raw_magnitude, norm, mask,
-                     velocity_image, venc: float | None, source: str = "") -> tuple[float, dict]:
+def weight_from_data(
+    problem: geo.GeometryProblem,
+    gopt: geo.GeometryOptions,
+    raw_magnitude,
+    norm,
+    mask,
+    velocity_image,
+    venc: float | None,
+    source: str = "",
+) -> tuple[float, dict]:
     """The likelihood weight with both noise levels estimated (:mod:`wss_nlp.analysis`); also returns how.
 
     ``sigma_u`` for a voxel fully inside the lumen: ``venc sigma / (pi m1)``
     with ``sigma`` from the Rayleigh background and ``m1`` the raw lumen
     level (phase data), else the high-pass estimate on the lumen plateau.
     """
-    annulus = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1,
-                                 geo.quad_order(problem, gopt)).annulus
-    delta = an.magnitude_noise(problem.magnitude, raw_magnitude, mask, norm.m0, norm.m1, problem.grid.voxel_area,
-                               annulus, source)
+    annulus = meas.annulus_model(
+        problem.grid, problem.center, problem.r0, problem.r1, geo.quad_order(problem, gopt)
+    ).annulus
+    delta = an.magnitude_noise(
+        problem.magnitude, raw_magnitude, mask, norm.m0, norm.m1, problem.grid.voxel_area, annulus, source
+    )
     sigma = an.complex_noise_sigma(raw_magnitude, mask)
     if venc is not None and np.isfinite(sigma) and sigma > 0:
         sigma_u, how = venc * sigma / (np.pi * norm.m1), "venc sigma / (pi m1), sigma from the Rayleigh background"
@@ -153,8 +168,9 @@ class VelocityMisfitModel:
     py: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
-def velocity_misfit_model(grid: meas.VoxelGrid, velocity_image, magnitude, center, r1: float, n_fourier: int,
-                          order: int) -> VelocityMisfitModel:
+def velocity_misfit_model(
+    grid: meas.VoxelGrid, velocity_image, magnitude, center, r1: float, n_fourier: int, order: int
+) -> VelocityMisfitModel:
     """The fixed voxel set, its precision weights and sub-voxel points (see :func:`velocity_residual`)."""
     xc, yc = grid.centers()
     dist = np.hypot(xc - center[0], yc - center[1]).ravel()
@@ -167,10 +183,20 @@ def velocity_misfit_model(grid: meas.VoxelGrid, velocity_image, magnitude, cente
     rows = np.repeat(np.arange(index.size), nq)
     sums = scipy.sparse.csr_matrix((np.ones(rows.size), (rows, np.arange(rows.size))), shape=(index.size, rows.size))
     m = np.clip(np.asarray(magnitude, float).ravel()[index], 0.0, 1.0)
-    return VelocityMisfitModel(index, np.asarray(velocity_image, float).ravel()[index], grid.voxel_area * m**2, r,
-                               dx / np.maximum(r, 1e-300), dy / np.maximum(r, 1e-300),
-                               rad.design_matrix(phi, n_fourier),
-                               sums, order, grid.voxel_area, px.ravel(), py.ravel())
+    return VelocityMisfitModel(
+        index,
+        np.asarray(velocity_image, float).ravel()[index],
+        grid.voxel_area * m**2,
+        r,
+        dx / np.maximum(r, 1e-300),
+        dy / np.maximum(r, 1e-300),
+        rad.design_matrix(phi, n_fourier),
+        sums,
+        order,
+        grid.voxel_area,
+        px.ravel(),
+        py.ravel(),
+    )
 
 
 #: Floor ``s_0`` (in sub-voxel points) of the smoothed point count in ``T_i = t_i / sqrt(s_i^2 + s_0^2)``.
@@ -234,8 +260,10 @@ def polar_basis(basis, angles: np.ndarray, tol: float = 1e-12) -> PolarBasis:
             deriv = np.hstack([deriv, np.zeros((coef.shape[0], 1))])
             terms = [basis.angular_terms()[i] for i in ang_first]
             return PolarBasis(coef, deriv, basis.angular_raw(angles)[ang_first], select_r, select_a, terms)
-    raise InputError(f"the {basis.kind} basis is too oscillatory for a degree-95 Chebyshev expansion; "
-                     "lower its size or use --method decoupled")
+    raise InputError(
+        f"the {basis.kind} basis is too oscillatory for a degree-95 Chebyshev expansion; "
+        "lower its size or use --method decoupled"
+    )
 
 
 def sparse_dm(matrix: np.ndarray) -> ca.DM:
@@ -244,8 +272,18 @@ def sparse_dm(matrix: np.ndarray) -> ca.DM:
     return ca.DM(ca.Sparsity(sp.shape[0], sp.shape[1], sp.indptr.tolist(), sp.indices.tolist()), sp.data.tolist())
 
 
-def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, gamma, heaviside: str,
-                      jacobian: bool = False, floor: float = DENOMINATOR_FLOOR, center=None):
+def velocity_residual(
+    model: VelocityMisfitModel,
+    c_r,
+    c_v,
+    basis,
+    r_in: float,
+    gamma,
+    heaviside: str,
+    jacobian: bool = False,
+    floor: float = DENOMINATOR_FLOOR,
+    center=None,
+):
     """Weighted velocity residual ``sqrt(w_i / W) (T_i(R) c_v - u_i)`` on the fixed voxel set (CasADi MX).
 
     With ``jacobian=True`` returns ``(r, dr/dc_R, dr/dc_v)``; the Jacobian
@@ -315,7 +353,7 @@ def velocity_residual(model: VelocityMisfitModel, c_r, c_v, basis, r_in: float, 
     tk = [ca.MX.ones(1, n_pts), arg]
     while len(tk) < pb.cheb.shape[1]:
         tk.append(2 * arg * tk[-1] - tk[-2])
-    tk = ca.vertcat(*tk[:pb.cheb.shape[1]])
+    tk = ca.vertcat(*tk[: pb.cheb.shape[1]])
     transform = ca.DM(basis.transform)
     c_raw = ca.mtimes(transform, c_v)  # v = c_v^T transform^T raw
     # v_p = sum_a angular_a(t_p) sum_r Q_ar radial_r(rho_p),  Q = S_a^T diag(c_raw) S_r
@@ -362,31 +400,51 @@ class CoupledNLP:
     beta: float
 
 
-def build(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velocity_image, vopt: vel.VelocityOptions,
-          basis, r_in: float, weight: float, alpha: float, beta: float, quad_order: int = 3) -> CoupledNLP:
+def build(
+    geometry_problem: geo.GeometryProblem,
+    gopt: geo.GeometryOptions,
+    velocity_image,
+    vopt: vel.VelocityOptions,
+    basis,
+    r_in: float,
+    weight: float,
+    alpha: float,
+    beta: float,
+    quad_order: int = 3,
+) -> CoupledNLP:
     """The coupled functional as a CasADi NLP (variables ``[c_R; c_v]``)."""
     if vopt.eta != 2:
-        raise InputError(f"the coupled method uses the closed-form inverse of phi_R, which needs eta = 2 "
-                         f"(got {vopt.eta}); use --eta 2 or --method decoupled")
+        raise InputError(
+            f"the coupled method uses the closed-form inverse of phi_R, which needs eta = 2 "
+            f"(got {vopt.eta}); use --eta 2 or --method decoupled"
+        )
     gamma = ca.MX.sym("gamma")  # an NLP parameter (value: the geometry's gamma) so sensitivities can reach it
     gnlp = geo.build_tikhonov(geometry_problem, gopt, gamma_symbol=gamma)
     n_r = gnlp.c.numel()
     c_v = ca.MX.sym("c_v", basis.size)
     x = ca.vertcat(gnlp.c, c_v)
     q = quad_order
-    model = velocity_misfit_model(geometry_problem.grid, velocity_image, geometry_problem.magnitude,
-                                  geometry_problem.center,
-                                  geometry_problem.r1, gopt.n_fourier, q)
-    res_v, jac_vr, jac_vv, err_v = velocity_residual(model, gnlp.c, c_v, basis, r_in, gamma, gopt.heaviside,
-                                                     jacobian=True)
+    model = velocity_misfit_model(
+        geometry_problem.grid,
+        velocity_image,
+        geometry_problem.magnitude,
+        geometry_problem.center,
+        geometry_problem.r1,
+        gopt.n_fourier,
+        q,
+    )
+    res_v, jac_vr, jac_vv, err_v = velocity_residual(
+        model, gnlp.c, c_v, basis, r_in, gamma, gopt.heaviside, jacobian=True
+    )
     gram = basis.laplacian_gram(vopt.laplacian_power)
     pen_v = ca.dot(c_v, ca.mtimes(ca.DM(gram), c_v)) / np.pi
     alpha_pen = alpha * gnlp.penalty
     f = ca.sumsqr(gnlp.residual) + alpha_pen + weight * (ca.sumsqr(res_v) + beta * pen_v)
     residual = ca.vertcat(gnlp.residual, np.sqrt(weight) * res_v)
     jac_m = ca.jacobian(gnlp.residual, gnlp.c)
-    jacobian = ca.vertcat(ca.horzcat(jac_m, ca.MX(jac_m.shape[0], basis.size)),
-                          np.sqrt(weight) * ca.horzcat(jac_vr, jac_vv))
+    jacobian = ca.vertcat(
+        ca.horzcat(jac_m, ca.MX(jac_m.shape[0], basis.size)), np.sqrt(weight) * ca.horzcat(jac_vr, jac_vv)
+    )
     return CoupledNLP(x, n_r, f, gnlp.g, residual, jacobian, gnlp, model, weight, gram, gamma, err_v, alpha, beta)
 
 
@@ -402,10 +460,18 @@ class CoupledResult:
     nlp: CoupledNLP | None = None  # the solved NLP (for sensitivities)
 
 
-def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velocity_image, vopt: vel.VelocityOptions,
-          start_geometry: geo.GeometryResult, start_velocity: vel.VelocityResult, weight: float,
-          options: CoupledOptions | None = None, alpha: float | None = None,
-          beta: float | None = None) -> CoupledResult:
+def solve(
+    geometry_problem: geo.GeometryProblem,
+    gopt: geo.GeometryOptions,
+    velocity_image,
+    vopt: vel.VelocityOptions,
+    start_geometry: geo.GeometryResult,
+    start_velocity: vel.VelocityResult,
+    weight: float,
+    options: CoupledOptions | None = None,
+    alpha: float | None = None,
+    beta: float | None = None,
+) -> CoupledResult:
     """Solve the coupled NLP with IPOPT, warm-started from a decoupled solution.
 
     The inner radius of ``phi_R`` is frozen at the start's value (it is a
@@ -416,12 +482,30 @@ def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velo
     alpha = start_geometry.alpha if alpha is None else float(alpha)
     beta = start_velocity.beta if beta is None else float(beta)
     dm = start_velocity.disk_map
-    nlp = build(geometry_problem, gopt, velocity_image, vopt, start_velocity.basis, dm.r_in, weight, alpha, beta,
-                options.quad_order)
+    nlp = build(
+        geometry_problem,
+        gopt,
+        velocity_image,
+        vopt,
+        start_velocity.basis,
+        dm.r_in,
+        weight,
+        alpha,
+        beta,
+        options.quad_order,
+    )
     # warm start from the decoupled solution: a small initial barrier parameter keeps IPOPT near it
-    opts = ipopt_options(options.tol, options.max_iter, {
-        "clip_inactive_lam": True, "ipopt.mu_init": 1e-6, "ipopt.warm_start_init_point": "yes",
-        "ipopt.warm_start_bound_push": 1e-9, "ipopt.warm_start_mult_bound_push": 1e-9})
+    opts = ipopt_options(
+        options.tol,
+        options.max_iter,
+        {
+            "clip_inactive_lam": True,
+            "ipopt.mu_init": 1e-6,
+            "ipopt.warm_start_init_point": "yes",
+            "ipopt.warm_start_bound_push": 1e-9,
+            "ipopt.warm_start_mult_bound_push": 1e-9,
+        },
+    )
     if options.hessian == "gauss-newton":
         jac = nlp.jacobian
         reg = np.zeros((nlp.x.numel(), nlp.x.numel()))
@@ -430,19 +514,23 @@ def solve(geometry_problem: geo.GeometryProblem, gopt: geo.GeometryOptions, velo
         reg[n_r:, n_r:] = weight * beta / np.pi * nlp.gram
         hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * ca.DM(reg))
         sigma = ca.MX.sym("sigma")
-        opts["hess_lag"] = ca.Function("nlp_hess_l", {"x": nlp.x, "p": nlp.gamma, "lam_f": sigma,
-                                                      "hess_gamma_x_x": sigma * hess},
-                                       ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        opts["hess_lag"] = ca.Function(
+            "nlp_hess_l",
+            {"x": nlp.x, "p": nlp.gamma, "lam_f": sigma, "hess_gamma_x_x": sigma * hess},
+            ["x", "p", "lam_f", "lam_g"],
+            ["hess_gamma_x_x"],
+        )
     solver = ca.nlpsol("coupled", "ipopt", {"x": nlp.x, "p": nlp.gamma, "f": nlp.f, "g": nlp.g}, opts)
     x0 = np.concatenate([start_geometry.coefficients, start_velocity.coefficients])
     lower = max(geometry_problem.r0, 1.000001 * dm.r_in)
     t0 = time.perf_counter()
-    sol, stats = run_nlpsol(solver, "coupled geometry+velocity (IPOPT)", x0=x0, p=nlp.geometry.gamma, lbg=lower,
-                            ubg=geometry_problem.r1)
+    sol, stats = run_nlpsol(
+        solver, "coupled geometry+velocity (IPOPT)", x0=x0, p=nlp.geometry.gamma, lbg=lower, ubg=geometry_problem.r1
+    )
     stats.extra["hessian"] = options.hessian
     stats.extra["velocity_weight"] = weight
     x = np.asarray(sol["x"]).ravel()
-    c_r, c_v = x[:nlp.n_r], x[nlp.n_r:]
+    c_r, c_v = x[: nlp.n_r], x[nlp.n_r :]
     gnlp = nlp.geometry  # its residual holds the gamma parameter: substitute the value for the report
     numeric = replace(gnlp, residual=ca.substitute(gnlp.residual, nlp.gamma, ca.MX(gnlp.gamma)))
     g = geo.finish(geometry_problem, gopt, numeric, c_r, stats, alpha)

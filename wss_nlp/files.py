@@ -58,8 +58,10 @@ class Acquisition:
         """Dynamic viscosity in Pa*s: ``override`` (the command line's) or the file's ``viscosity_pa_s``."""
         mu = override if override is not None else self.viscosity_pa_s
         if mu is None:
-            raise InputError(f"{self.source}: no viscosity: the file has no 'viscosity_pa_s' attribute; "
-                             "pass --viscosity (Pa*s, e.g. 3.5e-3 for blood)")
+            raise InputError(
+                f"{self.source}: no viscosity: the file has no 'viscosity_pa_s' attribute; "
+                "pass --viscosity (Pa*s, e.g. 3.5e-3 for blood)"
+            )
         if not mu > 0:
             raise InputError(f"{self.source}: viscosity must be > 0 Pa*s, got {mu}")
         return float(mu)
@@ -91,8 +93,10 @@ class Acquisition:
         if min(mag.shape[1:]) < 4:
             raise InputError(f"{src}: images of {mag.shape[1:]} voxels are too small to hold a vessel")
         if self.velocity_inplane is not None and self.velocity_inplane.shape != (2, *mag.shape):
-            raise InputError(f"{src}: in-plane velocity must have shape (2, nz, ny, nx) = (2, *{mag.shape}), got "
-                             f"{self.velocity_inplane.shape}")
+            raise InputError(
+                f"{src}: in-plane velocity must have shape (2, nz, ny, nx) = (2, *{mag.shape}), got "
+                f"{self.velocity_inplane.shape}"
+            )
         bad_slices = self.nonfinite_slices()
         # in a stack, a corrupt slice is reported and skipped by the reconstruction; only all-bad data is an error
         if bad_slices and (self.nz == 1 or len(bad_slices) == self.nz):
@@ -100,12 +104,13 @@ class Acquisition:
                 bad = ~np.isfinite(arr)
                 if bad.any():
                     iz = sorted(set(np.nonzero(bad)[0].tolist()))
-                    raise InputError(f"{src}: '{nm}' contains NaN or Inf ({int(bad.sum())} voxels, "
-                                     f"slices {iz[:10]})")
+                    raise InputError(f"{src}: '{nm}' contains NaN or Inf ({int(bad.sum())} voxels, slices {iz[:10]})")
         finite_mag = mag[np.isfinite(mag)]
         if finite_mag.size and float(finite_mag.min()) < -1e-6 * max(float(np.abs(finite_mag).max()), 1e-300):
-            raise InputError(f"{src}: 'magnitude' has negative values (min {float(finite_mag.min()):.4g}); a "
-                             "magnitude image is >= 0: store the modulus of the complex image, not its real part")
+            raise InputError(
+                f"{src}: 'magnitude' has negative values (min {float(finite_mag.min()):.4g}); a "
+                "magnitude image is >= 0: store the modulus of the complex image, not its real part"
+            )
         vs = np.asarray(self.voxel_size_mm, dtype=float)
         if vs.shape != (2,) or not np.all(np.isfinite(vs)) or np.any(vs <= 0):
             raise InputError(f"{src}: 'voxel_size_mm' must be two positive numbers [dy, dx], got {self.voxel_size_mm}")
@@ -120,9 +125,12 @@ class Acquisition:
             finite_phase = np.abs(self.phase[np.isfinite(self.phase)])
             if finite_phase.size and float(finite_phase.max()) > np.pi + 1e-6:
                 big = float(finite_phase.max())
-                hint = ("; the values look like degrees (multiply by pi/180)" if big <= 180 + 1e-6 else
-                        "; the values look like raw scanner integers (apply the rescale slope and intercept "
-                        "to radians, or use 'wss-nlp import')")
+                hint = (
+                    "; the values look like degrees (multiply by pi/180)"
+                    if big <= 180 + 1e-6
+                    else "; the values look like raw scanner integers (apply the rescale slope and intercept "
+                    "to radians, or use 'wss-nlp import')"
+                )
                 raise InputError(f"{src}: 'phase' must lie in (-pi, pi] radians, found |phase| up to {big:.4g}{hint}")
         if self.viscosity_pa_s is not None and not self.viscosity_pa_s > 0:
             raise InputError(f"{src}: 'viscosity_pa_s' must be > 0, got {self.viscosity_pa_s}")
@@ -157,8 +165,7 @@ def _velocity_components(f, dataset, src, shape):
         if vel.shape[0] != 3:
             raise InputError(f"{src}: a 4D 'velocity' must have shape (3, nz, ny, nx), got {vel.shape}")
         if any(k in f for k in ("velocity_x", "velocity_y", "velocity_z")):
-            raise InputError(f"{src}: give the components either as a 4D 'velocity' or as 'velocity_x/_y/_z', "
-                             "not both")
+            raise InputError(f"{src}: give the components either as a 4D 'velocity' or as 'velocity_x/_y/_z', not both")
         return vel[2], vel[:2]
     through = vel
     vz = dataset("velocity_z")
@@ -192,8 +199,10 @@ def read_acquisition(path) -> Acquisition:
         raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
     with f:
         if "trigger_times_ms" in f.attrs:
-            raise InputError(f"{src}: a time-resolved (cine) file ('trigger_times_ms'); this version reads single "
-                             "frames only: write one frame per file")
+            raise InputError(
+                f"{src}: a time-resolved (cine) file ('trigger_times_ms'); this version reads single "
+                "frames only: write one frame per file"
+            )
 
         def dataset(name):
             if name not in f:
@@ -305,7 +314,6 @@ def provenance(options: dict | None = None, argv=None) -> dict:
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     }
     if options:
-
         out["options_json"] = json.dumps(options, sort_keys=True, default=str)
     return out
 
@@ -372,20 +380,32 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
             if getattr(r, "coupled_info", None):
                 s.attrs["coupled_json"] = json.dumps(r.coupled_info)
             gg = s["geometry"]
-            gg.attrs.update({"gamma_mm": g.gamma, "box_r0_mm": g.box[0], "box_r1_mm": g.box[1],
-                             "box_active": g.box_active, "residual_norm_mm": g.residual_norm,
-                             "penalty_mm2": g.penalty, "options_json": json.dumps(g.options, default=str)})
+            gg.attrs.update(
+                {
+                    "gamma_mm": g.gamma,
+                    "box_r0_mm": g.box[0],
+                    "box_r1_mm": g.box[1],
+                    "box_active": g.box_active,
+                    "residual_norm_mm": g.residual_norm,
+                    "penalty_mm2": g.penalty,
+                    "options_json": json.dumps(g.options, default=str),
+                }
+            )
             _stats_attrs(gg, g.stats, "solver_")
             wg = s["wss"]
             vec = getattr(w, "vector", None)
             if vec is not None:  # stacks with three velocity components (wss_nlp.wss.wss_vector)
-                for name, arr in (("vector_pa", vec.vector), ("normal_3d", vec.normal), ("axial_pa", vec.axial),
-                                  ("circumferential_pa", vec.circumferential), ("normal_part_pa", vec.normal_part),
-                                  ("magnitude_pa", vec.magnitude)):
+                for name, arr in (
+                    ("vector_pa", vec.vector),
+                    ("normal_3d", vec.normal),
+                    ("axial_pa", vec.axial),
+                    ("circumferential_pa", vec.circumferential),
+                    ("normal_part_pa", vec.normal_part),
+                    ("magnitude_pa", vec.magnitude),
+                ):
                     wg[name] = arr
                 wg.attrs["mean_axial_pa"] = rad.arc_length_mean(vec.axial, g.radius(w.phi), g.radius(w.phi, 1))
-                wg.attrs["mean_magnitude_pa"] = rad.arc_length_mean(vec.magnitude, g.radius(w.phi),
-                                                                    g.radius(w.phi, 1))
+                wg.attrs["mean_magnitude_pa"] = rad.arc_length_mean(vec.magnitude, g.radius(w.phi), g.radius(w.phi, 1))
             if getattr(w, "tau_std", None) is not None:
                 wg["tau_std_pa"] = w.tau_std
                 wg.attrs["mean_std_pa"] = float(w.mean_std)
@@ -397,9 +417,16 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
             vg["voxel_index"] = v.voxel_index
             vg["voxel_fraction"] = v.voxel_fraction
             vg["fitted_m_s"] = v.fitted
-            vg.attrs.update({"basis_json": json.dumps(v.basis.describe()), "r_in_mm": v.disk_map.r_in,
-                             "eta": v.disk_map.eta, "residual_norm_m_s": v.residual_norm,
-                             "penalty": v.penalty, "options_json": json.dumps(v.options, default=str)})
+            vg.attrs.update(
+                {
+                    "basis_json": json.dumps(v.basis.describe()),
+                    "r_in_mm": v.disk_map.r_in,
+                    "eta": v.disk_map.eta,
+                    "residual_norm_m_s": v.residual_norm,
+                    "penalty": v.penalty,
+                    "options_json": json.dumps(v.options, default=str),
+                }
+            )
             _stats_attrs(vg, v.stats, "solver_")
             for ch in (r.alpha_choice, r.beta_choice):
                 if ch is None:
@@ -408,9 +435,16 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
                 ag["parameters"] = np.asarray(ch.parameters, dtype=float)
                 ag["residuals"] = np.asarray(ch.residuals, dtype=float)
                 ag["criterion"] = np.asarray(ch.criterion, dtype=float)
-                ag.attrs.update({"rule": ch.rule, "chosen": float(ch.chosen), "noise": float(ch.noise),
-                                 "noise_method": ch.noise_method, "tau": float(ch.tau),
-                                 "satisfied": bool(ch.satisfied)})
+                ag.attrs.update(
+                    {
+                        "rule": ch.rule,
+                        "chosen": float(ch.chosen),
+                        "noise": float(ch.noise),
+                        "noise_method": ch.noise_method,
+                        "tau": float(ch.tau),
+                        "satisfied": bool(ch.satisfied),
+                    }
+                )
 
 
 @dataclass
@@ -433,8 +467,17 @@ def _write_failed(s, r: FailedSlice) -> None:
     """The required datasets filled with NaN, and ``failed = True`` with the reason."""
     phi = 2 * np.pi * np.arange(r.n_phi) / r.n_phi
     nan = np.full(r.n_phi, np.nan)
-    s.attrs.update({"failed": True, "error": r.reason, "converged": False, "alpha": np.nan, "beta": np.nan,
-                    "warnings": json.dumps(r.warnings), "method": "none"})
+    s.attrs.update(
+        {
+            "failed": True,
+            "error": r.reason,
+            "converged": False,
+            "alpha": np.nan,
+            "beta": np.nan,
+            "warnings": json.dumps(r.warnings),
+            "method": "none",
+        }
+    )
     s["geometry/center_mm"] = np.full(2, np.nan)
     s["geometry/coefficients"] = np.full(2 * r.n_fourier + 1, np.nan)
     s["geometry/phi"] = phi
@@ -458,8 +501,9 @@ def _write_core(s, r) -> None:
     gg["coefficients"] = g.coefficients
     gg["phi"] = w.phi
     gg["radius_mm"] = g.radius(w.phi)
-    gg.attrs.update({"magnitude_m0": r.normalization.m0, "magnitude_m1": r.normalization.m1,
-                     "equal_area_radius_mm": r.lumen.r_area})
+    gg.attrs.update(
+        {"magnitude_m0": r.normalization.m0, "magnitude_m1": r.normalization.m1, "equal_area_radius_mm": r.lumen.r_area}
+    )
     wg = s.create_group("wss")
     wg["phi"] = w.phi
     wg["tau_pa"] = w.tau
@@ -486,16 +530,25 @@ def _write_sensitivity(group, sen, shape, h_mm: float) -> None:
     group["names"] = np.array(sen.names, dtype="S")
     group["d_tau"] = sen.d_tau  # (n_phi, n_names), Pa per unit
     group["d_mean"] = sen.d_mean
-    for name, index, values in (("d_mean_d_magnitude", sen.m_index, sen.d_mean_d_m),
-                                ("d_mean_d_velocity", sen.u_index, sen.d_mean_d_u)):
+    for name, index, values in (
+        ("d_mean_d_magnitude", sen.m_index, sen.d_mean_d_m),
+        ("d_mean_d_velocity", sen.u_index, sen.d_mean_d_u),
+    ):
         image = np.zeros(int(np.prod(shape)))
         image[index] = values
         group[name] = image.reshape(shape)  # per voxel of the normalized magnitude / velocity (m/s) image
-    group.attrs.update({"mean_std_pa": float(sen.mean_std), "mean_std_magnitude_pa": float(sen.mean_std_magnitude),
-                        "mean_std_velocity_pa": float(sen.mean_std_velocity), "seconds": float(sen.seconds),
-                        "h_mm": float(h_mm),
-                        "noise_json": json.dumps({k: v for k, v in sen.noise.items()
-                                                  if not isinstance(v, np.ndarray)}, default=float)})
+    group.attrs.update(
+        {
+            "mean_std_pa": float(sen.mean_std),
+            "mean_std_magnitude_pa": float(sen.mean_std_magnitude),
+            "mean_std_velocity_pa": float(sen.mean_std_velocity),
+            "seconds": float(sen.seconds),
+            "h_mm": float(h_mm),
+            "noise_json": json.dumps(
+                {k: v for k, v in sen.noise.items() if not isinstance(v, np.ndarray)}, default=float
+            ),
+        }
+    )
 
 
 def read_sensitivity(path) -> dict:
@@ -554,9 +607,14 @@ def read_result(path) -> list[dict]:
                 }
             except KeyError as exc:
                 raise InputError(f"{src}: group {name} lacks {exc}") from exc
-            for key, ds in (("wall_x", "wss/wall_x_mm"), ("wall_y", "wss/wall_y_mm"), ("tau_std", "wss/tau_std_pa"),
-                            ("tau_vector", "wss/vector_pa"), ("tau_axial", "wss/axial_pa"),
-                            ("tau_circumferential", "wss/circumferential_pa")):
+            for key, ds in (
+                ("wall_x", "wss/wall_x_mm"),
+                ("wall_y", "wss/wall_y_mm"),
+                ("tau_std", "wss/tau_std_pa"),
+                ("tau_vector", "wss/vector_pa"),
+                ("tau_axial", "wss/axial_pa"),
+                ("tau_circumferential", "wss/circumferential_pa"),
+            ):
                 if ds in s:
                     d[key] = s[ds][()]
             if "mean_std_pa" in s["wss"].attrs:
@@ -585,7 +643,15 @@ def read_choices(path) -> dict:
                 g = f[key]
                 a = g.attrs
                 out[name][which] = ParameterChoice(
-                    which, str(a["rule"]), float(a["chosen"]), g["parameters"][()], g["residuals"][()],
-                    float(a["noise"]), str(a["noise_method"]), float(a["tau"]), bool(a["satisfied"]),
-                    g["criterion"][()])
+                    which,
+                    str(a["rule"]),
+                    float(a["chosen"]),
+                    g["parameters"][()],
+                    g["residuals"][()],
+                    float(a["noise"]),
+                    str(a["noise_method"]),
+                    float(a["tau"]),
+                    bool(a["satisfied"]),
+                    g["criterion"][()],
+                )
     return out

@@ -72,19 +72,39 @@ class GeometryOptions:
     n_fourier: int = option(8, "highest harmonic N of the radius R(phi)", cli="--n-fourier", toml=("N", "n_fourier"))
     alpha: float = 1e-3  # on the command line and in studies through --alpha (ReconstructionOptions.alpha_rule)
     sobolev_s: int = option(2, "order s of the H^s penalty", cli="--sobolev", toml=("sobolev",))
-    prior: str = option("area", "penalize R - R_area (unbiased) or R itself as in eq. (tik1)", cli="--prior",
-                        toml=("prior",), choices=("area", "zero"))
-    gamma: float | None = option(None, "width of the smoothed Heaviside in mm (default: h / q)", cli="--gamma",
-                                 toml=("gamma",))
-    heaviside: str = option("erf", "smoothed Heaviside: erf (Gaussian tails) or the paper's arctan",
-                            cli="--heaviside", toml=("heaviside",), choices=meas.HEAVISIDES)
-    quad_order: int | None = option(None, "sub-voxel quadrature points per axis, q x q per voxel (default: "
-                                    "clip(ceil(60 h / R), 2, 6))", cli="--quad-order", toml=("quad_order",),
-                                    also=("velocity.quad_order",))
-    solver: str = option("ipopt", "IPOPT or the paper's projected Gauss-Newton", cli="--geometry-solver",
-                         choices=("ipopt", "gauss-newton"))
-    hessian: str = option("gauss-newton", "Hessian used by IPOPT", cli="--hessian",
-                          choices=("gauss-newton", "exact", "limited-memory"))
+    prior: str = option(
+        "area",
+        "penalize R - R_area (unbiased) or R itself as in eq. (tik1)",
+        cli="--prior",
+        toml=("prior",),
+        choices=("area", "zero"),
+    )
+    gamma: float | None = option(
+        None, "width of the smoothed Heaviside in mm (default: h / q)", cli="--gamma", toml=("gamma",)
+    )
+    heaviside: str = option(
+        "erf",
+        "smoothed Heaviside: erf (Gaussian tails) or the paper's arctan",
+        cli="--heaviside",
+        toml=("heaviside",),
+        choices=meas.HEAVISIDES,
+    )
+    quad_order: int | None = option(
+        None,
+        "sub-voxel quadrature points per axis, q x q per voxel (default: clip(ceil(60 h / R), 2, 6))",
+        cli="--quad-order",
+        toml=("quad_order",),
+        also=("velocity.quad_order",),
+    )
+    solver: str = option(
+        "ipopt",
+        "IPOPT or the paper's projected Gauss-Newton",
+        cli="--geometry-solver",
+        choices=("ipopt", "gauss-newton"),
+    )
+    hessian: str = option(
+        "gauss-newton", "Hessian used by IPOPT", cli="--hessian", choices=("gauss-newton", "exact", "limited-memory")
+    )
     n_box: int = 0
     tol: float = 1e-9
     max_iter: int = 200
@@ -262,8 +282,9 @@ class IpoptGeometrySolver:
     def solve(self, alpha: float | None = None, x0=None) -> GeometryResult:
         alpha = self.options.alpha if alpha is None else float(alpha)
         x0 = initial_guess(self.problem, self.options.n_fourier) if x0 is None else np.asarray(x0, dtype=float)
-        sol, stats = run_nlpsol(self.solver, "geometry (IPOPT)", x0=x0, p=alpha, lbg=self.problem.r0,
-                                ubg=self.problem.r1)
+        sol, stats = run_nlpsol(
+            self.solver, "geometry (IPOPT)", x0=x0, p=alpha, lbg=self.problem.r0, ubg=self.problem.r1
+        )
         stats.extra["hessian"] = self.options.hessian
         out = finish(self.problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
         out.box_multipliers = np.asarray(sol["lam_g"]).ravel()
@@ -297,8 +318,9 @@ def _project_box(y, hmat, box_matrix, r0, r1):
     return res.x
 
 
-def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOptions, x0=None,
-                                 alpha: float | None = None) -> GeometryResult:
+def solve_projected_gauss_newton(
+    problem: GeometryProblem, options: GeometryOptions, x0=None, alpha: float | None = None
+) -> GeometryResult:
     """The paper's projected Gauss-Newton method (Sec. 7.1) with a line search.
 
     Notes
@@ -321,7 +343,7 @@ def solve_projected_gauss_newton(problem: GeometryProblem, options: GeometryOpti
     c = _project_box(c, np.eye(c.size), box_matrix, problem.r0, problem.r1)
     f_c = float(objective(c))
     status, converged, it = "Maximum_Iterations_Exceeded", False, 0
-    for it in range(1, options.max_iter + 1):
+    for it in range(1, options.max_iter + 1):  # noqa: B007 (the count is reported after the loop)
         r, jac = (np.asarray(v) for v in fun(c))
         r = r.ravel()
         grad = jac.T @ r + alpha * w * (c - nlp.reference)

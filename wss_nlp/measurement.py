@@ -217,8 +217,9 @@ class LumenVoxels:
         """``(n_voxels, n_inside_points)``: the mean over each voxel's points inside the lumen (row-major order)."""
         rows = np.nonzero(self.inside)[0]
         counts = self.inside.sum(axis=1)
-        return scipy.sparse.csr_matrix((1.0 / counts[rows], (rows, np.arange(rows.size))),
-                                       shape=(self.index.size, rows.size))
+        return scipy.sparse.csr_matrix(
+            (1.0 / counts[rows], (rows, np.arange(rows.size))), shape=(self.index.size, rows.size)
+        )
 
 
 def lumen_voxels(grid: VoxelGrid, center, coefficients, order: int) -> LumenVoxels:

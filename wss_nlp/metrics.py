@@ -68,7 +68,7 @@ class TruthTable:
         self.y = self.center[1] + self.r * np.sin(self.phi)
 
     @classmethod
-    def from_file(cls, path) -> "TruthTable":
+    def from_file(cls, path) -> TruthTable:
         """The truth stored by ``wss-nlp phantom --truth`` (first slice)."""
         return cls.all_from_file(path)[0]
 
@@ -101,8 +101,14 @@ def truth_samples(truth, n: int = 1440) -> dict:
     phi = rad.uniform_angles(n)
     lumen = truth.lumen
     r, dr = lumen.radius(phi), lumen.radius(phi, 1)
-    return {"center": np.asarray(lumen.center, dtype=float), "phi": phi, "radius": r, "dradius": dr,
-            "tau": truth.flow.wss(phi), "mean_tau": truth.mean_wss}
+    return {
+        "center": np.asarray(lumen.center, dtype=float),
+        "phi": phi,
+        "radius": r,
+        "dradius": dr,
+        "tau": truth.flow.wss(phi),
+        "mean_tau": truth.mean_wss,
+    }
 
 
 def _pad(coefficients, n_fourier: int) -> np.ndarray:
@@ -111,7 +117,7 @@ def _pad(coefficients, n_fourier: int) -> np.ndarray:
     n0 = rad.n_fourier_from_size(c.size)
     out = np.zeros(rad.n_coefficients(n_fourier))
     out[: n0 + 1] = c[: n0 + 1]
-    out[n_fourier + 1: n_fourier + 1 + n0] = c[n0 + 1:]
+    out[n_fourier + 1 : n_fourier + 1 + n0] = c[n0 + 1 :]
     return out
 
 
@@ -143,12 +149,15 @@ def velocity_error(velocity_result, truth, n_rho: int = 64, n_t: int = 128) -> f
     dm = velocity_result.disk_map
     phi = rad.uniform_angles(512)
     rt = rad.fit(phi, truth.radius_about(dm.center, phi), 64)
-    true_map = type(dm)(coefficients=rt, center=dm.center, eta=dm.eta,
-                        r_in=min(dm.r_in, float(np.min(rad.evaluate(rt, phi)))))
+    true_map = type(dm)(
+        coefficients=rt, center=dm.center, eta=dm.eta, r_in=min(dm.r_in, float(np.min(rad.evaluate(rt, phi))))
+    )
     rho = (np.arange(n_rho) + 0.5) / n_rho
     rr, tt = np.meshgrid(rho, rad.uniform_angles(n_t))
-    v = velocity_result.basis.evaluate(rr.ravel() * np.cos(tt.ravel()), rr.ravel() * np.sin(tt.ravel())) \
+    v = (
+        velocity_result.basis.evaluate(rr.ravel() * np.cos(tt.ravel()), rr.ravel() * np.sin(tt.ravel()))
         @ velocity_result.coefficients
+    )
     x, y = true_map.forward(rr, tt)
     v_ref = flow.velocity(x, y).ravel()
     w = rr.ravel()

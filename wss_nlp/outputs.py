@@ -37,8 +37,9 @@ def _writable_folder(folder: str, label: str, path: str) -> None:
         with tempfile.TemporaryFile(dir=folder):
             pass
     except OSError as exc:
-        raise InputError(f"{label} {path}: folder {folder} is not writable ({exc.strerror or exc}); "
-                         "choose another place") from None
+        raise InputError(
+            f"{label} {path}: folder {folder} is not writable ({exc.strerror or exc}); choose another place"
+        ) from None
 
 
 def check_output_file(path: str, label: str = "-o") -> str:
@@ -51,8 +52,9 @@ def check_output_file(path: str, label: str = "-o") -> str:
         raise InputError(f"{label}: empty output path")
     full = os.path.abspath(path)
     if os.path.isdir(full):
-        raise InputError(f"{label} {path}: is an existing directory; name a file inside it, e.g. "
-                         f"{os.path.join(path, 'result.h5')}")
+        raise InputError(
+            f"{label} {path}: is an existing directory; name a file inside it, e.g. {os.path.join(path, 'result.h5')}"
+        )
     folder = os.path.dirname(full)
     if not os.path.exists(folder):
         raise InputError(f"{label} {path}: output folder {folder} does not exist; create it first")
@@ -101,11 +103,12 @@ def check_outputs(files: dict | None = None, folders: dict | None = None, inputs
     for inp in inputs:
         for label, path in list(files.items()) + list(folders.items()):
             if _same(inp, path):
-                raise InputError(f"{label} {path}: is the input file {inp}; inputs are never overwritten, "
-                                 "choose another output name")
+                raise InputError(
+                    f"{label} {path}: is the input file {inp}; inputs are never overwritten, choose another output name"
+                )
     outs = list(files.items()) + list(folders.items())
     for i, (la, a) in enumerate(outs):
-        for lb, b in outs[i + 1:]:
+        for lb, b in outs[i + 1 :]:
             if _same(a, b):
                 raise InputError(f"{la} and {lb} both name {a}; give them different paths")
 

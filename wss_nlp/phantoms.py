@@ -374,8 +374,11 @@ def acquire(
 def peak_velocity(flow: Flow) -> float:
     """Largest ``|u|`` of a flow, sampled on 64 radii x 16 angles of its lumen (m/s)."""
     rr = np.linspace(0, flow.lumen.max_radius(), 64)
-    probe = [flow.velocity(flow.lumen.center[0] + r * np.cos(p), flow.lumen.center[1] + r * np.sin(p))
-             for r in rr for p in rad.uniform_angles(16)]
+    probe = [
+        flow.velocity(flow.lumen.center[0] + r * np.cos(p), flow.lumen.center[1] + r * np.sin(p))
+        for r in rr
+        for p in rad.uniform_angles(16)
+    ]
     return float(np.max(np.abs(probe)))
 
 
@@ -506,8 +509,9 @@ class _SeveralVessels(Flow):
         return sum(np.where(f.lumen.inside(x, y), f.velocity(x, y), 0.0) for f in self.flows)
 
 
-def make_two_vessels(h_mm: float = 1.0, snr: float | None = 25.0, seed: int = 0,
-                     venc: float | None = None) -> tuple[Acquisition, Truth]:
+def make_two_vessels(
+    h_mm: float = 1.0, snr: float | None = 25.0, seed: int = 0, venc: float | None = None
+) -> tuple[Acquisition, Truth]:
     """Seeded phantom with two vessels in view: an artery and, beside it, a smaller vein with reverse flow.
 
     The artery (Poiseuille, circle of radius 8 mm, peak 0.4 m/s) is the
@@ -519,20 +523,35 @@ def make_two_vessels(h_mm: float = 1.0, snr: float | None = 25.0, seed: int = 0,
         raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
     rng = np.random.default_rng(seed)
     shift = rng.uniform(-0.5, 0.5, size=2) * h_mm
-    artery = StarPoiseuille(lumen=Circle(center=(-8.0 + shift[0], -2.0 + shift[1]), r=8.0), viscosity_pa_s=3.5e-3,
-                            u_max=0.4)
-    vein = StarPoiseuille(lumen=Circle(center=(9.0 + shift[0], 5.0 + shift[1]), r=5.0), viscosity_pa_s=3.5e-3,
-                          u_max=-0.25)
-    both = _SeveralVessels(lumen=_LumenUnion(parts=(artery.lumen, vein.lumen)), viscosity_pa_s=3.5e-3,
-                           flows=(artery, vein))
+    artery = StarPoiseuille(
+        lumen=Circle(center=(-8.0 + shift[0], -2.0 + shift[1]), r=8.0), viscosity_pa_s=3.5e-3, u_max=0.4
+    )
+    vein = StarPoiseuille(
+        lumen=Circle(center=(9.0 + shift[0], 5.0 + shift[1]), r=5.0), viscosity_pa_s=3.5e-3, u_max=-0.25
+    )
+    both = _SeveralVessels(
+        lumen=_LumenUnion(parts=(artery.lumen, vein.lumen)), viscosity_pa_s=3.5e-3, flows=(artery, vein)
+    )
     n = int(np.ceil(2 * 19.0 / h_mm))
     origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
     mag, phase, u_mean, venc = acquire(both, grid, snr, rng, venc=1.25 * 0.4 if venc is None else venc)
-    acq = Acquisition(magnitude=mag[None], phase=phase[None], voxel_size_mm=(h_mm, h_mm), origin_mm=origin,
-                      venc_m_s=venc, viscosity_pa_s=3.5e-3, source="phantom:two_vessels")
-    params = {"case": "two_vessels", "h_mm": h_mm, "snr": -1.0 if snr is None else float(snr), "seed": seed,
-              "venc_m_s": venc}
+    acq = Acquisition(
+        magnitude=mag[None],
+        phase=phase[None],
+        voxel_size_mm=(h_mm, h_mm),
+        origin_mm=origin,
+        venc_m_s=venc,
+        viscosity_pa_s=3.5e-3,
+        source="phantom:two_vessels",
+    )
+    params = {
+        "case": "two_vessels",
+        "h_mm": h_mm,
+        "snr": -1.0 if snr is None else float(snr),
+        "seed": seed,
+        "venc_m_s": venc,
+    }
     return acq, Truth(name="two_vessels", flow=artery, velocity_image=u_mean, parameters=params)
 
 
@@ -584,10 +603,18 @@ STACK_CASES = {
 }
 
 
-def make_stack(case: str = "tapered", nz: int = 10, h_mm: float = 1.0, spacing_mm: float = 2.0,
-               snr: float | None = 25.0, seed: int = 0, venc: float | None = None,
-               flow_rate_ml_s: float = 40.0, viscosity_pa_s: float = 3.5e-3, swirl_per_s: float | None = None
-               ) -> tuple[Acquisition, StackTruth]:
+def make_stack(
+    case: str = "tapered",
+    nz: int = 10,
+    h_mm: float = 1.0,
+    spacing_mm: float = 2.0,
+    snr: float | None = 25.0,
+    seed: int = 0,
+    venc: float | None = None,
+    flow_rate_ml_s: float = 40.0,
+    viscosity_pa_s: float = 3.5e-3,
+    swirl_per_s: float | None = None,
+) -> tuple[Acquisition, StackTruth]:
     """Seeded stack factory: ``nz`` slices ``spacing_mm`` apart through a 3D phantom.
 
     Notes
@@ -641,10 +668,25 @@ def make_stack(case: str = "tapered", nz: int = 10, h_mm: float = 1.0, spacing_m
                 _, ph, _, _ = acquire(sw, grid, snr, rng, venc=venc)
                 comps.append(venc * ph / np.pi)
             inplane.append(comps)
-    acq = Acquisition(magnitude=np.array(mags), phase=np.array(phases), voxel_size_mm=(h_mm, h_mm), origin_mm=origin,
-                      slice_spacing_mm=float(spacing_mm), venc_m_s=venc, viscosity_pa_s=viscosity_pa_s,
-                      source=f"phantom:{case}-stack",
-                      velocity_inplane=np.transpose(np.array(inplane), (1, 0, 2, 3)) if inplane else None)
-    params = {"case": case, "nz": nz, "h_mm": h_mm, "spacing_mm": spacing_mm, "swirl_per_s": swirl_per_s,
-              "snr": -1.0 if snr is None else float(snr), "seed": seed, "venc_m_s": venc}
+    acq = Acquisition(
+        magnitude=np.array(mags),
+        phase=np.array(phases),
+        voxel_size_mm=(h_mm, h_mm),
+        origin_mm=origin,
+        slice_spacing_mm=float(spacing_mm),
+        venc_m_s=venc,
+        viscosity_pa_s=viscosity_pa_s,
+        source=f"phantom:{case}-stack",
+        velocity_inplane=np.transpose(np.array(inplane), (1, 0, 2, 3)) if inplane else None,
+    )
+    params = {
+        "case": case,
+        "nz": nz,
+        "h_mm": h_mm,
+        "spacing_mm": spacing_mm,
+        "swirl_per_s": swirl_per_s,
+        "snr": -1.0 if snr is None else float(snr),
+        "seed": seed,
+        "venc_m_s": venc,
+    }
     return acq, StackTruth(case, truths, z, params)

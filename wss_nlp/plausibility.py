@@ -79,12 +79,22 @@ class ScreenOptions:
 
     schema_group = "input checks"
 
-    vessel: tuple[float, float] | None = option(None, "with several vessels in view, reconstruct the one at this "
-                                                "point (mm, image frame; default: the largest lumen; the others "
-                                                "are reported)", cli="--vessel", metavar="X,Y", parse=parse_point)
-    unwrap: bool = option(True, "use the velocities as given: no phase unwrapping (aliasing is then only reported) "
-                          "and no [-venc, venc] range check (for data unwrapped by other software)",
-                          cli="--no-unwrap", flag_off=True)
+    vessel: tuple[float, float] | None = option(
+        None,
+        "with several vessels in view, reconstruct the one at this "
+        "point (mm, image frame; default: the largest lumen; the others "
+        "are reported)",
+        cli="--vessel",
+        metavar="X,Y",
+        parse=parse_point,
+    )
+    unwrap: bool = option(
+        True,
+        "use the velocities as given: no phase unwrapping (aliasing is then only reported) "
+        "and no [-venc, venc] range check (for data unwrapped by other software)",
+        cli="--no-unwrap",
+        flag_off=True,
+    )
 
     def __post_init__(self):
         if self.vessel is not None:
@@ -109,6 +119,15 @@ def unwrap_velocity(v: np.ndarray, region: np.ndarray, venc: float, rim: np.ndar
     out = np.array(v, dtype=float, copy=True)
     ny, nx = v.shape
     done = np.zeros(v.shape, dtype=bool)
+    heap: list = []  # (|wrapped difference|, y, x, unwrapped value): the most reliable join first
+
+    def push(y, x):
+        # 4-neighbours, as scipy.ndimage.label connects the parts: a neighbour in the region is in the same part
+        for yy, xx in ((y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1)):
+            if 0 <= yy < ny and 0 <= xx < nx and region[yy, xx] and not done[yy, xx]:
+                d = float(_wrap(v[yy, xx] - out[y, x], venc))
+                heapq.heappush(heap, (abs(d), yy, xx, out[y, x] + d))
+
     labels, n = scipy.ndimage.label(region)
     for part in range(1, n + 1):
         inside = labels == part
@@ -117,14 +136,6 @@ def unwrap_velocity(v: np.ndarray, region: np.ndarray, venc: float, rim: np.ndar
             seeds = np.argwhere(inside)
         iy, ix = seeds[np.argmin(np.abs(v[seeds[:, 0], seeds[:, 1]]))]
         done[iy, ix] = True
-        heap: list = []
-
-        def push(y, x):
-            for yy, xx in ((y - 1, x), (y + 1, x), (y, x - 1), (y, x + 1)):
-                if 0 <= yy < ny and 0 <= xx < nx and inside[yy, xx] and not done[yy, xx]:
-                    d = float(_wrap(v[yy, xx] - out[y, x], venc))
-                    heapq.heappush(heap, (abs(d), yy, xx, out[y, x] + d))
-
         push(iy, ix)
         while heap:
             _, y, x, value = heapq.heappop(heap)
@@ -149,8 +160,11 @@ def residual_jumps(u: np.ndarray, mask: np.ndarray, venc: float) -> int:
 
 def _unit_hint(value: float, limit: float) -> str:
     """Which common units bring ``value`` within ``limit`` m/s (all that do: the data cannot tell them apart)."""
-    fits = [f"{unit} (divide by {factor:g})" for factor, unit in ((100.0, "cm/s"), (1000.0, "mm/s"))
-            if value / factor <= limit]
+    fits = [
+        f"{unit} (divide by {factor:g})"
+        for factor, unit in ((100.0, "cm/s"), (1000.0, "mm/s"))
+        if value / factor <= limit
+    ]
     return "the values look like " + " or ".join(fits) if fits else "the values are not velocities in m/s"
 
 
@@ -163,22 +177,28 @@ def check_velocity_range(acq, name: str, velocity: np.ndarray) -> None:
     vmax = float(np.max(np.abs(finite)))
     if vmax > venc * (1 + VENC_TOLERANCE):
         # a few times venc: unwrapped elsewhere, or a wrong venc; tens to thousands of times: another unit
-        hint = (_unit_hint(vmax, venc * (1 + VENC_TOLERANCE)) if vmax > 10 * venc else
-                f"{vmax / venc:.2g} x venc: is venc_m_s right?")
+        hint = (
+            _unit_hint(vmax, venc * (1 + VENC_TOLERANCE))
+            if vmax > 10 * venc
+            else f"{vmax / venc:.2g} x venc: is venc_m_s right?"
+        )
         raise InputError(
             f"{acq.source}: '{name}' reaches {vmax:.4g} but venc_m_s = {venc:g}: a velocity from a phase lies in "
-            f"[-venc, venc] m/s; {hint}; if the velocities were unwrapped by other software, pass --no-unwrap")
+            f"[-venc, venc] m/s; {hint}; if the velocities were unwrapped by other software, pass --no-unwrap"
+        )
 
 
 def _check_speed(acq, iz: int, name: str, velocity: np.ndarray, lumen_mask: np.ndarray) -> None:
     vals = np.abs(velocity[lumen_mask])
     peak = float(np.percentile(vals, 99)) if vals.size else 0.0
     if peak > MAX_BLOOD_SPEED_M_S:
-        venc_hint = (f"; the venc is given as venc_m_s = {acq.venc_m_s:g}: is it in cm/s?"
-                     if acq.phase is not None else "")
+        venc_hint = (
+            f"; the venc is given as venc_m_s = {acq.venc_m_s:g}: is it in cm/s?" if acq.phase is not None else ""
+        )
         raise InputError(
             f"{acq.source} slice {iz}: '{name}' reaches {peak:.4g} m/s in the lumen, implausible for blood flow "
-            f"(> {MAX_BLOOD_SPEED_M_S:g} m/s); {_unit_hint(peak, MAX_BLOOD_SPEED_M_S)}{venc_hint}")
+            f"(> {MAX_BLOOD_SPEED_M_S:g} m/s); {_unit_hint(peak, MAX_BLOOD_SPEED_M_S)}{venc_hint}"
+        )
 
 
 @dataclass
@@ -189,8 +209,9 @@ class SliceScreen:
     record: dict
 
 
-def _screen_slice(acq, iz: int, velocity: np.ndarray, lumen: pp.Lumen, m: np.ndarray,
-                  options: ScreenOptions) -> tuple[np.ndarray, SliceScreen]:
+def _screen_slice(
+    acq, iz: int, velocity: np.ndarray, lumen: pp.Lumen, m: np.ndarray, options: ScreenOptions
+) -> tuple[np.ndarray, SliceScreen]:
     where = f"{acq.source} slice {iz}"
     notes, record = [], {"other_vessels": lumen.others, "vessel_chosen_by": lumen.chosen_by}
     if lumen.others:
@@ -210,15 +231,20 @@ def _screen_slice(acq, iz: int, velocity: np.ndarray, lumen: pp.Lumen, m: np.nda
                 raise InputError(
                     f"{where}: velocity aliasing (venc_m_s = {venc:g}) that cannot be unwrapped consistently: "
                     f"{jumps} neighbouring lumen voxels still differ by more than venc; the venc is too low for "
-                    "this resolution; re-acquire with a higher venc, or pass --no-unwrap to use the data as they are")
+                    "this resolution; re-acquire with a higher venc, or pass --no-unwrap to use the data as they are"
+                )
             out = unwrapped
             record["unwrapped"] = True
-            notes.append(f"velocity aliasing: {changed} voxel(s) wrapped beyond venc = {venc:g} m/s were unwrapped "
-                         f"by multiples of 2 venc (peak |v| now {float(np.max(np.abs(out[region]))):.3g} m/s; "
-                         "--no-unwrap keeps them as measured)")
+            notes.append(
+                f"velocity aliasing: {changed} voxel(s) wrapped beyond venc = {venc:g} m/s were unwrapped "
+                f"by multiples of 2 venc (peak |v| now {float(np.max(np.abs(out[region]))):.3g} m/s; "
+                "--no-unwrap keeps them as measured)"
+            )
         elif changed:
-            notes.append(f"velocity aliasing suspected: {changed} lumen voxel(s) differ from their neighbours by "
-                         f"about 2 venc = {2 * venc:g} m/s; used as measured (--no-unwrap)")
+            notes.append(
+                f"velocity aliasing suspected: {changed} lumen voxel(s) differ from their neighbours by "
+                f"about 2 venc = {2 * venc:g} m/s; used as measured (--no-unwrap)"
+            )
     _check_speed(acq, iz, "velocity" if acq.phase is None else "venc_m_s x phase / pi", out, lumen.mask)
     return out, SliceScreen(notes, record)
 
@@ -272,8 +298,14 @@ def check_fit(result, raw_magnitude: np.ndarray, venc: float | None) -> tuple[st
     noise = result.beta_choice.noise if result.beta_choice is not None else float("nan")
     if not (np.isfinite(noise) and noise > 0):
         try:
-            noise = an.velocity_noise(result.velocity_image, raw_magnitude, result.lumen.noise_mask, v.voxel_index,
-                                      v.voxel_fraction * result.grid.voxel_area, venc).value
+            noise = an.velocity_noise(
+                result.velocity_image,
+                raw_magnitude,
+                result.lumen.noise_mask,
+                v.voxel_index,
+                v.voxel_fraction * result.grid.voxel_area,
+                venc,
+            ).value
         except WssNlpError:
             return "", float("nan")
     if not noise > 0:
@@ -281,9 +313,13 @@ def check_fit(result, raw_magnitude: np.ndarray, venc: float | None) -> tuple[st
     ratio = float(v.residual_norm / noise)
     if ratio <= MAX_RESIDUAL_TO_NOISE:
         return "", ratio
-    cause = (f"hidden velocity aliasing (venc_m_s = {venc:g}: re-acquire with a higher venc if the flow may exceed "
-             "it)" if venc is not None else "velocities in other units or from another slice")
-    return (f"SUSPECT: the velocity fit leaves a residual {ratio:.1f} x the noise level (> "
-            f"{MAX_RESIDUAL_TO_NOISE:g}): the data contradict a smooth no-slip flow in this lumen; likely {cause}, "
-            "or a wrong lumen; this slice's WSS is not trustworthy"), ratio
-
+    cause = (
+        f"hidden velocity aliasing (venc_m_s = {venc:g}: re-acquire with a higher venc if the flow may exceed it)"
+        if venc is not None
+        else "velocities in other units or from another slice"
+    )
+    return (
+        f"SUSPECT: the velocity fit leaves a residual {ratio:.1f} x the noise level (> "
+        f"{MAX_RESIDUAL_TO_NOISE:g}): the data contradict a smooth no-slip flow in this lumen; likely {cause}, "
+        "or a wrong lumen; this slice's WSS is not trustworthy"
+    ), ratio

@@ -45,8 +45,14 @@ def figure_geometry(res, truth=None):
     phi = np.linspace(0, 2 * np.pi, 721)
     if truth is not None:
         rt = truth.radius_about(res.geometry.center, phi)
-        ax.plot(res.geometry.center[0] + rt * np.cos(phi), res.geometry.center[1] + rt * np.sin(phi), "--",
-                color="tab:cyan", lw=1, label="true wall")
+        ax.plot(
+            res.geometry.center[0] + rt * np.cos(phi),
+            res.geometry.center[1] + rt * np.sin(phi),
+            "--",
+            color="tab:cyan",
+            lw=1,
+            label="true wall",
+        )
     ax.plot(*res.geometry.center, "+", color="tab:red")
     ax.set(xlabel="x [mm]", ylabel="y [mm]", title=f"normalized magnitude, h = {res.grid.h:g} mm")
     ax.legend(loc="lower right", fontsize=8)
@@ -60,8 +66,11 @@ def figure_geometry(res, truth=None):
         ax.axhspan(*res.geometry.box, color="0.92", zorder=0, label="box [r0, r1]")
     r = res.geometry.radius(phi)
     pad = 0.3 * (r.max() - r.min()) + 0.2
-    title = (f"segmented wall ({res.method}: 50 % magnitude contour)" if baseline
-             else rf"radius function, $\alpha$ = {res.geometry.alpha:g}")
+    title = (
+        f"segmented wall ({res.method}: 50 % magnitude contour)"
+        if baseline
+        else rf"radius function, $\alpha$ = {res.geometry.alpha:g}"
+    )
     ax.set(xlabel=r"$\varphi$ [rad]", ylabel="R [mm]", ylim=(r.min() - pad, r.max() + pad), title=title)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -101,8 +110,9 @@ def figure_velocity(res, truth=None):
         axes[0, 1].set(title="true velocity [m/s]", xlabel="x [mm]")
         fig.colorbar(im, ax=axes[0, 1], shrink=0.8)
     im = _image(axes[0, 0], rec, res.grid, cmap="viridis", vmin=0, vmax=vmax)
-    axes[0, 0].set(title=rf"reconstructed velocity [m/s], $\beta$ = {res.velocity.beta:g}", xlabel="x [mm]",
-                   ylabel="y [mm]")
+    axes[0, 0].set(
+        title=rf"reconstructed velocity [m/s], $\beta$ = {res.velocity.beta:g}", xlabel="x [mm]", ylabel="y [mm]"
+    )
     fig.colorbar(im, ax=axes[0, 0], shrink=0.8)
     fig.tight_layout()
     return fig
@@ -121,8 +131,12 @@ def figure_wss(res, truth=None):
         tt = truth.wss_at_points(w.wall_x, w.wall_y)
         ax.plot(w.phi, tt, color="tab:blue", lw=1.2, label=r"$\tau^\dagger$ true")
         ax.axhline(truth.mean_wss, color="tab:blue", ls=":", label=f"true mean {truth.mean_wss:.4g} Pa")
-    ax.set(xlabel=r"$\varphi$ [rad]", ylabel=r"$\tau$ [Pa]", xlim=(0, 2 * np.pi),
-           title=f"wall shear stress ({getattr(res, 'method', 'decoupled')})")
+    ax.set(
+        xlabel=r"$\varphi$ [rad]",
+        ylabel=r"$\tau$ [Pa]",
+        xlim=(0, 2 * np.pi),
+        title=f"wall shear stress ({getattr(res, 'method', 'decoupled')})",
+    )
     lo = min(0.0, float(np.min(w.tau)))
     ax.set_ylim(lo, 1.25 * max(float(np.max(w.tau)), truth.mean_wss if truth is not None else 0))
     ax.legend(fontsize=8, ncol=2, loc="lower right")
@@ -160,8 +174,12 @@ def figure_parameter_choice(choice):
     if choice.rule in ("discrepancy", "lcurve") and choice.residuals.size:
         ax.loglog(choice.parameters, choice.residuals, "o-", ms=3, label="residual")
         if choice.rule == "discrepancy":
-            ax.axhline(choice.threshold, color="tab:red", ls="--",
-                       label=rf"$\tau \cdot$ noise = {choice.tau:g} x {choice.noise:.3g}")
+            ax.axhline(
+                choice.threshold,
+                color="tab:red",
+                ls="--",
+                label=rf"$\tau \cdot$ noise = {choice.tau:g} x {choice.noise:.3g}",
+            )
         ax.set_ylabel("residual")
     elif choice.rule == "gcv" and choice.criterion.size:
         ax.loglog(choice.parameters, choice.criterion, "o-", ms=3, label="GCV")
@@ -169,13 +187,20 @@ def figure_parameter_choice(choice):
     elif choice.rule == "balance" and choice.criterion.size:
         keep = choice.criterion > 0  # the last (least regularized) value has nothing to compare with
         what = "radius" if choice.name == "alpha" else "WSS"
-        ax.loglog(choice.parameters[keep], choice.criterion[keep], "o-", ms=3,
-                  label=f"largest {what} difference to a smaller {choice.name} / its noise sd")
+        ax.loglog(
+            choice.parameters[keep],
+            choice.criterion[keep],
+            "o-",
+            ms=3,
+            label=f"largest {what} difference to a smaller {choice.name} / its noise sd",
+        )
         ax.axhline(choice.tau, color="tab:red", ls="--", label=rf"$\kappa$ = {choice.tau:g}")
         ax.set_ylabel("difference / noise sd")
     ax.axvline(choice.chosen, color="tab:green", label=rf"chosen ${sym}$ = {choice.chosen:.3g}")
-    ax.set(xlabel=rf"${sym}$", title=f"{choice.name}: rule '{choice.rule}'"
-           + ("" if choice.satisfied else " (inequality not reached)"))
+    ax.set(
+        xlabel=rf"${sym}$",
+        title=f"{choice.name}: rule '{choice.rule}'" + ("" if choice.satisfied else " (inequality not reached)"),
+    )
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
@@ -201,8 +226,13 @@ def figure_band_check(phi, linearized, sampled, n_draws: int):
     fig, ax = _subplots(figsize=(8, 3.8))
     ax.plot(phi, sampled, color="tab:gray", lw=1.2, label=f"Monte Carlo ({n_draws} noise draws)")
     ax.plot(phi, linearized, color="tab:red", lw=1.2, ls="--", label="linearized (CasADi sensitivities)")
-    ax.set(xlabel=r"$\varphi$ [rad]", ylabel=r"std of $\tau$ [Pa]", xlim=(0, 2 * np.pi), ylim=(0, None),
-           title="uncertainty band: linearization vs sampling")
+    ax.set(
+        xlabel=r"$\varphi$ [rad]",
+        ylabel=r"std of $\tau$ [Pa]",
+        xlim=(0, 2 * np.pi),
+        ylim=(0, None),
+        title="uncertainty band: linearization vs sampling",
+    )
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
@@ -225,15 +255,26 @@ def figure_rates(deltas, curves: dict):
             ax.loglog(deltas, errs[:, r], "o-" if rule == "a priori" else "s--", label=f"k = {k}, {rule}")
             ref = errs[-1, r] * (np.asarray(deltas) / deltas[-1]) ** (1 - r / k)
             ax.loglog(deltas, ref, ":", color="gray", lw=0.8)
-        ax.set(xlabel=r"noise level $\delta$", ylabel=rf"$\|R_\alpha - R\|_{{H^{r}}}$", title=f"r = {r} "
-               "(dotted: slope 1 - r/k)")
+        ax.set(
+            xlabel=r"noise level $\delta$",
+            ylabel=rf"$\|R_\alpha - R\|_{{H^{r}}}$",
+            title=f"r = {r} (dotted: slope 1 - r/k)",
+        )
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     return fig
 
 
-def figure_sweep(rows: list, x: str, y: str, by: str | None = None, panels: str | None = None, logx: bool = False,
-                 title: str = "", ylabel: str | None = None):
+def figure_sweep(
+    rows: list,
+    x: str,
+    y: str,
+    by: str | None = None,
+    panels: str | None = None,
+    logx: bool = False,
+    title: str = "",
+    ylabel: str | None = None,
+):
     """A metric against a parameter from sweep rows: mean over seeds with +-1 standard deviation.
 
     One line per value of ``by`` (e.g. the method), one panel per value of
@@ -260,8 +301,11 @@ def figure_sweep(rows: list, x: str, y: str, by: str | None = None, panels: str 
             ax.errorbar(xs, mean, yerr=std, marker="os^dv<>"[k % 7], capsize=3, label=label)
         if y.endswith("_bias"):
             ax.axhline(0.0, color="0.5", lw=0.8)
-        ax.set(xlabel={"h": "voxel size h [mm]"}.get(x, x), ylabel=ylabel or y,
-               title=(f"{panels} = {pv}" if panels else title))
+        ax.set(
+            xlabel={"h": "voxel size h [mm]"}.get(x, x),
+            ylabel=ylabel or y,
+            title=(f"{panels} = {pv}" if panels else title),
+        )
         if logx:
             ax.set_xscale("log")
         ax.grid(alpha=0.3)
@@ -281,12 +325,16 @@ def figure_stack(results, spacing_mm: float):
     ok = [r for r in results if hasattr(r, "wss")]
     phi = ok[0].wss.phi
     vector = all(getattr(r.wss, "vector", None) is not None for r in ok)
-    maps = {"radius R [mm]": lambda r: r.geometry.radius(r.wss.phi),
-            r"wall shear stress $\tau$ [Pa]": lambda r: r.wss.tau}
+    maps = {
+        "radius R [mm]": lambda r: r.geometry.radius(r.wss.phi),
+        r"wall shear stress $\tau$ [Pa]": lambda r: r.wss.tau,
+    }
     if vector:
-        maps = {"radius R [mm]": maps["radius R [mm]"],
-                r"axial WSS $\tau \cdot e_a$ [Pa]": lambda r: r.wss.vector.axial,
-                r"circumferential WSS $\tau \cdot e_c$ [Pa]": lambda r: r.wss.vector.circumferential}
+        maps = {
+            "radius R [mm]": maps["radius R [mm]"],
+            r"axial WSS $\tau \cdot e_a$ [Pa]": lambda r: r.wss.vector.axial,
+            r"circumferential WSS $\tau \cdot e_c$ [Pa]": lambda r: r.wss.vector.circumferential,
+        }
     z = np.arange(n) * spacing_mm
     fig, axes = _subplots(1, len(maps), figsize=(6 * len(maps), 4.6), sharey=True)
     extent = (0, 360, z[0] - spacing_mm / 2, z[-1] + spacing_mm / 2)
@@ -294,8 +342,9 @@ def figure_stack(results, spacing_mm: float):
         data = np.full((n, phi.size), np.nan)
         for r in ok:
             data[r.index] = get(r)
-        im = ax.imshow(np.ma.masked_invalid(data), origin="lower", aspect="auto", extent=extent, cmap=cmap,
-                       interpolation="nearest")
+        im = ax.imshow(
+            np.ma.masked_invalid(data), origin="lower", aspect="auto", extent=extent, cmap=cmap, interpolation="nearest"
+        )
         fig.colorbar(im, ax=ax, label=label)
         ax.set(xlabel=r"angle $\varphi$ [deg] (unrolled wall)", title=label)
     axes[0].set_ylabel("z [mm] (slice position)")

@@ -128,17 +128,24 @@ class Lumen:
         """One line on the vessels in view that were not chosen, or ``""``."""
         if not self.others:
             return ""
-        where = "; ".join(f"({o['center_mm'][0]:.1f}, {o['center_mm'][1]:.1f}) mm, "
-                          f"r ~ {o['equal_area_radius_mm']:.2g} mm" for o in self.others)
-        return (f"{len(self.others)} other vessel(s) in view, not reconstructed: {where}; reconstructed "
-                f"{self.chosen_by} (pass --vessel X,Y to choose another)")
+        where = "; ".join(
+            f"({o['center_mm'][0]:.1f}, {o['center_mm'][1]:.1f}) mm, r ~ {o['equal_area_radius_mm']:.2g} mm"
+            for o in self.others
+        )
+        return (
+            f"{len(self.others)} other vessel(s) in view, not reconstructed: {where}; reconstructed "
+            f"{self.chosen_by} (pass --vessel X,Y to choose another)"
+        )
 
 
 def _region_summary(region: np.ndarray, grid: VoxelGrid) -> dict:
     xc, yc = grid.centers()
     n = int(region.sum())
-    return {"center_mm": [float(xc[region].mean()), float(yc[region].mean())],
-            "equal_area_radius_mm": float(np.sqrt(n * grid.voxel_area / np.pi)), "voxels": n}
+    return {
+        "center_mm": [float(xc[region].mean()), float(yc[region].mean())],
+        "equal_area_radius_mm": float(np.sqrt(n * grid.voxel_area / np.pi)),
+        "voxels": n,
+    }
 
 
 def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "", vessel=None) -> Lumen:
@@ -180,8 +187,9 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "", vessel=None) ->
     grown = scipy.ndimage.binary_dilation(mask, iterations=2)
     # a region counts as another vessel when it could be fitted on its own; specks and pieces of the chosen
     # lumen's own rim (within two voxels of it) do not
-    other_labels = [j for j in range(1, n + 1)
-                    if j != k and sizes[j - 1] >= MIN_LUMEN_VOXELS and not np.any(grown & (labels == j))]
+    other_labels = [
+        j for j in range(1, n + 1) if j != k and sizes[j - 1] >= MIN_LUMEN_VOXELS and not np.any(grown & (labels == j))
+    ]
     others = [_region_summary(labels == j, grid) for j in other_labels]
     others_mask = np.isin(labels, other_labels) if other_labels else None
     xc, yc = grid.centers()
@@ -192,8 +200,10 @@ def find_lumen(m: np.ndarray, grid: VoxelGrid, source: str = "", vessel=None) ->
     dist = np.hypot(xc[edge] - cx, yc[edge] - cy)
     h = grid.h
     r_min, r_max = float(dist.min()), float(dist.max()) + 0.5 * h
-    if not mask[int(np.clip(round((cy - grid.origin_mm[1]) / grid.dy), 0, m.shape[0] - 1)),
-                int(np.clip(round((cx - grid.origin_mm[0]) / grid.dx), 0, m.shape[1] - 1))]:
+    if not mask[
+        int(np.clip(round((cy - grid.origin_mm[1]) / grid.dy), 0, m.shape[0] - 1)),
+        int(np.clip(round((cx - grid.origin_mm[0]) / grid.dx), 0, m.shape[1] - 1)),
+    ]:
         raise NoVesselError(f"{src}the barycenter of the bright region lies outside it; the lumen is not star-shaped")
     return Lumen(
         mask=mask,
@@ -222,15 +232,19 @@ def _label_at(labels: np.ndarray, sizes: np.ndarray, grid: VoxelGrid, point, src
         if dj < best_d:
             best, best_d = j, dj
     if best == 0 or best_d > 2 * grid.h:
-        found = [_region_summary(labels == j, grid)["center_mm"] for j in range(1, len(sizes) + 1)
-                 if sizes[j - 1] >= MIN_LUMEN_VOXELS]
+        found = [
+            _region_summary(labels == j, grid)["center_mm"]
+            for j in range(1, len(sizes) + 1)
+            if sizes[j - 1] >= MIN_LUMEN_VOXELS
+        ]
         listed = ", ".join(f"({c[0]:.1f}, {c[1]:.1f})" for c in found) or "none"
         raise NoVesselError(f"{src}no vessel at --vessel ({px:g}, {py:g}) mm; vessels found at {listed} mm")
     return best
 
 
-def preprocess(magnitude: np.ndarray, grid: VoxelGrid, source: str = "",
-               vessel=None) -> tuple[Normalization, np.ndarray, Lumen]:
+def preprocess(
+    magnitude: np.ndarray, grid: VoxelGrid, source: str = "", vessel=None
+) -> tuple[Normalization, np.ndarray, Lumen]:
     """Appendix B for one slice: histogram peaks, the normalized magnitude and the lumen found in it.
 
     ``vessel`` (x, y in mm) chooses among several vessels (:func:`find_lumen`).

@@ -138,7 +138,7 @@ def harmonics(c1, s1, n: int):
     for _ in range(2, n + 1):
         cs.append(cs[-1] * c1 - sn[-1] * s1)
         sn.append(sn[-1] * c1 + cs[-2] * s1)
-    return cs[:n + 1], sn[:n + 1]
+    return cs[: n + 1], sn[: n + 1]
 
 
 def from_harmonics(coefficients, cs, sn):

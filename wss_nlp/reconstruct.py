@@ -24,8 +24,18 @@ from . import stack as stk
 from . import velocity as vel
 from . import wss as wss_mod
 from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are part of this module's API)
-    ALPHA_RULES, ALPHA_STOP, AUTO_RULE, BETA_RULES, BETA_STOP, DEPHASING_BETA_RULES, balance_alpha, choose_alpha,
-    choose_beta, gcv_beta, parse_rule)
+    ALPHA_RULES,
+    ALPHA_STOP,
+    AUTO_RULE,
+    BETA_RULES,
+    BETA_STOP,
+    DEPHASING_BETA_RULES,
+    balance_alpha,
+    choose_alpha,
+    choose_beta,
+    gcv_beta,
+    parse_rule,
+)
 from .errors import InputError, WssNlpError
 from .files import Acquisition, FailedSlice
 from .measurement import DEPHASING_THRESHOLD, VoxelGrid
@@ -74,58 +84,124 @@ class ReconstructionOptions:
 
     geometry: geo.GeometryOptions = field(default_factory=geo.GeometryOptions)
     velocity: vel.VelocityOptions = field(default_factory=vel.VelocityOptions)
-    method: str = option("decoupled", "decoupled: geometry, then velocity (the paper's); coupled: both as one NLP "
-                         "started from the decoupled solution, so the velocity data inform the wall too; oyre / "
-                         "stalder: the classical baselines (cubic near-wall profile fits / smoothing B-spline on a "
-                         "50 % magnitude segmentation; README, 'Classical baselines')", cli="--method",
-                         toml=("method",), choices=METHODS)
+    method: str = option(
+        "decoupled",
+        "decoupled: geometry, then velocity (the paper's); coupled: both as one NLP "
+        "started from the decoupled solution, so the velocity data inform the wall too; oyre / "
+        "stalder: the classical baselines (cubic near-wall profile fits / smoothing B-spline on a "
+        "50 % magnitude segmentation; README, 'Classical baselines')",
+        cli="--method",
+        toml=("method",),
+        choices=METHODS,
+    )
     coupled: cpl.CoupledOptions = field(default_factory=cpl.CoupledOptions)
     baseline: bl.BaselineOptions = field(default_factory=bl.BaselineOptions)  # method "oyre" / "stalder"
     stack: stk.StackOptions = field(default_factory=stk.StackOptions)  # nz > 1: z-regularization (wss_nlp.stack)
     screen: plaus.ScreenOptions = field(default_factory=plaus.ScreenOptions)  # vessel choice, unwrapping
-    n_phi: int = option(360, "angles at which tau is reported, >= 360", cli="--n-phi", toml=("n_phi",),
-                        group=WSS_GROUP)
-    viscosity_pa_s: float | None = option(None, "dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'",
-                                          cli="--viscosity", toml=("viscosity",), group=WSS_GROUP)
-    dephasing_correction: bool = option(True, "skip the second pass that corrects the magnitude for intra-voxel "
-                                        "dephasing (needs venc)", cli="--no-dephasing-correction",
-                                        toml=("dephasing_correction",), flag_off=True, group=WSS_GROUP)
-    dephasing_beta_rule: str = option("gcv", "beta of the velocity fit that predicts dephasing: GCV (keeps steep "
-                                      "boundary layers) or the same beta as the WSS fit", cli="--dephasing-beta",
-                                      choices=DEPHASING_BETA_RULES, group=WSS_GROUP)
-    alpha_rule: str = option("fixed", "Tikhonov parameter of the H^s radius penalty (dimensionless), or a rule: "
-                             "'auto' = 'balance' (Lepskii balancing on the radius), 'discrepancy' (eq. (disc))",
-                             cli="--alpha", toml=("alpha",), parse=lambda text: _parameter_word(text, "alpha"),
-                             default_text=str(_DEFAULT_ALPHA), group=geo.GeometryOptions.schema_group)
-    beta_rule: str = option("balance", "Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless, e.g. "
-                            f"{_DEFAULT_BETA:g}), or a rule: 'auto' = 'balance' (Lepskii balancing on the WSS; see "
-                            "README), 'discrepancy' (eq. (disc2)), 'gcv' (generalized cross-validation), 'lcurve'",
-                            cli="--beta", toml=("beta",), parse=lambda text: _parameter_word(text, "beta"),
-                            default_text="auto", group=vel.VelocityOptions.schema_group)
-    tau_alpha: float = option(1.1, "discrepancy factor for alpha (the paper's theory uses 4)", cli="--tau-alpha",
-                              toml=("tau_alpha",), group=geo.GeometryOptions.schema_group)
-    tau_beta: float = option(1.1, "discrepancy factor for beta (the paper's theory uses 2)", cli="--tau-beta",
-                             toml=("tau_beta",), group=vel.VelocityOptions.schema_group)
-    kappa_alpha: float = option(2.0, "balancing rule: radius differences allowed, in noise standard deviations",
-                                cli="--kappa-alpha", toml=("kappa_alpha",), group=geo.GeometryOptions.schema_group)
+    n_phi: int = option(360, "angles at which tau is reported, >= 360", cli="--n-phi", toml=("n_phi",), group=WSS_GROUP)
+    viscosity_pa_s: float | None = option(
+        None,
+        "dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'",
+        cli="--viscosity",
+        toml=("viscosity",),
+        group=WSS_GROUP,
+    )
+    dephasing_correction: bool = option(
+        True,
+        "skip the second pass that corrects the magnitude for intra-voxel dephasing (needs venc)",
+        cli="--no-dephasing-correction",
+        toml=("dephasing_correction",),
+        flag_off=True,
+        group=WSS_GROUP,
+    )
+    dephasing_beta_rule: str = option(
+        "gcv",
+        "beta of the velocity fit that predicts dephasing: GCV (keeps steep "
+        "boundary layers) or the same beta as the WSS fit",
+        cli="--dephasing-beta",
+        choices=DEPHASING_BETA_RULES,
+        group=WSS_GROUP,
+    )
+    alpha_rule: str = option(
+        "fixed",
+        "Tikhonov parameter of the H^s radius penalty (dimensionless), or a rule: "
+        "'auto' = 'balance' (Lepskii balancing on the radius), 'discrepancy' (eq. (disc))",
+        cli="--alpha",
+        toml=("alpha",),
+        parse=lambda text: _parameter_word(text, "alpha"),
+        default_text=str(_DEFAULT_ALPHA),
+        group=geo.GeometryOptions.schema_group,
+    )
+    beta_rule: str = option(
+        "balance",
+        "Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless, e.g. "
+        f"{_DEFAULT_BETA:g}), or a rule: 'auto' = 'balance' (Lepskii balancing on the WSS; see "
+        "README), 'discrepancy' (eq. (disc2)), 'gcv' (generalized cross-validation), 'lcurve'",
+        cli="--beta",
+        toml=("beta",),
+        parse=lambda text: _parameter_word(text, "beta"),
+        default_text="auto",
+        group=vel.VelocityOptions.schema_group,
+    )
+    tau_alpha: float = option(
+        1.1,
+        "discrepancy factor for alpha (the paper's theory uses 4)",
+        cli="--tau-alpha",
+        toml=("tau_alpha",),
+        group=geo.GeometryOptions.schema_group,
+    )
+    tau_beta: float = option(
+        1.1,
+        "discrepancy factor for beta (the paper's theory uses 2)",
+        cli="--tau-beta",
+        toml=("tau_beta",),
+        group=vel.VelocityOptions.schema_group,
+    )
+    kappa_alpha: float = option(
+        2.0,
+        "balancing rule: radius differences allowed, in noise standard deviations",
+        cli="--kappa-alpha",
+        toml=("kappa_alpha",),
+        group=geo.GeometryOptions.schema_group,
+    )
     # beta: noise alone stays below 2, but the least regularized WSS estimates carry a bias of their own (the
     # voxel means do not fix every coefficient), which the rule reads as bias of the more regularized ones; 2.5 is
     # the margin that absorbed it on held-out seeds (scripts/parameter_rules.py --kappa, README)
-    kappa_beta: float = option(2.5, "balancing rule: WSS differences allowed, in noise standard deviations",
-                               cli="--kappa-beta", toml=("kappa_beta",), group=vel.VelocityOptions.schema_group)
+    kappa_beta: float = option(
+        2.5,
+        "balancing rule: WSS differences allowed, in noise standard deviations",
+        cli="--kappa-beta",
+        toml=("kappa_beta",),
+        group=vel.VelocityOptions.schema_group,
+    )
     alpha_start: float = 1.0
     beta_start: float = 1e-2
-    noise_magnitude: float | None = option(None, "noise level delta of the normalized magnitude in mm (default: "
-                                           "estimated)", cli="--noise-magnitude",
-                                           group=geo.GeometryOptions.schema_group)
-    noise_velocity: float | None = option(None, "noise level epsilon of the velocity in m/s (default: estimated)",
-                                          cli="--noise-velocity", group=vel.VelocityOptions.schema_group)
-    uncertainty: bool = option(True, "skip the linearized WSS band and the sensitivities (about 1-3x the time of "
-                               "the solve)", cli="--no-uncertainty", toml=("uncertainty",), flag_off=True,
-                               group=WSS_GROUP)
-    noise_sigma: float | None = option(None, "complex noise per channel in raw magnitude units for the band "
-                                       "(default: from the Rayleigh background)", cli="--noise-sigma",
-                                       group=WSS_GROUP)
+    noise_magnitude: float | None = option(
+        None,
+        "noise level delta of the normalized magnitude in mm (default: estimated)",
+        cli="--noise-magnitude",
+        group=geo.GeometryOptions.schema_group,
+    )
+    noise_velocity: float | None = option(
+        None,
+        "noise level epsilon of the velocity in m/s (default: estimated)",
+        cli="--noise-velocity",
+        group=vel.VelocityOptions.schema_group,
+    )
+    uncertainty: bool = option(
+        True,
+        "skip the linearized WSS band and the sensitivities (about 1-3x the time of the solve)",
+        cli="--no-uncertainty",
+        toml=("uncertainty",),
+        flag_off=True,
+        group=WSS_GROUP,
+    )
+    noise_sigma: float | None = option(
+        None,
+        "complex noise per channel in raw magnitude units for the band (default: from the Rayleigh background)",
+        cli="--noise-sigma",
+        group=WSS_GROUP,
+    )
 
     def __post_init__(self):
         if self.n_phi < 360:
@@ -135,16 +211,21 @@ class ReconstructionOptions:
         if self.alpha_rule not in ALPHA_RULES:
             raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
         if self.dephasing_beta_rule not in DEPHASING_BETA_RULES:
-            raise InputError(f"dephasing beta rule must be one of {DEPHASING_BETA_RULES}, "
-                             f"got {self.dephasing_beta_rule!r}")
+            raise InputError(
+                f"dephasing beta rule must be one of {DEPHASING_BETA_RULES}, got {self.dephasing_beta_rule!r}"
+            )
         if self.beta_rule not in BETA_RULES:
             raise InputError(f"beta rule must be one of {BETA_RULES}, got {self.beta_rule!r}")
         # a value set next to a rule that would ignore it is a mistake to report, not to drop silently
-        for name, rule, value, default in (("alpha", self.alpha_rule, self.geometry.alpha, _DEFAULT_ALPHA),
-                                           ("beta", self.beta_rule, self.velocity.beta, _DEFAULT_BETA)):
+        for name, rule, value, default in (
+            ("alpha", self.alpha_rule, self.geometry.alpha, _DEFAULT_ALPHA),
+            ("beta", self.beta_rule, self.velocity.beta, _DEFAULT_BETA),
+        ):
             if rule != "fixed" and value != default:
-                raise InputError(f"{name} = {value:g} is set but the {name} rule is {rule!r}, which chooses {name} "
-                                 f"from the data; pass {name}_rule='fixed' (CLI: --{name} {value:g}) to use it")
+                raise InputError(
+                    f"{name} = {value:g} is set but the {name} rule is {rule!r}, which chooses {name} "
+                    f"from the data; pass {name}_rule='fixed' (CLI: --{name} {value:g}) to use it"
+                )
         for name in ("tau_alpha", "tau_beta", "kappa_alpha", "kappa_beta", "alpha_start", "beta_start"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -157,9 +238,16 @@ class ReconstructionOptions:
         return asdict(self)
 
 
-def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: VoxelGrid, viscosity_pa_s: float,
-                      options: ReconstructionOptions, source: str = "<memory>", index: int = 0,
-                      venc: float | None = None) -> SliceResult:
+def reconstruct_slice(
+    magnitude: np.ndarray,
+    velocity_image: np.ndarray,
+    grid: VoxelGrid,
+    viscosity_pa_s: float,
+    options: ReconstructionOptions,
+    source: str = "<memory>",
+    index: int = 0,
+    venc: float | None = None,
+) -> SliceResult:
     """Geometry (Sec. 2), velocity (Sec. 3) and WSS (Sec. 4) of one slice.
 
     With ``options.dephasing_correction`` and a known ``venc``, a second
@@ -193,8 +281,7 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
         v_deph = v
         if options.dephasing_beta_rule == "gcv":
             v_deph = vel.solve(vp, replace(options.velocity, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
-        factors = meas.dephasing_factors(vp.voxels, v_deph.evaluate_physical, venc,
-                                         near_wall=(g.coefficients, grid.h))
+        factors = meas.dephasing_factors(vp.voxels, v_deph.evaluate_physical, venc, near_wall=(g.coefficients, grid.h))
         t["dephasing_beta"] = float(v_deph.beta)
     t["dephasing_check"] = time.perf_counter() - t0
     # a second pass only pays where some wall voxel loses more than 1 % of its magnitude
@@ -224,16 +311,34 @@ def reconstruct_slice(magnitude: np.ndarray, velocity_image: np.ndarray, grid: V
     notes, sensitivity = [], None
     if options.uncertainty:
         t0 = time.perf_counter()
-        sensitivity, note = uncertainty(problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options,
-                                        cres)
+        sensitivity, note = uncertainty(
+            problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options, cres
+        )
         notes += [note] if note else []
         t["uncertainty"] = time.perf_counter() - t0
-    return SliceResult(index, g, v, w, norm, lumen, grid, m, np.asarray(velocity_image, float), t,
-                       alpha_choice, beta_choice, options.method, info, sensitivity, notes)
+    return SliceResult(
+        index,
+        g,
+        v,
+        w,
+        norm,
+        lumen,
+        grid,
+        m,
+        np.asarray(velocity_image, float),
+        t,
+        alpha_choice,
+        beta_choice,
+        options.method,
+        info,
+        sensitivity,
+        notes,
+    )
 
 
-def uncertainty(problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, options: ReconstructionOptions,
-                coupled_result=None):
+def uncertainty(
+    problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, options: ReconstructionOptions, coupled_result=None
+):
     """Sensitivities and the linearized band (sets ``w.tau_std``, ``w.mean_std``); returns ``(Sensitivity, note)``.
 
     A band that cannot be computed (no background for the noise level, no
@@ -245,8 +350,9 @@ def uncertainty(problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, op
             s = sens.coupled(coupled_result, problem, options.geometry, options.velocity, viscosity_pa_s, w.phi.size)
         else:
             s = sens.decoupled(problem, options.geometry, g, vp, options.velocity, v, viscosity_pa_s, w.phi.size)
-        sigma_m, sigma_u, how = sens.noise_levels(raw, lumen.noise_mask, norm.m0, norm.m1, s.u_index, venc,
-                                                  options.noise_sigma)
+        sigma_m, sigma_u, how = sens.noise_levels(
+            raw, lumen.noise_mask, norm.m0, norm.m1, s.u_index, venc, options.noise_sigma
+        )
     except WssNlpError as exc:
         return None, f"no uncertainty band: {exc}"
     w.tau_std, w.mean_std, s.mean_std_magnitude, s.mean_std_velocity = s.band(sigma_m, sigma_u)
@@ -265,12 +371,17 @@ def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options
     if copt.velocity_weight is not None:
         weight, how = copt.velocity_weight, {"weight_method": "given (--velocity-weight)"}
     else:
-        weight, how = cpl.weight_from_data(problem, options.geometry, raw, norm, lumen.noise_mask, velocity_image, venc,
-                                           where.rstrip())
+        weight, how = cpl.weight_from_data(
+            problem, options.geometry, raw, norm, lumen.noise_mask, velocity_image, venc, where.rstrip()
+        )
         how["weight_method"] = "likelihood: W sigma_m^2 / sigma_u^2 from the estimated noise levels"
     res = cpl.solve(problem, options.geometry, velocity_image, options.velocity, g, v, weight, copt)
-    info = {"velocity_weight": weight, **how, "decoupled_mean_radius_mm": float(g.coefficients[0]),
-            "decoupled_converged": bool(g.stats.converged and v.stats.converged)}
+    info = {
+        "velocity_weight": weight,
+        **how,
+        "decoupled_mean_radius_mm": float(g.coefficients[0]),
+        "decoupled_converged": bool(g.stats.converged and v.stats.converged),
+    }
     return res, info
 
 
@@ -287,8 +398,10 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
         return False
     supported = stk.supports(options)
     if ell is not None and not supported:
-        raise InputError(f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled method "
-                         "with fixed alpha and beta; pass --z-smoothing 0 for independent slices")
+        raise InputError(
+            f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled method "
+            "with fixed alpha and beta; pass --z-smoothing 0 for independent slices"
+        )
     return supported
 
 
@@ -319,8 +432,10 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     out = Results()
     if stack_applies(acq, options):
         results, info = stk.reconstruct_stack(acq, options, options.stack, progress, log)
-        out.extend(r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
-                   for k, r in enumerate(results))
+        out.extend(
+            r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
+            for k, r in enumerate(results)
+        )
         out.stack = info
         return _with_screens(out, screens, acq)
     velocity = acq.velocity_images()
@@ -330,11 +445,22 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
             if iz in bad:
                 raise InputError(f"{acq.source} slice {iz}: the images contain NaN or Inf")
             if options.method in bl.METHODS:
-                res = bl.reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options.method,
-                                           options.baseline, options.n_phi, acq.source, iz, options.screen.vessel)
+                res = bl.reconstruct_slice(
+                    acq.magnitude[iz],
+                    velocity[iz],
+                    acq.grid,
+                    mu,
+                    options.method,
+                    options.baseline,
+                    options.n_phi,
+                    acq.source,
+                    iz,
+                    options.screen.vessel,
+                )
             else:
-                res = reconstruct_slice(acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz,
-                                        acq.venc_m_s)
+                res = reconstruct_slice(
+                    acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz, acq.venc_m_s
+                )
         except WssNlpError as exc:
             if acq.nz == 1:
                 raise

@@ -72,11 +72,15 @@ class SliceResult:
             if ch is not None and ch.noise == 0:
                 out.append(f"slice {self.index}: {ch.name}: {ch.noise_method}: {ch.name} = {ch.chosen:g}")
             if ch is not None and ch.rule == "discrepancy" and not ch.satisfied:
-                out.append(f"slice {self.index}: no {ch.name} reached residual <= {ch.tau:g} x noise "
-                           f"({ch.noise:.3g}); model error dominates, took {ch.name} = {ch.chosen:.3g} where the "
-                           "residual stopped falling")
+                out.append(
+                    f"slice {self.index}: no {ch.name} reached residual <= {ch.tau:g} x noise "
+                    f"({ch.noise:.3g}); model error dominates, took {ch.name} = {ch.chosen:.3g} where the "
+                    "residual stopped falling"
+                )
         out.extend(f"slice {self.index}: {n}" for n in self.notes)
         if self.geometry.box_active:
-            out.append(f"slice {self.index}: the radius reached the box [{self.geometry.box[0]:.3g}, "
-                       f"{self.geometry.box[1]:.3g}] mm; the lumen may not be star-shaped about the centre")
+            out.append(
+                f"slice {self.index}: the radius reached the box [{self.geometry.box[0]:.3g}, "
+                f"{self.geometry.box[1]:.3g}] mm; the lumen may not be star-shaped about the centre"
+            )
         return out

@@ -20,17 +20,29 @@ from __future__ import annotations
 
 import argparse
 from dataclasses import MISSING, field, fields, is_dataclass
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 from .errors import InputError
 
 _KEY = "wss_nlp"
 
 
-def option(default: Any = MISSING, help: str = "", *, cli: str | None = None, toml: tuple = (),
-           choices: tuple | None = None, parse: Callable | None = None, metavar: str | None = None,
-           flag_off: bool = False, also: tuple = (), group: str | None = None, default_text: str | None = None,
-           default_factory: Any = MISSING):
+def option(
+    default: Any = MISSING,
+    help: str = "",
+    *,
+    cli: str | None = None,
+    toml: tuple = (),
+    choices: tuple | None = None,
+    parse: Callable | None = None,
+    metavar: str | None = None,
+    flag_off: bool = False,
+    also: tuple = (),
+    group: str | None = None,
+    default_text: str | None = None,
+    default_factory: Any = MISSING,
+):
     """A dataclass field with schema metadata.
 
     Parameters
@@ -58,9 +70,20 @@ def option(default: Any = MISSING, help: str = "", *, cli: str | None = None, to
         What ``--help`` shows as the default (when the field's own default
         is not what a user types, e.g. a rule field set by ``--alpha``).
     """
-    meta = {_KEY: {"help": help, "cli": cli, "toml": tuple(toml), "choices": choices, "parse": parse,
-                   "metavar": metavar, "flag_off": flag_off, "also": tuple(also), "group": group,
-                   "default_text": default_text}}
+    meta = {
+        _KEY: {
+            "help": help,
+            "cli": cli,
+            "toml": tuple(toml),
+            "choices": choices,
+            "parse": parse,
+            "metavar": metavar,
+            "flag_off": flag_off,
+            "also": tuple(also),
+            "group": group,
+            "default_text": default_text,
+        }
+    }
     if default_factory is not MISSING:
         return field(default_factory=default_factory, metadata=meta)
     return field(default=default, metadata=meta)
@@ -101,8 +124,9 @@ def add_arguments(parser: argparse.ArgumentParser, cls) -> None:
         default = _default(f)
         dest = "opt__" + path.replace(".", "__")
         if meta["flag_off"]:
-            grp.add_argument(meta["cli"], dest=dest, action="store_false", default=True,
-                             help=meta["help"].replace("%", "%%"))
+            grp.add_argument(
+                meta["cli"], dest=dest, action="store_false", default=True, help=meta["help"].replace("%", "%%")
+            )
             continue
         text = meta["help"].replace("%", "%%")  # argparse formats help strings
         shown = meta["default_text"] if meta["default_text"] is not None else default
@@ -206,4 +230,3 @@ def describe(cls) -> list[tuple[str, str, str, str]]:
         meta = f.metadata[_KEY]
         rows.append((meta["cli"] or "", ", ".join(meta["toml"]), repr(_default(f)), meta["help"]))
     return rows
-

@@ -135,8 +135,9 @@ def point_map_function(n_fourier: int) -> ca.Function:
     big_r = rad.symbolic(c_r, t)
     rho = 2 * r / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * r))
     args = ca.vertcat(c_r, r_in, cx, cy)
-    return ca.Function("point", [c_r, r_in, cx, cy, x, y],
-                       [rho, ca.gradient(rho, args), t, ca.gradient(t, ca.vertcat(cx, cy))])
+    return ca.Function(
+        "point", [c_r, r_in, cx, cy, x, y], [rho, ca.gradient(rho, args), t, ca.gradient(t, ca.vertcat(cx, cy))]
+    )
 
 
 def wss_derivative_function(basis, n_fourier: int, eta: float, viscosity_pa_s: float) -> ca.Function:
@@ -149,8 +150,9 @@ def wss_derivative_function(basis, n_fourier: int, eta: float, viscosity_pa_s: f
     return ca.Function("dtau", [phi, c_r, center, c_v, r_in], [tau, ca.gradient(tau, ca.vertcat(c_r, c_v, r_in))])
 
 
-def geometry_parameter_derivatives(problem: geo.GeometryProblem, options: geo.GeometryOptions,
-                                   coefficients: np.ndarray, alpha: float, gamma: float):
+def geometry_parameter_derivatives(
+    problem: geo.GeometryProblem, options: geo.GeometryOptions, coefficients: np.ndarray, alpha: float, gamma: float
+):
     """Hessian of the geometry functional in ``c_R`` and ``d grad / d [m_annulus; alpha; gamma; c_x; c_y]``.
 
     Notes
@@ -207,12 +209,20 @@ def solve_kkt(kkt: np.ndarray, dgrad: np.ndarray, what: str) -> np.ndarray:
     try:
         return np.linalg.solve(kkt, rhs)[:n]
     except np.linalg.LinAlgError as exc:
-        raise SolverError(f"{what}: the KKT matrix is singular ({exc}); more box constraints are active "
-                          "than the radius has degrees of freedom") from exc
+        raise SolverError(
+            f"{what}: the KKT matrix is singular ({exc}); more box constraints are active "
+            "than the radius has degrees of freedom"
+        ) from exc
 
 
-def geometry_kkt(problem: geo.GeometryProblem, options: geo.GeometryOptions, coefficients: np.ndarray, alpha: float,
-                 gamma: float, lam_box: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def geometry_kkt(
+    problem: geo.GeometryProblem,
+    options: geo.GeometryOptions,
+    coefficients: np.ndarray,
+    alpha: float,
+    gamma: float,
+    lam_box: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """``d c_R / d [m_annulus; alpha; gamma; c_x; c_y]`` at a solution, by the implicit function theorem.
 
     Notes
@@ -263,7 +273,7 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     rho0, drho, th0, dth = (np.asarray(a) for a in fun(c_r0, r_in, center0[0], center0[1], px, py))
     rho0, th0 = rho0.ravel(), th0.ravel()
     # chain rule for r_in(c_R); columns [c_R, c_x, c_y]
-    drho = np.vstack([drho[:n_r] + np.outer(dr_in, drho[n_r]), drho[n_r + 1:]]).T
+    drho = np.vstack([drho[:n_r] + np.outer(dr_in, drho[n_r]), drho[n_r + 1 :]]).T
     dth = np.vstack([np.zeros((n_r, px.size)), dth]).T
     clipped = rho0 > 1.0  # velocity.assemble clips rho to 1 (points on the wall within rounding)
     rho0 = np.minimum(rho0, 1.0)
@@ -279,8 +289,13 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     dang = np.where(is_cos, -orders * np.sin(orders * th0), orders * np.cos(orders * th0))
     avg = vox.mean_matrix()
     op = np.asarray(avg @ (ang * radial).T) @ basis.transform
-    return OperatorDerivative(op, avg, (ang * dradial).T @ basis.transform, (dang * radial).T @ basis.transform,
-                              drho, dth), r_in, dr_in
+    return (
+        OperatorDerivative(
+            op, avg, (ang * dradial).T @ basis.transform, (dang * radial).T @ basis.transform, drho, dth
+        ),
+        r_in,
+        dr_in,
+    )
 
 
 @dataclass
@@ -317,8 +332,21 @@ def _mean_weight_jacobian(c_r: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray,
     return np.asarray(out[0]).ravel(), np.asarray(out[1])
 
 
-def _wss_sensitivity(basis, eta: float, viscosity_pa_s: float, n_phi: int, c_r0, center, c_v0, r_in: float,
-                     dr_in: np.ndarray, dcr: np.ndarray, dcv: np.ndarray, m_index, u_index) -> Sensitivity:
+def _wss_sensitivity(
+    basis,
+    eta: float,
+    viscosity_pa_s: float,
+    n_phi: int,
+    c_r0,
+    center,
+    c_v0,
+    r_in: float,
+    dr_in: np.ndarray,
+    dcr: np.ndarray,
+    dcv: np.ndarray,
+    m_index,
+    u_index,
+) -> Sensitivity:
     """tau and its mean at ``n_phi`` angles and their derivatives, given ``d c_R / dp`` and ``d c_v / dp``.
 
     ``p = [magnitude voxels (m_index); velocity voxels (u_index); SCALARS]``;
@@ -332,22 +360,39 @@ def _wss_sensitivity(basis, eta: float, viscosity_pa_s: float, n_phi: int, c_r0,
     tau0 = tau0.ravel()
     nb = c_v0.size
     dt_dr = grad[:n_r].T + np.outer(grad[n_r + nb], dr_in)
-    dt_dv = grad[n_r:n_r + nb].T
+    dt_dv = grad[n_r : n_r + nb].T
     w_mean, dw = _mean_weight_jacobian(c_r0, phi)
     dtau = dt_dr @ dcr + dt_dv @ dcv
     dmean = w_mean @ dtau + tau0 @ (dw @ dcr)
-    out = Sensitivity(phi=phi, d_tau=dtau[:, n_m + n_u:], d_mean=dmean[n_m + n_u:],
-                      d_tau_d_m=dtau[:, :n_m], d_tau_d_u=dtau[:, n_m:n_m + n_u],
-                      d_mean_d_m=dmean[:n_m], d_mean_d_u=dmean[n_m:n_m + n_u],
-                      m_index=np.asarray(m_index), u_index=np.asarray(u_index), d_coef_r=dcr, d_coef_v=dcv)
+    out = Sensitivity(
+        phi=phi,
+        d_tau=dtau[:, n_m + n_u :],
+        d_mean=dmean[n_m + n_u :],
+        d_tau_d_m=dtau[:, :n_m],
+        d_tau_d_u=dtau[:, n_m : n_m + n_u],
+        d_mean_d_m=dmean[:n_m],
+        d_mean_d_u=dmean[n_m : n_m + n_u],
+        m_index=np.asarray(m_index),
+        u_index=np.asarray(u_index),
+        d_coef_r=dcr,
+        d_coef_v=dcv,
+    )
     out.noise.update({"tau_reference": tau0, "mean_reference": float(w_mean @ tau0)})
     return out
 
 
 # --------------------------------------------------------------------------- driver
-def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry: geo.GeometryResult,
-              vp: vel.VelocityProblem, vopt: vel.VelocityOptions, velocity: vel.VelocityResult, viscosity_pa_s: float,
-              n_phi: int = 360, tol: float = 1e-12) -> Sensitivity:
+def decoupled(
+    problem: geo.GeometryProblem,
+    gopt: geo.GeometryOptions,
+    geometry: geo.GeometryResult,
+    vp: vel.VelocityProblem,
+    vopt: vel.VelocityOptions,
+    velocity: vel.VelocityResult,
+    viscosity_pa_s: float,
+    n_phi: int = 360,
+    tol: float = 1e-12,
+) -> Sensitivity:
     """Sensitivities of the decoupled reconstruction at its solution (see the module notes).
 
     Parameters
@@ -364,8 +409,10 @@ def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry:
     gopt_t = geo.with_options(gopt, alpha=geometry.alpha, tol=tol)
     anchor = geo.IpoptGeometrySolver(problem, gopt_t).solve(geometry.alpha, geometry.coefficients)
     if not anchor.stats.converged:
-        raise SolverError(f"geometry sensitivity re-solve did not converge ({anchor.stats.status}); "
-                          "the derivatives would not be those of a solution")
+        raise SolverError(
+            f"geometry sensitivity re-solve did not converge ({anchor.stats.status}); "
+            "the derivatives would not be those of a solution"
+        )
     c_r0 = anchor.coefficients
     dcr_dpg, annulus = geometry_kkt(problem, gopt_t, c_r0, geometry.alpha, geometry.gamma, anchor.box_multipliers)
 
@@ -392,20 +439,28 @@ def decoupled(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry:
     dcr[:, :n_m] = dcr_dpg[:, :n_m]
     dcr[:, n_m + n_u + 0] = dcr_dpg[:, n_m]  # alpha
     dcr[:, n_m + n_u + 2] = dcr_dpg[:, n_m + 1]  # gamma
-    dcr[:, n_m + n_u + 3:] = dcr_dpg[:, n_m + 2:]  # centre
+    dcr[:, n_m + n_u + 3 :] = dcr_dpg[:, n_m + 2 :]  # centre
     dcv = dcv_dgeo[:, :n_r] @ dcr
-    dcv[:, n_m:n_m + n_u] += dcv_du
+    dcv[:, n_m : n_m + n_u] += dcv_du
     dcv[:, n_m + n_u + 1] += dcv_db
-    dcv[:, n_m + n_u + 3:] += dcv_dgeo[:, n_r:]
-    out = _wss_sensitivity(vp.basis, vopt.eta, viscosity_pa_s, n_phi, c_r0, ctr, cv0, r_in, dr_in, dcr, dcv,
-                           annulus, vp.voxels.index)
+    dcv[:, n_m + n_u + 3 :] += dcv_dgeo[:, n_r:]
+    out = _wss_sensitivity(
+        vp.basis, vopt.eta, viscosity_pa_s, n_phi, c_r0, ctr, cv0, r_in, dr_in, dcr, dcv, annulus, vp.voxels.index
+    )
     out.seconds = time.perf_counter() - t_start
     out.noise["active_box_constraints"] = int(np.count_nonzero(anchor.box_multipliers))
     return out
 
 
-def coupled(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, vopt: vel.VelocityOptions,
-            viscosity_pa_s: float, n_phi: int = 360, polish_steps: int = 2) -> Sensitivity:
+def coupled(
+    cres,
+    problem: geo.GeometryProblem,
+    gopt: geo.GeometryOptions,
+    vopt: vel.VelocityOptions,
+    viscosity_pa_s: float,
+    n_phi: int = 360,
+    polish_steps: int = 2,
+) -> Sensitivity:
     """Sensitivities of the coupled reconstruction (:mod:`wss_nlp.coupled`) at its solution.
 
     Notes
@@ -437,8 +492,11 @@ def coupled(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, vopt:
     grad_w = ca.gradient(ca.dot(weights_res, nlp.residual), nlp.x)
     second = ca.jtimes(grad_w, nlp.x, ca.DM(np.eye(n_x)[:, :n_r]))  # columns of hess(w^T r) along c_R
     grad_f = ca.gradient(nlp.f, nlp.x)
-    fun = ca.Function("kkt", [nlp.x, nlp.gamma, weights_res],
-                      [nlp.jacobian, second, grad_f, ca.jtimes(grad_f, nlp.gamma, ca.DM(1.0)), nlp.velocity_error])
+    fun = ca.Function(
+        "kkt",
+        [nlp.x, nlp.gamma, weights_res],
+        [nlp.jacobian, second, grad_f, ca.jtimes(grad_f, nlp.gamma, ca.DM(1.0)), nlp.velocity_error],
+    )
     fun_res = ca.Function("res", [nlp.x, nlp.gamma], [nlp.residual])
     reg = np.zeros((n_x, n_x))
     reg[:n_r, :n_r] = 2 * nlp.alpha * np.diag(nlp.geometry.weights)
@@ -489,17 +547,30 @@ def coupled(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, vopt:
     pos_v = np.searchsorted(m_index, model.index)
     dgrad[:, pos_v] += diag_part.T - np.outer(coupling, free * m_v)
     scale = np.sqrt(model.weights / np.sum(model.weights))
-    dgrad[:, n_m:n_m + n_u] = -2 * np.sqrt(nlp.weight) * scale[None, :] * jac_v.T
+    dgrad[:, n_m : n_m + n_u] = -2 * np.sqrt(nlp.weight) * scale[None, :] * jac_v.T
     ref = nlp.geometry.reference
     dgrad[:n_r, n_m + n_u + 0] = 2 * nlp.geometry.weights * (x[:n_r] - ref)
     dgrad[n_r:, n_m + n_u + 1] = 2 * nlp.weight * nlp.gram @ x[n_r:] / np.pi
     dgrad[:, n_m + n_u + 2] = dgrad_dgam.ravel()
-    dgrad[:, n_m + n_u + 3:] = _coupled_centre_derivative(nlp, problem, gopt, x, gam, cres.velocity)
+    dgrad[:, n_m + n_u + 3 :] = _coupled_centre_derivative(nlp, problem, gopt, x, gam, cres.velocity)
     dx = solve_kkt(kkt, dgrad, "coupled sensitivity")
 
     # r_in is fixed in the coupled model
-    out = _wss_sensitivity(cres.velocity.basis, vopt.eta, viscosity_pa_s, n_phi, x[:n_r], problem.center, x[n_r:],
-                           cres.velocity.disk_map.r_in, np.zeros(n_r), dx[:n_r], dx[n_r:], m_index, u_index)
+    out = _wss_sensitivity(
+        cres.velocity.basis,
+        vopt.eta,
+        viscosity_pa_s,
+        n_phi,
+        x[:n_r],
+        problem.center,
+        x[n_r:],
+        cres.velocity.disk_map.r_in,
+        np.zeros(n_r),
+        dx[:n_r],
+        dx[n_r:],
+        m_index,
+        u_index,
+    )
     out.seconds = time.perf_counter() - t_start
     out.noise.update({"active_box_constraints": int(active.size), "kkt_residual_after_polish": polished})
     return out
@@ -514,11 +585,20 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
     coupled model; the box does not depend on the centre.
     """
     n_r = nlp.n_r
-    _, dgrad_geo, _ = geometry_parameter_derivatives(problem, geo.with_options(gopt, alpha=nlp.alpha), x[:n_r],
-                                                     nlp.alpha, gamma)
+    _, dgrad_geo, _ = geometry_parameter_derivatives(
+        problem, geo.with_options(gopt, alpha=nlp.alpha), x[:n_r], nlp.alpha, gamma
+    )
     center = ca.MX.sym("center", 2)
-    res_v = cpl.velocity_residual(nlp.velocity_model, nlp.x[:n_r], nlp.x[n_r:], velocity.basis,
-                                  velocity.disk_map.r_in, gamma, gopt.heaviside, center=center)
+    res_v = cpl.velocity_residual(
+        nlp.velocity_model,
+        nlp.x[:n_r],
+        nlp.x[n_r:],
+        velocity.basis,
+        velocity.disk_map.r_in,
+        gamma,
+        gopt.heaviside,
+        center=center,
+    )
     grad_v = ca.gradient(nlp.weight * ca.sumsqr(res_v), nlp.x)
     fun = ca.Function("dcentre", [nlp.x, center], [ca.jtimes(grad_v, center, ca.DM.eye(2))])
     out = np.asarray(fun(x, np.asarray(problem.center, float)))
@@ -526,8 +606,15 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
     return out
 
 
-def noise_levels(raw_magnitude: np.ndarray, mask: np.ndarray, m0: float, m1: float, u_index: np.ndarray,
-                 venc: float | None, sigma: float | None = None) -> tuple[float, np.ndarray, str]:
+def noise_levels(
+    raw_magnitude: np.ndarray,
+    mask: np.ndarray,
+    m0: float,
+    m1: float,
+    u_index: np.ndarray,
+    venc: float | None,
+    sigma: float | None = None,
+) -> tuple[float, np.ndarray, str]:
     """Per-voxel noise ``(sigma_m, sigma_u[u_index], how)`` from the complex noise level (Appendix B).
 
     ``sigma`` (per channel, raw units) is estimated from the Rayleigh
@@ -537,10 +624,15 @@ def noise_levels(raw_magnitude: np.ndarray, mask: np.ndarray, m0: float, m1: flo
     if sigma is None:
         sigma, how = complex_noise_sigma(raw_magnitude, mask), "Rayleigh background"
     if not np.isfinite(sigma) or sigma <= 0:
-        raise NoiseEstimationError("cannot estimate the complex noise level for the uncertainty band (no background "
-                                   "in the field of view); pass --noise-sigma")
+        raise NoiseEstimationError(
+            "cannot estimate the complex noise level for the uncertainty band (no background "
+            "in the field of view); pass --noise-sigma"
+        )
     if venc is None:
         raise NoiseEstimationError("the uncertainty band needs venc (phase data) to convert phase noise to velocity")
     sigma_u = phase_noise_std(np.asarray(raw_magnitude, float).ravel()[u_index], sigma, venc)
-    return float(sigma / (m1 - m0)), sigma_u, f"sigma = {sigma:.4g} ({how}); sigma_m = sigma/(m1-m0), " \
-                                             "sigma_u,i = venc sigma/(pi |d_i|)"
+    return (
+        float(sigma / (m1 - m0)),
+        sigma_u,
+        f"sigma = {sigma:.4g} ({how}); sigma_m = sigma/(m1-m0), sigma_u,i = venc sigma/(pi |d_i|)",
+    )

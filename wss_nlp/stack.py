@@ -94,13 +94,25 @@ class StackOptions:
 
     schema_group = "stacks of slices (Sec. 5)"
 
-    z_smoothing_mm: float | None = option(None, "length in mm along the vessel over which neighbouring slices are "
-                                          "pooled (z-regularization of geometry and velocity); 0 = independent "
-                                          "slices (default: one slice spacing)", cli="--z-smoothing")
-    z_order: int = option(2, "order of the z-derivative penalized: 2 keeps linear tapers unbiased, 1 = first "
-                          "derivative", cli="--z-order", choices=(1, 2))
-    strategy: str = option("auto", f"one coupled NLP, Kaczmarz sweeps, or auto (coupled up to "
-                           f"{COUPLED_MAX_SLICES} slices)", cli="--stack-strategy", choices=STRATEGIES)
+    z_smoothing_mm: float | None = option(
+        None,
+        "length in mm along the vessel over which neighbouring slices are "
+        "pooled (z-regularization of geometry and velocity); 0 = independent "
+        "slices (default: one slice spacing)",
+        cli="--z-smoothing",
+    )
+    z_order: int = option(
+        2,
+        "order of the z-derivative penalized: 2 keeps linear tapers unbiased, 1 = first derivative",
+        cli="--z-order",
+        choices=(1, 2),
+    )
+    strategy: str = option(
+        "auto",
+        f"one coupled NLP, Kaczmarz sweeps, or auto (coupled up to {COUPLED_MAX_SLICES} slices)",
+        cli="--stack-strategy",
+        choices=STRATEGIES,
+    )
     tol: float = 1e-6
     max_sweeps: int = 300
 
@@ -183,15 +195,30 @@ class SliceGeometry:
         """IPOPT on the slice's part of the coupled functional (the box as constraints)."""
         if self._solver is None:
             sigma = ca.MX.sym("sigma")
-            opts = ipopt_options(self.options.tol, self.options.max_iter, {
-                "clip_inactive_lam": True,
-                "hess_lag": ca.Function("h", {"x": self._c, "p": self._p, "lam_f": sigma,
-                                              "hess_gamma_x_x": sigma * ca.triu(self._hess)},
-                                        ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])})
-            self._solver = ca.nlpsol("slice_z", "ipopt", {"x": self._c, "p": self._p, "f": self._f,
-                                                          "g": self.nlp.g}, opts)
-        sol, stats = run_nlpsol(self._solver, "stack geometry slice (IPOPT)", x0=x0,
-                                p=np.concatenate([[alpha, n_nb], s]), lbg=self.problem.r0, ubg=self.problem.r1)
+            opts = ipopt_options(
+                self.options.tol,
+                self.options.max_iter,
+                {
+                    "clip_inactive_lam": True,
+                    "hess_lag": ca.Function(
+                        "h",
+                        {"x": self._c, "p": self._p, "lam_f": sigma, "hess_gamma_x_x": sigma * ca.triu(self._hess)},
+                        ["x", "p", "lam_f", "lam_g"],
+                        ["hess_gamma_x_x"],
+                    ),
+                },
+            )
+            self._solver = ca.nlpsol(
+                "slice_z", "ipopt", {"x": self._c, "p": self._p, "f": self._f, "g": self.nlp.g}, opts
+            )
+        sol, stats = run_nlpsol(
+            self._solver,
+            "stack geometry slice (IPOPT)",
+            x0=x0,
+            p=np.concatenate([[alpha, n_nb], s]),
+            lbg=self.problem.r0,
+            ubg=self.problem.r1,
+        )
         self.lam_g = np.asarray(sol["lam_g"]).ravel()
         return np.asarray(sol["x"]).ravel(), stats
 
@@ -199,7 +226,7 @@ class SliceGeometry:
         """Up to ``steps`` Gauss-Newton steps; ``(c, stats)``, or IPOPT's answer if the box gets in the way."""
         p = np.concatenate([[alpha, n_nb], s])
         t0 = time.perf_counter()
-        for it in range(1, steps + 1):
+        for it in range(1, steps + 1):  # noqa: B007 (the count is reported after the loop)
             f, g, hmat = self.local(c, p)
             f, g, hmat = float(f), np.asarray(g).ravel(), np.asarray(hmat)
             d = np.linalg.solve(hmat, g)
@@ -255,7 +282,7 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
     """All slices' geometry as one IPOPT NLP; returns ``(coefficients (n_slices, n), stats)``."""
     n, ns = slices[0].w0.size, len(slices)
     big = ca.MX.sym("C", n * ns)
-    parts = [sl.parts(big[k * n:(k + 1) * n], alpha) for k, sl in enumerate(slices)]
+    parts = [sl.parts(big[k * n : (k + 1) * n], alpha) for k, sl in enumerate(slices)]
     kappa = slices[0].kappa
     zlap = np.kron(z_operator(ns, order), np.diag(slices[0].w0))  # sum_k ||(D C)_k||^2_{W0} = C^T zlap C
     zl = sparse_dm(zlap)
@@ -263,10 +290,19 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
     g = ca.vertcat(*[p[1] for p in parts])
     hess = ca.diagcat(*[p[2] for p in parts]) + 2 * kappa * zl
     sigma = ca.MX.sym("sigma")
-    opts = ipopt_options(slices[0].options.tol, slices[0].options.max_iter, {
-        "clip_inactive_lam": True,
-        "hess_lag": ca.Function("h", {"x": big, "lam_f": sigma, "hess_gamma_x_x": sigma * ca.triu(hess)},
-                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])})
+    opts = ipopt_options(
+        slices[0].options.tol,
+        slices[0].options.max_iter,
+        {
+            "clip_inactive_lam": True,
+            "hess_lag": ca.Function(
+                "h",
+                {"x": big, "lam_f": sigma, "hess_gamma_x_x": sigma * ca.triu(hess)},
+                ["x", "p", "lam_f", "lam_g"],
+                ["hess_gamma_x_x"],
+            ),
+        },
+    )
     solver = ca.nlpsol("stack_geometry", "ipopt", {"x": big, "f": f, "g": g}, opts)
     nb = [sl.nlp.g.numel() for sl in slices]
     lbg = np.concatenate([np.full(m, sl.problem.r0) for m, sl in zip(nb, slices)])
@@ -275,8 +311,9 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
     return np.asarray(sol["x"]).reshape(ns, n), stats
 
 
-def kaczmarz_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, tol: float, max_sweeps: int,
-                      order: int, log=None):
+def kaczmarz_geometry(
+    slices: list[SliceGeometry], alpha: float, x0: np.ndarray, tol: float, max_sweeps: int, order: int, log=None
+):
     """Forward-backward sweeps of slice solves; returns ``(coefficients, sweeps, residual history, stats)``.
 
     The first sweep solves each slice to ``tol`` given its neighbours; later
@@ -332,19 +369,19 @@ def coupled_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, order: int):
     big = ca.MX.sym("V", nb * ns)
     f = 0
     for k, vp in enumerate(vps):
-        ck = big[k * nb:(k + 1) * nb]
+        ck = big[k * nb : (k + 1) * nb]
         hmat, g = vp.normal_equations(betas[k])
         f += ca.dot(ck, ca.mtimes(ca.DM(hmat), ck)) - 2 * ca.dot(ca.DM(g), ck)
     zlap = np.kron(z_operator(ns, order), gram0 / np.pi)
     f += kappa_v * ca.dot(big, ca.mtimes(sparse_dm(zlap), big))
-    solver = ca.nlpsol("stack_velocity", "ipopt", {"x": big, "f": f},
-                       ipopt_options(1e-12, 50, {"ipopt.hessian_constant": "yes"}))
+    solver = ca.nlpsol(
+        "stack_velocity", "ipopt", {"x": big, "f": f}, ipopt_options(1e-12, 50, {"ipopt.hessian_constant": "yes"})
+    )
     sol, stats = run_nlpsol(solver, "stack velocity (coupled IPOPT)", x0=np.zeros(nb * ns))
     return np.asarray(sol["x"]).reshape(ns, nb), stats
 
 
-def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float, max_sweeps: int,
-                      order: int):
+def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float, max_sweeps: int, order: int):
     """Block Gauss-Seidel sweeps (forward, backward) on the coupled normal equations (``betas`` per slice)."""
     zop = z_operator(len(vps), order)
     system = _velocity_system(vps, betas, kappa_v, gram0, zop)
@@ -360,8 +397,11 @@ def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float,
             new = scipy.linalg.cho_solve(factors[k], system[k][1] + coupling @ neighbour_terms(zop, c, k)[0])
             c[k] = c[k] + RELAX * (new - c[k])
         # relative residual of the coupled normal equations
-        r = max(np.linalg.norm(system[k][0] @ c[k] - system[k][1] - coupling @ neighbour_terms(zop, c, k)[0])
-                / max(np.linalg.norm(system[k][1]), 1e-300) for k in range(ns))
+        r = max(
+            np.linalg.norm(system[k][0] @ c[k] - system[k][1] - coupling @ neighbour_terms(zop, c, k)[0])
+            / max(np.linalg.norm(system[k][1]), 1e-300)
+            for k in range(ns)
+        )
         history.append(float(r))
         if r < tol:
             return c, sweep, history
@@ -444,8 +484,10 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     """
     stack = stack or StackOptions()
     if not supports(options):
-        raise InputError("stacks with z-regularization support the decoupled method with a fixed alpha; "
-                         "pass --z-smoothing 0 for independent slices with other settings")
+        raise InputError(
+            "stacks with z-regularization support the decoupled method with a fixed alpha; "
+            "pass --z-smoothing 0 for independent slices with other settings"
+        )
     mu = acq.viscosity(options.viscosity_pa_s)
     dz = float(acq.slice_spacing_mm) if acq.nz > 1 else 1.0
     ell = dz if stack.z_smoothing_mm is None else float(stack.z_smoothing_mm)
@@ -473,10 +515,13 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     basis = vopt.make_basis()
     gram0 = basis.laplacian_gram(0)
     done = 0
+
     def choose_betas(seg, vps):
         """Each slice's own beta choice (the rule of ``options``) and the betas used: one per segment if coupled."""
-        choices = [choose_beta(vp, acq.magnitude[k], prepared[k].lumen, acq.venc_m_s, options,
-                               f"{acq.source} slice {k}", mu) for k, vp in zip(seg, vps)]
+        choices = [
+            choose_beta(vp, acq.magnitude[k], prepared[k].lumen, acq.venc_m_s, options, f"{acq.source} slice {k}", mu)
+            for k, vp in zip(seg, vps)
+        ]
         if kappa_v == 0 or len({c.chosen for c in choices}) == 1:
             return choices, [c.chosen for c in choices]
         return choices, [segment_beta(choices)] * len(seg)
@@ -492,8 +537,16 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             info.sweeps.setdefault("velocity", []).append(sweeps)
             info.residuals["velocity"] = hist
         info.converged &= ok
-        return vcoef, [SolverStats("kaczmarz (block Gauss-Seidel, Cholesky)", "Solve_Succeeded" if ok
-                                   else "Maximum_Iterations_Exceeded", ok, sweeps, float("nan"), 0.0)] * len(vps)
+        return vcoef, [
+            SolverStats(
+                "kaczmarz (block Gauss-Seidel, Cholesky)",
+                "Solve_Succeeded" if ok else "Maximum_Iterations_Exceeded",
+                ok,
+                sweeps,
+                float("nan"),
+                0.0,
+            )
+        ] * len(vps)
 
     def solve_segment(seg, problems, x0, strategy):
         """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats, beta choices, betas)``."""
@@ -513,10 +566,13 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                 info.converged = False
         t["geometry"] = t.get("geometry", 0.0) + time.perf_counter() - t0
         t0 = time.perf_counter()
-        geoms = [geo.finish(pb, gopt, sl.nlp, coef[i], gstats[i], gopt.alpha)
-                 for i, (pb, sl) in enumerate(zip(problems, sg))]
-        vps = [vel.assemble(acq.grid, prepared[k].velocity_image, g.coefficients, g.center, vopt, basis=basis)
-               for k, g in zip(seg, geoms)]
+        geoms = [
+            geo.finish(pb, gopt, sl.nlp, coef[i], gstats[i], gopt.alpha) for i, (pb, sl) in enumerate(zip(problems, sg))
+        ]
+        vps = [
+            vel.assemble(acq.grid, prepared[k].velocity_image, g.coefficients, g.center, vopt, basis=basis)
+            for k, g in zip(seg, geoms)
+        ]
         choices, betas = choose_betas(seg, vps)
         vcoef, vstats = fit_velocity(vps, strategy, betas)
         t["velocity"] = t.get("velocity", 0.0) + time.perf_counter() - t0
@@ -538,8 +594,9 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             t0 = time.perf_counter()
             for i, vp in enumerate(vps):
                 v_deph = vel.solve(vp, replace(vopt, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
-                factors[i] = meas.dephasing_factors(vp.voxels, v_deph.evaluate_physical, acq.venc_m_s,
-                                                    near_wall=(geoms[i].coefficients, acq.grid.h))
+                factors[i] = meas.dephasing_factors(
+                    vp.voxels, v_deph.evaluate_physical, acq.venc_m_s, near_wall=(geoms[i].coefficients, acq.grid.h)
+                )
             t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
             if min(float(np.min(f)) for f in factors) < 1 - DEPHASING_THRESHOLD:
                 if log is not None:
@@ -549,8 +606,11 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                     m_corr = prepared[k].magnitude.copy().ravel()
                     m_corr[vp.voxels.index] = np.clip(m_corr[vp.voxels.index] / np.maximum(factors[i], 1e-3), 0, 1)
                     pb = problems[i]
-                    corrected.append(geo.GeometryProblem(pb.grid, m_corr.reshape(pb.magnitude.shape), pb.center,
-                                                         pb.r0, pb.r1, pb.r_ref))
+                    corrected.append(
+                        geo.GeometryProblem(
+                            pb.grid, m_corr.reshape(pb.magnitude.shape), pb.center, pb.r0, pb.r1, pb.r_ref
+                        )
+                    )
                 coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(seg, corrected, coef, strategy)
                 info.dephasing_pass = True
         planar = None
@@ -558,31 +618,60 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             t0 = time.perf_counter()
             planar = []
             for comp in acq.velocity_inplane:
-                vps_c = [replace(vp, data=comp[k].ravel()[vp.voxels.index], data_image=comp[k])
-                         for k, vp in zip(seg, vps)]
+                vps_c = [
+                    replace(vp, data=comp[k].ravel()[vp.voxels.index], data_image=comp[k]) for k, vp in zip(seg, vps)
+                ]
                 coef_c, st_c = fit_velocity(vps_c, strategy, betas, record=False)
-                planar.append([wss_mod.from_reconstruction(vel.result(vp, vopt, cc, b, st), options.n_phi, mu).tau
-                               for vp, cc, st, b in zip(vps_c, coef_c, st_c, betas)])
-            dcoef, dcenter = _z_derivatives(np.array([g.coefficients for g in geoms]),
-                                            np.array([g.center for g in geoms]), np.array(seg) * dz)
+                planar.append(
+                    [
+                        wss_mod.from_reconstruction(vel.result(vp, vopt, cc, b, st), options.n_phi, mu).tau
+                        for vp, cc, st, b in zip(vps_c, coef_c, st_c, betas)
+                    ]
+                )
+            dcoef, dcenter = _z_derivatives(
+                np.array([g.coefficients for g in geoms]), np.array([g.center for g in geoms]), np.array(seg) * dz
+            )
             t["velocity_inplane"] = t.get("velocity_inplane", 0.0) + time.perf_counter() - t0
         for i, k in enumerate(seg):
             v = vel.result(vps[i], vopt, vcoef[i], betas[i], vstats[i])
             w = wss_mod.from_reconstruction(v, options.n_phi, mu)
             if planar is not None:
-                w.vector = wss_mod.wss_vector(w.phi, geoms[i].coefficients, dcoef[i], dcenter[i],
-                                              np.stack([planar[0][i], planar[1][i], w.tau], axis=1), mu)
+                w.vector = wss_mod.wss_vector(
+                    w.phi,
+                    geoms[i].coefficients,
+                    dcoef[i],
+                    dcenter[i],
+                    np.stack([planar[0][i], planar[1][i], w.tau], axis=1),
+                    mu,
+                )
             if not np.all(np.isfinite(w.tau)):
                 raise SolverError(f"{acq.source} slice {k}: wall shear stress is not finite")
             p = prepared[k]
             sec = {"min_dephasing_factor": float(np.min(factors[i])) if factors[i] is not None else 1.0}
             notes = []
             if betas[i] != choices[i].chosen:
-                notes.append(f"stack: beta = {betas[i]:.3g}, the geometric median of the {choices[i].rule} choices "
-                             f"of slices {seg[0]}-{seg[-1]} (this slice alone: {choices[i].chosen:.3g})")
-            results[k] = SliceResult(k, geoms[i], v, w, p.norm, p.lumen, acq.grid, p.magnitude, p.velocity_image,
-                                     sec, an.ParameterChoice("alpha", "fixed", gopt.alpha),
-                                     replace(choices[i], chosen=betas[i]), "decoupled", {}, None, notes)
+                notes.append(
+                    f"stack: beta = {betas[i]:.3g}, the geometric median of the {choices[i].rule} choices "
+                    f"of slices {seg[0]}-{seg[-1]} (this slice alone: {choices[i].chosen:.3g})"
+                )
+            results[k] = SliceResult(
+                k,
+                geoms[i],
+                v,
+                w,
+                p.norm,
+                p.lumen,
+                acq.grid,
+                p.magnitude,
+                p.velocity_image,
+                sec,
+                an.ParameterChoice("alpha", "fixed", gopt.alpha),
+                replace(choices[i], chosen=betas[i]),
+                "decoupled",
+                {},
+                None,
+                notes,
+            )
             done += 1
             if progress is not None:
                 progress(done, len(prepared), results[k])
@@ -592,7 +681,8 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     if not info.converged:
         for r in results:
             if r is not None:
-                r.notes.append("stack: Kaczmarz sweeps stopped before the coupled optimality residual reached "
-                               f"{stack.tol:g}")
+                r.notes.append(
+                    f"stack: Kaczmarz sweeps stopped before the coupled optimality residual reached {stack.tol:g}"
+                )
     info.seconds = t
     return results, info

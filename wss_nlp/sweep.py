@@ -121,8 +121,9 @@ def _values(key: str, spec, src: str) -> list:
         if {"start", "stop", "num"} <= set(spec):
             f = np.geomspace if spec.get("log", False) else np.linspace
             return [float(x) for x in f(spec["start"], spec["stop"], int(spec["num"]))]
-        raise InputError(f"{src}: grid.{key} must be a value, a list, {{range = [a, b]}} or "
-                         f"{{start, stop, num, log}}; got {spec!r}")
+        raise InputError(
+            f"{src}: grid.{key} must be a value, a list, {{range = [a, b]}} or {{start, stop, num, log}}; got {spec!r}"
+        )
     return [spec]
 
 
@@ -142,8 +143,9 @@ def load_study(path) -> Study:
         raise InputError(f"{src}: is a folder; name a study file (problems/*.toml)") from None
     unknown_tables = set(doc) - {"study", "grid", "tables", "plots"}
     if unknown_tables:
-        raise InputError(f"{src}: unknown table(s) {sorted(unknown_tables)}; expected [study], [grid], "
-                         "[[tables]], [[plots]]")
+        raise InputError(
+            f"{src}: unknown table(s) {sorted(unknown_tables)}; expected [study], [grid], [[tables]], [[plots]]"
+        )
     head = doc.get("study", {})
     if "name" not in head:
         raise InputError(f"{src}: [study] needs a name")
@@ -172,9 +174,16 @@ def load_study(path) -> Study:
     bad = [m for m in names if m not in METRICS]
     if bad:
         raise InputError(f"{src}: unknown metric(s) {bad}; known: {', '.join(METRICS)}")
-    study = Study(name=str(head["name"]), description=str(head.get("description", "")), grid=grid, metrics=names,
-                  tables=tuple(doc.get("tables", ())), plots=tuple(doc.get("plots", ())), source=src,
-                  base_dir=os.path.dirname(os.path.abspath(src)))
+    study = Study(
+        name=str(head["name"]),
+        description=str(head.get("description", "")),
+        grid=grid,
+        metrics=names,
+        tables=tuple(doc.get("tables", ())),
+        plots=tuple(doc.get("plots", ())),
+        source=src,
+        base_dir=os.path.dirname(os.path.abspath(src)),
+    )
     for spec in study.tables + study.plots:
         _check_view(study, spec)
     for params in expand(study):  # fail now, not after an hour of computing, on options that cannot be built
@@ -229,9 +238,13 @@ def options_for(params: dict, where: str = "") -> ReconstructionOptions:
 # ------------------------------------------------------------------ one case
 def _acquisition(params: dict, base_dir: str):
     if "case" in params:
-        return phantoms.make_phantom(params["case"], h_mm=float(params["h"]),
-                                     snr=None if params["snr"] in (None, 0) else float(params["snr"]),
-                                     seed=int(params["seed"]), venc=params.get("venc"))
+        return phantoms.make_phantom(
+            params["case"],
+            h_mm=float(params["h"]),
+            snr=None if params["snr"] in (None, 0) else float(params["snr"]),
+            seed=int(params["seed"]),
+            venc=params.get("venc"),
+        )
     entry = params["input"]
     path = os.path.join(base_dir, _input_path(entry))
     truth = None
@@ -244,15 +257,23 @@ def case_metrics(res, truth) -> dict:
     """The :data:`METRICS` of one slice result (errors NaN without a truth)."""
     nan = float("nan")
     out = dict.fromkeys(METRICS, nan)
-    out.update(mean_wss_pa=float(res.wss.mean), alpha_used=float(res.geometry.alpha),
-               beta_used=float(res.velocity.beta) if hasattr(res, "velocity") else nan,
-               mean_wss_std_pa=float(getattr(res.wss, "mean_std", nan)))
+    out.update(
+        mean_wss_pa=float(res.wss.mean),
+        alpha_used=float(res.geometry.alpha),
+        beta_used=float(res.velocity.beta) if hasattr(res, "velocity") else nan,
+        mean_wss_std_pa=float(getattr(res.wss, "mean_std", nan)),
+    )
     if truth is not None:
         e = met.compare_slice(res, truth)
-        out.update(radius_err=e.radius_rel_l2, radius_max_mm=e.radius_max_mm, wss_err=e.wss_rel_l2,
-                   mean_wss_bias=e.mean_wss_rel, mean_wss_true_pa=e.mean_wss_true_pa,
-                   radius_err_h2=met.radius_h2_error(res.geometry.center, res.geometry.coefficients, truth),
-                   velocity_err=met.velocity_error(getattr(res, "velocity", None), truth))
+        out.update(
+            radius_err=e.radius_rel_l2,
+            radius_max_mm=e.radius_max_mm,
+            wss_err=e.wss_rel_l2,
+            mean_wss_bias=e.mean_wss_rel,
+            mean_wss_true_pa=e.mean_wss_true_pa,
+            radius_err_h2=met.radius_h2_error(res.geometry.center, res.geometry.coefficients, truth),
+            velocity_err=met.velocity_error(getattr(res, "velocity", None), truth),
+        )
     return out
 
 
@@ -269,13 +290,22 @@ def run_case(params: dict, base_dir: str = ".") -> tuple[dict, bytes | None]:
         options = options_for(params, record["id"])
         acq, truth = _acquisition(params, base_dir)
         res = reconstruct(acq, options)[0]
-        record.update(status="ok" if res.converged else "not converged", converged=bool(res.converged),
-                      message="; ".join(res.warnings), metrics=case_metrics(res, truth))
+        record.update(
+            status="ok" if res.converged else "not converged",
+            converged=bool(res.converged),
+            message="; ".join(res.warnings),
+            metrics=case_metrics(res, truth),
+        )
         fd, tmp = tempfile.mkstemp(suffix=".h5")
         os.close(fd)
         try:
-            wio.write_result(tmp, [res], options.as_dict(), argv=["wss-nlp sweep", record["id"]],
-                             extra_attrs={"sweep_params_json": json.dumps(params, default=str)})
+            wio.write_result(
+                tmp,
+                [res],
+                options.as_dict(),
+                argv=["wss-nlp sweep", record["id"]],
+                extra_attrs={"sweep_params_json": json.dumps(params, default=str)},
+            )
             with open(tmp, "rb") as fh:
                 blob = fh.read()
         finally:
@@ -321,8 +351,10 @@ class Progress:
         left = self.total - self.done
         eta = el / self.ran * left
         bar = "#" * int(30 * self.done / max(self.total, 1))
-        msg = (f"[{bar:<30}] {self.done}/{self.total} cases, {self.failed} not ok, {el:.0f} s elapsed, "
-               f"about {eta:.0f} s left")
+        msg = (
+            f"[{bar:<30}] {self.done}/{self.total} cases, {self.failed} not ok, {el:.0f} s elapsed, "
+            f"about {eta:.0f} s left"
+        )
         if self.tty:
             self.stream.write("\r" + msg + ("\n" if left == 0 else ""))
         else:
@@ -375,8 +407,14 @@ def _dask_results(pending, base_dir, scheduler):
         client.close()
 
 
-def run_study(study: Study, outdir: str, workers: int | None = None, scheduler: str | None = None,
-              retry_failed: bool = False, stream=None) -> Summary:
+def run_study(
+    study: Study,
+    outdir: str,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    retry_failed: bool = False,
+    stream=None,
+) -> Summary:
     """Run every case of ``study`` not yet done in ``outdir``; write results.csv, tables and plots."""
     t0 = time.perf_counter()
     cases_dir = os.path.join(outdir, "cases")
@@ -390,27 +428,37 @@ def run_study(study: Study, outdir: str, workers: int | None = None, scheduler: 
     records = {case_id(p): _done(cases_dir, case_id(p), retry_failed) for p in cases}
     pending = [p for p in cases if records[case_id(p)] is None]
     stream = stream if stream is not None else sys.stderr
-    stream.write(f"study '{study.name}': {len(cases)} cases, {len(cases) - len(pending)} already done, "
-                 f"{len(pending)} to run" + (f" on {scheduler}" if scheduler else "") + "\n")
+    stream.write(
+        f"study '{study.name}': {len(cases)} cases, {len(cases) - len(pending)} already done, "
+        f"{len(pending)} to run" + (f" on {scheduler}" if scheduler else "") + "\n"
+    )
     progress = Progress(len(cases), stream, skipped=len(cases) - len(pending))
     workers = workers or os.cpu_count() or 1
-    results = (_dask_results(pending, study.base_dir, scheduler) if scheduler
-               else _local_results(pending, study.base_dir, min(workers, max(len(pending), 1))))
+    results = (
+        _dask_results(pending, study.base_dir, scheduler)
+        if scheduler
+        else _local_results(pending, study.base_dir, min(workers, max(len(pending), 1)))
+    )
     for record, blob in results:
         cid = record["id"]
         if blob is not None:
             wio.atomic_write(os.path.join(cases_dir, cid + ".h5"), blob)
             record["result_file"] = os.path.join("cases", cid + ".h5")
-        wio.atomic_write(os.path.join(cases_dir, cid + ".json"),
-                      json.dumps(record, indent=1, default=_json_default))
+        wio.atomic_write(os.path.join(cases_dir, cid + ".json"), json.dumps(record, indent=1, default=_json_default))
         records[cid] = record
         progress.update(record)
     rows = [flat_row(records[case_id(p)], study) for p in cases]
     csv_path = os.path.join(outdir, "results.csv")
     write_csv(csv_path, rows, study)
-    summary = Summary(total=len(cases), ran=len(pending), skipped=len(cases) - len(pending),
-                      failed=sum(r["status"] != "ok" for r in rows), seconds=time.perf_counter() - t0,
-                      csv_path=csv_path, rows=rows)
+    summary = Summary(
+        total=len(cases),
+        ran=len(pending),
+        skipped=len(cases) - len(pending),
+        failed=sum(r["status"] != "ok" for r in rows),
+        seconds=time.perf_counter() - t0,
+        csv_path=csv_path,
+        rows=rows,
+    )
     summary.outputs = write_views(study, rows, outdir)
     return summary
 
@@ -427,8 +475,13 @@ def flat_row(record: dict, study: Study) -> dict:
     for k in study.grid:
         v = record["params"][k]
         row[k] = _input_path(v) if k == "input" else v
-    row.update(id=record["id"], status=record["status"], converged=record["converged"],
-               message=record.get("message", ""), result_file=record.get("result_file", ""))
+    row.update(
+        id=record["id"],
+        status=record["status"],
+        converged=record["converged"],
+        message=record.get("message", ""),
+        result_file=record.get("result_file", ""),
+    )
     for m in study.metrics:
         v = record["metrics"].get(m)
         row[m] = float("nan") if v is None else v
@@ -470,6 +523,7 @@ def _parse(text: str):
 # ------------------------------------------------------------------ tables and plots
 def select(rows: list, where: dict) -> list:
     """Rows whose columns equal every ``where`` value (numbers compared as floats)."""
+
     def eq(a, b):
         try:
             return float(a) == float(b)
@@ -482,19 +536,31 @@ def select(rows: list, where: dict) -> list:
 def _fixed_check(rows: list, free: set, where: str) -> None:
     """Error if a parameter other than ``free`` (and seed) varies: the table would mix cases silently."""
     params = [k for k in rows[0] if k not in set(METRICS) | {"id", *_STATUS_COLUMNS}]
-    varying = {k: sorted({str(r[k]) for r in rows}) for k in params
-               if k not in free and k != "seed" and len({str(r[k]) for r in rows}) > 1}
+    varying = {
+        k: sorted({str(r[k]) for r in rows})
+        for k in params
+        if k not in free and k != "seed" and len({str(r[k]) for r in rows}) > 1
+    }
     if varying:
         hint = " ".join(f"{k}={v[0]}" for k, v in varying.items())
-        raise InputError(f"{where}: parameter(s) {', '.join(f'{k} {v}' for k, v in varying.items())} vary but "
-                         f"are neither rows nor columns; fix them with --where (e.g. --where {hint})")
+        raise InputError(
+            f"{where}: parameter(s) {', '.join(f'{k} {v}' for k, v in varying.items())} vary but "
+            f"are neither rows nor columns; fix them with --where (e.g. --where {hint})"
+        )
 
 
 AGGREGATES = {"mean": np.mean, "median": np.median, "max": np.max, "min": np.min}
 
 
-def pivot(rows: list, row_key: str, col_key: str, metric: str, where: dict | None = None, agg: str = "mean",
-          source: str = "results.csv"):
+def pivot(
+    rows: list,
+    row_key: str,
+    col_key: str,
+    metric: str,
+    where: dict | None = None,
+    agg: str = "mean",
+    source: str = "results.csv",
+):
     """``(row values, col values, matrix, counts, flagged)``: ``agg`` of ``metric`` over the seeds.
 
     Failed cases (status "error") are left out; ``flagged`` counts the cases
@@ -523,9 +589,14 @@ def pivot(rows: list, row_key: str, col_key: str, metric: str, where: dict | Non
     flagged = np.zeros((len(rv), len(cv)), dtype=int)
     for i, a in enumerate(rv):
         for j, b in enumerate(cv):
-            cell = [r for r in sel if (row_key == "metric" or r[row_key] == a)
-                    and (col_key == "metric" or r[col_key] == b) and r["status"] != "error"
-                    and np.isfinite(float(r[metric]))]
+            cell = [
+                r
+                for r in sel
+                if (row_key == "metric" or r[row_key] == a)
+                and (col_key == "metric" or r[col_key] == b)
+                and r["status"] != "error"
+                and np.isfinite(float(r[metric]))
+            ]
             if cell:
                 mat[i, j], cnt[i, j] = f([float(r[metric]) for r in cell]), len(cell)
                 flagged[i, j] = sum(r["status"] != "ok" for r in cell)
@@ -534,8 +605,9 @@ def pivot(rows: list, row_key: str, col_key: str, metric: str, where: dict | Non
 
 def _best(values: np.ndarray, metric: str) -> int | None:
     ok = np.isfinite(values)
-    if not ok.any() or not (metric.endswith("_err") or metric.endswith("_bias") or metric.endswith("_h2")
-                            or metric == "radius_max_mm"):
+    if not ok.any() or not (
+        metric.endswith("_err") or metric.endswith("_bias") or metric.endswith("_h2") or metric == "radius_max_mm"
+    ):
         return None
     return int(np.nanargmin(np.where(ok, np.abs(values), np.nan)))
 
@@ -548,21 +620,30 @@ def _fmt(x: float, metric: str) -> str:
     return f"{x:.4g}"
 
 
-def render_table(rv, cv, mat, row_key, col_key, metric, caption: str = "", flagged=None,
-                 bold: bool = True) -> tuple[str, str]:
+def render_table(
+    rv, cv, mat, row_key, col_key, metric, caption: str = "", flagged=None, bold: bool = True
+) -> tuple[str, str]:
     """Markdown and LaTeX of a pivot, the best value of each row in bold (smallest absolute error).
 
     Cells with a non-converged case (``flagged > 0``) carry a dagger.
     """
     flagged = np.zeros(mat.shape, dtype=int) if flagged is None else flagged
+
     def lab(v):
         return f"{v:g}" if isinstance(v, float) else str(v)
 
     corner = f"{row_key} \\ {col_key}"
     md = [f"| {corner} | " + " | ".join(lab(c) for c in cv) + " |", "|---" * (len(cv) + 1) + "|"]
-    tex = [r"\begin{table}[ht!]", r"\centering", r"\begin{tabular}{c||" + "|".join("c" * len(cv)) + "}",
-           f"${row_key.replace('_', ' ')}\\setminus {col_key.replace('_', ' ')}$ & "
-           + " & ".join(lab(c) for c in cv) + r" \\", r"\hline", r"\hline"]
+    tex = [
+        r"\begin{table}[ht!]",
+        r"\centering",
+        r"\begin{tabular}{c||" + "|".join("c" * len(cv)) + "}",
+        f"${row_key.replace('_', ' ')}\\setminus {col_key.replace('_', ' ')}$ & "
+        + " & ".join(lab(c) for c in cv)
+        + r" \\",
+        r"\hline",
+        r"\hline",
+    ]
     for i, a in enumerate(rv):
         b = _best(mat[i], metric) if bold else None
         cells_md = [_fmt(x, metric) + ("†" if flagged[i, j] else "") for j, x in enumerate(mat[i])]
@@ -581,10 +662,17 @@ def table(rows, rows_key, cols_key, metric, where=None, agg="mean", caption="", 
     rv, cv, mat, cnt, flagged = pivot(rows, rows_key, cols_key, metric, where, agg, source)
     md, tex = render_table(rv, cv, mat, rows_key, cols_key, metric, caption, flagged, bold)
     n = cnt[cnt > 0]
-    note = (f"\n{agg} of {metric} ({METRICS[metric]}) over {n.min()}-{n.max()} case(s) per cell"
-            + (f"; {where}" if where else "") + ("; bold: smallest absolute value in the row" if bold else "")
-            + (f"; †: the cell includes {flagged.sum()} case(s) whose solver did not converge (see results.csv)"
-               if flagged.any() else "") + ".\n")
+    note = (
+        f"\n{agg} of {metric} ({METRICS[metric]}) over {n.min()}-{n.max()} case(s) per cell"
+        + (f"; {where}" if where else "")
+        + ("; bold: smallest absolute value in the row" if bold else "")
+        + (
+            f"; †: the cell includes {flagged.sum()} case(s) whose solver did not converge (see results.csv)"
+            if flagged.any()
+            else ""
+        )
+        + ".\n"
+    )
     return md + note, tex
 
 
@@ -593,8 +681,17 @@ def write_views(study: Study, rows: list, outdir: str) -> list[str]:
     out = []
     for i, spec in enumerate(study.tables):
         name = spec.get("name", f"table{i + 1}")
-        md, tex = table(rows, spec["rows"], spec["cols"], spec["metric"], spec.get("where"), spec.get("agg", "mean"),
-                        spec.get("caption", ""), os.path.join(outdir, "results.csv"), spec.get("bold", True))
+        md, tex = table(
+            rows,
+            spec["rows"],
+            spec["cols"],
+            spec["metric"],
+            spec.get("where"),
+            spec.get("agg", "mean"),
+            spec.get("caption", ""),
+            os.path.join(outdir, "results.csv"),
+            spec.get("bold", True),
+        )
         for ext, text in (("md", md), ("tex", tex)):
             path = os.path.join(outdir, f"{name}.{ext}")
             wio.atomic_write(path, text)
@@ -603,18 +700,33 @@ def write_views(study: Study, rows: list, outdir: str) -> list[str]:
         from .plotting import save_figure
 
         name = spec.get("name", f"plot{i + 1}")
-        fig = plot(rows, spec["x"], spec["y"], by=spec.get("by"), where=spec.get("where"), panels=spec.get("panels"),
-                   logx=spec.get("logx", False), title=spec.get("title", ""))
+        fig = plot(
+            rows,
+            spec["x"],
+            spec["y"],
+            by=spec.get("by"),
+            where=spec.get("where"),
+            panels=spec.get("panels"),
+            logx=spec.get("logx", False),
+            title=spec.get("title", ""),
+        )
         out.append(save_figure(fig, os.path.join(outdir, f"{name}.png")))
     return out
 
 
-def plot(rows: list, x: str, y: str, by: str | None = None, where: dict | None = None, panels: str | None = None,
-         logx: bool = False, title: str = ""):
+def plot(
+    rows: list,
+    x: str,
+    y: str,
+    by: str | None = None,
+    where: dict | None = None,
+    panels: str | None = None,
+    logx: bool = False,
+    title: str = "",
+):
     """Metric ``y`` against parameter ``x`` over the rows matching ``where`` (:func:`wss_nlp.plotting.figure_sweep`)."""
     from .plotting import figure_sweep
 
-    return figure_sweep(select(rows, where or {}), x, y, by=by, panels=panels, logx=logx, title=title,
-                        ylabel=METRICS.get(y, y))
-
-
+    return figure_sweep(
+        select(rows, where or {}), x, y, by=by, panels=panels, logx=logx, title=title, ylabel=METRICS.get(y, y)
+    )

@@ -94,8 +94,9 @@ class LinearTikhonov:
             try:
                 lam, vec = scipy.linalg.eigh(self.gram, self.hessian(key))
             except np.linalg.LinAlgError as exc:
-                raise SolverError(f"velocity: the normal matrix at beta = {key:g} is not positive definite ({exc})"
-                                  ) from exc
+                raise SolverError(
+                    f"velocity: the normal matrix at beta = {key:g} is not positive definite ({exc})"
+                ) from exc
             self._pencils[key] = (vec, np.maximum(lam, 0.0))  # G is semi-definite: clip rounding below zero
         return self._pencils[key]
 
@@ -165,9 +166,11 @@ class LinearTikhonov:
         """
         sigma = np.asarray(sigma, dtype=float)
         if not (np.all(np.isfinite(sigma)) and np.any(sigma > 0)):
-            raise NoiseEstimationError("the balancing principle needs a positive, finite velocity noise level; got "
-                                       f"{'zero' if np.all(sigma == 0) else 'non-finite values'} "
-                                       "(pass --noise-velocity or a fixed --beta)")
+            raise NoiseEstimationError(
+                "the balancing principle needs a positive, finite velocity noise level; got "
+                f"{'zero' if np.all(sigma == 0) else 'non-finite values'} "
+                "(pass --noise-velocity or a fixed --beta)"
+            )
         functional = np.asarray(functional, dtype=float)
         n_beta = np.size(betas)
         est = np.empty((n_beta, functional.shape[0]))

@@ -83,23 +83,37 @@ class VelocityOptions:
 
     schema_group = "velocity (Sec. 3, 7.2)"
 
-    basis: str = option("zernike", "(1-|xi|^2) x Zernike polynomials, or the paper's Dirichlet eigenfunctions",
-                        cli="--basis", toml=("basis",), choices=BASES)
+    basis: str = option(
+        "zernike",
+        "(1-|xi|^2) x Zernike polynomials, or the paper's Dirichlet eigenfunctions",
+        cli="--basis",
+        toml=("basis",),
+        choices=BASES,
+    )
     degree: int = option(20, "Zernike degree", cli="--degree", toml=("degree",))
-    angular_order: int | None = option(6, "highest angular order |m| of the Zernike functions",
-                                       cli="--angular-order", toml=("angular_order",))
-    max_eigenvalue: float = option(400.0, "eigenvalue cut-off M of the eigenfunction basis", cli="--max-eigenvalue",
-                                   toml=("max_eigenvalue",))
+    angular_order: int | None = option(
+        6, "highest angular order |m| of the Zernike functions", cli="--angular-order", toml=("angular_order",)
+    )
+    max_eigenvalue: float = option(
+        400.0, "eigenvalue cut-off M of the eigenfunction basis", cli="--max-eigenvalue", toml=("max_eigenvalue",)
+    )
     beta: float = 5e-8  # on the command line and in studies through --beta (ReconstructionOptions.beta_rule)
-    laplacian_power: int = option(2, "t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5",
-                                  cli="--laplacian-power", toml=("laplacian_power",), choices=(1, 2))
+    laplacian_power: int = option(
+        2,
+        "t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5",
+        cli="--laplacian-power",
+        toml=("laplacian_power",),
+        choices=(1, 2),
+    )
     eta: float = option(2.0, "exponent of the map phi_R, >= 2", cli="--eta", toml=("eta",))
     inner_radius: float | None = None
-    inner_fraction: float = option(0.5, "inner radius of phi_R as a fraction of min R", cli="--inner-fraction",
-                                   toml=("inner_fraction",))
+    inner_fraction: float = option(
+        0.5, "inner radius of phi_R as a fraction of min R", cli="--inner-fraction", toml=("inner_fraction",)
+    )
     quad_order: int | None = None  # set with the geometry's (--quad-order)
-    solver: str = option("ipopt", "CasADi/IPOPT or direct Cholesky solve", cli="--velocity-solver",
-                         choices=("ipopt", "cholesky"))
+    solver: str = option(
+        "ipopt", "CasADi/IPOPT or direct Cholesky solve", cli="--velocity-solver", choices=("ipopt", "cholesky")
+    )
 
     def __post_init__(self):
         if self.basis not in BASES:
@@ -140,7 +154,7 @@ class VelocityProblem:
         return float(np.sum(self.weights))
 
     def residual_norm(self, coefficients) -> float:
-        """``sqrt(sum_i |V_i cap Omega| (T_i c - u_i)^2 / |Omega|)`` in m/s: the misfit the rules compare with epsilon."""
+        """``sqrt(sum_i |V_i cap Omega| (T_i c - u_i)^2 / |Omega|)`` in m/s, the misfit compared with epsilon."""
         return float(np.sqrt(np.sum(self.weights * (self.operator @ coefficients - self.data) ** 2) / self.area))
 
     @cached_property
@@ -173,13 +187,17 @@ class VelocityResult:
         inside = np.ravel(rho < 1)
         out = np.zeros(np.size(rho))
         if inside.any():
-            xi, yi = np.ravel(rho)[inside] * np.cos(np.ravel(t)[inside]), np.ravel(rho)[inside] * np.sin(np.ravel(t)[inside])
+            xi, yi = (
+                np.ravel(rho)[inside] * np.cos(np.ravel(t)[inside]),
+                np.ravel(rho)[inside] * np.sin(np.ravel(t)[inside]),
+            )
             out[inside] = self.basis.evaluate(xi, yi) @ self.coefficients
         return out.reshape(np.shape(rho))
 
 
-def assemble(grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, center, options: VelocityOptions,
-             basis=None) -> VelocityProblem:
+def assemble(
+    grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, center, options: VelocityOptions, basis=None
+) -> VelocityProblem:
     """Assemble ``T~_h``, the partial volumes and the data on the voxels meeting the lumen.
 
     Notes

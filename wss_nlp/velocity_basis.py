@@ -17,7 +17,7 @@ eq. (tik2); t = 2 is the stronger penalty of Remark 3.5).
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import lru_cache, cache
 
 import numpy as np
 import scipy.special
@@ -90,9 +90,14 @@ class ZernikeWallBasis:
         return len(self.terms)
 
     def describe(self) -> dict:
-        return {"basis": self.kind, "degree": self.degree,
-                "max_order": -1 if self.max_order is None else self.max_order, "size": self.size,
-                "terms_n": [n for n, _ in self.terms], "terms_m": [m for _, m in self.terms]}
+        return {
+            "basis": self.kind,
+            "degree": self.degree,
+            "max_order": -1 if self.max_order is None else self.max_order,
+            "size": self.size,
+            "terms_n": [n for n, _ in self.terms],
+            "terms_m": [m for _, m in self.terms],
+        }
 
     def _raw(self, x, y):
         """List of unnormalized basis values (arithmetic only).
@@ -228,7 +233,7 @@ class _BesselJ(ca.Callback):
         return ca.Function(name, [x, out], [d], inames, onames, opts)
 
 
-@lru_cache(maxsize=None)
+@cache
 def bessel_chebyshev(order: int, scale: float) -> np.ndarray:
     """Chebyshev coefficients of ``x -> J_order(scale x)`` on [-1, 1].
 
@@ -248,7 +253,7 @@ def clenshaw(coefficients, x):
     return x * b1 - b2 + coefficients[0]
 
 
-@lru_cache(maxsize=None)
+@cache
 def bessel_j(order: int) -> _BesselJ:
     """Cached callback for ``J_order`` (callbacks must outlive their use)."""
     return _BesselJ(order)
@@ -284,17 +289,23 @@ class DirichletEigenBasis:
             m += 1
         terms.sort(key=lambda z: (z[1], z[0], z[2]))
         self.terms = terms
-        self.norm = np.array([np.sqrt((2 * np.pi if m == 0 else np.pi) / 2) * abs(scipy.special.jv(m + 1, j))
-                              for m, j, _ in terms])
+        self.norm = np.array(
+            [np.sqrt((2 * np.pi if m == 0 else np.pi) / 2) * abs(scipy.special.jv(m + 1, j)) for m, j, _ in terms]
+        )
 
     @property
     def size(self) -> int:
         return len(self.terms)
 
     def describe(self) -> dict:
-        return {"basis": self.kind, "max_eigenvalue": self.max_eigenvalue, "size": self.size,
-                "terms_m": [m for m, _, _ in self.terms], "terms_j": [j for _, j, _ in self.terms],
-                "terms_sin": [int(k == "sin") for _, _, k in self.terms]}
+        return {
+            "basis": self.kind,
+            "max_eigenvalue": self.max_eigenvalue,
+            "size": self.size,
+            "terms_m": [m for m, _, _ in self.terms],
+            "terms_j": [j for _, j, _ in self.terms],
+            "terms_sin": [int(k == "sin") for _, _, k in self.terms],
+        }
 
     def evaluate(self, x, y, average=None) -> np.ndarray:
         """Values at reference points, ``(npts, size)``; ``average`` as for :class:`ZernikeWallBasis`."""

@@ -33,7 +33,7 @@ class WssResult:
     viscosity_pa_s: float
     tau_std: np.ndarray | None = None  # linearized standard deviation from the data noise, Pa (wss_nlp.sensitivity)
     mean_std: float = float("nan")
-    vector: "WssVector | None" = None  # the 3D WSS vector of a stack with three velocity components
+    vector: WssVector | None = None  # the 3D WSS vector of a stack with three velocity components
 
 
 def wss_expression(velocity_of_xi, n_fourier: int, r_in: float | None, eta: float):
@@ -76,8 +76,13 @@ def wss_expression(velocity_of_xi, n_fourier: int, r_in: float | None, eta: floa
     normal = ca.vertcat(big_r * ca.cos(phi) + dr * ca.sin(phi), big_r * ca.sin(phi) - dr * ca.cos(phi))
     normal = normal / ca.sqrt(big_r**2 + dr**2)  # eq. (normal)
     tau = -mu * PER_MM * ca.dot(normal, grad_x)
-    return ca.Function("wss", [phi, c_r, center, p_v, mu] + extra, [tau, x_w],
-                       ["phi", "c_R", "center", "p_v", "mu"] + ["r_in"] * bool(extra), ["tau", "x_wall"])
+    return ca.Function(
+        "wss",
+        [phi, c_r, center, p_v, mu] + extra,
+        [tau, x_w],
+        ["phi", "c_R", "center", "p_v", "mu"] + ["r_in"] * bool(extra),
+        ["tau", "x_wall"],
+    )
 
 
 class _BasisVelocity:
@@ -96,7 +101,9 @@ def evaluate(phi, c_r, center, velocity_of_xi, params, r_in, eta, viscosity_pa_s
     phi = np.asarray(phi, dtype=float)
     c_r = np.asarray(c_r, dtype=float)
     fun = wss_expression(velocity_of_xi, rad.n_fourier_from_size(c_r.size), r_in, eta).map(phi.size)
-    tau, xw = fun(phi[None, :], c_r, np.asarray(center, float), np.atleast_1d(np.asarray(params, float)), viscosity_pa_s)
+    tau, xw = fun(
+        phi[None, :], c_r, np.asarray(center, float), np.atleast_1d(np.asarray(params, float)), viscosity_pa_s
+    )
     tau = np.asarray(tau).ravel()
     xw = np.asarray(xw)
     r, dr = rad.evaluate(c_r, phi), rad.evaluate(c_r, phi, 1)
@@ -111,8 +118,16 @@ def _is_uniform(phi) -> bool:
 def from_reconstruction(velocity_result, n_phi: int, viscosity_pa_s: float) -> WssResult:
     """WSS of a :class:`wss_nlp.velocity.VelocityResult` at ``n_phi`` uniform angles."""
     dm = velocity_result.disk_map
-    return evaluate(rad.uniform_angles(n_phi), dm.coefficients, dm.center, _BasisVelocity(velocity_result.basis),
-                    velocity_result.coefficients, dm.r_in, dm.eta, viscosity_pa_s)
+    return evaluate(
+        rad.uniform_angles(n_phi),
+        dm.coefficients,
+        dm.center,
+        _BasisVelocity(velocity_result.basis),
+        velocity_result.coefficients,
+        dm.r_in,
+        dm.eta,
+        viscosity_pa_s,
+    )
 
 
 def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tuple[np.ndarray, np.ndarray]:
@@ -124,7 +139,12 @@ def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tupl
     """
     dm = disk_map
     f = wss_expression(_BasisVelocity(basis), rad.n_fourier_from_size(dm.coefficients.size), dm.r_in, dm.eta)
-    ph, cc, ce, p = ca.SX.sym("ph"), ca.SX.sym("cc", dm.coefficients.size), ca.SX.sym("ce", 2), ca.SX.sym("p", basis.size)
+    ph, cc, ce, p = (
+        ca.SX.sym("ph"),
+        ca.SX.sym("cc", dm.coefficients.size),
+        ca.SX.sym("ce", 2),
+        ca.SX.sym("p", basis.size),
+    )
     tau, xw = f(ph, cc, ce, p, viscosity_pa_s)
     g = ca.Function("g", [ph, cc, ce], [ca.jacobian(tau, p), xw]).map(n_phi)
     a, xw = g(rad.uniform_angles(n_phi)[None, :], dm.coefficients, np.array(dm.center))
@@ -182,6 +202,11 @@ def wss_vector(phi, coefficients, dcoef_dz, dcenter_dz, tau_planar, viscosity_pa
     tau = -viscosity_pa_s * (g + n * np.sum(g * n, axis=1, keepdims=True))
     e_a = x_z / np.linalg.norm(x_z, axis=1, keepdims=True)
     e_c = np.cross(e_a, n)
-    return WssVector(vector=tau, normal=n, axial=np.sum(tau * e_a, axis=1),
-                     circumferential=np.sum(tau * e_c, axis=1), normal_part=np.sum(tau * n, axis=1),
-                     magnitude=np.linalg.norm(tau, axis=1))
+    return WssVector(
+        vector=tau,
+        normal=n,
+        axial=np.sum(tau * e_a, axis=1),
+        circumferential=np.sum(tau * e_c, axis=1),
+        normal_part=np.sum(tau * n, axis=1),
+        magnitude=np.linalg.norm(tau, axis=1),
+    )
