@@ -116,3 +116,14 @@ def test_a_new_option_is_one_declaration():
     assert schema.from_args(Outer, p.parse_args(["--width", "3", "--quiet"])) == Outer(Inner(3.0), False)
     assert schema.from_args(Outer, p.parse_args([])) == Outer()
     assert schema.build(Outer, {"width": 5}) == Outer(Inner(5.0))
+
+
+def test_the_study_file_docs_list_exactly_the_declared_keys():
+    import pathlib
+    import re
+
+    text = (pathlib.Path(__file__).resolve().parent.parent / "problems" / "README.md").read_text()
+    listed = text[text.index("Grid keys for options") : text.index("Metrics:")]
+    documented = set(re.findall(r"`([A-Za-z_]+)`", listed)) - {"toml", "basis = ", "eigen"}
+    declared = set(schema.toml_keys(ReconstructionOptions)) | {"M"}
+    assert documented == declared, (documented - declared, declared - documented)

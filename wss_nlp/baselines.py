@@ -157,8 +157,8 @@ def segment(m: np.ndarray, grid: VoxelGrid, lumen: pp.Lumen, n_fourier: int, sou
     xc, yc = grid.centers()
     lines = contourpy.contour_generator(xc, yc, m, line_type="Separate").lines(0.5)
     cx, cy = lumen.center
-    best = None
-    for pts in lines:
+    best: tuple[float, np.ndarray] | None = None
+    for pts in map(np.asarray, lines):
         if len(pts) < 8 or not np.allclose(pts[0], pts[-1]):
             continue  # open lines end at the image border
         ang = np.unwrap(np.arctan2(pts[:, 1] - cy, pts[:, 0] - cx))

@@ -143,8 +143,8 @@ def balance_alpha(
         radii.append(design @ prev.coefficients)
         maps.append((design @ dc[:, : annulus.size] * sigma_m).ravel())
         res.append(prev.annulus_residual_norm)
-    radii, maps = np.array(radii), np.array(maps)
-    j, ratio = an.balancing_principle(radii @ radii.T, maps @ maps.T, options.kappa_alpha)
+    r_mat, m_mat = np.array(radii), np.array(maps)
+    j, ratio = an.balancing_principle(r_mat @ r_mat.T, m_mat @ m_mat.T, options.kappa_alpha)
     return results[j], an.ParameterChoice(
         "alpha",
         "balance",

@@ -104,6 +104,7 @@ def _errors_rows(err: metrics.Errors):
 def cmd_phantom(args) -> int:
     outputs.check_outputs(files={"-o": args.output, "--truth": args.truth})
     snr = None if args.snr <= 0 else args.snr
+    truth: phantoms.Truth | phantoms.StackTruth
     if args.stack:
         acq, truth = phantoms.make_stack(
             args.stack,
@@ -121,7 +122,7 @@ def cmd_phantom(args) -> int:
             args.case, h_mm=args.h, snr=snr, seed=args.seed, venc=args.venc, as_phase=not args.velocity
         )
     peak = max(phantoms.peak_velocity(t.flow) for t in getattr(truth, "slices", [truth]))
-    if acq.venc_m_s < peak:
+    if acq.venc_m_s is not None and acq.venc_m_s < peak:
         print(
             f"wss-nlp: warning: venc {acq.venc_m_s:g} m/s is below the peak velocity {peak:.3g} m/s: the phase "
             "wraps (aliasing); 'reconstruct' unwraps it (or refuses it when it cannot)",
@@ -243,7 +244,7 @@ def cmd_analyze(args) -> int:
         from .plotting import save_parameter_figures
 
         with outputs.StagedFolder(args.figures) as staged:
-            save_parameter_figures(choices, staged.path)
+            save_parameter_figures(choices, str(staged.path))
             paths = staged.commit()
         print(f"{len(paths)} figure(s) in {args.figures}")
     return 0
@@ -287,7 +288,7 @@ def cmd_demo(args) -> int:
     options = options_from_args(args)
     outputs.check_outputs(folders={"-o": out})
     with outputs.StagedFolder(out) as staged:  # a failed demo leaves nothing half-written
-        _demo(args, options, staged.path)
+        _demo(args, options, str(staged.path))
         staged.commit()
     print(f"wrote input.h5 (input), truth.h5 (truth), result.h5 (result) and the figures in {out}")
     return 0

@@ -456,7 +456,7 @@ class CoupledResult:
     velocity: vel.VelocityResult
     stats: SolverStats
     weight: float
-    start: tuple[np.ndarray, np.ndarray] = field(default_factory=tuple)  # warm start (c_R, c_v)
+    start: tuple = field(default_factory=tuple)  # warm start (c_R, c_v)
     nlp: CoupledNLP | None = None  # the solved NLP (for sensitivities)
 
 

@@ -46,12 +46,16 @@ class Acquisition:
 
     @property
     def grid(self) -> VoxelGrid:
-        return VoxelGrid(tuple(self.magnitude.shape[1:]), tuple(self.voxel_size_mm), tuple(self.origin_mm))
+        (dy, dx), (x0, y0) = self.voxel_size_mm, self.origin_mm
+        ny, nx = self.magnitude.shape[1:]
+        return VoxelGrid((int(ny), int(nx)), (float(dy), float(dx)), (float(x0), float(y0)))
 
     def velocity_images(self) -> np.ndarray:
         """Through-plane velocity in m/s, from ``velocity`` or ``venc * phase / pi``."""
         if self.velocity is not None:
             return self.velocity
+        if self.phase is None or self.venc_m_s is None:
+            raise InputError(f"{self.source}: no velocity: give 'velocity', or 'phase' with 'venc_m_s'")
         return self.venc_m_s * self.phase / np.pi
 
     def viscosity(self, override: float | None = None) -> float:
@@ -87,7 +91,9 @@ class Acquisition:
             raise InputError(f"{src}: 'magnitude' has no slices (shape {mag.shape}); nz must be >= 1")
         if (self.velocity is None) == (self.phase is None):
             raise InputError(f"{src}: exactly one of 'velocity' and 'phase' must be present")
-        name, other = ("velocity", self.velocity) if self.velocity is not None else ("phase", self.phase)
+        name = "velocity" if self.velocity is not None else "phase"
+        other = self.velocity_images() if self.velocity is not None else self.phase
+        assert other is not None  # exactly one of velocity and phase, checked above
         if other.shape != mag.shape:
             raise InputError(f"{src}: shape mismatch: 'magnitude' {mag.shape} but '{name}' {other.shape}")
         if min(mag.shape[1:]) < 4:
@@ -306,7 +312,7 @@ def provenance(options: dict | None = None, argv=None) -> dict:
 
     out = {
         "wss_nlp_version": __version__,
-        "casadi_version": casadi.__version__,
+        "casadi_version": getattr(casadi, "__version__", "unknown"),  # not in CasADi's type stubs
         "ipopt_version": _ipopt_version(),
         "numpy_version": np.__version__,
         "python_version": sys.version.split()[0],
@@ -632,7 +638,7 @@ def read_choices(path) -> dict:
     from .analysis import ParameterChoice
 
     read_result(path)  # validates the file and its slices
-    out = {}
+    out: dict = {}
     with h5py.File(path, "r") as f:
         for name in sorted(k for k in f if k.startswith("slice_")):
             out[name] = {}

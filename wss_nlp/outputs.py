@@ -124,9 +124,10 @@ class StagedFolder:
     """
 
     def __init__(self, target: str | None):
-        self.target = None if target is None else os.path.abspath(target)
-        self.path = None
-        if self.target is not None:
+        self.target = "" if target is None else os.path.abspath(target)
+        self.path: str | None = None
+        self._created = False
+        if target is not None:
             self._created = not os.path.exists(self.target)
             self.path = tempfile.mkdtemp(prefix=".wss-nlp-part-", dir=_nearest_existing(self.target))
 

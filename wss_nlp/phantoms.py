@@ -275,6 +275,7 @@ class TurbulentPipe(Flow):
 
     @property
     def radius_mm(self) -> float:
+        assert isinstance(self.lumen, Circle)  # a pipe flow
         return float(self.lumen.r)
 
     @property
@@ -351,8 +352,7 @@ def acquire(
     n_sub = int(np.clip(np.ceil(grid.h / spacing_mm), 4, 60))
     xc, yc = grid.centers()
     t = (np.arange(n_sub) + 0.5) / n_sub - 0.5
-    ox, oy = np.meshgrid(t * grid.dx, t * grid.dy)
-    ox, oy = ox.ravel(), oy.ravel()
+    ox, oy = (a.ravel() for a in np.meshgrid(t * grid.dx, t * grid.dy))
     if venc is None:
         venc = 1.25 * peak_velocity(flow)
     ny, nx = grid.shape

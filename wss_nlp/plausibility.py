@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import heapq
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import scipy.ndimage
@@ -213,7 +214,8 @@ def _screen_slice(
     acq, iz: int, velocity: np.ndarray, lumen: pp.Lumen, m: np.ndarray, options: ScreenOptions
 ) -> tuple[np.ndarray, SliceScreen]:
     where = f"{acq.source} slice {iz}"
-    notes, record = [], {"other_vessels": lumen.others, "vessel_chosen_by": lumen.chosen_by}
+    notes: list[str] = []
+    record: dict[str, Any] = {"other_vessels": lumen.others, "vessel_chosen_by": lumen.chosen_by}
     if lumen.others:
         notes.append(lumen.others_note())
     venc, out = acq.venc_m_s, velocity

@@ -441,6 +441,7 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     velocity = acq.velocity_images()
     bad = set(acq.nonfinite_slices())
     for iz in range(acq.nz):
+        res: SliceResult | bl.BaselineResult | FailedSlice
         try:
             if iz in bad:
                 raise InputError(f"{acq.source} slice {iz}: the images contain NaN or Inf")

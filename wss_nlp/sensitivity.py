@@ -518,7 +518,7 @@ def coupled(
         grad, err_v = grad.ravel(), err_v.ravel()
         kkt = kkt_matrix(jac, sec)
         stationarity = grad + g_act.T @ lam
-        if it == polish_steps or np.linalg.norm(stationarity) <= 1e-13 * max(1.0, np.linalg.norm(grad)):
+        if it == polish_steps or np.linalg.norm(stationarity) <= 1e-13 * max(1.0, float(np.linalg.norm(grad))):
             break
         step = np.linalg.solve(kkt, -np.concatenate([stationarity, np.zeros(active.size)]))
         x, lam = x + step[:n_x], lam + step[n_x:]

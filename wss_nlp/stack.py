@@ -41,6 +41,8 @@ import time
 from dataclasses import dataclass, field, replace
 
 import casadi as ca
+from typing import Any
+
 import numpy as np
 import scipy.linalg
 
@@ -188,7 +190,7 @@ class SliceGeometry:
         self.objective = ca.Function("f", [c, self._p], [self._f])
         self.local = ca.Function("fgh", [c, self._p], [self._f, ca.gradient(self._f, c), self._hess])
         self.box = ca.DM(rad.design_matrix(options.box_angles(), options.n_fourier)).full()
-        self._solver = None
+        self._solver: Any = None  # the IPOPT solver, built on first use
         self.lam_g = np.zeros(self.box.shape[0])
 
     def solve(self, alpha: float, s: np.ndarray, n_nb: float, x0: np.ndarray):
@@ -329,7 +331,7 @@ def kaczmarz_geometry(
     zop = z_operator(ns, order)
     w0 = slices[0].w0
 
-    def nb_sum(k):
+    def nb_sum(k) -> tuple[np.ndarray, float]:
         return neighbour_terms(zop, c, k)
 
     history, stats = [], [None] * ns
@@ -367,7 +369,7 @@ def coupled_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, order: int):
     """All slices' velocity as one CasADi QP (IPOPT), beta ``betas[k]`` in slice k; ``(coefficients, stats)``."""
     ns, nb = len(vps), vps[0].operator.shape[1]
     big = ca.MX.sym("V", nb * ns)
-    f = 0
+    f: Any = 0  # a CasADi expression once the first term is added
     for k, vp in enumerate(vps):
         ck = big[k * nb : (k + 1) * nb]
         hmat, g = vp.normal_equations(betas[k])
@@ -457,7 +459,7 @@ def segment_beta(choices) -> float:
 
 def segments_of(ok: list[int]) -> list[list[int]]:
     """Runs of consecutive slice indices."""
-    out = []
+    out: list[list[int]] = []
     for i in ok:
         if out and out[-1][-1] == i - 1:
             out[-1].append(i)
@@ -489,7 +491,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             "pass --z-smoothing 0 for independent slices with other settings"
         )
     mu = acq.viscosity(options.viscosity_pa_s)
-    dz = float(acq.slice_spacing_mm) if acq.nz > 1 else 1.0
+    dz = float(acq.slice_spacing_mm or 1.0) if acq.nz > 1 else 1.0  # validate() requires it for nz > 1
     ell = dz if stack.z_smoothing_mm is None else float(stack.z_smoothing_mm)
     velocity = acq.velocity_images()
     t = {"preprocess": time.perf_counter()}
@@ -588,7 +590,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
         problems = [prepared[k].problem for k in seg]
         x0 = np.array([geo.initial_guess(pb, gopt.n_fourier) for pb in problems])
         coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(seg, problems, x0, strategy)
-        factors = [None] * len(seg)
+        factors: list[Any] = [None] * len(seg)
         if options.dephasing_correction and acq.venc_m_s is not None:
             # as reconstruct_slice: predict wall-voxel signal loss from a GCV-beta velocity, then one more pass
             t0 = time.perf_counter()

@@ -29,6 +29,7 @@ import os
 import sys
 import tempfile
 import time
+from typing import Any
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -204,7 +205,7 @@ def _check_view(study: Study, spec: dict) -> None:
 def expand(study: Study) -> list[dict]:
     """The cases of the grid: the cross product of all lists, in the order the keys appear."""
     keys = list(study.grid)
-    cases = [{}]
+    cases: list[dict] = [{}]
     for k in keys:
         cases = [{**c, k: v} for c in cases for v in study.grid[k]]
     return cases
@@ -285,9 +286,10 @@ def run_case(params: dict, base_dir: str = ".") -> tuple[dict, bytes | None]:
     caller alone decides what lands in the output folder.
     """
     t0 = time.perf_counter()
-    record = {"id": case_id(params), "params": params, "wss_nlp_version": __version__}
+    cid = case_id(params)
+    record: dict[str, Any] = {"id": cid, "params": params, "wss_nlp_version": __version__}
     try:
-        options = options_for(params, record["id"])
+        options = options_for(params, cid)
         acq, truth = _acquisition(params, base_dir)
         res = reconstruct(acq, options)[0]
         record.update(
@@ -303,7 +305,7 @@ def run_case(params: dict, base_dir: str = ".") -> tuple[dict, bytes | None]:
                 tmp,
                 [res],
                 options.as_dict(),
-                argv=["wss-nlp sweep", record["id"]],
+                argv=["wss-nlp sweep", cid],
                 extra_attrs={"sweep_params_json": json.dumps(params, default=str)},
             )
             with open(tmp, "rb") as fh:
@@ -425,7 +427,7 @@ def run_study(
     with open(study.source, "rb") as fh:
         wio.atomic_write(os.path.join(outdir, "study.toml"), fh.read())
     cases = expand(study)
-    records = {case_id(p): _done(cases_dir, case_id(p), retry_failed) for p in cases}
+    records: dict[str, Any] = {case_id(p): _done(cases_dir, case_id(p), retry_failed) for p in cases}
     pending = [p for p in cases if records[case_id(p)] is None]
     stream = stream if stream is not None else sys.stderr
     stream.write(
@@ -549,7 +551,7 @@ def _fixed_check(rows: list, free: set, where: str) -> None:
         )
 
 
-AGGREGATES = {"mean": np.mean, "median": np.median, "max": np.max, "min": np.min}
+AGGREGATES: dict[str, Any] = {"mean": np.mean, "median": np.median, "max": np.max, "min": np.min}
 
 
 def pivot(

@@ -16,6 +16,7 @@ paper's parameter is ``beta_paper = beta |Omega| / pi`` for a misfit in mm^2.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 from functools import cached_property
 
 import numpy as np
@@ -147,7 +148,7 @@ class VelocityProblem:
     gram: np.ndarray  # (n_basis, n_basis) Laplacian Gram matrix on B
     voxels: meas.LumenVoxels
     disk_map: DiskMap
-    basis: object
+    basis: Any  # a basis of wss_nlp.velocity_basis
 
     @property
     def area(self) -> float:
@@ -175,7 +176,7 @@ class VelocityResult:
     penalty: float  # ||Delta v||^2_{L^2(B)} / pi
     stats: SolverStats
     disk_map: DiskMap
-    basis: object
+    basis: Any  # a basis of wss_nlp.velocity_basis
     fitted: np.ndarray  # T~_h c on the lumen voxels
     voxel_index: np.ndarray
     voxel_fraction: np.ndarray

@@ -80,7 +80,7 @@ class ZernikeWallBasis:
         self.degree = int(degree)
         self.max_order = None if max_order is None else int(max_order)
         self.terms = _zernike_terms(self.degree, self.max_order)
-        self._grams = {}
+        self._grams: dict = {}
         self.transform = np.eye(len(self.terms))
         gram = self._gram(laplacian=0)
         self.transform = np.linalg.inv(np.linalg.cholesky(gram)).T

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from typing import Any
+
 import numpy as np
 
 import casadi as ca
@@ -55,7 +57,7 @@ def wss_expression(velocity_of_xi, n_fourier: int, r_in: float | None, eta: floa
     ``tau = -mu * 1000 * n . (J^{-T} grad v)``: lengths in mm, velocity in
     m/s, ``mu`` in Pa s, so ``tau`` is in Pa.
     """
-    sym = ca.SX if getattr(velocity_of_xi, "sx_ok", True) else ca.MX
+    sym: Any = ca.SX if getattr(velocity_of_xi, "sx_ok", True) else ca.MX
     phi = sym.sym("phi")
     c_r = sym.sym("c_R", rad.n_coefficients(n_fourier))
     center = sym.sym("center", 2)
@@ -63,7 +65,8 @@ def wss_expression(velocity_of_xi, n_fourier: int, r_in: float | None, eta: floa
     xi = sym.sym("xi", 2)
     p_v = sym.sym("p_v", getattr(velocity_of_xi, "n_params", 1))
     r_in_sym = sym.sym("r_in") if r_in is None else None
-    x = symbolic_forward(xi, c_r, center, r_in_sym if r_in is None else r_in, eta)
+    r_in_arg: Any = r_in_sym if r_in is None else r_in  # a symbol (for derivatives) or a number
+    x = symbolic_forward(xi, c_r, center, r_in_arg, eta)
     v = velocity_of_xi(xi, p_v)
     jac = ca.jacobian(x, xi)
     grad_v = ca.gradient(v, xi)
