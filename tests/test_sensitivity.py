@@ -233,3 +233,19 @@ def test_band_agrees_with_monte_carlo():
     mc_tau_std = np.std(np.array(taus), axis=0, ddof=1)
     assert banded.wss.mean_std == pytest.approx(mc_mean_std, rel=0.2)
     assert np.sqrt(np.mean(banded.wss.tau_std**2)) == pytest.approx(np.sqrt(np.mean(mc_tau_std**2)), rel=0.2)
+
+
+def test_operator_derivative_dot_test():
+    """The hand-written pair dT_k c / dT_k^T y of sens.OperatorDerivative are adjoint, for every direction k."""
+    from wss_nlp import checks
+
+    acq, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=91)
+    res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+    vopt = vel.VelocityOptions()
+    g = res.geometry
+    vp = vel.assemble(acq.grid, res.velocity_image, g.coefficients, g.center, vopt)
+    od, _, _ = sens.operator_derivatives(vp, vopt, g.coefficients, g.center)
+    n_vox, n_basis = od.op.shape
+    rng = np.random.default_rng(92)
+    for k in range(od.drho.shape[1]):  # every radius coefficient and both centre coordinates
+        checks.dottest(lambda c: od.times(c)[:, k], lambda y: od.transpose_times(y)[:, k], n_basis, n_vox, rng)
