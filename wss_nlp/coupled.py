@@ -39,7 +39,7 @@ from . import radius as rad
 from . import velocity as vel
 from .errors import InputError
 from .schema import option
-from .solver import SolverStats, ipopt_options, run_nlpsol
+from .solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
 
 
 @dataclass(frozen=True)
@@ -495,32 +495,26 @@ def solve(
         options.quad_order,
     )
     # warm start from the decoupled solution: a small initial barrier parameter keeps IPOPT near it
-    opts = ipopt_options(
-        options.tol,
-        options.max_iter,
-        {
-            "clip_inactive_lam": True,
-            "ipopt.mu_init": 1e-6,
-            "ipopt.warm_start_init_point": "yes",
-            "ipopt.warm_start_bound_push": 1e-9,
-            "ipopt.warm_start_mult_bound_push": 1e-9,
-        },
-    )
+    extra = {
+        "clip_inactive_lam": True,
+        "ipopt.mu_init": 1e-6,
+        "ipopt.warm_start_init_point": "yes",
+        "ipopt.warm_start_bound_push": 1e-9,
+        "ipopt.warm_start_mult_bound_push": 1e-9,
+    }
     if options.hessian == "gauss-newton":
         jac = nlp.jacobian
         reg = np.zeros((nlp.x.numel(), nlp.x.numel()))
         n_r = nlp.n_r
         reg[:n_r, :n_r] = alpha * np.diag(nlp.geometry.weights)
         reg[n_r:, n_r:] = weight * beta / np.pi * nlp.gram
-        hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * ca.DM(reg))
-        sigma = ca.MX.sym("sigma")
-        opts["hess_lag"] = ca.Function(
-            "nlp_hess_l",
-            {"x": nlp.x, "p": nlp.gamma, "lam_f": sigma, "hess_gamma_x_x": sigma * hess},
-            ["x", "p", "lam_f", "lam_g"],
-            ["hess_gamma_x_x"],
+        hess = 2 * ca.mtimes(jac.T, jac) + 2 * ca.DM(reg)
+        solver = gauss_newton_ipopt(
+            "coupled", nlp.x, nlp.f, nlp.g, hess, nlp.gamma, options.tol, options.max_iter, extra
         )
-    solver = ca.nlpsol("coupled", "ipopt", {"x": nlp.x, "p": nlp.gamma, "f": nlp.f, "g": nlp.g}, opts)
+    else:
+        opts = ipopt_options(options.tol, options.max_iter, extra)
+        solver = ca.nlpsol("coupled", "ipopt", {"x": nlp.x, "p": nlp.gamma, "f": nlp.f, "g": nlp.g}, opts)
     x0 = np.concatenate([start_geometry.coefficients, start_velocity.coefficients])
     lower = max(geometry_problem.r0, 1.000001 * dm.r_in)
     t0 = time.perf_counter()

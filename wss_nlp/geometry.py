@@ -25,7 +25,7 @@ from . import measurement as meas
 from . import radius as rad
 from .errors import InputError, SolverError
 from .schema import option
-from .solver import SolverStats, ipopt_options, run_nlpsol
+from .solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
 
 
 @dataclass(frozen=True)
@@ -264,18 +264,16 @@ class IpoptGeometrySolver:
         nlp = self.nlp = build_tikhonov(problem, options)
         # clip_inactive_lam: IPOPT leaves ~1e-12 multipliers on inactive bounds, which sensitivity analysis
         # (wss_nlp.sensitivity) would read as active constraints
-        opts = ipopt_options(options.tol, options.max_iter, {"clip_inactive_lam": True})
+        extra = {"clip_inactive_lam": True}
         if options.hessian == "gauss-newton":
             jac = ca.jacobian(nlp.residual, nlp.c)
-            hess = ca.triu(2 * ca.mtimes(jac.T, jac) + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights)))
-            sigma = ca.MX.sym("sigma")
-            opts["hess_lag"] = ca.Function(
-                "nlp_hess_l",
-                {"x": nlp.c, "p": nlp.alpha, "lam_f": sigma, "hess_gamma_x_x": sigma * hess},
-                ["x", "p", "lam_f", "lam_g"],
-                ["hess_gamma_x_x"],
+            hess = 2 * ca.mtimes(jac.T, jac) + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights))
+            self.solver = gauss_newton_ipopt(
+                "geometry", nlp.c, nlp.f, nlp.g, hess, nlp.alpha, options.tol, options.max_iter, extra
             )
-        elif options.hessian == "limited-memory":
+            return
+        opts = ipopt_options(options.tol, options.max_iter, extra)
+        if options.hessian == "limited-memory":
             opts["ipopt.hessian_approximation"] = "limited-memory"
         self.solver = ca.nlpsol("geometry", "ipopt", {"x": nlp.c, "p": nlp.alpha, "f": nlp.f, "g": nlp.g}, opts)
 

@@ -57,6 +57,28 @@ def ipopt_options(tol: float, max_iter: int, extra: dict | None = None) -> dict:
     return opts
 
 
+def gauss_newton_ipopt(
+    name: str, x, f, g, hess, p=None, tol: float = 1e-9, max_iter: int = 200, extra: dict | None = None
+) -> ca.Function:
+    r"""IPOPT on :math:`\min_x f(x; p)` subject to ``g``, with a Gauss-Newton Hessian of the Lagrangian.
+
+    Notes
+    -----
+    Every NLP of the package is a regularized least-squares problem with
+    linear constraints (the radius box), so the Hessian of the Lagrangian is
+    :math:`\sigma \nabla^2 f` and :math:`\nabla^2 f \approx 2 (J^\top J + \text{penalty Hessian})`
+    =: ``hess`` (an expression in ``x`` and ``p``; only its upper triangle is
+    passed). IPOPT then needs no second derivatives of the residual.
+    """
+    sigma = ca.MX.sym("sigma")
+    io = {"x": x, "lam_f": sigma, "hess_gamma_x_x": sigma * ca.triu(hess)}
+    nlp = {"x": x, "f": f, "g": g}
+    if p is not None:
+        io["p"] = nlp["p"] = p
+    hess_lag = ca.Function("nlp_hess_l", io, ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+    return ca.nlpsol(name, "ipopt", nlp, ipopt_options(tol, max_iter, {**(extra or {}), "hess_lag": hess_lag}))
+
+
 def run_nlpsol(solver: ca.Function, what: str, **args) -> tuple[dict, SolverStats]:
     """Call an ``nlpsol`` and classify its return status.
 

@@ -60,7 +60,7 @@ from .results import SliceResult
 from .choice import choose_beta, gcv_beta
 from .coupled import sparse_dm
 from .schema import option
-from .solver import SolverStats, ipopt_options, run_nlpsol
+from .solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
 
 STRATEGIES = ("auto", "coupled", "kaczmarz")
 
@@ -196,22 +196,16 @@ class SliceGeometry:
     def solve(self, alpha: float, s: np.ndarray, n_nb: float, x0: np.ndarray):
         """IPOPT on the slice's part of the coupled functional (the box as constraints)."""
         if self._solver is None:
-            sigma = ca.MX.sym("sigma")
-            opts = ipopt_options(
+            self._solver = gauss_newton_ipopt(
+                "slice_z",
+                self._c,
+                self._f,
+                self.nlp.g,
+                self._hess,
+                self._p,
                 self.options.tol,
                 self.options.max_iter,
-                {
-                    "clip_inactive_lam": True,
-                    "hess_lag": ca.Function(
-                        "h",
-                        {"x": self._c, "p": self._p, "lam_f": sigma, "hess_gamma_x_x": sigma * ca.triu(self._hess)},
-                        ["x", "p", "lam_f", "lam_g"],
-                        ["hess_gamma_x_x"],
-                    ),
-                },
-            )
-            self._solver = ca.nlpsol(
-                "slice_z", "ipopt", {"x": self._c, "p": self._p, "f": self._f, "g": self.nlp.g}, opts
+                {"clip_inactive_lam": True},
             )
         sol, stats = run_nlpsol(
             self._solver,
@@ -291,21 +285,17 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
     f = sum(p[0] for p in parts) + kappa * ca.dot(big, ca.mtimes(zl, big))
     g = ca.vertcat(*[p[1] for p in parts])
     hess = ca.diagcat(*[p[2] for p in parts]) + 2 * kappa * zl
-    sigma = ca.MX.sym("sigma")
-    opts = ipopt_options(
+    solver = gauss_newton_ipopt(
+        "stack_geometry",
+        big,
+        f,
+        g,
+        hess,
+        None,
         slices[0].options.tol,
         slices[0].options.max_iter,
-        {
-            "clip_inactive_lam": True,
-            "hess_lag": ca.Function(
-                "h",
-                {"x": big, "lam_f": sigma, "hess_gamma_x_x": sigma * ca.triu(hess)},
-                ["x", "p", "lam_f", "lam_g"],
-                ["hess_gamma_x_x"],
-            ),
-        },
+        {"clip_inactive_lam": True},
     )
-    solver = ca.nlpsol("stack_geometry", "ipopt", {"x": big, "f": f, "g": g}, opts)
     nb = [sl.nlp.g.numel() for sl in slices]
     lbg = np.concatenate([np.full(m, sl.problem.r0) for m, sl in zip(nb, slices)])
     ubg = np.concatenate([np.full(m, sl.problem.r1) for m, sl in zip(nb, slices)])
