@@ -29,7 +29,6 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import scipy.interpolate
 import scipy.linalg
 import scipy.ndimage
 
@@ -219,6 +218,8 @@ def oyre_wss(
 
 def _bspline_basis(t: np.ndarray, x: np.ndarray, nu: int = 0) -> np.ndarray:
     n = len(t) - 4
+    import scipy.interpolate  # here: a slow import the command line should not pay at start-up
+
     return scipy.interpolate.BSpline(t, np.eye(n), 3, extrapolate=False)(x, nu=nu)
 
 

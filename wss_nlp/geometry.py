@@ -17,7 +17,6 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.optimize
 
 import casadi as ca
 
@@ -305,6 +304,8 @@ def _project_box(y, hmat, box_matrix, r0, r1):
     ]
     start = np.clip(s, r0, r1)
     z0 = np.linalg.lstsq(box_matrix, start, rcond=None)[0]
+    import scipy.optimize  # here: only the projected Gauss-Newton path needs it, and it is slow to import
+
     res = scipy.optimize.minimize(
         lambda z: 0.5 * (z - y) @ hmat @ (z - y),
         z0,

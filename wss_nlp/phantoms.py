@@ -23,8 +23,6 @@ from functools import lru_cache
 from importlib import resources
 
 import numpy as np
-import scipy.interpolate
-import scipy.optimize
 
 from . import radius as rad
 from .errors import InputError
@@ -288,6 +286,8 @@ class TurbulentPipe(Flow):
 
     def velocity(self, x, y):
         yplus, uplus = dns_profile()
+        import scipy.interpolate  # here: a slow import the command line should not pay at start-up
+
         interp = scipy.interpolate.PchipInterpolator(yplus, uplus, extrapolate=False)
         r = np.hypot(np.asarray(x) - self.lumen.center[0], np.asarray(y) - self.lumen.center[1])
         yp = np.clip((self.radius_mm - r) / PER_MM * self.u_tau / self.nu, 0, yplus[-1])
