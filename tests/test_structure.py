@@ -73,3 +73,20 @@ def test_module_imports_in_a_fresh_interpreter(module):
 
 def test_no_module_shadows_the_standard_library():
     assert not set(MODULES) & set(sys.stdlib_module_names)
+
+
+def test_blas_threads_limit_is_applied_and_restored():
+    threadpoolctl = pytest.importorskip("threadpoolctl")
+    from wss_nlp.reconstruct import blas_threads
+
+    def blas():
+        return [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
+
+    before = blas()
+    if not before:
+        pytest.skip("no BLAS visible to threadpoolctl")
+    with blas_threads(1):
+        assert set(blas()) == {1}
+    assert blas() == before
+    with blas_threads(0):
+        assert blas() == before

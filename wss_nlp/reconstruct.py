@@ -8,6 +8,7 @@ numbers, the solver statistics and what was assumed.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -188,6 +189,13 @@ class ReconstructionOptions:
         cli="--noise-velocity",
         group=vel.VelocityOptions.schema_group,
     )
+    blas_threads: int = option(
+        1,
+        "BLAS threads for the small dense linear algebra of each slice; 0 leaves the BLAS as it is (more threads "
+        "only add overhead at these matrix sizes: scripts/bench_blas.py)",
+        cli="--blas-threads",
+        group=WSS_GROUP,
+    )
     uncertainty: bool = option(
         True,
         "skip the linearized WSS band and the sensitivities (about 1-3x the time of the solve)",
@@ -229,6 +237,8 @@ class ReconstructionOptions:
         for name in ("tau_alpha", "tau_beta", "kappa_alpha", "kappa_beta", "alpha_start", "beta_start"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.blas_threads < 0:
+            raise InputError(f"blas_threads must be >= 0 (0: leave the BLAS as it is), got {self.blas_threads}")
         for name in ("noise_magnitude", "noise_velocity"):
             val = getattr(self, name)
             if val is not None and not val > 0:
@@ -426,6 +436,22 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
         Called with a message as a z-regularized stack solve proceeds.
     """
     options = options or ReconstructionOptions()
+    with blas_threads(options.blas_threads):
+        return _reconstruct(acq, options, progress, log)
+
+
+def blas_threads(n: int):
+    """A context limiting the BLAS to ``n`` threads (threadpoolctl); ``n = 0`` changes nothing."""
+    if n == 0:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover - threadpoolctl is a dependency; tolerate its absence
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=n, user_api="blas")
+
+
+def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress, log) -> Results:
     acq.validate()
     mu = acq.viscosity(options.viscosity_pa_s)
     acq, screens = plaus.screen(acq, options.screen)
