@@ -19,7 +19,9 @@ def problem(laminar_snr25):
 @pytest.mark.parametrize("basis,power", [("zernike", 1), ("zernike", 2), ("eigen", 1)])
 def test_casadi_solve_equals_cholesky(problem, basis, power):
     acq, g = problem
-    opt = vel.VelocityOptions(basis=basis, laplacian_power=power, degree=8, max_eigenvalue=200, beta=1e-6)
+    opt = vel.VelocityOptions(
+        basis=basis, laplacian_power=power, degree=8, max_eigenvalue=200, beta=1e-6, solver="ipopt"
+    )
     vp = vel.assemble(acq.grid, acq.velocity_images()[0], g.coefficients, g.center, opt)
     a = vel.solve(vp, opt)
     b = vel.solve_cholesky(vp, opt.beta)
