@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Reproduces the single-case numbers quoted in the README's "How the defaults were chosen".
+"""Reproduces the single-case numbers quoted in the docs' "How the defaults were chosen".
 
 1. Penalty order: mean-WSS error on a noise-free circular Poiseuille phantom
    (h = 0.6 mm) with ||Delta v||^2 (t = 1) and ||Delta^2 v||^2 (t = 2), beta = 1e-4,
@@ -7,12 +7,12 @@
 2. Geometry alpha: radius error of the laminar phantom (SNR 25, seeds 0-2,
    h = 1.5 and 0.6 mm) for alpha from 1e-4 to 1e-2.
 3. Coupled vs decoupled on the turbulent phantom (h = 1 mm, SNR 10, seed 0)
-   with the default beta and with beta = 1e-9 and 3e-11 (README, "Coupled
+   with the default beta and with beta = 1e-9 and 3e-11 (docs, "Coupled
    geometry and velocity").
 4. Oyre baseline, fit range 3h vs the default 0.5 R, noise-free circle at
-   h = 0.25 mm (README, "Classical baselines").
+   h = 0.25 mm (docs, "Classical baselines").
 5. Circumferential WSS of the swirl phantom (tapered stack, 10 slices, h = 1 mm,
-   swirl 20/s): default beta, beta = 1e-11, inner fraction 1 (README, "Stacks of slices").
+   swirl 20/s): default beta, beta = 1e-11, inner fraction 1 (docs, "Stacks of slices").
 6. Kaczmarz geometry sweeps for z smoothing l = dz and 2 dz, 12 slices, SNR 25.
 
     python scripts/claims.py      (about three minutes)

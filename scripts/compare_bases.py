@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Velocity basis and penalty comparison behind the README's choice of defaults.
+"""Velocity basis and penalty comparison behind the docs' choice of defaults.
 
 For each configuration (basis, penalty order t, inner radius) and each beta
 of a grid, reconstructs the WSS of several phantoms at several h (SNR 25,

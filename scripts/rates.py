@@ -13,7 +13,7 @@ Theorem 2.1's ``1 - r/k``. Writes ``scripts/results/rates.md`` and
 
     python scripts/rates.py [--seeds 3] [--k 3,4]        (about 5 minutes)
 
-The velocity rates (the issue asks for them too) are not measured; see the README.
+The velocity rates (the issue asks for them too) are not measured; see the docs.
 """
 
 import argparse

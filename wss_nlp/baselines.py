@@ -11,7 +11,7 @@ reconstruction, so a study can put them side by side.
   over the cross-section with zero-velocity points on the segmented contour,
   WSS from the spline gradient (Stalder et al. 2008).
 
-Assumptions shared by both (README, "Classical baselines")
+Assumptions shared by both (docs, "Classical baselines")
 -----------------------------------------------------------
 * The wall is the 50 % iso-line of the normalized magnitude (bilinear
   interpolation between voxel centres, marching squares via ``contourpy``):
@@ -56,7 +56,7 @@ class BaselineOptions:
         default). A range of a few voxels instead leaves a bias that does
         not vanish as h -> 0: the partial-volume voxel at the wall then
         always carries the same weight in the fit (+8.8 % mean WSS on
-        noise-free Poiseuille flow at h = 0.25 mm with ``L = 3h``; README,
+        noise-free Poiseuille flow at h = 0.25 mm with ``L = 3h``; docs,
         "Classical baselines").
     oyre_spacing_voxels : float
         Oyre: spacing of the samples in voxels (at least ``oyre_degree + 3`` samples).

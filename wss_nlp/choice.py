@@ -34,7 +34,7 @@ ALPHA_RULES = ("fixed", "discrepancy", "balance")
 ALPHA_STOP = 1e-6  # smallest alpha a balancing search tries (V_N with N = 8 hardly amplifies noise below it)
 BETA_RULES = ("fixed", "discrepancy", "gcv", "lcurve", "balance")
 DEPHASING_BETA_RULES = ("gcv", "same")
-#: What ``auto`` means for alpha and beta: the rule closest to the oracle in scripts/accuracy.py --auto (README).
+#: What ``auto`` means for alpha and beta: the rule closest to the oracle in scripts/accuracy.py --auto (docs).
 AUTO_RULE = "balance"
 
 

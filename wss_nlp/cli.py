@@ -439,7 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="reconstruct an acquisition file",
         description="Reconstruct geometry, velocity and WSS of every slice of INPUT.",
     )
-    r.add_argument("input", help="input HDF5 file (format: see README)")
+    r.add_argument("input", help='input HDF5 file (format: docs, "File formats")')
     r.add_argument("-o", "--output", required=True, help="result HDF5 file")
     r.add_argument("--figures", default=None, help="folder for PNG figures of every slice")
     _add_reconstruction_arguments(r)

@@ -632,7 +632,7 @@ def make_stack(
     (:class:`SwirlComponent`), each acquired as its own phase-contrast
     encoding with fresh noise. For the circular ``tapered`` tube the exact
     WSS vector is then known: axial ``2 mu U / R`` and circumferential
-    ``2 mu Omega sqrt(1 + R'(z)^2)`` (README, "Stacks of slices").
+    ``2 mu Omega sqrt(1 + R'(z)^2)`` (docs, "Stacks of slices").
     """
     if case not in STACK_CASES:
         raise InputError(f"unknown stack phantom {case!r}; choose from {', '.join(STACK_CASES)}")

@@ -74,7 +74,7 @@ class ReconstructionOptions:
     alpha, on the WSS for beta; ``kappa_alpha``, ``kappa_beta``); for beta
     also "gcv" and "lcurve" (see :mod:`wss_nlp.analysis`).
     The defaults, beta by balancing and alpha fixed, and tau = 1.1 come from
-    ``scripts/parameter_rules.py`` and ``scripts/accuracy.py --auto`` (README,
+    ``scripts/parameter_rules.py`` and ``scripts/accuracy.py --auto`` (docs,
     "Choosing alpha and beta"): the balancing beta's worst case is far
     better than the former fixed beta's (laminar 1.48x against 2.70x the
     oracle, turbulent 5.5-25x against 15-55x); for alpha balancing costs
@@ -90,7 +90,7 @@ class ReconstructionOptions:
         "decoupled: geometry, then velocity (the paper's); coupled: both as one NLP "
         "started from the decoupled solution, so the velocity data inform the wall too; oyre / "
         "stalder: the classical baselines (cubic near-wall profile fits / smoothing B-spline on a "
-        "50 % magnitude segmentation; README, 'Classical baselines')",
+        "50 % magnitude segmentation; docs, 'Classical baselines')",
         cli="--method",
         toml=("method",),
         choices=METHODS,
@@ -137,7 +137,7 @@ class ReconstructionOptions:
         "balance",
         "Tikhonov parameter of the ||Delta^t v||^2 penalty (dimensionless, e.g. "
         f"{_DEFAULT_BETA:g}), or a rule: 'auto' = 'balance' (Lepskii balancing on the WSS; see "
-        "README), 'discrepancy' (eq. (disc2)), 'gcv' (generalized cross-validation), 'lcurve'",
+        "docs), 'discrepancy' (eq. (disc2)), 'gcv' (generalized cross-validation), 'lcurve'",
         cli="--beta",
         toml=("beta",),
         parse=lambda text: _parameter_word(text, "beta"),
@@ -167,7 +167,7 @@ class ReconstructionOptions:
     )
     # beta: noise alone stays below 2, but the least regularized WSS estimates carry a bias of their own (the
     # voxel means do not fix every coefficient), which the rule reads as bias of the more regularized ones; 2.5 is
-    # the margin that absorbed it on held-out seeds (scripts/parameter_rules.py --kappa, README)
+    # the margin that absorbed it on held-out seeds (scripts/parameter_rules.py --kappa, docs)
     kappa_beta: float = option(
         2.5,
         "balancing rule: WSS differences allowed, in noise standard deviations",

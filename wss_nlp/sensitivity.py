@@ -25,7 +25,7 @@ normalized magnitude and ``sigma_u,i = venc sigma / (pi |d_i|)`` (capped at
 ``venc / sqrt 3``) for the velocity, ``sigma`` the complex noise level
 (Appendix B); magnitude and phase noise are independent to first order.
 
-Held fixed (documented in the README): the preprocessing outputs other
+Held fixed (documented in the docs): the preprocessing outputs other
 than the centre (normalization levels, the box, the reference radius) and
 the dephasing factors of the second pass.
 """

@@ -86,7 +86,7 @@ class StackOptions:
         Order of the z-derivative penalized. 2 (default) leaves a linear taper
         unbiased and has no pull at the ends of the stack; 1 (the first
         derivative) biases a radius that changes along z by about
-        ``l R'`` at the ends and ``l^2 R''`` inside (measured in the README).
+        ``l R'`` at the ends and ``l^2 R''`` inside (measured in the docs).
     strategy : {"auto", "coupled", "kaczmarz"}
         "auto": coupled for segments of at most :data:`COUPLED_MAX_SLICES`.
     tol : float

@@ -16,7 +16,7 @@ written after the run. ``wss-nlp sweep STUDY.toml -o OUTDIR`` runs it:
   status) is rewritten at the end.
 
 Grid keys (:data:`PARAMETERS`) and metrics (:data:`METRICS`) are listed in
-the README, section "Parameter sweeps".
+the docs, section "Parameter sweeps".
 """
 
 from __future__ import annotations

@@ -72,7 +72,7 @@ class VelocityOptions:
     Defaults come from a sweep over bases, penalties, ``r_in`` and beta on
     four laminar-type phantoms (ellipse, circle, Fourier lumen, three-lobed
     polynomial flow) and the turbulent one at h = 0.3-1.5 mm, SNR 25
-    (README, "How the defaults were chosen"): the Zernike basis with
+    (docs, "How the defaults were chosen"): the Zernike basis with
     ``||Delta^2 v||^2`` had the smallest worst-case laminar WSS error; the
     eigenfunction basis with ``||Delta v||^2`` was 3-10x worse (Remark 3.4).
     quad_order : int or None
