@@ -6,6 +6,7 @@ Exit codes: 0 success, 1 solver failure, 2 bad input or usage.
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 import time
@@ -154,9 +155,7 @@ def cmd_reconstruct(args) -> int:
         f"h = {acq.grid.h:g} mm",
         file=sys.stderr,
     )
-    results = reconstruct(
-        acq, options, progress=_progress(sys.stderr), log=lambda msg: print(f"  {msg}", file=sys.stderr, flush=True)
-    )
+    results = reconstruct(acq, options, progress=_progress(sys.stderr))
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
             _slice_figures(results, acq, staged.path)
@@ -537,6 +536,7 @@ def main(argv=None) -> int:
     except SystemExit as exc:  # argparse: --help (0) or usage error (2)
         return int(exc.code or 0)
     args.argv = argv
+    _show_library_log()
     try:
         return int(args.func(args) or 0)
     except WssNlpError as exc:
@@ -557,6 +557,28 @@ def main(argv=None) -> int:
             file=sys.stderr,
         )
         return 1
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to the current ``sys.stderr`` (which tests and embedding programs may replace)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
+def _show_library_log() -> None:
+    """The library's INFO messages (stages of long solves) on stderr, indented under the progress lines."""
+    logger = logging.getLogger("wss_nlp")
+    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):  # main() may run many times in a process
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter("  %(message)s"))
+        logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
 
 
 def _one_line(exc: BaseException) -> str:

@@ -415,7 +415,7 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     return supported
 
 
-def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None, log=None) -> Results:
+def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> Results:
     """Reconstruct every slice of an acquisition.
 
     A stack (``nz > 1``) is reconstructed with z-regularization
@@ -432,12 +432,15 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     ----------
     progress : callable or None
         Called as ``progress(done, total, slice_result)`` after each slice.
-    log : callable or None
-        Called with a message as a z-regularized stack solve proceeds.
+
+    Notes
+    -----
+    Long stack solves report their stages to the ``wss_nlp.stack`` logger
+    (INFO); the command line shows them on stderr.
     """
     options = options or ReconstructionOptions()
     with blas_threads(options.blas_threads):
-        return _reconstruct(acq, options, progress, log)
+        return _reconstruct(acq, options, progress)
 
 
 def blas_threads(n: int):
@@ -451,13 +454,13 @@ def blas_threads(n: int):
     return threadpool_limits(limits=n, user_api="blas")
 
 
-def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress, log) -> Results:
+def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> Results:
     acq.validate()
     mu = acq.viscosity(options.viscosity_pa_s)
     acq, screens = plaus.screen(acq, options.screen)
     out = Results()
     if stack_applies(acq, options):
-        results, info = stk.reconstruct_stack(acq, options, options.stack, progress, log)
+        results, info = stk.reconstruct_stack(acq, options, options.stack, progress)
         out.extend(
             r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
             for k, r in enumerate(results)

@@ -37,14 +37,15 @@ index, left out, and splits the stack into independent segments.
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field, replace
-
-import casadi as ca
 from typing import Any
 
 import numpy as np
 import scipy.linalg
+
+import casadi as ca
 
 from . import analysis as an
 from . import geometry as geo
@@ -54,13 +55,15 @@ from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
 from .errors import InputError, SolverError, WssNlpError
+from .choice import choose_beta, gcv_beta
+from .coupled import sparse_dm
 from .files import Acquisition
 from .measurement import DEPHASING_THRESHOLD
 from .results import SliceResult
-from .choice import choose_beta, gcv_beta
-from .coupled import sparse_dm
 from .schema import option
 from .solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
+
+logger = logging.getLogger(__name__)  # progress of long stack solves (the CLI shows INFO on stderr)
 
 STRATEGIES = ("auto", "coupled", "kaczmarz")
 
@@ -304,7 +307,7 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
 
 
 def kaczmarz_geometry(
-    slices: list[SliceGeometry], alpha: float, x0: np.ndarray, tol: float, max_sweeps: int, order: int, log=None
+    slices: list[SliceGeometry], alpha: float, x0: np.ndarray, tol: float, max_sweeps: int, order: int
 ):
     """Forward-backward sweeps of slice solves; returns ``(coefficients, sweeps, residual history, stats)``.
 
@@ -332,8 +335,7 @@ def kaczmarz_geometry(
             old = c[k].copy()
             c[k], stats[k] = slices[k].newton(alpha, s, cnt, c[k], 50 if sweep == 1 else 1, tol)
             step = max(step, float(np.sqrt(np.sum(w0 * (c[k] - old) ** 2) / np.sum(w0 * c[k] ** 2))))
-        if log is not None:
-            log(f"geometry sweep {sweep}: largest relative update {step:.2e} (stops below {tol:g})")
+        logger.info(f"geometry sweep {sweep}: largest relative update {step:.2e} (stops below {tol:g})")
         # the largest relative update of the sweep is a cheap proxy; the exact residual is evaluated once it is small
         if step < tol:
             res = max(sl.newton_decrement(alpha, *nb_sum(k), c[k]) for k, sl in enumerate(slices))
@@ -458,7 +460,7 @@ def segments_of(ok: list[int]) -> list[list[int]]:
     return out
 
 
-def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = None, progress=None, log=None):
+def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = None, progress=None):
     """Reconstruct all slices of a stack with z-regularization.
 
     Parameters
@@ -467,7 +469,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     options : :class:`wss_nlp.reconstruct.ReconstructionOptions` (alpha, beta, bases, ...).
     stack : StackOptions
     progress : callable ``(done, total, slice_result)`` or None, called per finished slice.
-    log : callable ``(message)`` or None, told what a long solve is doing (segments, sweeps).
+    What a long solve is doing (segments, sweeps) goes to the ``wss_nlp.stack`` logger at INFO level.
 
     Returns
     -------
@@ -551,7 +553,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             gstats = [gstats] * len(seg)
             info.sweeps.setdefault("geometry", []).append(0)
         else:
-            coef, sweeps, hist, gstats = kaczmarz_geometry(sg, gopt.alpha, x0, stack.tol, stack.max_sweeps, m, log)
+            coef, sweeps, hist, gstats = kaczmarz_geometry(sg, gopt.alpha, x0, stack.tol, stack.max_sweeps, m)
             info.sweeps.setdefault("geometry", []).append(sweeps)
             info.residuals["geometry"] = hist
             if hist[-1] >= stack.tol and len(seg) > 1:
@@ -575,8 +577,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
         if strategy == "auto":
             strategy = "coupled" if len(seg) <= COUPLED_MAX_SLICES else "kaczmarz"
         info.strategy = strategy if not info.strategy or info.strategy == strategy else "mixed"
-        if log is not None:
-            log(f"slices {seg[0]}-{seg[-1]}: {strategy} solve of {len(seg)} slice(s)")
+        logger.info(f"slices {seg[0]}-{seg[-1]}: {strategy} solve of {len(seg)} slice(s)")
         problems = [prepared[k].problem for k in seg]
         x0 = np.array([geo.initial_guess(pb, gopt.n_fourier) for pb in problems])
         coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(seg, problems, x0, strategy)
@@ -591,8 +592,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                 )
             t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
             if min(float(np.min(f)) for f in factors) < 1 - DEPHASING_THRESHOLD:
-                if log is not None:
-                    log(f"slices {seg[0]}-{seg[-1]}: second pass on dephasing-corrected magnitudes")
+                logger.info(f"slices {seg[0]}-{seg[-1]}: second pass on dephasing-corrected magnitudes")
                 corrected = []
                 for i, (k, vp) in enumerate(zip(seg, vps)):
                     m_corr = prepared[k].magnitude.copy().ravel()
