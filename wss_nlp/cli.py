@@ -1,4 +1,4 @@
-"""Command-line interface: ``wss-nlp {demo, reconstruct, phantom, analyze, sensitivity, compare, sweep, table, plot}``.
+"""Command-line interface: ``wss-nlp {demo, reconstruct, phantom, analyze, sensitivity, compare, export, sweep, ...}``.
 
 Exit codes: 0 success, 1 solver failure, 2 bad input or usage.
 """
@@ -159,7 +159,8 @@ def cmd_reconstruct(args) -> int:
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
             _slice_figures(results, acq, staged.path)
-        wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv])
+        extra = {} if acq.slice_spacing_mm is None else {"slice_spacing_mm": float(acq.slice_spacing_mm)}
+        wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv], extra_attrs=extra)
         staged.commit()
     _warn(results, sys.stderr)
     for r in results:
@@ -411,6 +412,16 @@ def cmd_plot(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from . import export
+
+    if not args.vtk.endswith((".vtu", ".vtk")):
+        raise InputError(f"--vtk {args.vtk}: name a .vtu (VTK XML) or .vtk (legacy VTK) file")
+    outputs.check_outputs(files={"--vtk": args.vtk}, inputs=[args.result])
+    print(f"wrote {export.write_vtk(args.result, args.vtk, args.slice_spacing)}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="wss-nlp",
@@ -520,6 +531,22 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--logx", action="store_true", help="logarithmic x axis")
     pl.add_argument("-o", "--output", default=None, help="PNG file (default OUTDIR/Y_vs_X.png)")
     pl.set_defaults(func=cmd_plot)
+
+    ex = sub.add_parser(
+        "export",
+        help="the reconstructed wall with its WSS as a VTK file for ParaView",
+        description="A slice becomes a polyline, a stack the wall surface; point data tau_pa (and tau_std_pa, "
+        "wss_vector_pa where present).",
+    )
+    ex.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
+    ex.add_argument("--vtk", required=True, help="output file: .vtu (VTK XML) or .vtk (legacy)")
+    ex.add_argument(
+        "--slice-spacing",
+        type=float,
+        default=None,
+        help="mm between slices (default: the result's slice_spacing_mm, stored by reconstruct)",
+    )
+    ex.set_defaults(func=cmd_export)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")
     c.add_argument("result")
