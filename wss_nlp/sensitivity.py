@@ -322,14 +322,21 @@ class OperatorDerivative:
 
 def _mean_weight_jacobian(c_r: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Arc-length weights ``w_j = ds_j / sum ds`` on uniform angles and ``dw/dc_R`` (CasADi)."""
-    n = rad.n_fourier_from_size(c_r.size)
-    c = ca.SX.sym("c", c_r.size)
+    out = _mean_weight_function(c_r.size, np.asarray(phi, dtype=float).tobytes())(c_r)
+    return np.asarray(out[0]).ravel(), np.asarray(out[1])
+
+
+@functools.lru_cache(maxsize=16)
+def _mean_weight_function(n_coefficients: int, phi_bytes: bytes) -> ca.Function:
+    """``c_R -> (w, dw/dc_R)``, built once per radius space and angle set (the same for every slice)."""
+    phi = np.frombuffer(phi_bytes, dtype=float)
+    n = rad.n_fourier_from_size(n_coefficients)
+    c = ca.SX.sym("c", n_coefficients)
     big_r = ca.mtimes(ca.DM(rad.design_matrix(phi, n)), c)
     d_r = ca.mtimes(ca.DM(rad.design_matrix(phi, n, 1)), c)
     ds = ca.sqrt(big_r * big_r + d_r * d_r)
     w = ds / ca.sum1(ds)
-    out = ca.Function("w", [c], [w, ca.jacobian(w, c)])(c_r)
-    return np.asarray(out[0]).ravel(), np.asarray(out[1])
+    return ca.Function("w", [c], [w, ca.jacobian(w, c)])
 
 
 def _wss_sensitivity(
