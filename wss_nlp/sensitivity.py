@@ -120,6 +120,7 @@ def voxel_model_function(n_fourier: int, order: int, heaviside: str) -> ca.Funct
     return ca.Function("voxel", [z, xs, ys], [f, grad, ca.vec(hess)])
 
 
+@functools.lru_cache(maxsize=16)  # the same for every slice of a radius space: build once
 def point_map_function(n_fourier: int) -> ca.Function:
     """Per sub-voxel point: ``rho`` of the inverse map (eta = 2) and ``t``, with gradients (SX).
 
@@ -140,6 +141,7 @@ def point_map_function(n_fourier: int) -> ca.Function:
     )
 
 
+@functools.lru_cache(maxsize=16)  # bases are cached objects (velocity_basis.make_basis): one build per setting
 def wss_derivative_function(basis, n_fourier: int, eta: float, viscosity_pa_s: float) -> ca.Function:
     """Per angle: ``tau`` of eq. (wss) and its gradient in ``[c_R; c_v; r_in]`` (SX)."""
     tau_f = wss_mod.wss_expression(wss_mod._BasisVelocity(basis), n_fourier, None, eta)
@@ -320,6 +322,11 @@ class OperatorDerivative:
         return self.a_rho.T @ (self.drho * z[:, None]) + self.a_theta.T @ (self.dtheta * z[:, None])
 
 
+@functools.lru_cache(maxsize=16)
+def _wss_derivative_map(basis, n_fourier: int, eta: float, viscosity_pa_s: float, n_phi: int) -> ca.Function:
+    return wss_derivative_function(basis, n_fourier, eta, viscosity_pa_s).map(n_phi)
+
+
 def _mean_weight_jacobian(c_r: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Arc-length weights ``w_j = ds_j / sum ds`` on uniform angles and ``dw/dc_R`` (CasADi)."""
     out = _mean_weight_function(c_r.size, np.asarray(phi, dtype=float).tobytes())(c_r)
@@ -362,7 +369,7 @@ def _wss_sensitivity(
     """
     n_r, n_m, n_u = c_r0.size, m_index.size, u_index.size
     phi = rad.uniform_angles(n_phi)
-    fun = wss_derivative_function(basis, rad.n_fourier_from_size(n_r), eta, viscosity_pa_s).map(n_phi)
+    fun = _wss_derivative_map(basis, rad.n_fourier_from_size(n_r), eta, viscosity_pa_s, n_phi)
     tau0, grad = (np.asarray(a) for a in fun(phi[None, :], c_r0, np.asarray(center, float), c_v0, r_in))
     tau0 = tau0.ravel()
     nb = c_v0.size
