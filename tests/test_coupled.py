@@ -81,20 +81,19 @@ def test_sharp_coupled_operator_is_the_decoupled_one(laminar_coarse):
     assert np.max(np.abs(t_coupled[far])) < 1e-9 * np.max(np.abs(expected))  # T = 0 outside the lumen
 
 
+def _coupled_nlp(res):
+    """The coupled NLP of a decoupled result, velocity weight 1e4 (mm^2/(m/s)^2), its alpha and beta."""
+    g, v = res.geometry, res.velocity
+    return cpl.build(
+        _problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), v.basis,
+        v.disk_map.r_in, 1e4, g.alpha, v.beta,
+    )  # fmt: skip
+
+
 def test_chain_rule_jacobian_equals_casadi_ad(laminar_coarse):
     _, _, res = laminar_coarse
     g, v = res.geometry, res.velocity
-    nlp = cpl.build(
-        _problem(res),
-        geo.GeometryOptions(),
-        res.velocity_image,
-        vel.VelocityOptions(),
-        v.basis,
-        v.disk_map.r_in,
-        1e4,
-        g.alpha,
-        v.beta,
-    )
+    nlp = _coupled_nlp(res)
     rng = np.random.default_rng(2)
     x = np.concatenate(
         [
@@ -112,17 +111,7 @@ def test_objective_gradient_taylor(laminar_coarse):
     """Taylor test of CasADi's gradient of the coupled functional: remainder O(t^2)."""
     _, _, res = laminar_coarse
     g, v = res.geometry, res.velocity
-    nlp = cpl.build(
-        _problem(res),
-        geo.GeometryOptions(),
-        res.velocity_image,
-        vel.VelocityOptions(),
-        v.basis,
-        v.disk_map.r_in,
-        1e4,
-        g.alpha,
-        v.beta,
-    )
+    nlp = _coupled_nlp(res)
     fg = ca.Function("fg", [nlp.x], ca.substitute([nlp.f, ca.gradient(nlp.f, nlp.x)], [nlp.gamma], [ca.MX(g.gamma)]))
     x = np.concatenate([g.coefficients, v.coefficients])
     d = np.random.default_rng(3).normal(size=x.size) * np.concatenate(
