@@ -92,7 +92,7 @@ class Acquisition:
         if (self.velocity is None) == (self.phase is None):
             raise InputError(f"{src}: exactly one of 'velocity' and 'phase' must be present")
         name = "velocity" if self.velocity is not None else "phase"
-        other = self.velocity_images() if self.velocity is not None else self.phase
+        other = self.velocity if self.velocity is not None else self.phase
         assert other is not None  # exactly one of velocity and phase, checked above
         if other.shape != mag.shape:
             raise InputError(f"{src}: shape mismatch: 'magnitude' {mag.shape} but '{name}' {other.shape}")

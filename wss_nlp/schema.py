@@ -123,12 +123,10 @@ def add_arguments(parser: argparse.ArgumentParser, cls) -> None:
         grp = groups.setdefault(title, parser.add_argument_group(title))
         default = _default(f)
         dest = "opt__" + path.replace(".", "__")
-        if meta["flag_off"]:
-            grp.add_argument(
-                meta["cli"], dest=dest, action="store_false", default=True, help=meta["help"].replace("%", "%%")
-            )
-            continue
         text = meta["help"].replace("%", "%%")  # argparse formats help strings
+        if meta["flag_off"]:
+            grp.add_argument(meta["cli"], dest=dest, action="store_false", default=True, help=text)
+            continue
         shown = meta["default_text"] if meta["default_text"] is not None else default
         if shown is not None:
             text += f" (default {shown})"
@@ -137,21 +135,14 @@ def add_arguments(parser: argparse.ArgumentParser, cls) -> None:
             kwargs["type"] = _type_parser(f)
         if meta["choices"] is not None:
             kwargs["choices"] = list(meta["choices"])
-        if meta["choices"] is None:
+        else:
             kwargs["metavar"] = meta["metavar"] or meta["cli"].lstrip("-").upper().replace("-", "_")
         grp.add_argument(meta["cli"], **kwargs)
-
-
-def _assign(values: dict, path: str, value, meta: dict) -> None:
-    values[path] = value
-    for other in meta["also"]:
-        values[other] = value
 
 
 def _parsed(path: str, f, value, where: str) -> dict:
     """``{path: value}`` assignments for one field's raw value (text from the CLI, or a TOML value)."""
     meta = f.metadata[_KEY]
-    out: dict = {}
     if meta["parse"] is not None:
         got = meta["parse"](value)
         if isinstance(got, dict):
@@ -162,8 +153,7 @@ def _parsed(path: str, f, value, where: str) -> dict:
             value = _type_parser(f)(value)
         except ValueError:
             raise InputError(f"{where}: {value!r} is not a valid {_type_parser(f).__name__}") from None
-    _assign(out, path, value, meta)
-    return out
+    return {p: value for p in (path, *meta["also"])}
 
 
 def from_args(cls, args: argparse.Namespace):
@@ -221,12 +211,3 @@ def assemble(cls, values: dict):
         return cls(**kwargs)
     except TypeError as exc:
         raise InputError(f"bad option: {exc}") from None
-
-
-def describe(cls) -> list[tuple[str, str, str, str]]:
-    """``(cli, study keys, default, help)`` of every option, for documentation tables."""
-    rows = []
-    for _, f, _ in _leaves(cls):
-        meta = f.metadata[_KEY]
-        rows.append((meta["cli"] or "", ", ".join(meta["toml"]), repr(_default(f)), meta["help"]))
-    return rows
