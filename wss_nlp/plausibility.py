@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 import scipy.ndimage
 
+from . import analysis as an
 from . import preprocess as pp
 from .errors import InputError, WssNlpError
 from .schema import option
@@ -294,8 +295,6 @@ def check_fit(result, raw_magnitude: np.ndarray, venc: float | None) -> tuple[st
     The noise level is the one the parameter rule estimated, or (fixed beta)
     the same estimate made here (:func:`wss_nlp.analysis.velocity_noise`).
     """
-    from . import analysis as an
-
     v = result.velocity
     noise = result.beta_choice.noise if result.beta_choice is not None else float("nan")
     if not (np.isfinite(noise) and noise > 0):
