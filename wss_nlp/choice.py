@@ -17,6 +17,7 @@ import numpy as np
 from . import analysis as an
 from . import geometry as geo
 from . import measurement as meas
+from . import near_wall as nw
 from . import radius as rad
 from . import sensitivity as sens
 from . import velocity as vel
@@ -176,16 +177,7 @@ def choose_beta(
         _, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
         i, k = an.lcurve_corner(res, pen)
         return an.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
-    if options.noise_velocity is not None:
-        noise = an.NoiseEstimate(
-            options.noise_velocity,
-            "given (--noise-velocity)",
-            {"per_voxel": np.full(vp.data.size, options.noise_velocity)},
-        )
-    else:
-        noise = an.velocity_noise(
-            vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc, where.rstrip()
-        )
+    noise = _velocity_noise(vp, raw, lumen, venc, options, where)
     if not noise.value > 0:
         return _noise_free_choice("beta", rule, options.velocity.beta, noise)
     if rule == "balance":
@@ -220,3 +212,132 @@ def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.Para
     gcv, res, _ = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
     i = int(np.argmin(gcv))
     return an.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
+
+
+#: Layer scales l / R of the coarse search (octaves); the best is refined by golden-section search.
+LAYER_RATIOS = 2.0 ** -np.arange(3.0, 12.0)
+#: betas over which each candidate's criterion is minimized (half decades).
+CRITERION_BETAS = 10.0 ** -np.arange(3.0, 13.5, 0.5)
+GOLDEN_STEPS = 8
+
+
+def _bic(problem: vel.VelocityProblem, sigma: np.ndarray) -> tuple[float, float]:
+    r"""``min_beta chi^2 + ln(n) dof`` of a velocity problem, and the minimizing beta.
+
+    Notes
+    -----
+    :math:`\chi^2(\beta) = \sum_i (T_i c_\beta - u_i)^2/\sigma_i^2` with the
+    per-voxel noise :math:`\sigma_i`, and
+    :math:`\mathrm{dof} = \operatorname{tr}(H_\beta^{-1} K)` the effective
+    number of parameters: Schwarz's criterion with the smoother's trace in
+    place of the parameter count (Hastie & Tibshirani 1990, Sec. 3.5).
+    """
+    tk = problem.tikhonov
+    coef = tk.coefficients(CRITERION_BETAS)
+    chi2 = np.sum(((coef @ problem.operator.T - problem.data[None, :]) / sigma[None, :]) ** 2, axis=1)
+    crit = chi2 + np.log(problem.data.size) * tk.traces(CRITERION_BETAS)
+    i = int(np.argmin(crit))
+    return float(crit[i]), float(CRITERION_BETAS[i])
+
+
+def choose_layer(
+    vp: vel.VelocityProblem, grid, sigma: np.ndarray, mode: str, vopt: vel.VelocityOptions
+) -> tuple[vel.VelocityProblem, nw.NearWallChoice]:
+    """The near-wall model of one slice: the plain basis, or a layer family and scale, by BIC.
+
+    Every candidate (the plain basis; each family on the scales
+    :data:`LAYER_RATIOS` x mean R, the best refined by golden-section search
+    in log l) is scored by :func:`_bic` at its own best beta; the smallest
+    score wins. ``mode`` restricts the candidates (``"auto"``: all; a family
+    name: that family, plain excluded). Returns the chosen problem (the
+    plain one or its enrichment) and the record of the choice.
+    """
+    big_r = float(vp.disk_map.coefficients[0])
+    quad = nw.LayerQuadrature(vp, grid)
+    tried, best = [], {}
+    plain, plain_beta = _bic(vp, sigma)
+    if mode == "auto":
+        best["plain"] = (plain, float("nan"), vp, plain_beta)
+        tried.append(("plain", float("nan"), plain))
+
+    def score(family, log_ratio):
+        problem = nw.enrich(vp, grid, family, 2.0**log_ratio * big_r, vopt.laplacian_power, quad)
+        crit, beta = _bic(problem, sigma)
+        tried.append((family, 2.0**log_ratio, crit))
+        return crit, problem, beta
+
+    families = nw.FAMILIES if mode == "auto" else (mode,)
+    coarse = {f: [score(f, float(x))[0] for x in np.log2(LAYER_RATIOS)] for f in families}
+    for family in families:
+        logs = np.log2(LAYER_RATIOS)
+        k = int(np.argmin(coarse[family]))
+        lo, hi = logs[max(k - 1, 0)], logs[min(k + 1, logs.size - 1)]
+        lo, hi = min(lo, hi), max(lo, hi)
+        g = (np.sqrt(5) - 1) / 2
+        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+        fa, fb = score(family, a)[0], score(family, b)[0]
+        for _ in range(GOLDEN_STEPS):
+            if fa <= fb:
+                hi, b, fb = b, a, fa
+                a = hi - g * (hi - lo)
+                fa = score(family, a)[0]
+            else:
+                lo, a, fa = a, b, fb
+                b = lo + g * (hi - lo)
+                fb = score(family, b)[0]
+        x = a if fa <= fb else b
+        crit, problem, beta = score(family, x)
+        if coarse[family][k] < crit:  # the refinement must not lose to its start
+            x = logs[k]
+            crit, problem, beta = score(family, x)
+        best[family] = (crit, 2.0**x * big_r, problem, beta)
+    order = sorted(best, key=lambda m: best[m][0])
+    chosen = order[0]
+    margin = best[order[1]][0] - best[chosen][0] if len(order) > 1 else float("inf")
+    choice = nw.NearWallChoice(
+        model=chosen,
+        scale_mm=best[chosen][1],
+        scale_ratio=best[chosen][1] / big_r,
+        criterion="BIC = chi^2 + ln(n) tr(H^-1 K), each model at its best beta and layer scale",
+        values={m: v[0] for m, v in best.items()},
+        margin=float(margin),
+        tried=tried,
+        ambiguous=bool(margin < nw.AMBIGUOUS_MARGIN),
+        quad_order=quad.order,
+        beta=best[chosen][3],
+    )
+    return best[chosen][2], choice
+
+
+def layer_model(
+    vp: vel.VelocityProblem, grid, raw, lumen, venc, options: ReconstructionOptions, where: str
+) -> tuple[vel.VelocityProblem, nw.NearWallChoice]:
+    """The velocity problem with the near-wall model ``options.velocity.near_wall`` asks for, and the record.
+
+    A given ``layer_scale_mm`` fixes the layer (no choice); otherwise the
+    model and scale come from :func:`choose_layer`, which needs the
+    velocity noise: without it (noise-free data) the plain basis is kept
+    and the record says why.
+    """
+    vopt = options.velocity
+    if vopt.layer_scale_mm is not None:
+        problem = nw.enrich(vp, grid, vopt.near_wall, vopt.layer_scale_mm, vopt.laplacian_power)
+        big_r = float(vp.disk_map.coefficients[0])
+        return problem, nw.NearWallChoice(
+            vopt.near_wall, vopt.layer_scale_mm, vopt.layer_scale_mm / big_r, "given (--layer-scale)"
+        )
+    noise = _velocity_noise(vp, raw, lumen, venc, options, where)
+    if not noise.value > 0:
+        return vp, nw.NearWallChoice("plain", criterion=f"no velocity noise estimate ({noise.method}): plain basis")
+    return choose_layer(vp, grid, noise.details["per_voxel"], vopt.near_wall, vopt)
+
+
+def _velocity_noise(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str):
+    """Per-voxel velocity noise: given (``--noise-velocity``) or estimated (:func:`wss_nlp.analysis.velocity_noise`)."""
+    if options.noise_velocity is not None:
+        return an.NoiseEstimate(
+            options.noise_velocity,
+            "given (--noise-velocity)",
+            {"per_voxel": np.full(vp.data.size, options.noise_velocity)},
+        )
+    return an.velocity_noise(vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc, where.rstrip())

@@ -240,6 +240,13 @@ def cmd_analyze(args) -> int:
                     mark = "  <- chosen" if p == ch.chosen else ""
                     crit = f" {ch.criterion[i]:12.4g}" if ch.criterion.size else ""
                     print(f"    {p:12.4g} {ch.residuals[i]:12.4g}{crit}{mark}")
+    for name, rec in wio.read_near_wall(args.result).items():
+        print(f"{name}: near-wall model '{rec['model']}'" + _layer_text(rec))
+        print(f"    {rec['criterion']}")
+        for model, value in sorted(rec["values"].items(), key=lambda kv: kv[1]):
+            print(f"    {model:>12}: {value:12.2f}" + ("  <- chosen" if model == rec["model"] else ""))
+        if rec["ambiguous"]:
+            print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
     if args.figures:
         from .plotting import save_parameter_figures
 
@@ -248,6 +255,13 @@ def cmd_analyze(args) -> int:
             paths = staged.commit()
         print(f"{len(paths)} figure(s) in {args.figures}")
     return 0
+
+
+def _layer_text(rec: dict) -> str:
+    if rec["model"] == "plain":
+        return ""
+    scale = f"l = {rec['scale_mm'] * 1000:.3g} um (l/R = {rec['scale_ratio']:.3g})"
+    return f", layer scale {scale}, margin {rec['margin']:.3g}"
 
 
 def sensitivity_table(rec: dict) -> list[tuple[str, float]]:

@@ -378,6 +378,8 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
             _write_core(s, r)
             if getattr(r, "screen", None):
                 s.attrs["screen_json"] = json.dumps(r.screen, default=float)
+            if getattr(r, "near_wall", None) is not None:
+                s.attrs["near_wall_json"] = json.dumps(r.near_wall.as_dict(), default=float)
             if not hasattr(r, "velocity"):  # a classical method (wss_nlp.baselines): no velocity model to store
                 s.attrs["baseline_json"] = json.dumps(r.info)
                 s["geometry"].attrs["segmentation_threshold"] = r.geometry.threshold
@@ -661,3 +663,15 @@ def read_choices(path) -> dict:
                     g["criterion"][()],
                 )
     return out
+
+
+def read_near_wall(path) -> dict:
+    """``{slice name: dict}``: the near-wall model record of each slice that has one (``near_wall_json``)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return {
+            name: json.loads(f[name].attrs["near_wall_json"])
+            for name in sorted(k for k in f if k.startswith("slice_"))
+            if "near_wall_json" in f[name].attrs
+        }

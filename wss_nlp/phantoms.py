@@ -246,30 +246,53 @@ class Manufactured(Flow):
         return self.u_max * (1 + self.kappa * r * np.cos(phi) / l.a) * np.hypot(fx, fy)
 
 
-@lru_cache(maxsize=1)
-def dns_profile():
-    """``(y+, U+)`` of the turbulent pipe DNS at Re_tau = 180.9 (doi:10.18738/T8/HLC3QY)."""
-    with resources.files("wss_nlp.data").joinpath("pipe_re180_mean.dat").open() as fh:
-        table = np.loadtxt(fh, comments="#")
+#: DNS mean profiles of turbulent pipe flow shipped in ``wss_nlp/data`` (see its README for the sources, CC0).
+DNS_PROFILES = {"re180": "pipe_re180_mean.dat", "re550": "pipe_re550_mean.dat", "re1000": "pipe_re1000_mean.dat"}
+
+
+@lru_cache(maxsize=4)
+def dns_profile(name: str = "re180"):
+    """``(y+, U+, Re_tau)`` of a turbulent pipe DNS (:data:`DNS_PROFILES`; Yao et al., doi:10.18738/T8/HLC3QY)."""
+    if name not in DNS_PROFILES:
+        raise InputError(f"unknown DNS profile {name!r}; choose from {', '.join(DNS_PROFILES)}")
+    with resources.files("wss_nlp.data").joinpath(DNS_PROFILES[name]).open() as fh:
+        text = fh.read()
+    header = dict(
+        (k.strip(), float(v)) for k, v in (ln.lstrip("# ").split("=") for ln in text.splitlines()[:6] if "=" in ln)
+    )
+    table = np.loadtxt(text.splitlines(), comments="#")
     yplus, uplus = table[:, 2], table[:, 5]
     order = np.argsort(yplus)
-    return yplus[order], uplus[order]
+    return yplus[order], uplus[order], header["uTau"] / header["nu"]
+
+
+def _dns_velocity(name: str, yplus):
+    """``U+(y+)`` by monotone cubic interpolation of the DNS (``y+`` clipped to the centreline)."""
+    import scipy.interpolate  # here: a slow import the command line should not pay at start-up
+
+    table_y, table_u, _ = dns_profile(name)
+    interp = scipy.interpolate.PchipInterpolator(table_y, table_u, extrapolate=False)
+    return np.nan_to_num(interp(np.clip(yplus, 0, table_y[-1])))
 
 
 @dataclass
 class TurbulentPipe(Flow):
-    """Mean turbulent pipe flow at Re_tau = 180.9 in a circular pipe.
+    """Mean turbulent pipe flow from DNS in a circular pipe (Re_tau 180.9, 549 or 998).
 
     Notes
     -----
     ``u(r) = u_tau U+((R - r) u_tau / nu)`` with ``u_tau = Re_tau nu / R``.
     The DNS has ``dU+/dy+ = 1`` at the wall, so ``tau = rho u_tau^2`` exactly.
     Defaults: water at 22 C in the paper's 25.885 mm pipe, giving a bulk
-    velocity of about 0.19 m/s (about 6 l/min).
+    velocity of about 0.19 m/s (about 6 l/min) at Re_tau 180.9.
     """
 
     density_kg_m3: float = 997.8
-    re_tau: float = 180.9
+    dns: str = "re180"
+
+    @property
+    def re_tau(self) -> float:
+        return dns_profile(self.dns)[2]
 
     @property
     def radius_mm(self) -> float:
@@ -285,17 +308,95 @@ class TurbulentPipe(Flow):
         return self.re_tau * self.nu / (self.radius_mm / PER_MM)
 
     def velocity(self, x, y):
-        yplus, uplus = dns_profile()
-        import scipy.interpolate  # here: a slow import the command line should not pay at start-up
-
-        interp = scipy.interpolate.PchipInterpolator(yplus, uplus, extrapolate=False)
         r = np.hypot(np.asarray(x) - self.lumen.center[0], np.asarray(y) - self.lumen.center[1])
-        yp = np.clip((self.radius_mm - r) / PER_MM * self.u_tau / self.nu, 0, yplus[-1])
-        u = self.u_tau * interp(yp)
-        return np.where(r < self.radius_mm, np.nan_to_num(u), 0.0)
+        u = self.u_tau * _dns_velocity(self.dns, (self.radius_mm - r) / PER_MM * self.u_tau / self.nu)
+        return np.where(r < self.radius_mm, u, 0.0)
 
     def wall_gradient(self, phi):
         return np.full_like(np.asarray(phi, dtype=float), self.u_tau**2 / self.nu / PER_MM)
+
+
+@dataclass
+class TurbulentEllipse(Flow):
+    """A turbulent mean profile in an elliptic lumen: the DNS law along elliptic level lines.
+
+    Notes
+    -----
+    ``u = u_tau U+(y+)`` with ``y+ = (1 - q) R_m u_tau / nu``,
+    ``q = sqrt(x'^2/a^2 + y'^2/b^2)`` and ``R_m = sqrt(a b)``,
+    ``u_tau = Re_tau nu / R_m``. Not a solution of the averaged
+    Navier-Stokes equations in a duct (secondary flows are absent), but a
+    velocity field with a viscous sublayer of the DNS's shape whose WSS is
+    exact: ``tau = mu (u_tau^2/nu) R_m |grad q|`` on the wall
+    (``dU+/dy+ = 1`` there), varying around the wall like the local
+    wall distance scale.
+    """
+
+    density_kg_m3: float = 997.8
+    dns: str = "re180"
+
+    @property
+    def nu(self) -> float:
+        return self.viscosity_pa_s / self.density_kg_m3
+
+    @property
+    def r_m(self) -> float:
+        e = self.lumen
+        assert isinstance(e, Ellipse)  # the level lines are an ellipse's
+        return float(np.sqrt(e.a * e.b))
+
+    @property
+    def u_tau(self) -> float:
+        return dns_profile(self.dns)[2] * self.nu / (self.r_m / PER_MM)
+
+    def velocity(self, x, y):
+        e = self.lumen
+        xl, yl = _local(e, x, y, e.angle)
+        q = np.hypot(xl / e.a, yl / e.b)
+        u = self.u_tau * _dns_velocity(self.dns, (1 - q) * self.r_m / PER_MM * self.u_tau / self.nu)
+        return np.where(q < 1, u, 0.0)
+
+    def wall_gradient(self, phi):
+        e = self.lumen
+        r = e.radius(phi)
+        t = np.asarray(phi) - e.angle
+        xl, yl = r * np.cos(t), r * np.sin(t)
+        return self.u_tau**2 / self.nu / PER_MM * self.r_m * np.hypot(xl / e.a**2, yl / e.b**2)
+
+
+@dataclass
+class EntrancePipe(Flow):
+    """Developing laminar flow in the entrance length of a circular pipe (Langhaar 1942).
+
+    Notes
+    -----
+    ``u(r) = U (I_0(a) - I_0(a r/R)) / I_2(a)``: Langhaar's approximate
+    solution (H. L. Langhaar, *J. Appl. Mech.* 9, A55-A58, 1942), ``U`` the
+    mean velocity and ``a`` growing from 0 (fully developed) to infinity at the
+    inlet; the wall layer is about ``R/a`` thick and saturates like
+    ``1 - exp(-a (1 - r/R))``. Exact wall gradient
+    ``U a I_1(a) / (R I_2(a))``. ``a = 30`` in a 10 mm pipe is a 0.3 mm layer,
+    about the first two diameters of a carotid-sized inlet at Re 1000.
+    """
+
+    u_mean: float = 0.25
+    a: float = 30.0
+
+    def velocity(self, x, y):
+        from scipy.special import ive  # exponentially scaled: I_0(30) alone is 7.8e11
+
+        r = np.hypot(np.asarray(x) - self.lumen.center[0], np.asarray(y) - self.lumen.center[1])
+        big_r = self.lumen.radius(0.0)
+        s = np.minimum(r / big_r, 1.0)
+        u = self.u_mean * (ive(0, self.a) - ive(0, self.a * s) * np.exp(self.a * (s - 1))) / ive(2, self.a)
+        return np.where(r < big_r, u, 0.0)
+
+    def wall_gradient(self, phi):
+        from scipy.special import ive
+
+        big_r = float(self.lumen.radius(0.0))
+        grad = self.u_mean * self.a * ive(1, self.a) / (big_r * ive(2, self.a))
+        return np.full_like(np.asarray(phi, dtype=float), grad)
 
 
 # ---------------------------------------------------------------- acquisition
@@ -408,6 +509,22 @@ def _turbulent(h_mm, rng):
     return TurbulentPipe(lumen=Circle(r=25.885 / 2), viscosity_pa_s=0.955e-3), 1.55 * 12.9425
 
 
+def _turbulent_dns(name):
+    def build(h_mm, rng):
+        return TurbulentPipe(lumen=Circle(r=25.885 / 2), viscosity_pa_s=0.955e-3, dns=name), 1.55 * 12.9425
+
+    return build
+
+
+def _turbulent_ellipse(h_mm, rng):
+    lumen = Ellipse(a=14.0, b=11.0, angle=-0.3)
+    return TurbulentEllipse(lumen=lumen, viscosity_pa_s=0.955e-3, dns="re180"), 1.5 * 14.0
+
+
+def _entrance(h_mm, rng):
+    return EntrancePipe(lumen=Circle(r=10.0), viscosity_pa_s=3.5e-3, u_mean=0.25, a=30.0), 1.5 * 10.0
+
+
 def _manufactured(h_mm, rng):
     lumen = LevelSetStar(a=11.0, eps=0.25)
     return Manufactured(lumen=lumen, viscosity_pa_s=3.5e-3, u_max=0.4, kappa=0.2), 1.5 * lumen.max_radius()
@@ -428,6 +545,13 @@ def _circle(h_mm, rng):
 CASES = {
     "laminar": (_laminar, "Poiseuille flow in an elliptic pipe (13 x 10 mm semi-axes), blood-like viscosity"),
     "turbulent": (_turbulent, "DNS mean turbulent pipe flow, Re_tau 180.9, water, 25.885 mm pipe (paper Sec. 7)"),
+    "turbulent550": (_turbulent_dns("re550"), "DNS mean turbulent pipe flow, Re_tau 549, water, 25.885 mm pipe"),
+    "turbulent1000": (_turbulent_dns("re1000"), "DNS mean turbulent pipe flow, Re_tau 998, water, 25.885 mm pipe"),
+    "turbulent-ellipse": (
+        _turbulent_ellipse,
+        "the Re_tau 180.9 DNS profile along the level lines of a 14 x 11 mm elliptic lumen",
+    ),
+    "entrance": (_entrance, "developing laminar pipe flow (Langhaar), 10 mm pipe, 0.33 mm wall layer"),
     "manufactured": (_manufactured, "polynomial flow vanishing on a smooth three-lobed star-shaped wall"),
     "fourier": (_fourier, "Poiseuille-type flow u = U(1 - r^2/R(phi)^2) in a lumen whose R lies in V_4"),
     "circle": (_circle, "Poiseuille flow in a circular pipe of radius 10 mm"),

@@ -17,7 +17,9 @@ import numpy as np
 from . import baselines as bl
 from . import coupled as cpl
 from . import geometry as geo
+from . import analysis as an
 from . import measurement as meas
+from . import near_wall as nw
 from . import plausibility as plaus
 from . import preprocess as pp
 from . import sensitivity as sens
@@ -35,6 +37,7 @@ from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are
     choose_alpha,
     choose_beta,
     gcv_beta,
+    layer_model,
     parse_rule,
 )
 from .errors import InputError, WssNlpError
@@ -216,6 +219,10 @@ class ReconstructionOptions:
             raise InputError(f"n_phi must be >= 360 (file format), got {self.n_phi}")
         if self.method not in METHODS:
             raise InputError(f"method must be one of {METHODS}, got {self.method!r}")
+        if self.method == "coupled" and self.velocity.near_wall != "off":
+            raise InputError(
+                "the coupled method does not take a near-wall model yet; use --method decoupled or --near-wall off"
+            )
         if self.alpha_rule not in ALPHA_RULES:
             raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
         if self.dephasing_beta_rule not in DEPHASING_BETA_RULES:
@@ -279,7 +286,15 @@ def reconstruct_slice(
 
     t0 = time.perf_counter()
     vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity)
-    beta_choice = choose_beta(vp, magnitude, lumen, venc, options, where, viscosity_pa_s)
+    near = None
+    if options.velocity.near_wall != "off":
+        vp, near = layer_model(vp, grid, magnitude, lumen, venc, options, where)
+    if near is not None and near.model != "plain" and options.beta_rule == "balance" and np.isfinite(near.beta):
+        # balancing weighs the noise the penalty removes; the layer columns are not penalized, so it would drift to
+        # the largest beta: the beta at which the chosen model's BIC is smallest is used instead
+        beta_choice = an.ParameterChoice("beta", "bic", near.beta, noise_method="BIC of the chosen near-wall model")
+    else:
+        beta_choice = choose_beta(vp, magnitude, lumen, venc, options, where, viscosity_pa_s)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
 
@@ -301,7 +316,11 @@ def reconstruct_slice(
         m_corr[vp.voxels.index] = np.clip(m_corr[vp.voxels.index] / np.maximum(factors, 1e-3), 0.0, 1.0)
         problem = geo.GeometryProblem(grid, m_corr.reshape(m.shape), lumen.center, lumen.r0, lumen.r1, lumen.r_area)
         g = geo.solve(problem, geo.with_options(options.geometry, alpha=g.alpha), x0=g.coefficients)
-        vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity, basis=vp.basis)
+        vp = vel.assemble(
+            grid, velocity_image, g.coefficients, g.center, options.velocity, basis=getattr(vp.basis, "base", vp.basis)
+        )
+        if near is not None and near.model != "plain":
+            vp = nw.enrich(vp, grid, near.model, near.scale_mm, options.velocity.laplacian_power)
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = time.perf_counter() - t0
 
@@ -343,6 +362,7 @@ def reconstruct_slice(
         info,
         sensitivity,
         notes,
+        near_wall=near,
     )
 
 

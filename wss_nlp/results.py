@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
+from . import near_wall as nw
+
 if TYPE_CHECKING:
     from . import analysis as an
     from . import geometry as geo
@@ -57,6 +59,7 @@ class SliceResult:
     sensitivity: sens.Sensitivity | None = None
     notes: list = field(default_factory=list)  # things the user should know that are not failures
     screen: dict = field(default_factory=dict)  # what wss_nlp.plausibility found (vessels, aliasing)
+    near_wall: nw.NearWallChoice | None = None  # the near-wall model and why (wss_nlp.choice.choose_layer)
 
     @property
     def converged(self) -> bool:
@@ -78,6 +81,13 @@ class SliceResult:
                     "residual stopped falling"
                 )
         out.extend(f"slice {self.index}: {n}" for n in self.notes)
+        nwc = self.near_wall
+        if nwc is not None and nwc.ambiguous:
+            runner = min((m for m in nwc.values if m != nwc.model), key=lambda m: nwc.values[m])
+            out.append(
+                f"slice {self.index}: near-wall model choice is ambiguous: {nwc.model} beats {runner} by "
+                f"BIC {nwc.margin:.2f} < {nw.AMBIGUOUS_MARGIN:g}; the two may give different WSS (see analyze)"
+            )
         if self.geometry.box_active:
             out.append(
                 f"slice {self.index}: the radius reached the box [{self.geometry.box[0]:.3g}, "

@@ -431,12 +431,12 @@ def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray)
 
 
 def supports(options) -> bool:
-    """Whether z-regularization applies to these reconstruction options (decoupled method, fixed alpha).
+    """Whether z-regularization applies to these reconstruction options (decoupled, fixed alpha, no near-wall model).
 
     beta may come from any rule: a segment is fitted with one beta, the
     median (on a log scale) of its slices' own choices (:func:`segment_beta`).
     """
-    return options.method == "decoupled" and options.alpha_rule == "fixed"
+    return options.method == "decoupled" and options.alpha_rule == "fixed" and options.velocity.near_wall == "off"
 
 
 def segment_beta(choices) -> float:

@@ -150,6 +150,13 @@ class LinearTikhonov:
         n = self.data.size
         return n * res**2 / (n - trace) ** 2, res, pen
 
+    def traces(self, betas) -> np.ndarray:
+        r"""Effective degrees of freedom :math:`\operatorname{tr}(H_\beta^{-1} K)` for each beta (see :meth:`gcv`)."""
+        out = np.empty(np.size(betas))
+        for _, lam, ref, idx, d in self._groups(betas):
+            out[idx] = np.sum((1.0 - ref / np.pi * lam)[None, :] / d, axis=1)
+        return out
+
     def balance_grams(self, betas, functional, sigma) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         r"""Gram matrices of the estimates ``S c_beta`` and of their noise parts, and the residual norms.
 

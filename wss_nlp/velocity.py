@@ -15,7 +15,7 @@ paper's parameter is ``beta_paper = beta |Omega| / pi`` for a misfit in mm^2.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 from functools import cached_property
 
@@ -24,6 +24,7 @@ import numpy as np
 import casadi as ca
 
 from . import measurement as meas
+from . import near_wall as nw
 from . import radius as rad
 from .errors import InputError
 from .mapping import DiskMap
@@ -123,7 +124,29 @@ class VelocityOptions:
         choices=("ipopt", "cholesky"),
     )
 
+    near_wall: str = option(
+        "off",
+        "wall-layer columns for layers thinner than a voxel: off, auto (plain or a family, chosen by BIC), "
+        "or one family (wall_law: Reichardt's law of the wall; exponential: laminar layers)",
+        cli="--near-wall",
+        toml=("near_wall",),
+        choices=nw.MODES,
+    )
+    layer_scale_mm: float | None = option(
+        None,
+        "fix the layer scale l in mm (with a --near-wall family; default: chosen from the data)",
+        cli="--layer-scale",
+        toml=("layer_scale",),
+    )
+
     def __post_init__(self):
+        if self.near_wall not in nw.MODES:
+            raise InputError(f"near-wall model must be one of {', '.join(nw.MODES)}, got {self.near_wall!r}")
+        if self.layer_scale_mm is not None and not (self.layer_scale_mm > 0 and self.near_wall in nw.FAMILIES):
+            raise InputError(
+                f"--layer-scale {self.layer_scale_mm:g} needs a positive scale and a --near-wall family "
+                f"({', '.join(nw.FAMILIES)})"
+            )
         if self.basis not in BASES:
             raise InputError(f"velocity basis must be one of {BASES}, got {self.basis!r}")
         if not self.beta > 0:
@@ -155,7 +178,9 @@ class VelocityProblem:
     gram: np.ndarray  # (n_basis, n_basis) Laplacian Gram matrix on B
     voxels: meas.LumenVoxels
     disk_map: DiskMap
-    basis: Any  # a basis of wss_nlp.velocity_basis
+    basis: Any  # a basis of wss_nlp.velocity_basis (or wss_nlp.near_wall.EnrichedBasis)
+    reference_points: tuple | None = None  # (xi_x, xi_y) of the sub-voxel points inside the lumen
+    average: Any = None  # sparse (n_vox, n_points) voxel-mean matrix of those points
 
     @property
     def area(self) -> float:
@@ -169,6 +194,12 @@ class VelocityProblem:
     def tikhonov(self) -> LinearTikhonov:
         """The problem's normal equations and parameter grids (:class:`wss_nlp.tikhonov.LinearTikhonov`)."""
         return LinearTikhonov(self.operator, self.weights, self.data, self.gram)
+
+    def with_layer(self, basis, columns: np.ndarray, laplacian_power: int) -> VelocityProblem:
+        """The problem in an enriched basis (:class:`wss_nlp.near_wall.EnrichedBasis`) whose extra voxel means are
+        ``columns``: the same voxels, data and map, no re-assembly."""
+        operator = np.hstack([self.operator[:, : basis.base.size], columns])
+        return replace(self, operator=operator, gram=basis.laplacian_gram(laplacian_power), basis=basis)
 
     def normal_equations(self, beta: float) -> tuple[np.ndarray, np.ndarray]:
         """``H c = g`` with ``H = T^T W T / A + beta G / pi``, ``g = T^T W u / A``."""
@@ -223,7 +254,8 @@ def assemble(
     rho, t = disk_map.inverse(px, py)
     avg = vox.mean_matrix()
     rho = np.minimum(rho, 1.0)
-    operator = basis.evaluate(rho * np.cos(t), rho * np.sin(t), average=avg)
+    ref = (rho * np.cos(t), rho * np.sin(t))
+    operator = basis.evaluate(*ref, average=avg)
     return VelocityProblem(
         operator=operator,
         weights=vox.fraction * grid.voxel_area,
@@ -233,6 +265,8 @@ def assemble(
         voxels=vox,
         disk_map=disk_map,
         basis=basis,
+        reference_points=ref,
+        average=avg,
     )
 
 

@@ -1,0 +1,185 @@
+"""Near-wall enrichment (issue 13): profiles, exact cell means, the enriched basis, the model choice and the CLI."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import scipy.integrate
+
+import casadi as ca
+
+from wss_nlp import cli, metrics, phantoms
+from wss_nlp import files as wio
+from wss_nlp import near_wall as nw
+from wss_nlp import velocity as vel
+from wss_nlp import wss as wss_mod
+from wss_nlp.choice import choose_layer
+from wss_nlp.errors import InputError
+from wss_nlp.mapping import DiskMap
+from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.velocity_basis import make_basis
+
+BASE = make_basis("zernike", 20, 400.0, 6)
+
+
+@pytest.mark.parametrize("family", nw.FAMILIES)
+def test_profiles_vanish_at_the_wall_with_unit_slope_and_antiderivatives_integrate_them(family):
+    y = ca.SX.sym("y")
+    f = ca.Function("f", [y], [nw.profile(family, y), ca.jacobian(nw.profile(family, y), y)])
+    value, slope = (float(v) for v in f(0.0))
+    assert value == 0.0 and slope == pytest.approx(1.0, abs=1e-12)
+    for x in (0.01, 1.0, 7.0, 50.0, 400.0):
+        f1, f2 = nw.antiderivatives(family, x)
+        ref1 = scipy.integrate.quad(lambda s: nw.profile(family, s), 0, x, epsabs=1e-13, epsrel=1e-13)[0]
+        ref2 = scipy.integrate.quad(lambda s: nw.antiderivatives(family, s)[0], 0, x, epsabs=1e-12, epsrel=1e-13)[0]
+        assert f1 == pytest.approx(ref1, rel=1e-11, abs=1e-13)
+        assert f2 == pytest.approx(ref2, rel=1e-10, abs=1e-12)
+
+
+@pytest.mark.parametrize("family", nw.FAMILIES)
+def test_cell_mean_is_the_trapezoid_mean_of_the_truncated_profile(family):
+    """Against a 4000^2-point midpoint rule over the cell's two box directions (its error is ~1e-7 relative)."""
+    n = 4000
+    s = (np.arange(n) + 0.5) / n - 0.5
+    for y, a, b in ((3.0, 2.0, 0.7), (0.4, 1.5, 1.0), (25.0, 4.0, 1e-5), (-0.5, 1.2, 0.3), (2.0, 0.01, 0.005)):
+        pts = y + 2 * a * s[:, None] + 2 * b * s[None, :]
+        ref = np.mean(np.where(pts > 0, nw.profile(family, np.maximum(pts, 0)), 0.0))
+        # cells narrower than 0.02 l take the midpoint value: relative error <= a^2 |f''| / (6 f), 1e-4 promised
+        rel = 1e-4 if a < 0.02 else 2e-6
+        assert nw.cell_mean(family, y, a, b) == pytest.approx(ref, rel=rel, abs=1e-9)
+
+
+def test_enriched_basis_numpy_casadi_polar_forms_agree_and_layer_is_not_penalized():
+    basis = nw.EnrichedBasis(BASE, "wall_law", 0.004)
+    rng = np.random.default_rng(4)
+    x, y = rng.uniform(-0.7, 0.7, (2, 7))
+    xi = ca.SX.sym("xi", 2)
+    sym = ca.Function("v", [xi], [basis.symbolic(xi)])
+    values = basis.evaluate(x, y)
+    np.testing.assert_allclose(np.hstack([np.asarray(sym([a, b])) for a, b in zip(x, y)]).T, values, atol=1e-12)
+    polar = (basis.radial_raw(np.hypot(x, y)) * basis.angular_raw(np.arctan2(y, x))).T @ basis.transform
+    np.testing.assert_allclose(polar, values, atol=1e-12)
+    assert np.all(basis.evaluate(np.cos([0.3, 2.0]), np.sin([0.3, 2.0]))[:, BASE.size :] == 0)  # vanish on the wall
+    gram = basis.laplacian_gram(2)
+    assert np.all(gram[BASE.size :] == 0) and np.all(gram[:, BASE.size :] == 0)
+    np.testing.assert_array_equal(gram[: BASE.size, : BASE.size], BASE.laplacian_gram(2))
+
+
+def test_layer_column_wss_is_mu_times_its_wall_slope():
+    """On a circle of radius R (map r_in R rho + (1 - r_in) R rho^2), column m = 0 has wall gradient S/l."""
+    big_r, r_in, scale = 10.0, 5.0, 0.003
+    dm = DiskMap(np.array([big_r, 0, 0, 0, 0, 0, 0, 0, 0]), (0.0, 0.0), r_in, 2.0)
+    basis = nw.EnrichedBasis(BASE, "exponential", scale)
+    smat, _ = wss_mod.wss_matrix(basis, dm, 1e-3, 36)
+    stretch = nw.stretch(dm)
+    assert stretch == pytest.approx(r_in + 2 * (big_r - r_in))
+    # d/d(distance) of f((1 - rho)/scale) at the wall is 1 / (scale * stretch) per mm; tau in Pa = mu * 1000 * that
+    expected = 1e-3 * 1000 * basis.column_scale / (scale * stretch)
+    np.testing.assert_allclose(smat[:, BASE.size], expected, rtol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def turbulent550():
+    acq, truth = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=None, seed=11)
+    res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+    return acq, truth, res
+
+
+def test_layer_quadrature_matches_a_fine_midpoint_rule(turbulent550):
+    """Exact cell means on the 6 x 6 rule vs a 100 x 100 rule (the layer is 23 um, cells 250 um): 0.3 %."""
+    acq, truth, res = turbulent550
+    g, opts = res.geometry, ReconstructionOptions().velocity
+    vp = vel.assemble(acq.grid, truth.velocity_image, g.coefficients, g.center, opts)
+    fine = vel.assemble(acq.grid, truth.velocity_image, g.coefficients, g.center, replace(opts, quad_order=100))
+    where = {v: i for i, v in enumerate(fine.voxels.index)}
+    rows = [i for i, v in enumerate(vp.voxels.index) if v in where]
+    for ratio in (1 / 549, 0.01):
+        basis = nw.EnrichedBasis(vp.basis, "wall_law", ratio * g.coefficients[0] / nw.stretch(vp.disk_map))
+        exact = nw.LayerQuadrature(vp, acq.grid).columns(basis)[rows]
+        ref = basis.evaluate(*fine.reference_points, average=fine.average)[:, vp.basis.size :]
+        ref = ref[[where[v] for v in vp.voxels.index[rows]]]
+        coarse = basis.evaluate(*vp.reference_points, average=vp.average)[rows, vp.basis.size :]
+        scale = np.max(np.abs(ref))
+        assert np.max(np.abs(exact - ref)) < 3e-3 * scale
+        assert np.max(np.abs(exact - ref)) < 0.2 * np.max(np.abs(coarse - ref))  # what the exact means buy
+
+
+def test_noise_free_turbulent_recovery_with_the_wall_law(turbulent550):
+    """Re_tau 549 DNS, exact viscous length given: WSS within 2 % (0.6 % measured); the plain basis misses by 79 %."""
+    acq, truth, _ = turbulent550
+    ell = 25.885 / 2 / phantoms.dns_profile("re550")[2]
+    opts = ReconstructionOptions(
+        uncertainty=False, velocity=vel.VelocityOptions(near_wall="wall_law", layer_scale_mm=ell)
+    )
+    res = reconstruct(acq, opts)[0]
+    assert metrics.compare_slice(res, truth).wss_rel_l2 < 0.02
+    assert res.near_wall.model == "wall_law" and res.near_wall.criterion.startswith("given")
+
+
+def test_noise_free_entrance_flow_with_the_exponential_layer():
+    """Langhaar's profile (not exactly exponential), l = R/a given: within 4 % (1.1-2.8 % measured)."""
+    acq, truth = phantoms.make_phantom("entrance", h_mm=1.0, snr=None, seed=12)
+    opts = ReconstructionOptions(
+        uncertainty=False, velocity=vel.VelocityOptions(near_wall="exponential", layer_scale_mm=10.0 / 30.0)
+    )
+    assert metrics.compare_slice(reconstruct(acq, opts)[0], truth).wss_rel_l2 < 0.04
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 13 acceptance not met: the BIC takes a layer on some laminar draws (laminar seed 301: wall_law "
+    "by 3.8); --near-wall auto stays opt-in until this passes",
+)
+def test_plain_model_kept_on_laminar_data():
+    """20 seeded draws (4 laminar-type phantoms x seeds 300-304, not used in development), h = 1.5 mm, SNR 25."""
+    from wss_nlp import analysis as an
+
+    opts = ReconstructionOptions(uncertainty=False)
+    picked = []
+    for case in ("laminar", "circle", "manufactured", "fourier"):
+        for seed in range(300, 305):
+            acq, _ = phantoms.make_phantom(case, h_mm=1.5, snr=25.0, seed=seed)
+            res = reconstruct(acq, opts)[0]
+            g = res.geometry
+            vp = vel.assemble(res.grid, res.velocity_image, g.coefficients, g.center, opts.velocity)
+            noise = an.velocity_noise(
+                vp.data_image, acq.magnitude[0], res.lumen.noise_mask, vp.voxels.index, vp.weights, acq.venc_m_s
+            )
+            _, choice = choose_layer(vp, acq.grid, noise.details["per_voxel"], "auto", opts.velocity)
+            picked.append((case, seed, choice.model))
+    assert all(model == "plain" for _, _, model in picked), picked
+
+
+def test_cli_records_the_choice_and_refuses_what_it_cannot_do(tmp_path, capsys):
+    acq, _ = phantoms.make_phantom("entrance", h_mm=1.0, snr=25.0, seed=13)
+    src, out = str(tmp_path / "in.h5"), str(tmp_path / "r.h5")
+    wio.write_acquisition(src, acq)
+    assert cli.main(["reconstruct", src, "-o", out, "--near-wall", "auto", "--no-uncertainty"]) == 0
+    rec = wio.read_near_wall(out)["slice_000"]
+    assert rec["model"] == "exponential" and rec["margin"] > nw.AMBIGUOUS_MARGIN
+    assert 0.3 / 10 / 2 < rec["scale_ratio"] < 2 * 0.33 / 10  # Langhaar's layer is about R/a = R/30
+    capsys.readouterr()
+    assert cli.main(["analyze", out]) == 0
+    assert "near-wall model 'exponential'" in capsys.readouterr().out
+    assert (
+        cli.main(["reconstruct", src, "-o", str(tmp_path / "c.h5"), "--near-wall", "auto", "--method", "coupled"]) == 2
+    )
+    assert "near-wall" in capsys.readouterr().err
+    with pytest.raises(InputError, match="layer-scale"):
+        vel.VelocityOptions(near_wall="auto", layer_scale_mm=0.1)
+
+
+def test_new_phantoms_wall_gradients_match_finite_differences_of_their_velocity():
+    """Along the inward normal, one-sided differences at 1e-4 mm (the layers are >= 13 um thick)."""
+    for case in ("turbulent550", "turbulent1000", "turbulent-ellipse", "entrance"):
+        _, truth = phantoms.make_phantom(case, h_mm=1.0, snr=None, seed=0)
+        lumen, flow = truth.lumen, truth.flow
+        phi = np.array([0.2, 1.3, 2.9])
+        r = lumen.radius(phi)
+        dr = (lumen.radius(phi + 1e-7) - lumen.radius(phi - 1e-7)) / 2e-7
+        wx, wy = lumen.center[0] + r * np.cos(phi), lumen.center[1] + r * np.sin(phi)
+        nx, ny = r * np.cos(phi) + dr * np.sin(phi), r * np.sin(phi) - dr * np.cos(phi)
+        norm = np.hypot(nx, ny)
+        eps = 1e-4
+        inner = flow.velocity(wx - eps * nx / norm, wy - eps * ny / norm)
+        np.testing.assert_allclose(inner / eps, flow.wall_gradient(phi), rtol=2e-3, err_msg=case)

@@ -1,0 +1,328 @@
+r"""Near-wall enrichment of the velocity basis: wall layers thinner than a voxel (issue 13).
+
+The polynomial basis of :mod:`wss_nlp.velocity_basis` with the prior
+:math:`\beta\|\Delta^t v\|^2` cannot follow a profile whose knee lies inside
+the first voxel: every beta small enough to let the polynomials bend that
+fast also lets noise through. The enrichment adds a few unpenalized
+columns that carry a wall layer of thickness ``l``:
+
+.. math::
+
+    v = \sum_j c_j v_j + \sum_{m=0}^{M} f\!\left(\frac{d}{\ell}\right)\rho^m
+        \left(a_m \cos m\theta + b_m \sin m\theta\right),
+    \qquad d = S\,(1 - \rho),
+
+on the reference disk (:math:`\rho, \theta` polar coordinates), with
+:math:`S = r_{in} + \eta(\bar R - r_{in})` the mean wall-normal stretch of
+:math:`\phi_R` at the wall (mm per unit of :math:`\rho`), so ``d`` is the
+distance to the wall in mm to first order, and ``l`` (mm) is the layer's
+length scale. Two profile families, both with :math:`f(0) = 0` (the columns
+vanish on the wall, like the basis) and :math:`f'(0) = 1` (so a column's WSS
+is :math:`\mu S/\ell` times its angular factor, independent of the family):
+
+* ``wall_law``: Reichardt's law of the wall (Reichardt 1951,
+  *Z. angew. Math. Mech.* 31, 208-219),
+  :math:`f(y) = \ln(1 + \kappa y)/\kappa + 7.8\,(1 - e^{-y/11} - (y/11)\,e^{-y/3})`,
+  :math:`\kappa = 0.41`: turbulent mean flow, ``l`` the viscous length
+  :math:`\nu/u_\tau`;
+* ``exponential``: :math:`f(y) = 1 - e^{-y}`: laminar layers that saturate
+  (developing entrance flow, Stokes layers of pulsatile flow), ``l`` the
+  displacement-type thickness.
+
+Which model (plain, or a family and a scale on a grid) is chosen from the
+data by :mod:`wss_nlp.choice` (:func:`wss_nlp.choice.choose_near_wall`).
+
+The columns are separable in :math:`(\rho, \theta)`, so the polar form
+used by the coupled method and the sensitivities (:func:`wss_nlp.coupled.polar_basis`)
+applies to them unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+import casadi as ca
+
+from .errors import InputError
+
+#: Profile families of the wall layer (see the module notes).
+FAMILIES = ("wall_law", "exponential")
+#: What ``--near-wall`` accepts: off (the paper's basis alone), auto (chosen from the data), or one family.
+MODES = ("off", "auto") + FAMILIES
+#: von Karman constant and the additive constant of Reichardt's law.
+KAPPA, REICHARDT_C = 0.41, 7.8
+
+
+def profile(family: str, y):
+    """``f(y)`` of a family, for NumPy arrays or CasADi symbols (``y >= 0`` is the fluid side).
+
+    Points outside the wall (``y < 0``) only occur within rounding of the
+    map's inverse; the formulas are smooth there down to ``y = -1``, where
+    they are cut off (``1 + kappa y`` stays positive).
+    """
+    is_sym = isinstance(y, (ca.SX, ca.MX))
+    y = ca.fmax(y, -1.0) if is_sym else np.maximum(y, -1.0)
+    log, exp = (ca.log, ca.exp) if is_sym else (np.log, np.exp)
+    if family == "wall_law":
+        return log(1 + KAPPA * y) / KAPPA + REICHARDT_C * (1 - exp(-y / 11) - y / 11 * exp(-y / 3))
+    if family == "exponential":
+        return 1 - exp(-y)
+    raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+
+
+def stretch(disk_map) -> float:
+    r"""``S = r_in + eta (mean R - r_in)``: :math:`\partial_\rho |\phi_R|` at the wall, averaged over the angle (mm)."""
+    return float(disk_map.r_in + disk_map.eta * (disk_map.coefficients[0] - disk_map.r_in))
+
+
+class EnrichedBasis:
+    """A velocity basis with ``2 M + 1`` wall-layer columns appended (see the module notes).
+
+    Parameters
+    ----------
+    base : basis of :mod:`wss_nlp.velocity_basis`
+        The penalized polynomial part.
+    family : {"wall_law", "exponential"}
+        Profile of the layer.
+    scale : float
+        ``l / S``: the layer's length scale in units of the reference radius.
+    max_order : int
+        Highest angular order ``M`` of the layer's amplitude.
+
+    Notes
+    -----
+    The appended columns are scaled by their value in the core (``1/f(1/scale)``)
+    so their coefficients are velocities like the rest; the penalty Gram
+    matrix is zero on them (:meth:`laplacian_gram`): the layer's amplitude
+    is decided by the data, its shape by ``family`` and ``scale``.
+    """
+
+    def __init__(self, base, family: str, scale: float, max_order: int = 2):
+        if family not in FAMILIES:
+            raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+        if not 0 < scale < 1:
+            raise InputError(f"near-wall scale l/S must lie in (0, 1), got {scale}")
+        self.base, self.family, self.scale, self.max_order = base, family, float(scale), int(max_order)
+        self.kind = f"{base.kind}+{family}"
+        self.layer_terms = [(0, "cos")] + [(m, k) for m in range(1, self.max_order + 1) for k in ("cos", "sin")]
+        self.n_layer = len(self.layer_terms)
+        self.column_scale = 1.0 / float(profile(family, 1.0 / self.scale))
+        nb = base.transform.shape[0]
+        self.transform = np.zeros((nb + self.n_layer, base.size + self.n_layer))
+        self.transform[:nb, : base.size] = base.transform
+        self.transform[nb:, base.size :] = self.column_scale * np.eye(self.n_layer)
+
+    @property
+    def size(self) -> int:
+        return self.base.size + self.n_layer
+
+    def describe(self) -> dict:
+        return {**self.base.describe(), "near_wall": self.family, "layer_scale": self.scale, "size": self.size}
+
+    def _layer_raw(self, x, y):
+        """Unscaled layer columns ``f((1 - rho)/scale) Re/Im (x + i y)^m`` (NumPy or CasADi)."""
+        is_sym = isinstance(x, (ca.SX, ca.MX))
+        rho = ca.sqrt(x * x + y * y) if is_sym else np.hypot(x, y)
+        f = profile(self.family, (1 - rho) / self.scale)
+        re, im = [1.0 + 0 * x], [0 * x]
+        for _ in range(self.max_order):  # (x + i y)^(k+1) = (x + i y) (x + i y)^k
+            re_k, im_k = re[-1], im[-1]
+            re.append(x * re_k - y * im_k)
+            im.append(x * im_k + y * re_k)
+        return [f * (re[m] if kind == "cos" else im[m]) for m, kind in self.layer_terms]
+
+    def evaluate(self, x, y, average=None) -> np.ndarray:
+        """Values at reference points, shape ``(npts, size)`` (or ``average @ values``)."""
+        x, y = np.ravel(x), np.ravel(y)
+        layer = np.array(self._layer_raw(x, y)).T * self.column_scale
+        if average is not None:
+            layer = np.asarray(average @ layer)
+        return np.hstack([self.base.evaluate(x, y, average=average), layer])
+
+    def symbolic_raw(self, xi):
+        return ca.vertcat(self.base.symbolic_raw(xi), *self._layer_raw(xi[0], xi[1]))
+
+    def symbolic(self, xi):
+        return ca.mtimes(ca.DM(self.transform).T, self.symbolic_raw(xi))
+
+    def radial_raw(self, rho) -> np.ndarray:
+        rho = np.ravel(rho).astype(float)
+        f = profile(self.family, (1 - rho) / self.scale)
+        return np.vstack([self.base.radial_raw(rho)] + [f * rho**m for m, _ in self.layer_terms])
+
+    def angular_terms(self) -> list[tuple[int, str]]:
+        return self.base.angular_terms() + self.layer_terms
+
+    def angular_raw(self, t) -> np.ndarray:
+        t = np.ravel(t).astype(float)
+        layer = [np.cos(m * t) if kind == "cos" else np.sin(m * t) for m, kind in self.layer_terms]
+        return np.vstack([self.base.angular_raw(t)] + layer)
+
+    def laplacian_gram(self, power: int = 1) -> np.ndarray:
+        """The base's Gram matrix, padded with zeros: the layer columns are not penalized."""
+        out = np.zeros((self.size, self.size))
+        out[: self.base.size, : self.base.size] = self.base.laplacian_gram(power)
+        return out
+
+
+def antiderivatives(family: str, y) -> tuple[np.ndarray, np.ndarray]:
+    """First and second antiderivatives of ``f(y) 1(y > 0)`` from 0 (zero for ``y <= 0``; NumPy)."""
+    y = np.maximum(np.asarray(y, dtype=float), 0.0)
+    if family == "inside":  # f = 1: the cell's area fraction inside the wall
+        return y, y * y / 2
+    if family == "exponential":
+        e = np.exp(-y)
+        return y - 1 + e, y * y / 2 - y + 1 - e
+    if family != "wall_law":
+        raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+    z, e11, e3 = 1 + KAPPA * y, np.exp(-y / 11), np.exp(-y / 3)
+    lz = np.log(z)
+    f1 = (z * lz - KAPPA * y) / KAPPA**2 + REICHARDT_C * (y - 11 * (1 - e11) - (9 - (3 * y + 9) * e3) / 11)
+    f2 = (z * z * lz / 2 - 3 * z * z / 4 + z - 0.25) / KAPPA**3 + REICHARDT_C * (
+        y * y / 2 - 11 * y + 121 * (1 - e11) - (9 * y - 54 + (9 * y + 54) * e3) / 11
+    )
+    return f1, f2
+
+
+def cell_mean(family: str, y, a, b) -> np.ndarray:
+    r"""Mean of ``f(y') 1(y' > 0)`` over a square quadrature cell centred at wall distance ``y``.
+
+    Notes
+    -----
+    A square cell of sides ``2a/|cos|`` and ``2b/|sin|`` (oriented with the
+    image axes) projects onto the wall normal as the convolution of two
+    boxes of half-widths ``a`` and ``b``: a trapezoid. Its mean of ``f`` is
+
+    .. math::
+
+        \frac{F_2(y+a+b) - F_2(y+a-b) - F_2(y-a+b) + F_2(y-a-b)}{4ab}
+
+    with :math:`F_2'' = f` (:func:`antiderivatives`), the box mean
+    :math:`(F_1(y+a) - F_1(y-a))/(2a)` when ``b`` is negligible, and ``f(y)``
+    when the cell is small against the layer. All lengths in units of ``l``.
+    Exact for a straight wall; the part of the cell beyond the wall
+    contributes zero velocity (no slip).
+    """
+    y, a, b = (np.asarray(v, dtype=float) for v in np.broadcast_arrays(y, a, b))
+    a, b = np.maximum(a, b), np.minimum(a, b)
+    out = np.where(y > 0, 1.0, 0.0) if family == "inside" else np.where(y > 0, profile(family, y), 0.0)
+    wide = a > 0.02  # below, the midpoint value is exact to 1e-4 relative
+    box = wide & (b < 1e-3 * a)
+    trap = wide & ~box
+    if box.any():
+        ya, aa = y[box], a[box]
+        out[box] = (antiderivatives(family, ya + aa)[0] - antiderivatives(family, ya - aa)[0]) / (2 * aa)
+    if trap.any():
+        yt, at, bt = y[trap], a[trap], b[trap]
+
+        def f2(v):
+            return antiderivatives(family, v)[1]
+
+        out[trap] = (f2(yt + at + bt) - f2(yt + at - bt) - f2(yt - at + bt) + f2(yt - at - bt)) / (4 * at * bt)
+    return out
+
+
+class LayerQuadrature:
+    """Voxel means of the layer columns with the layer integrated exactly across each quadrature cell.
+
+    The velocity operator's midpoint rule (``q x q`` cells per voxel,
+    :func:`wss_nlp.measurement.auto_quad_order`) is spaced about R/60: far
+    too coarse for a layer a few micrometres thick (Re_tau 1000 in a 26 mm
+    pipe: l = 13 um), and refining it where the layer is would cost
+    millions of points. Instead each cell's value of the profile is its
+    exact mean across the cell in the wall-normal direction
+    (:func:`cell_mean`), while the angular factor, which varies on the
+    vessel's scale, keeps the midpoint rule.
+
+    Parameters
+    ----------
+    problem : wss_nlp.velocity.VelocityProblem
+        The assembled plain problem (its voxels, map and reference points).
+    grid : wss_nlp.measurement.VoxelGrid
+        The image grid of the problem.
+    """
+
+    def __init__(self, problem, grid):
+        vox, dm = problem.voxels, problem.disk_map
+        self.rho, self.t = (a.reshape(vox.px.shape) for a in dm.inverse(vox.px.ravel(), vox.py.ravel()))
+        self.stretch = stretch(dm)
+        q = int(round(np.sqrt(vox.px.shape[1])))
+        # half-widths (mm) of each cell's projection on the wall normal, which is radial to first order
+        self.half_x = grid.dx / q / 2 * np.abs(np.cos(self.t))
+        self.half_y = grid.dy / q / 2 * np.abs(np.sin(self.t))
+        self.order = q
+        self.depth = (1 - self.rho) * self.stretch  # mm from the wall, negative outside
+        self.area = np.sum(cell_mean("inside", self.depth, self.half_x, self.half_y), axis=1)
+
+    def columns(self, basis: EnrichedBasis) -> np.ndarray:
+        """``(n_voxels, n_layer)``: voxel means of the layer columns of ``basis``, scaled as in its ``evaluate``.
+
+        ``sum_cells int_{cell cap Omega} f / sum_cells |cell cap Omega|`` over
+        every cell of the voxel (also those whose centre lies outside), so
+        the wall voxels' partial volumes are integrated with the layer.
+        """
+        ell = basis.scale * self.stretch  # mm
+        f = cell_mean(basis.family, self.depth / ell, self.half_x / ell, self.half_y / ell) * basis.column_scale
+        rho = np.minimum(self.rho, 1.0)
+        cols = [
+            np.sum(f * rho**m * (np.cos(m * self.t) if kind == "cos" else np.sin(m * self.t)), axis=1)
+            for m, kind in basis.layer_terms
+        ]
+        return np.stack(cols, axis=1) / self.area[:, None]
+
+
+@dataclass
+class NearWallChoice:
+    """Which near-wall model a slice got, and why (recorded in the result file and shown by ``analyze``).
+
+    Attributes
+    ----------
+    model : str
+        ``"plain"`` (the paper's basis alone) or a family of :data:`FAMILIES`.
+    scale_mm : float
+        The layer scale ``l`` in mm (NaN for the plain model).
+    scale_ratio : float
+        ``l`` over the mean radius.
+    criterion : str
+        How the models were compared.
+    values : dict
+        The criterion of each model at its best scale and beta (smaller is better).
+    margin : float
+        Criterion of the runner-up model minus the chosen one's.
+    tried : list
+        ``(model, l/R, criterion)`` of every evaluated candidate.
+    ambiguous : bool
+        The margin is below :data:`AMBIGUOUS_MARGIN`: the data hardly prefer the choice.
+    beta : float
+        The beta at which the chosen model's criterion is smallest.
+    quad_order : int
+        Quadrature cells per voxel axis of the layer columns (:class:`LayerQuadrature`).
+    """
+
+    model: str
+    scale_mm: float = float("nan")
+    scale_ratio: float = float("nan")
+    criterion: str = ""
+    values: dict = field(default_factory=dict)
+    margin: float = float("inf")
+    tried: list = field(default_factory=list)
+    ambiguous: bool = False
+    quad_order: int = 0
+    beta: float = float("nan")
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+#: BIC difference below which a model choice is reported as ambiguous (Kass & Raftery 1995: "not worth more than a
+#: bare mention" below 2).
+AMBIGUOUS_MARGIN = 2.0
+
+
+def enrich(problem, grid, family: str, scale_mm: float, laplacian_power: int, quadrature=None):
+    """``problem`` (plain basis) with the layer columns of ``family`` at scale ``l = scale_mm`` appended."""
+    basis = EnrichedBasis(problem.basis, family, scale_mm / stretch(problem.disk_map))
+    quadrature = LayerQuadrature(problem, grid) if quadrature is None else quadrature
+    return problem.with_layer(basis, quadrature.columns(basis), laplacian_power)
