@@ -10,6 +10,7 @@ and stacks (:mod:`wss_nlp.stack`) alike.
 
 from __future__ import annotations
 
+import functools
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -215,7 +216,7 @@ def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.Para
 
 
 #: Layer scales l / R of the coarse search (octaves); the best is refined by golden-section search.
-LAYER_RATIOS = 2.0 ** -np.arange(3.0, 12.0)
+LAYER_RATIOS = 2.0 ** -np.arange(4.0, 13.0)
 #: betas over which each candidate's criterion is minimized (half decades).
 CRITERION_BETAS = 10.0 ** -np.arange(3.0, 13.5, 0.5)
 GOLDEN_STEPS = 8
@@ -240,21 +241,57 @@ def _bic(problem: vel.VelocityProblem, sigma: np.ndarray) -> tuple[float, float]
     return float(crit[i]), float(CRITERION_BETAS[i])
 
 
-def choose_layer(
-    vp: vel.VelocityProblem, grid, sigma: np.ndarray, mode: str, vopt: vel.VelocityOptions
-) -> tuple[vel.VelocityProblem, nw.NearWallChoice]:
-    """The near-wall model of one slice: the plain basis, or a layer family and scale, by BIC.
+def _golden(score, lo: float, hi: float, steps: int = GOLDEN_STEPS) -> float:
+    """Minimizer of ``score`` on ``[lo, hi]`` by golden-section search (``steps`` shrinkings, 0.618 each)."""
+    g = (np.sqrt(5) - 1) / 2
+    a, b = hi - g * (hi - lo), lo + g * (hi - lo)
+    fa, fb = score(a), score(b)
+    for _ in range(steps):
+        if fa <= fb:
+            hi, b, fb = b, a, fa
+            a = hi - g * (hi - lo)
+            fa = score(a)
+        else:
+            lo, a, fa = a, b, fb
+            b = lo + g * (hi - lo)
+            fb = score(b)
+    return a if fa <= fb else b
 
-    Every candidate (the plain basis; each family on the scales
-    :data:`LAYER_RATIOS` x mean R, the best refined by golden-section search
-    in log l) is scored by :func:`_bic` at its own best beta; the smallest
+
+def choose_layer(
+    vp: vel.VelocityProblem,
+    grid,
+    sigma: np.ndarray,
+    mode: str,
+    vopt: vel.VelocityOptions,
+    nu_m2_s: float | None = None,
+    around: nw.NearWallChoice | None = None,
+    reynolds: float | None = None,
+) -> tuple[vel.VelocityProblem, nw.NearWallChoice]:
+    r"""The near-wall model of one slice: the plain basis, or a layer family and scale, by BIC.
+
+    With the bulk Reynolds number ``reynolds`` the family is the flow
+    regime's (:func:`wss_nlp.near_wall.regime_family`: the law of the wall
+    for turbulent flow, the exponential layer for laminar flow) and only
+    plain-or-layer is left to the BIC, which cannot tell the families apart
+    (both fit thin layers about equally well; measured in
+    scripts/results/near_wall.md). Without it both families compete.
+
+    Candidates: the plain basis; ``exponential`` at the scale minimizing
+    :func:`_bic` (octaves :data:`LAYER_RATIOS` x mean R, refined by
+    golden-section search in log l); ``wall_law`` at the scale where the
+    fitted layer obeys the law of the wall, :math:`u_\tau \ell = \nu`
+    (:func:`_wall_law_scale`; by BIC like the exponential when ``nu_m2_s``
+    is None). Each is scored by :func:`_bic` at its best beta; the smallest
     score wins. ``mode`` restricts the candidates (``"auto"``: all; a family
-    name: that family, plain excluded). Returns the chosen problem (the
-    plain one or its enrichment) and the record of the choice.
+    name: that family, plain excluded). ``around`` (an earlier choice on a
+    nearby geometry, e.g. before the dephasing pass) keeps its family and
+    searches half an octave either side of its scale. Returns the chosen
+    problem (the plain one or its enrichment) and the record of the choice.
     """
     big_r = float(vp.disk_map.coefficients[0])
     quad = nw.LayerQuadrature(vp, grid)
-    tried, best = [], {}
+    tried, best, notes = [], {}, {}
     plain, plain_beta = _bic(vp, sigma)
     if mode == "auto":
         best["plain"] = (plain, float("nan"), vp, plain_beta)
@@ -266,39 +303,38 @@ def choose_layer(
         tried.append((family, 2.0**log_ratio, crit))
         return crit, problem, beta
 
-    families = nw.FAMILIES if mode == "auto" else (mode,)
-    coarse = {f: [score(f, float(x))[0] for x in np.log2(LAYER_RATIOS)] for f in families}
-    for family in families:
+    if around is not None and around.model in nw.FAMILIES:
+        families: tuple = (around.model,)
+        start = float(np.log2(around.scale_mm / big_r))
+        brackets = {around.model: (start - 0.5, start + 0.5)}
+    else:
+        families = (mode,) if mode != "auto" else nw.FAMILIES if reynolds is None else (nw.regime_family(reynolds),)
         logs = np.log2(LAYER_RATIOS)
-        k = int(np.argmin(coarse[family]))
-        lo, hi = logs[max(k - 1, 0)], logs[min(k + 1, logs.size - 1)]
-        lo, hi = min(lo, hi), max(lo, hi)
-        g = (np.sqrt(5) - 1) / 2
-        a, b = hi - g * (hi - lo), lo + g * (hi - lo)
-        fa, fb = score(family, a)[0], score(family, b)[0]
-        for _ in range(GOLDEN_STEPS):
-            if fa <= fb:
-                hi, b, fb = b, a, fa
-                a = hi - g * (hi - lo)
-                fa = score(family, a)[0]
-            else:
-                lo, a, fa = a, b, fb
-                b = lo + g * (hi - lo)
-                fb = score(family, b)[0]
-        x = a if fa <= fb else b
+        brackets = {f: (logs[-1], logs[0]) for f in families}
+    for family in families:
+        lo, hi = brackets[family]
+        family_score = functools.partial(score, family)
+        if family == "wall_law" and nu_m2_s is not None:
+            x, how = _wall_law_scale(family_score, lo, hi, big_r, nu_m2_s, vp.basis.size)
+            notes[family] = how
+        else:
+            x = _bic_scale(family_score, lo, hi)
         crit, problem, beta = score(family, x)
-        if coarse[family][k] < crit:  # the refinement must not lose to its start
-            x = logs[k]
-            crit, problem, beta = score(family, x)
         best[family] = (crit, 2.0**x * big_r, problem, beta)
-    order = sorted(best, key=lambda m: best[m][0])
+    # the paper's model is the null hypothesis: a layer must be preferred by "very strong" evidence
+    penalty = {m: (nw.LAYER_EVIDENCE if m != "plain" else 0.0) for m in best}
+    order = sorted(best, key=lambda m: best[m][0] + penalty[m])
     chosen = order[0]
-    margin = best[order[1]][0] - best[chosen][0] if len(order) > 1 else float("inf")
+    margin = best[order[1]][0] + penalty[order[1]] - best[chosen][0] - penalty[chosen] if len(order) > 1 else np.inf
+    how = "BIC = chi^2 + ln(n) tr(H^-1 K), each model at its best beta; "
+    how += f"a layer needs a BIC {nw.LAYER_EVIDENCE:g} below plain"
+    if reynolds is not None and mode == "auto" and around is None:
+        how += f"; family by the flow regime (bulk Re {reynolds:.0f})"
     choice = nw.NearWallChoice(
         model=chosen,
         scale_mm=best[chosen][1],
         scale_ratio=best[chosen][1] / big_r,
-        criterion="BIC = chi^2 + ln(n) tr(H^-1 K), each model at its best beta and layer scale",
+        criterion=how + (f"; scale: {notes[chosen]}" if chosen in notes else ""),
         values={m: v[0] for m, v in best.items()},
         margin=float(margin),
         tried=tried,
@@ -309,15 +345,77 @@ def choose_layer(
     return best[chosen][2], choice
 
 
+def _bic_scale(score, lo: float, hi: float) -> float:
+    """log2(l/R) minimizing the BIC on ``[lo, hi]``: octave scan, then golden-section search around the best."""
+    grid = np.arange(hi, lo - 1e-9, -1.0) if hi - lo > 1.5 else np.array([(lo + hi) / 2])
+    crit = [score(float(x))[0] for x in grid]
+    k = int(np.argmin(crit))
+    half = 1.0 if grid.size > 1 else (hi - lo) / 2
+    x = _golden(lambda v: score(v)[0], grid[k] - half, grid[k] + half)
+    return x if score(x)[0] <= crit[k] else float(grid[k])
+
+
+def _wall_law_scale(score, lo: float, hi: float, big_r: float, nu_m2_s: float, n_base: int) -> tuple[float, str]:
+    r"""log2(l/R) at which the fitted wall-law layer is self-consistent, and how it was found.
+
+    Notes
+    -----
+    Near the wall :math:`u = u_\tau U^+(y u_\tau/\nu)`, so the layer's
+    amplitude and its scale are one parameter: with the m = 0 column
+    :math:`a f(d/\ell)` fitted at scale :math:`\ell`, the law holds where
+    :math:`g(\ell) = a \ell / \nu - 1 = 0` (``nu`` from the viscosity and
+    the density). ``g`` is scanned on quarter octaves, each sign change is
+    refined by bisection in log l to 1/128 octave, and of several roots the
+    one with the smallest BIC is taken (spurious roots sit where the
+    layer's amplitude changes sign, far from the data's optimum). Without
+    a root the BIC's scale is used and the record says so.
+    """
+
+    def consistency(x):
+        crit, problem, beta = score(x)
+        c = problem.tikhonov.solve(beta)
+        u_tau = c[n_base] * problem.basis.column_scale  # m/s: the m = 0 layer column is u_tau f(d/l)
+        ell_m = 2.0**x * big_r / 1000.0
+        return u_tau * ell_m / nu_m2_s - 1.0, crit
+
+    xs = np.arange(hi, lo - 1e-9, -0.25)
+    vals = [consistency(float(x)) for x in xs]
+    roots = []
+    for i in range(xs.size - 1):
+        (ga, _), (gb, _) = vals[i], vals[i + 1]
+        if np.sign(ga) != np.sign(gb):
+            a, b = float(xs[i]), float(xs[i + 1])
+            for _ in range(5):
+                m = (a + b) / 2
+                gm, _ = consistency(m)
+                a, b = (m, b) if np.sign(gm) == np.sign(ga) else (a, m)
+            x = (a + b) / 2
+            roots.append((consistency(x)[1], x))
+    if not roots:
+        return _bic_scale(score, lo, hi), "no scale satisfies u_tau l = nu; the BIC's scale"
+    crit, x = min(roots)
+    return x, f"law of the wall u_tau l = nu ({len(roots)} root(s), the one with the smallest BIC)"
+
+
 def layer_model(
-    vp: vel.VelocityProblem, grid, raw, lumen, venc, options: ReconstructionOptions, where: str
+    vp: vel.VelocityProblem,
+    grid,
+    raw,
+    lumen,
+    venc,
+    options: ReconstructionOptions,
+    where: str,
+    viscosity_pa_s: float | None = None,
+    density: tuple[float, str] | None = None,
+    around: nw.NearWallChoice | None = None,
 ) -> tuple[vel.VelocityProblem, nw.NearWallChoice]:
     """The velocity problem with the near-wall model ``options.velocity.near_wall`` asks for, and the record.
 
     A given ``layer_scale_mm`` fixes the layer (no choice); otherwise the
-    model and scale come from :func:`choose_layer`, which needs the
-    velocity noise: without it (noise-free data) the plain basis is kept
-    and the record says why.
+    model and scale come from :func:`choose_layer` (``around``: refine an
+    earlier choice on a corrected geometry; ``nu = viscosity / density``
+    for the law of the wall), which needs the velocity noise: without it
+    (noise-free data) the plain basis is kept and the record says why.
     """
     vopt = options.velocity
     if vopt.layer_scale_mm is not None:
@@ -329,7 +427,13 @@ def layer_model(
     noise = _velocity_noise(vp, raw, lumen, venc, options, where)
     if not noise.value > 0:
         return vp, nw.NearWallChoice("plain", criterion=f"no velocity noise estimate ({noise.method}): plain basis")
-    return choose_layer(vp, grid, noise.details["per_voxel"], vopt.near_wall, vopt)
+    nu = None if viscosity_pa_s is None or density is None else viscosity_pa_s / density[0]
+    reynolds = None if nu is None else nw.bulk_reynolds(vp, nu)
+    problem, choice = choose_layer(vp, grid, noise.details["per_voxel"], vopt.near_wall, vopt, nu, around, reynolds)
+    if density is not None:
+        choice.density_kg_m3, choice.density_source = density
+    choice.reynolds = float("nan") if reynolds is None else reynolds
+    return problem, choice
 
 
 def _velocity_noise(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str):

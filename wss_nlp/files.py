@@ -36,6 +36,7 @@ class Acquisition:
     slice_spacing_mm: float | None = None
     venc_m_s: float | None = None
     viscosity_pa_s: float | None = None
+    density_kg_m3: float | None = None
     source: str = "<memory>"
     extra_attrs: dict = field(default_factory=dict)
     velocity_inplane: np.ndarray | None = None  # (2, nz, ny, nx): in-plane components x, y in m/s (4D flow)
@@ -69,6 +70,18 @@ class Acquisition:
         if not mu > 0:
             raise InputError(f"{self.source}: viscosity must be > 0 Pa*s, got {mu}")
         return float(mu)
+
+    def density(self, override: float | None = None) -> tuple[float, str]:
+        """Fluid density in kg/m^3 and where it came from: ``override``, the file's ``density_kg_m3``, or blood's.
+
+        Only the law-of-the-wall layer (``--near-wall``) uses it, through the
+        kinematic viscosity ``nu = mu / rho``.
+        """
+        if override is not None:
+            return float(override), "given (--density)"
+        if self.density_kg_m3 is not None:
+            return float(self.density_kg_m3), "file attribute 'density_kg_m3'"
+        return DEFAULT_DENSITY, f"default (blood, {DEFAULT_DENSITY:g} kg/m^3; pass --density for other fluids)"
 
     def nonfinite_slices(self) -> list[int]:
         """Indices of slices with NaN or Inf in any image."""
@@ -140,6 +153,20 @@ class Acquisition:
                 raise InputError(f"{src}: 'phase' must lie in (-pi, pi] radians, found |phase| up to {big:.4g}{hint}")
         if self.viscosity_pa_s is not None and not self.viscosity_pa_s > 0:
             raise InputError(f"{src}: 'viscosity_pa_s' must be > 0, got {self.viscosity_pa_s}")
+        check_density(self.density_kg_m3, f"{src}: 'density_kg_m3'")
+
+
+#: Density of blood (kg/m^3), used when neither the file nor the command line gives one.
+DEFAULT_DENSITY = 1060.0
+
+
+def check_density(rho: float | None, what: str) -> None:
+    """InputError unless ``rho`` is None or a plausible liquid density in kg/m^3 (500-3000)."""
+    if rho is None:
+        return
+    if not 500 <= rho <= 3000:
+        hint = " (it looks like g/cm^3: multiply by 1000)" if 0.5 <= rho <= 3 else ""
+        raise InputError(f"{what} must be a liquid's density in kg/m^3 (500-3000), got {rho:g}{hint}")
 
 
 def _attr(f, name, src, required=False, size=None):
@@ -241,6 +268,7 @@ def read_acquisition(path) -> Acquisition:
             slice_spacing_mm=_attr(f, "slice_spacing_mm", src),
             venc_m_s=_attr(f, "venc_m_s", src),
             viscosity_pa_s=_attr(f, "viscosity_pa_s", src),
+            density_kg_m3=_attr(f, "density_kg_m3", src),
             source=src,
         )
     if acq.velocity is None and acq.phase is None:
@@ -296,7 +324,7 @@ def write_acquisition(path, acq: Acquisition) -> None:
             f.create_dataset("velocity_y", data=acq.velocity_inplane[1])
         f.attrs["voxel_size_mm"] = np.asarray(acq.voxel_size_mm, dtype=float)
         f.attrs["origin_mm"] = np.asarray(acq.origin_mm, dtype=float)
-        for name in ("slice_spacing_mm", "venc_m_s", "viscosity_pa_s"):
+        for name in ("slice_spacing_mm", "venc_m_s", "viscosity_pa_s", "density_kg_m3"):
             val = getattr(acq, name)
             if val is not None:
                 f.attrs[name] = float(val)

@@ -297,6 +297,10 @@ class NearWallChoice:
         The margin is below :data:`AMBIGUOUS_MARGIN`: the data hardly prefer the choice.
     beta : float
         The beta at which the chosen model's criterion is smallest.
+    density_kg_m3, density_source : float, str
+        The density behind ``nu`` of the law of the wall, and where it came from.
+    reynolds : float
+        Bulk Reynolds number from the data (:func:`bulk_reynolds`).
     quad_order : int
         Quadrature cells per voxel axis of the layer columns (:class:`LayerQuadrature`).
     """
@@ -311,10 +315,48 @@ class NearWallChoice:
     ambiguous: bool = False
     quad_order: int = 0
     beta: float = float("nan")
+    density_kg_m3: float = float("nan")
+    density_source: str = ""
+    reynolds: float = float("nan")
 
     def as_dict(self) -> dict:
         return asdict(self)
 
+
+#: Bulk Reynolds number above which pipe flow is taken as turbulent (the classical critical value; Reynolds
+#: 1883, and e.g. Pope, *Turbulent Flows*, 2000, Sec. 7.3: transition between about 2300 and 4000).
+RE_TURBULENT = 2300.0
+#: Up to this bulk Reynolds number the regime is reported as transitional.
+RE_FULLY_TURBULENT = 4000.0
+
+
+def bulk_reynolds(problem, nu_m2_s: float) -> float:
+    r"""``Re = U D_h / nu`` of the measured flow: bulk velocity and hydraulic diameter of the reconstructed lumen.
+
+    Notes
+    -----
+    :math:`U = |\sum_i w_i u_i| / \sum_i w_i` (partial-volume weighted mean
+    of the measured velocity, m/s), :math:`D_h = 4 A / P` with the lumen
+    area :math:`A = \sum_i w_i` and the perimeter ``P`` of :math:`R(\phi)`.
+    """
+    from . import radius as rad
+
+    area = float(np.sum(problem.weights))
+    bulk = abs(float(np.sum(problem.weights * problem.data))) / area
+    phi = rad.uniform_angles(720)
+    c = problem.disk_map.coefficients
+    perimeter = float(np.sum(np.hypot(rad.evaluate(c, phi), rad.evaluate(c, phi, 1))) * 2 * np.pi / phi.size)
+    return bulk * (4 * area / perimeter) / 1000.0 / nu_m2_s
+
+
+def regime_family(reynolds: float) -> str:
+    """The layer family of a flow regime: ``wall_law`` above :data:`RE_TURBULENT`, else ``exponential``."""
+    return "wall_law" if reynolds >= RE_TURBULENT else "exponential"
+
+
+#: BIC advantage a layer model needs over the plain basis to be chosen (Kass & Raftery 1995, J. Am. Stat. Assoc.
+#: 90, 773-795: a difference above 10 is "very strong" evidence): the paper's model stays unless the data insist.
+LAYER_EVIDENCE = 10.0
 
 #: BIC difference below which a model choice is reported as ambiguous (Kass & Raftery 1995: "not worth more than a
 #: bare mention" below 2).

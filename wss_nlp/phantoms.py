@@ -606,6 +606,7 @@ def make_phantom(
         origin_mm=origin,
         venc_m_s=venc,
         viscosity_pa_s=flow.viscosity_pa_s,
+        density_kg_m3=getattr(flow, "density_kg_m3", None),
         source=f"phantom:{case}",
     )
     params = {"case": case, "h_mm": h_mm, "snr": -1.0 if snr is None else float(snr), "seed": seed, "venc_m_s": venc}

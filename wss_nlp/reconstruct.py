@@ -19,7 +19,6 @@ from . import coupled as cpl
 from . import geometry as geo
 from . import analysis as an
 from . import measurement as meas
-from . import near_wall as nw
 from . import plausibility as plaus
 from . import preprocess as pp
 from . import sensitivity as sens
@@ -41,7 +40,7 @@ from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are
     parse_rule,
 )
 from .errors import InputError, WssNlpError
-from .files import Acquisition, FailedSlice
+from .files import DEFAULT_DENSITY, Acquisition, FailedSlice, check_density
 from .measurement import DEPHASING_THRESHOLD, VoxelGrid
 from .results import SliceResult
 from .schema import option
@@ -108,6 +107,14 @@ class ReconstructionOptions:
         "dynamic viscosity in Pa*s; overrides the file's 'viscosity_pa_s'",
         cli="--viscosity",
         toml=("viscosity",),
+        group=WSS_GROUP,
+    )
+    density_kg_m3: float | None = option(
+        None,
+        "fluid density in kg/m^3, used by the law-of-the-wall layer (--near-wall); overrides the file's "
+        "'density_kg_m3' (default: blood, 1060)",
+        cli="--density",
+        toml=("density",),
         group=WSS_GROUP,
     )
     dephasing_correction: bool = option(
@@ -244,6 +251,7 @@ class ReconstructionOptions:
         for name in ("tau_alpha", "tau_beta", "kappa_alpha", "kappa_beta", "alpha_start", "beta_start"):
             if not getattr(self, name) > 0:
                 raise InputError(f"{name} must be > 0, got {getattr(self, name)}")
+        check_density(self.density_kg_m3, "--density")
         if self.blas_threads < 0:
             raise InputError(f"blas_threads must be >= 0 (0: leave the BLAS as it is), got {self.blas_threads}")
         for name in ("noise_magnitude", "noise_velocity"):
@@ -264,6 +272,7 @@ def reconstruct_slice(
     source: str = "<memory>",
     index: int = 0,
     venc: float | None = None,
+    density: tuple[float, str] = (DEFAULT_DENSITY, "default (blood)"),
 ) -> SliceResult:
     """Geometry (Sec. 2), velocity (Sec. 3) and WSS (Sec. 4) of one slice.
 
@@ -272,6 +281,7 @@ def reconstruct_slice(
     factors predicted by the first velocity reconstruction
     (:func:`wss_nlp.measurement.dephasing_factors`); an extension of the
     paper's model that removes the radius bias from intra-voxel dephasing.
+    ``density`` (kg/m^3 and its source) serves the law-of-the-wall layer.
     """
     where = f"{source} slice {index}"
     t = {}
@@ -288,13 +298,8 @@ def reconstruct_slice(
     vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity)
     near = None
     if options.velocity.near_wall != "off":
-        vp, near = layer_model(vp, grid, magnitude, lumen, venc, options, where)
-    if near is not None and near.model != "plain" and options.beta_rule == "balance" and np.isfinite(near.beta):
-        # balancing weighs the noise the penalty removes; the layer columns are not penalized, so it would drift to
-        # the largest beta: the beta at which the chosen model's BIC is smallest is used instead
-        beta_choice = an.ParameterChoice("beta", "bic", near.beta, noise_method="BIC of the chosen near-wall model")
-    else:
-        beta_choice = choose_beta(vp, magnitude, lumen, venc, options, where, viscosity_pa_s)
+        vp, near = layer_model(vp, grid, magnitude, lumen, venc, options, where, viscosity_pa_s, density)
+    beta_choice = _beta(vp, near, magnitude, lumen, venc, options, where, viscosity_pa_s)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
 
@@ -320,7 +325,11 @@ def reconstruct_slice(
             grid, velocity_image, g.coefficients, g.center, options.velocity, basis=getattr(vp.basis, "base", vp.basis)
         )
         if near is not None and near.model != "plain":
-            vp = nw.enrich(vp, grid, near.model, near.scale_mm, options.velocity.laplacian_power)
+            # the first pass's geometry was biased by the dephasing just corrected, and the layer scale with it
+            vp, near = layer_model(
+                vp, grid, magnitude, lumen, venc, options, where, viscosity_pa_s, density, around=near
+            )
+            beta_choice = _beta(vp, near, magnitude, lumen, venc, options, where, viscosity_pa_s)
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = time.perf_counter() - t0
 
@@ -364,6 +373,18 @@ def reconstruct_slice(
         notes,
         near_wall=near,
     )
+
+
+def _beta(vp, near, raw, lumen, venc, options: ReconstructionOptions, where: str, viscosity_pa_s: float):
+    """beta of the velocity fit: the rule's (:func:`choose_beta`), or the BIC's for a chosen near-wall layer.
+
+    Balancing weighs the noise the penalty removes; layer columns are not
+    penalized, so with them it drifts to the largest beta. The beta at
+    which the chosen model's BIC is smallest is used instead.
+    """
+    if near is not None and near.model != "plain" and options.beta_rule == "balance" and np.isfinite(near.beta):
+        return an.ParameterChoice("beta", "bic", near.beta, noise_method="BIC of the chosen near-wall model")
+    return choose_beta(vp, raw, lumen, venc, options, where, viscosity_pa_s)
 
 
 def uncertainty(
@@ -477,6 +498,7 @@ def blas_threads(n: int):
 def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> Results:
     acq.validate()
     mu = acq.viscosity(options.viscosity_pa_s)
+    density = acq.density(options.density_kg_m3)
     acq, screens = plaus.screen(acq, options.screen)
     out = Results()
     if stack_applies(acq, options):
@@ -509,7 +531,7 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
                 )
             else:
                 res = reconstruct_slice(
-                    acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz, acq.venc_m_s
+                    acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz, acq.venc_m_s, density
                 )
         except WssNlpError as exc:
             if acq.nz == 1:
