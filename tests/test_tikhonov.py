@@ -88,3 +88,24 @@ def test_rank_deficient_normal_matrix():
     tik = LinearTikhonov(op, rng.uniform(0.5, 1, 6), rng.normal(size=6), gram)
     for beta in (1e-2, 1e-5, 1e-8):  # where cond(H) <= ~1e10, so both solutions carry >= 6 digits
         assert np.allclose(tik.coefficients([beta])[0], tik.solve(beta), rtol=1e-6, atol=1e-9)
+
+
+def test_bordered_problem_equals_the_full_one_solved_directly():
+    """Appended unpenalized columns through the original's pencils: the same coefficients and traces as the full
+    problem's Cholesky solves and explicit traces (rounding: 1e-12 relative), on a semi-definite penalty."""
+    from wss_nlp.tikhonov import BorderedTikhonov
+
+    rng = np.random.default_rng(21)
+    n, m, k = 300, 40, 5
+    op, extra = rng.standard_normal((n, m)), rng.standard_normal((n, k))
+    w, u = rng.uniform(0.2, 1, n), rng.standard_normal(n)
+    root = rng.standard_normal((m, m))
+    gram = root @ root.T
+    gram[:3], gram[:, :3] = 0, 0
+    full = LinearTikhonov(np.hstack([op, extra]), w, u, np.pad(gram, ((0, k), (0, k))))
+    betas = 10.0 ** -np.arange(1, 14, 0.5)
+    coef, traces = BorderedTikhonov(LinearTikhonov(op, w, u, gram), extra).coefficients_and_traces(betas)
+    ref = np.array([full.solve(b) for b in betas])
+    np.testing.assert_allclose(coef, ref, rtol=0, atol=1e-12 * np.max(np.abs(ref)))
+    ref_tr = [np.trace(np.linalg.solve(full.hessian(b), full.normal)) for b in betas]
+    np.testing.assert_allclose(traces, ref_tr, rtol=1e-12, atol=1e-11)

@@ -24,7 +24,7 @@ from . import sensitivity as sens
 from . import velocity as vel
 from . import wss as wss_mod
 from .errors import InputError
-from .tikhonov import BETA_MIN
+from .tikhonov import BETA_MIN, BorderedTikhonov
 
 if TYPE_CHECKING:
     from .reconstruct import ReconstructionOptions
@@ -222,8 +222,11 @@ CRITERION_BETAS = 10.0 ** -np.arange(3.0, 13.5, 0.5)
 GOLDEN_STEPS = 8
 
 
-def _bic(problem: vel.VelocityProblem, sigma: np.ndarray) -> tuple[float, float]:
-    r"""``min_beta chi^2 + ln(n) dof`` of a velocity problem, and the minimizing beta.
+def _bic(problem: vel.VelocityProblem, sigma: np.ndarray, plain: vel.VelocityProblem | None = None):
+    r"""``min_beta chi^2 + ln(n) dof`` of a velocity problem, the minimizing beta and its coefficients.
+
+    ``plain``: the problem without the layer columns, whose pencils then
+    serve the enriched one (:class:`wss_nlp.tikhonov.BorderedTikhonov`).
 
     Notes
     -----
@@ -233,12 +236,16 @@ def _bic(problem: vel.VelocityProblem, sigma: np.ndarray) -> tuple[float, float]
     number of parameters: Schwarz's criterion with the smoother's trace in
     place of the parameter count (Hastie & Tibshirani 1990, Sec. 3.5).
     """
-    tk = problem.tikhonov
-    coef = tk.coefficients(CRITERION_BETAS)
+    if plain is None:
+        tk = problem.tikhonov
+        coef, dof = tk.coefficients(CRITERION_BETAS), tk.traces(CRITERION_BETAS)
+    else:
+        extra = problem.operator[:, plain.operator.shape[1] :]
+        coef, dof = BorderedTikhonov(plain.tikhonov, extra).coefficients_and_traces(CRITERION_BETAS)
     chi2 = np.sum(((coef @ problem.operator.T - problem.data[None, :]) / sigma[None, :]) ** 2, axis=1)
-    crit = chi2 + np.log(problem.data.size) * tk.traces(CRITERION_BETAS)
+    crit = chi2 + np.log(problem.data.size) * dof
     i = int(np.argmin(crit))
-    return float(crit[i]), float(CRITERION_BETAS[i])
+    return float(crit[i]), float(CRITERION_BETAS[i]), coef[i]
 
 
 def _golden(score, lo: float, hi: float, steps: int = GOLDEN_STEPS) -> float:
@@ -292,16 +299,16 @@ def choose_layer(
     big_r = float(vp.disk_map.coefficients[0])
     quad = nw.LayerQuadrature(vp, grid)
     tried, best, notes = [], {}, {}
-    plain, plain_beta = _bic(vp, sigma)
+    plain, plain_beta, _ = _bic(vp, sigma)
     if mode == "auto":
         best["plain"] = (plain, float("nan"), vp, plain_beta)
         tried.append(("plain", float("nan"), plain))
 
     def score(family, log_ratio):
         problem = nw.enrich(vp, grid, family, 2.0**log_ratio * big_r, vopt.laplacian_power, quad)
-        crit, beta = _bic(problem, sigma)
+        crit, beta, coef = _bic(problem, sigma, vp)
         tried.append((family, 2.0**log_ratio, crit))
-        return crit, problem, beta
+        return crit, problem, beta, coef
 
     if around is not None and around.model in nw.FAMILIES:
         families: tuple = (around.model,)
@@ -319,7 +326,7 @@ def choose_layer(
             notes[family] = how
         else:
             x = _bic_scale(family_score, lo, hi)
-        crit, problem, beta = score(family, x)
+        crit, problem, beta, _ = score(family, x)
         best[family] = (crit, 2.0**x * big_r, problem, beta)
     # the paper's model is the null hypothesis: a layer must be preferred by "very strong" evidence
     penalty = {m: (nw.LAYER_EVIDENCE if m != "plain" else 0.0) for m in best}
@@ -372,8 +379,7 @@ def _wall_law_scale(score, lo: float, hi: float, big_r: float, nu_m2_s: float, n
     """
 
     def consistency(x):
-        crit, problem, beta = score(x)
-        c = problem.tikhonov.solve(beta)
+        crit, problem, _, c = score(x)
         u_tau = c[n_base] * problem.basis.column_scale  # m/s: the m = 0 layer column is u_tau f(d/l)
         ell_m = 2.0**x * big_r / 1000.0
         return u_tau * ell_m / nu_m2_s - 1.0, crit

@@ -72,6 +72,17 @@ def profile(family: str, y):
     raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
 
 
+def profile_derivative(family: str, y) -> np.ndarray:
+    """``f'(y)`` of a family (NumPy; the same cut-off at ``y = -1`` as :func:`profile`)."""
+    y = np.maximum(np.asarray(y, dtype=float), -1.0)
+    if family == "wall_law":
+        e11, e3 = np.exp(-y / 11), np.exp(-y / 3)
+        return 1 / (1 + KAPPA * y) + REICHARDT_C * (e11 / 11 - e3 / 11 + y / 33 * e3)
+    if family == "exponential":
+        return np.exp(-y)
+    raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+
+
 def stretch(disk_map) -> float:
     r"""``S = r_in + eta (mean R - r_in)``: :math:`\partial_\rho |\phi_R|` at the wall, averaged over the angle (mm)."""
     return float(disk_map.r_in + disk_map.eta * (disk_map.coefficients[0] - disk_map.r_in))
@@ -152,6 +163,25 @@ class EnrichedBasis:
         f = profile(self.family, (1 - rho) / self.scale)
         return np.vstack([self.base.radial_raw(rho)] + [f * rho**m for m, _ in self.layer_terms])
 
+    def layer_radial(self, rho, cells=None) -> tuple[np.ndarray, np.ndarray]:
+        """Radial factors ``f((1 - rho)/scale) rho^m`` of the layer columns and their rho-derivatives, (n_layer, n).
+
+        ``cells = (a, b)``: half-widths (reference units, per point) of each
+        quadrature cell's projection on the wall normal; ``f`` and ``f'`` are
+        then the cell means :func:`cell_mean` the fit integrates with.
+        """
+        rho = np.ravel(rho).astype(float)
+        y = (1 - rho) / self.scale
+        if cells is None:
+            f, df = profile(self.family, y), -profile_derivative(self.family, y) / self.scale
+        else:
+            a, b = (np.ravel(c) / self.scale for c in cells)
+            f = cell_mean(self.family, y, a, b)
+            df = -cell_mean(self.family, y, a, b, derivative=True) / self.scale
+        values = [f * rho**m for m, _ in self.layer_terms]
+        slopes = [df * rho**m + (m * f * rho ** (m - 1) if m else 0.0) for m, _ in self.layer_terms]
+        return np.array(values), np.array(slopes)
+
     def angular_terms(self) -> list[tuple[int, str]]:
         return self.base.angular_terms() + self.layer_terms
 
@@ -186,7 +216,7 @@ def antiderivatives(family: str, y) -> tuple[np.ndarray, np.ndarray]:
     return f1, f2
 
 
-def cell_mean(family: str, y, a, b) -> np.ndarray:
+def cell_mean(family: str, y, a, b, derivative: bool = False) -> np.ndarray:
     r"""Mean of ``f(y') 1(y' > 0)`` over a square quadrature cell centred at wall distance ``y``.
 
     Notes
@@ -203,22 +233,35 @@ def cell_mean(family: str, y, a, b) -> np.ndarray:
     :math:`(F_1(y+a) - F_1(y-a))/(2a)` when ``b`` is negligible, and ``f(y)``
     when the cell is small against the layer. All lengths in units of ``l``.
     Exact for a straight wall; the part of the cell beyond the wall
-    contributes zero velocity (no slip).
+    contributes zero velocity (no slip). ``derivative=True`` gives the
+    ``y``-derivative of that mean, the cell mean of ``f'`` (antiderivatives
+    ``f``, ``F_1``; no jump term since ``f(0) = 0``).
     """
     y, a, b = (np.asarray(v, dtype=float) for v in np.broadcast_arrays(y, a, b))
     a, b = np.maximum(a, b), np.minimum(a, b)
-    out = np.where(y > 0, 1.0, 0.0) if family == "inside" else np.where(y > 0, profile(family, y), 0.0)
+
+    def pair(v):
+        if not derivative:
+            return antiderivatives(family, v)
+        f1 = antiderivatives(family, v)[0]
+        return (np.where(v > 0, 1.0, 0.0) * v, f1) if family == "inside" else (profile(family, np.maximum(v, 0)), f1)
+
+    if derivative:
+        point = np.zeros_like(y) if family == "inside" else profile_derivative(family, y)
+    else:
+        point = np.ones_like(y) if family == "inside" else profile(family, y)
+    out = np.where(y > 0, point, 0.0)
     wide = a > 0.02  # below, the midpoint value is exact to 1e-4 relative
     box = wide & (b < 1e-3 * a)
     trap = wide & ~box
     if box.any():
         ya, aa = y[box], a[box]
-        out[box] = (antiderivatives(family, ya + aa)[0] - antiderivatives(family, ya - aa)[0]) / (2 * aa)
+        out[box] = (pair(ya + aa)[0] - pair(ya - aa)[0]) / (2 * aa)
     if trap.any():
         yt, at, bt = y[trap], a[trap], b[trap]
 
         def f2(v):
-            return antiderivatives(family, v)[1]
+            return pair(v)[1]
 
         out[trap] = (f2(yt + at + bt) - f2(yt + at - bt) - f2(yt - at + bt) + f2(yt - at - bt)) / (4 * at * bt)
     return out

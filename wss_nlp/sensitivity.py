@@ -45,6 +45,7 @@ import casadi as ca
 from . import coupled as cpl
 from . import geometry as geo
 from . import measurement as meas
+from . import near_wall as nw
 from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
@@ -252,7 +253,8 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     on R(t_p), ``r_in = f min R`` and the centre) and ``t_p`` (centre only),
     so ``d raw = angular radial' d rho_p + angular' radial d t_p``. CasADi
     differentiates ``rho_p`` and ``t_p`` exactly; ``radial'`` comes from the
-    Chebyshev form (exact for the Zernike basis) and ``angular'`` in closed
+    Chebyshev form (exact for the Zernike basis; a near-wall layer's in
+    closed form, its voxel means those of the fit) and ``angular'`` in closed
     form. Membership of the points and the partial volumes are those of
     ``vp`` (piecewise constant in R). ``min R`` is taken over 720 angles
     like :meth:`wss_nlp.velocity.VelocityOptions.make_map`; its derivative
@@ -281,16 +283,29 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     rho0 = np.minimum(rho0, 1.0)
     drho[clipped] = 0.0
 
-    pb = cpl.polar_basis(basis, th0)
+    # a near-wall layer's radial factors are far too steep for a Chebyshev form: in closed form instead
+    polynomial = getattr(basis, "base", basis)
+    pb = cpl.polar_basis(polynomial, th0)
     tk = np.polynomial.chebyshev.chebvander(2 * rho0 / cpl.RHO_MAX - 1, pb.cheb.shape[1] - 1).T
     radial = pb.select_radial @ (pb.cheb @ tk)
     dradial = pb.select_radial @ (pb.cheb_derivative @ tk)
+    if polynomial is not basis:  # cell means, as in the fit: a point rule would differentiate the steep layer badly
+        stretch = nw.stretch(vp.disk_map)
+        cells = (
+            None
+            if vp.cell_mm is None
+            else tuple(c / 2 / stretch * np.abs(f(th0)) for c, f in zip(vp.cell_mm, (np.cos, np.sin)))
+        )
+        layer, dlayer = basis.layer_radial(rho0, cells)
+        radial, dradial = np.vstack([radial, layer]), np.vstack([dradial, dlayer])
     orders = np.array([m for m, _ in basis.angular_terms()], float)[:, None]
     is_cos = np.array([kind == "cos" for _, kind in basis.angular_terms()])[:, None]
     ang = np.where(is_cos, np.cos(orders * th0), np.sin(orders * th0))
     dang = np.where(is_cos, -orders * np.sin(orders * th0), orders * np.cos(orders * th0))
     avg = vox.mean_matrix()
     op = np.asarray(avg @ (ang * radial).T) @ basis.transform
+    if polynomial is not basis:  # the layer's voxel means as the fit used them (exact across each cell)
+        op[:, polynomial.size :] = vp.operator[:, polynomial.size :]
     return (
         OperatorDerivative(
             op, avg, (ang * dradial).T @ basis.transform, (dang * radial).T @ basis.transform, drho, dth

@@ -181,6 +181,7 @@ class VelocityProblem:
     basis: Any  # a basis of wss_nlp.velocity_basis (or wss_nlp.near_wall.EnrichedBasis)
     reference_points: tuple | None = None  # (xi_x, xi_y) of the sub-voxel points inside the lumen
     average: Any = None  # sparse (n_vox, n_points) voxel-mean matrix of those points
+    cell_mm: tuple | None = None  # (dx, dy) of one quadrature cell
 
     @property
     def area(self) -> float:
@@ -267,6 +268,7 @@ def assemble(
         basis=basis,
         reference_points=ref,
         average=avg,
+        cell_mm=(grid.dx / q, grid.dy / q),
     )
 
 
