@@ -400,7 +400,7 @@ def _wall_law_scale(score, lo: float, hi: float, big_r: float, nu_m2_s: float, n
     if not roots:
         return _bic_scale(score, lo, hi), "no scale satisfies u_tau l = nu; the BIC's scale"
     crit, x = min(roots)
-    return x, f"law of the wall u_tau l = nu ({len(roots)} root(s), the one with the smallest BIC)"
+    return x, f"law of the wall {nw.CONSISTENT} ({len(roots)} root(s), the one with the smallest BIC)"
 
 
 def layer_model(

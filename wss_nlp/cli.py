@@ -260,7 +260,9 @@ def cmd_analyze(args) -> int:
 def _layer_text(rec: dict) -> str:
     if rec["model"] == "plain":
         return ""
-    scale = f"l = {rec['scale_mm'] * 1000:.3g} um (l/R = {rec['scale_ratio']:.3g})"
+    spread = rec.get("scale_std_log", float("nan"))
+    pm = f" +- {100 * (np.exp(spread) - 1):.2g} %" if np.isfinite(spread) else ""
+    scale = f"l = {rec['scale_mm'] * 1000:.3g} um{pm} (l/R = {rec['scale_ratio']:.3g})"
     return f", layer scale {scale}, margin {rec['margin']:.3g}"
 
 

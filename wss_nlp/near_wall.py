@@ -120,6 +120,9 @@ class EnrichedBasis:
         self.layer_terms = [(0, "cos")] + [(m, k) for m in range(1, self.max_order + 1) for k in ("cos", "sin")]
         self.n_layer = len(self.layer_terms)
         self.column_scale = 1.0 / float(profile(family, 1.0 / self.scale))
+        core = 1.0 / self.scale
+        # d log(column_scale) / d log l: the core value f(S/l) moves with l
+        self.dlog_column_scale = float(core * profile_derivative(family, core) * self.column_scale)
         nb = base.transform.shape[0]
         self.transform = np.zeros((nb + self.n_layer, base.size + self.n_layer))
         self.transform[:nb, : base.size] = base.transform
@@ -216,7 +219,7 @@ def antiderivatives(family: str, y) -> tuple[np.ndarray, np.ndarray]:
     return f1, f2
 
 
-def cell_mean(family: str, y, a, b, derivative: bool = False) -> np.ndarray:
+def cell_mean(family: str, y, a, b, derivative: bool = False, moment: bool = False) -> np.ndarray:
     r"""Mean of ``f(y') 1(y' > 0)`` over a square quadrature cell centred at wall distance ``y``.
 
     Notes
@@ -235,18 +238,26 @@ def cell_mean(family: str, y, a, b, derivative: bool = False) -> np.ndarray:
     Exact for a straight wall; the part of the cell beyond the wall
     contributes zero velocity (no slip). ``derivative=True`` gives the
     ``y``-derivative of that mean, the cell mean of ``f'`` (antiderivatives
-    ``f``, ``F_1``; no jump term since ``f(0) = 0``).
+    ``f``, ``F_1``; no jump term since ``f(0) = 0``); ``moment=True`` the
+    cell mean of ``y f'(y)`` (antiderivatives ``y f - F_1`` and
+    ``y F_1 - 2 F_2``), which is ``-d/d(log l)`` of the cell mean of ``f(y)``.
     """
     y, a, b = (np.asarray(v, dtype=float) for v in np.broadcast_arrays(y, a, b))
     a, b = np.maximum(a, b), np.minimum(a, b)
 
     def pair(v):
+        if moment:
+            f1, f2 = antiderivatives(family, v)
+            vp = np.maximum(v, 0)
+            return vp * profile(family, vp) - f1, vp * f1 - 2 * f2
         if not derivative:
             return antiderivatives(family, v)
         f1 = antiderivatives(family, v)[0]
         return (np.where(v > 0, 1.0, 0.0) * v, f1) if family == "inside" else (profile(family, np.maximum(v, 0)), f1)
 
-    if derivative:
+    if moment:
+        point = y * profile_derivative(family, y)
+    elif derivative:
         point = np.zeros_like(y) if family == "inside" else profile_derivative(family, y)
     else:
         point = np.ones_like(y) if family == "inside" else profile(family, y)
@@ -306,8 +317,16 @@ class LayerQuadrature:
         every cell of the voxel (also those whose centre lies outside), so
         the wall voxels' partial volumes are integrated with the layer.
         """
+        return self._means(basis, moment=False)
+
+    def columns_dlog_scale(self, basis: EnrichedBasis) -> np.ndarray:
+        """``d/d(log l)`` of :meth:`columns` (the scale of the column factor included)."""
+        return basis.dlog_column_scale * self._means(basis, moment=False) - self._means(basis, moment=True)
+
+    def _means(self, basis: EnrichedBasis, moment: bool) -> np.ndarray:
         ell = basis.scale * self.stretch  # mm
-        f = cell_mean(basis.family, self.depth / ell, self.half_x / ell, self.half_y / ell) * basis.column_scale
+        f = cell_mean(basis.family, self.depth / ell, self.half_x / ell, self.half_y / ell, moment=moment)
+        f = f * basis.column_scale
         rho = np.minimum(self.rho, 1.0)
         cols = [
             np.sum(f * rho**m * (np.cos(m * self.t) if kind == "cos" else np.sin(m * self.t)), axis=1)
@@ -344,6 +363,8 @@ class NearWallChoice:
         The density behind ``nu`` of the law of the wall, and where it came from.
     reynolds : float
         Bulk Reynolds number from the data (:func:`bulk_reynolds`).
+    scale_std_log : float
+        Standard deviation of ``log l`` from the velocity noise (law of the wall with the band; else NaN).
     quad_order : int
         Quadrature cells per voxel axis of the layer columns (:class:`LayerQuadrature`).
     """
@@ -361,6 +382,7 @@ class NearWallChoice:
     density_kg_m3: float = float("nan")
     density_source: str = ""
     reynolds: float = float("nan")
+    scale_std_log: float = float("nan")
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -397,6 +419,9 @@ def regime_family(reynolds: float) -> str:
     return "wall_law" if reynolds >= RE_TURBULENT else "exponential"
 
 
+#: How the choice record names a law-of-the-wall scale found from u_tau l = nu.
+CONSISTENT = "u_tau l = nu"
+
 #: BIC advantage a layer model needs over the plain basis to be chosen (Kass & Raftery 1995, J. Am. Stat. Assoc.
 #: 90, 773-795: a difference above 10 is "very strong" evidence): the paper's model stays unless the data insist.
 LAYER_EVIDENCE = 10.0
@@ -411,3 +436,43 @@ def enrich(problem, grid, family: str, scale_mm: float, laplacian_power: int, qu
     basis = EnrichedBasis(problem.basis, family, scale_mm / stretch(problem.disk_map))
     quadrature = LayerQuadrature(problem, grid) if quadrature is None else quadrature
     return problem.with_layer(basis, quadrature.columns(basis), laplacian_power)
+
+
+def scale_sensitivity(problem, coefficients, beta: float, grid, wss_matrix, nu_m2_s: float):
+    r"""How the law-of-the-wall scale responds to the fit, and the WSS to the scale.
+
+    Returns ``(dg_da0, dg_dlog, dtau_dlog)``: the derivatives of
+    :math:`g = a_0\, c_s(\ell)\, \ell / \nu - 1` (whose root is the scale,
+    :func:`wss_nlp.choice._wall_law_scale`) with respect to the m = 0 layer
+    coefficient :math:`a_0` and to :math:`\log\ell`, and
+    :math:`d\tau/d\log\ell` at fixed data. By the implicit-function
+    theorem any data perturbation that moves :math:`a_0` by
+    :math:`\delta a_0` at fixed scale moves the scale by
+    :math:`\delta\log\ell = -(\partial g/\partial a_0)\,\delta a_0 / (\partial g/\partial\log\ell)`.
+
+    Notes
+    -----
+    With the fit :math:`H \theta = M^\top W u`, :math:`H = M^\top W M + (\beta/\pi) G`:
+    :math:`\partial\theta/\partial\log\ell = H^{-1}(M'^\top W r - M^\top W M'\theta)`,
+    :math:`r = u - M\theta`, :math:`M'` the exact ``log l``-derivative of the
+    layer's cell-mean columns (:meth:`LayerQuadrature.columns_dlog_scale`).
+    The WSS :math:`\tau = S(\ell)\theta` moves by
+    :math:`S\,\partial\theta/\partial\log\ell + S'\theta`; the layer
+    columns' wall slopes scale as :math:`c_s/\ell`.
+    """
+    basis = problem.basis
+    nb = basis.base.size
+    m_op = problem.operator
+    w = problem.weights / problem.area
+    hmat = m_op.T @ (w[:, None] * m_op) + beta / np.pi * problem.gram
+    dm = np.zeros_like(m_op)
+    dm[:, nb:] = LayerQuadrature(problem, grid).columns_dlog_scale(basis)
+    theta = np.asarray(coefficients, float)
+    resid = problem.data - m_op @ theta
+    dtheta_dlog = np.linalg.solve(hmat, dm.T @ (w * resid) - m_op.T @ (w * (dm @ theta)))
+    ell_m = basis.scale * stretch(problem.disk_map) / 1000.0
+    dg_da0 = basis.column_scale * ell_m / nu_m2_s
+    dg_dlog = dg_da0 * (theta[nb] * (1 + basis.dlog_column_scale) + dtheta_dlog[nb])
+    ds = np.zeros_like(wss_matrix)
+    ds[:, nb:] = (basis.dlog_column_scale - 1.0) * wss_matrix[:, nb:]
+    return dg_da0, dg_dlog, wss_matrix @ dtheta_dlog + ds @ theta

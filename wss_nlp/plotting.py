@@ -4,7 +4,8 @@
 2. R(phi), reconstructed and true;
 3. raw velocity and the truncated velocity actually used;
 4. reconstructed velocity (next to the true one when known);
-5. WSS against angle with its mean (and the truth, and a band when known).
+5. WSS against angle with its mean (and the truth, and a band when known);
+6. with ``--near-wall``: the near-wall voxels against the wall distance and the fitted profile.
 
 Figures are :class:`matplotlib.figure.Figure` objects made without pyplot:
 the user's backend is never changed, no global figure registry fills up,
@@ -144,11 +145,54 @@ def figure_wss(res, truth=None):
     return fig
 
 
+def figure_near_wall(res, truth=None):
+    """Near-wall data against the distance to the wall, with the fitted profile: why the WSS came out as it did.
+
+    Dots: measured velocity of each lumen voxel against the distance of its
+    centre to the reconstructed wall (negative: centre outside; marker area
+    ~ partial volume); circles: the fit's voxel means; line: the fitted
+    velocity along the wall normal, averaged over the angle (and the true one
+    for a phantom). Drawn for slices reconstructed with ``--near-wall``.
+    """
+    near = getattr(res, "near_wall", None)
+    if near is None or not hasattr(res, "velocity"):
+        return None
+    g, v, grid = res.geometry, res.velocity, res.grid
+    xc, yc = (a.ravel()[v.voxel_index] for a in grid.centers())
+    t = np.arctan2(yc - g.center[1], xc - g.center[0])
+    dist = g.radius(t) - np.hypot(xc - g.center[0], yc - g.center[1])
+    reach = 4 * grid.h
+    sel = dist < reach
+    fig, ax = _subplots(figsize=(7.5, 4.4))
+    measured = res.velocity_image.ravel()[v.voxel_index]
+    ax.scatter(dist[sel], measured[sel], s=30 * v.voxel_fraction[sel], color="0.35", label="measured voxels")
+    ax.scatter(dist[sel], v.fitted[sel], s=14, facecolors="none", edgecolors="tab:red", label="fitted voxel means")
+    d = np.linspace(0, reach, 400)
+    angles = np.linspace(0, 2 * np.pi, 73)[:-1]
+    big_r = g.radius(angles)
+    px = g.center[0] + (big_r[:, None] - d[None, :]) * np.cos(angles)[:, None]
+    py = g.center[1] + (big_r[:, None] - d[None, :]) * np.sin(angles)[:, None]
+    ax.plot(d, v.evaluate_physical(px, py).mean(axis=0), color="tab:red", lw=1.5, label="fitted profile (mean)")
+    if truth is not None:
+        ax.plot(d, truth.flow.velocity(px, py).mean(axis=0), color="tab:blue", lw=1.2, ls="--", label="true profile")
+    title = f"near-wall model: {near.model}"
+    if near.model != "plain":
+        title += f", l = {near.scale_mm * 1000:.3g} um"
+        ax.axvline(near.scale_mm, color="tab:green", ls=":", lw=1, label="layer scale l")
+    ax.axvline(0, color="k", lw=0.6)
+    ax.set(xlabel="distance of the voxel centre to the wall [mm]", ylabel="velocity [m/s]", title=title)
+    ax.set_xlim(-grid.h, reach)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
 FIGURES = {
     "fig1_2_geometry.png": figure_geometry,
     "fig3_velocity_data.png": lambda res, truth=None: figure_velocity_data(res),
     "fig4_velocity.png": figure_velocity,
     "fig5_wss.png": figure_wss,
+    "fig6_near_wall.png": figure_near_wall,
 }
 
 
@@ -161,6 +205,8 @@ def save_figures(res, folder, truth=None, prefix: str = "") -> list[str]:
     for name in names:
         make = FIGURES[name]
         fig = make(res, truth)
+        if fig is None:  # a figure that does not apply to this slice
+            continue
         path = os.path.join(folder, prefix + name)
         fig.savefig(path, dpi=110)
         paths.append(path)

@@ -19,8 +19,10 @@ from . import coupled as cpl
 from . import geometry as geo
 from . import analysis as an
 from . import measurement as meas
+from . import near_wall as nw
 from . import plausibility as plaus
 from . import preprocess as pp
+from . import radius as rad
 from . import sensitivity as sens
 from . import stack as stk
 from . import velocity as vel
@@ -350,7 +352,7 @@ def reconstruct_slice(
     if options.uncertainty:
         t0 = time.perf_counter()
         sensitivity, note = uncertainty(
-            problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options, cres
+            problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options, cres, near, grid
         )
         notes += [note] if note else []
         t["uncertainty"] = time.perf_counter() - t0
@@ -387,14 +389,56 @@ def _beta(vp, near, raw, lumen, venc, options: ReconstructionOptions, where: str
     return choose_beta(vp, raw, lumen, venc, options, where, viscosity_pa_s)
 
 
+def _add_scale_spread(s, vp, v, w, near, grid, viscosity_pa_s: float, sigma_m: float, sigma_u) -> None:
+    """Let the band carry the law-of-the-wall scale's response to the noise (chain rule through l).
+
+    The scale is a function of the data (``u_tau l = nu``), so the WSS moves
+    with the data also through it: ``d tau/dp += (d tau/d log l)(d log l/dp)``
+    with ``d log l/dp = -(dg/da_0)(da_0/dp)/(dg/d log l)`` for every input
+    ``p`` (magnitude and velocity voxels, parameters; ``da_0/dp`` from the
+    sensitivities, :func:`wss_nlp.near_wall.scale_sensitivity`). Also
+    records the scale's own standard deviation (of ``log l``).
+    """
+    smat, _ = wss_mod.wss_matrix(v.basis, v.disk_map, viscosity_pa_s, w.phi.size)
+    nu = viscosity_pa_s / near.density_kg_m3
+    dg_da0, dg_dlog, dtau_dlog = nw.scale_sensitivity(vp, v.coefficients, v.beta, grid, smat, nu)
+    dlog_dp = -dg_da0 * s.d_coef_v[v.basis.base.size] / dg_dlog
+    c = v.disk_map.coefficients
+    ds = np.hypot(rad.evaluate(c, w.phi), rad.evaluate(c, w.phi, 1))
+    dmean_dlog = float(np.sum(dtau_dlog * ds) / np.sum(ds))
+    n_m, n_u = s.m_index.size, s.u_index.size
+    for name, cols in (("m", slice(0, n_m)), ("u", slice(n_m, n_m + n_u))):
+        setattr(s, f"d_tau_d_{name}", getattr(s, f"d_tau_d_{name}") + np.outer(dtau_dlog, dlog_dp[cols]))
+        setattr(s, f"d_mean_d_{name}", getattr(s, f"d_mean_d_{name}") + dmean_dlog * dlog_dp[cols])
+    s.d_tau = s.d_tau + np.outer(dtau_dlog, dlog_dp[n_m + n_u :])
+    s.d_mean = s.d_mean + dmean_dlog * dlog_dp[n_m + n_u :]
+    su = np.broadcast_to(np.asarray(sigma_u, float), (n_u,))
+    var = sigma_m**2 * np.sum(dlog_dp[:n_m] ** 2) + np.sum((dlog_dp[n_m : n_m + n_u] * su) ** 2)
+    near.scale_std_log = float(np.sqrt(var))
+
+
 def uncertainty(
-    problem, g, vp, v, w, raw, norm, lumen, venc, viscosity_pa_s, options: ReconstructionOptions, coupled_result=None
+    problem,
+    g,
+    vp,
+    v,
+    w,
+    raw,
+    norm,
+    lumen,
+    venc,
+    viscosity_pa_s,
+    options: ReconstructionOptions,
+    coupled_result=None,
+    near=None,
+    grid=None,
 ):
     """Sensitivities and the linearized band (sets ``w.tau_std``, ``w.mean_std``); returns ``(Sensitivity, note)``.
 
     A band that cannot be computed (no background for the noise level, no
     venc, a failed anchor re-solve) is reported in the note, not raised:
-    the reconstruction itself is still valid.
+    the reconstruction itself is still valid. With a law-of-the-wall layer
+    (``near``) the band includes the scale's response to the noise.
     """
     try:
         if coupled_result is not None:
@@ -406,6 +450,8 @@ def uncertainty(
         )
     except WssNlpError as exc:
         return None, f"no uncertainty band: {exc}"
+    if near is not None and near.model == "wall_law" and nw.CONSISTENT in near.criterion:
+        _add_scale_spread(s, vp, v, w, near, grid, viscosity_pa_s, sigma_m, sigma_u)
     w.tau_std, w.mean_std, s.mean_std_magnitude, s.mean_std_velocity = s.band(sigma_m, sigma_u)
     s.tau_std, s.mean_std = w.tau_std, w.mean_std
     s.noise.update({"sigma_m": sigma_m, "method": how})
