@@ -9,9 +9,10 @@ relative L2 error of the default and of ``--near-wall auto``, the model and
 layer scale auto chose, and the Oyre baseline for reference. Writes
 ``scripts/results/near_wall.md``.
 
-    python scripts/near_wall.py [--seeds 3] [--h 1.5,1.0,0.6] [--cases ...]
+    python scripts/near_wall.py [--seeds 3] [--h 1.5,1.0,0.6] [--snr 25] [--cases ...] [--name near_wall.md]
 """
 
+import sys
 import time
 
 import numpy as np
@@ -26,15 +27,17 @@ FIRST_SEED = 100
 
 
 def main() -> None:
-    p = study_parser(__doc__, seeds=3, h="1.5,1.0,0.6")
+    p = study_parser(__doc__, seeds=3, h="1.5,1.0,0.6", snr="25")
     p.set_defaults(cases=CASES)
+    p.add_argument("--name", default="near_wall.md", help="file name of the table in --out")
     args = p.parse_args()
+    snr = float(args.snr)
     plain = ReconstructionOptions(uncertainty=False)
     auto = ReconstructionOptions(uncertainty=False, velocity=vel.VelocityOptions(near_wall="auto"))
     oyre = ReconstructionOptions(uncertainty=False, method="oyre")
     lines = [
-        "SNR 25, seeds " + f"{FIRST_SEED}-{FIRST_SEED + args.seeds - 1}; WSS relative L2 error, mean (max) over seeds.",
-        "Made by `python scripts/near_wall.py`.",
+        f"SNR {snr:g}, seeds {FIRST_SEED}-{FIRST_SEED + args.seeds - 1}; WSS relative L2 error, mean (max) over seeds.",
+        "Made by `python scripts/near_wall.py" + "".join(f" {a}" for a in sys.argv[1:]) + "`.",
         "",
         "| phantom | h [mm] | default | --near-wall auto | chosen (l/R, per seed) | Oyre baseline |",
         "|---|---|---|---|---|---|",
@@ -45,7 +48,7 @@ def main() -> None:
             errs = {"default": [], "auto": [], "oyre": []}
             chosen = []
             for seed in range(FIRST_SEED, FIRST_SEED + args.seeds):
-                acq, truth = phantoms.make_phantom(case, h_mm=h, snr=25.0, seed=seed)
+                acq, truth = phantoms.make_phantom(case, h_mm=h, snr=snr, seed=seed)
                 for name, opts in (("default", plain), ("auto", auto), ("oyre", oyre)):
                     res = reconstruct(acq, opts)[0]
                     errs[name].append(metrics.compare_slice(res, truth).wss_rel_l2)
@@ -62,7 +65,7 @@ def main() -> None:
             )
             print(lines[-1], flush=True)
     lines += ["", f"({time.perf_counter() - t0:.0f} s)"]
-    write_report(args.out, "near_wall.md", lines)
+    write_report(args.out, args.name, lines)
 
 
 if __name__ == "__main__":

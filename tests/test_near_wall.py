@@ -203,10 +203,11 @@ def test_cli_records_the_choice_and_refuses_what_it_cannot_do(tmp_path, capsys):
     capsys.readouterr()
     assert cli.main(["analyze", out]) == 0
     assert "near-wall model 'exponential'" in capsys.readouterr().out
-    assert (
-        cli.main(["reconstruct", src, "-o", str(tmp_path / "c.h5"), "--near-wall", "auto", "--method", "coupled"]) == 2
-    )
+    coupled = ["reconstruct", src, "-o", str(tmp_path / "c.h5"), "--method", "coupled", "--no-uncertainty"]
+    assert cli.main(coupled + ["--near-wall", "exponential"]) == 2  # asked for explicitly: refused
     assert "near-wall" in capsys.readouterr().err
+    assert cli.main(coupled + ["--near-wall", "auto"]) == 0  # auto: the plain basis, said so
+    assert "coupled method does not take a near-wall layer" in capsys.readouterr().err
     with pytest.raises(InputError, match="layer-scale"):
         vel.VelocityOptions(near_wall="auto", layer_scale_mm=0.1)
 
@@ -268,3 +269,18 @@ def test_band_with_the_chosen_scale_includes_the_scales_spread():
     opts = ReconstructionOptions(uncertainty=False, velocity=auto)
     means = [reconstruct(phantoms.noisy_copy(acq0, 25, rng), opts)[0].wss.mean for _ in range(24)]
     assert 0.6 < np.std(means, ddof=1) / first.wss.mean_std < 1.6
+
+
+def test_stacks_keep_z_regularization_with_auto_and_say_the_layer_is_not_used():
+    acq, _ = phantoms.make_stack("tapered", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=1)
+    opts = ReconstructionOptions(uncertainty=False, velocity=vel.VelocityOptions(near_wall="auto"))
+    results = reconstruct(acq, opts)
+    assert results.stack is not None  # still z-regularized
+    assert any("plain velocity basis" in n for r in results for n in r.notes)
+    with pytest.raises(InputError, match="near-wall"):
+        reconstruct(
+            acq,
+            replace(
+                opts, velocity=vel.VelocityOptions(near_wall="wall_law"), stack=replace(opts.stack, z_smoothing_mm=2.0)
+            ),
+        )

@@ -228,9 +228,9 @@ class ReconstructionOptions:
             raise InputError(f"n_phi must be >= 360 (file format), got {self.n_phi}")
         if self.method not in METHODS:
             raise InputError(f"method must be one of {METHODS}, got {self.method!r}")
-        if self.method == "coupled" and self.velocity.near_wall != "off":
+        if self.method == "coupled" and self.velocity.near_wall in nw.FAMILIES:
             raise InputError(
-                "the coupled method does not take a near-wall model yet; use --method decoupled or --near-wall off"
+                "the coupled method does not take a near-wall layer yet; use --method decoupled or --near-wall off"
             )
         if self.alpha_rule not in ALPHA_RULES:
             raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
@@ -298,8 +298,10 @@ def reconstruct_slice(
 
     t0 = time.perf_counter()
     vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity)
-    near = None
-    if options.velocity.near_wall != "off":
+    near, layer_notes = None, []
+    if options.velocity.near_wall != "off" and options.method == "coupled":
+        layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
+    elif options.velocity.near_wall != "off":
         vp, near = layer_model(vp, grid, magnitude, lumen, venc, options, where, viscosity_pa_s, density)
     beta_choice = _beta(vp, near, magnitude, lumen, venc, options, where, viscosity_pa_s)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
@@ -348,7 +350,7 @@ def reconstruct_slice(
     t["min_dephasing_factor"] = float(np.min(factors)) if factors is not None else 1.0
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
-    notes, sensitivity = [], None
+    notes, sensitivity = layer_notes, None
     if options.uncertainty:
         t0 = time.perf_counter()
         sensitivity, note = uncertainty(
@@ -497,7 +499,7 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     if ell is not None and not supported:
         raise InputError(
             f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled method "
-            "with fixed alpha and beta; pass --z-smoothing 0 for independent slices"
+            "with fixed alpha and beta and no forced near-wall layer; pass --z-smoothing 0 for independent slices"
         )
     return supported
 

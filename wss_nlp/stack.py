@@ -431,12 +431,12 @@ def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray)
 
 
 def supports(options) -> bool:
-    """Whether z-regularization applies to these reconstruction options (decoupled, fixed alpha, no near-wall model).
+    """Whether z-regularization applies to these reconstruction options (decoupled, fixed alpha, no forced layer).
 
     beta may come from any rule: a segment is fitted with one beta, the
     median (on a log scale) of its slices' own choices (:func:`segment_beta`).
     """
-    return options.method == "decoupled" and options.alpha_rule == "fixed" and options.velocity.near_wall == "off"
+    return options.method == "decoupled" and options.alpha_rule == "fixed" and options.velocity.near_wall in ("off", "auto")
 
 
 def segment_beta(choices) -> float:
@@ -667,9 +667,14 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             done += 1
             if progress is not None:
                 progress(done, len(prepared), results[k])
+    first = next(r for r in results if r is not None)
     if options.uncertainty:
-        first = next(r for r in results if r is not None)
         first.notes.append("stack: the uncertainty band is not computed for z-regularized stacks (yet)")
+    if options.velocity.near_wall == "auto":
+        first.notes.append(
+            "stack: z-regularized stacks use the plain velocity basis (no near-wall layer yet); "
+            "--z-smoothing 0 fits the slices independently with the layer"
+        )
     if not info.converged:
         for r in results:
             if r is not None:
