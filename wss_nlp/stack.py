@@ -436,7 +436,8 @@ def supports(options) -> bool:
     beta may come from any rule: a segment is fitted with one beta, the
     median (on a log scale) of its slices' own choices (:func:`segment_beta`).
     """
-    return options.method == "decoupled" and options.alpha_rule == "fixed" and options.velocity.near_wall in ("off", "auto")
+    forced_layer = options.velocity.near_wall not in ("off", "auto")
+    return options.method == "decoupled" and options.alpha_rule == "fixed" and not forced_layer
 
 
 def segment_beta(choices) -> float:
