@@ -52,7 +52,7 @@ def test_reconstruct_and_compare(files, capsys):
         recorded = json.loads(f.attrs["options_json"])
         assert recorded["geometry"]["alpha"] == geo.GeometryOptions().alpha
         assert recorded["dephasing_beta_rule"] == "gcv"
-    assert len(list((d / "figs").glob("*.png"))) == 4
+    assert len(list((d / "figs").glob("*.png"))) == 5  # figures 1-5 of the paper and the near-wall data
     capsys.readouterr()
     assert main(["compare", str(out), str(truth)]) == 0
     text = capsys.readouterr().out
@@ -134,7 +134,7 @@ def test_demo(tmp_path, capsys):
     assert "radius rel. L2 error" in text and "WSS rel. L2 error" in text
     assert "alpha (fixed)" in text and "beta (balance)" in text  # the defaults, and the chosen value
     assert (tmp_path / "demo" / "result.h5").exists()
-    assert len(list((tmp_path / "demo").glob("*.png"))) == 4
+    assert len(list((tmp_path / "demo").glob("*.png"))) == 5
 
 
 def test_multislice_file_is_reconstructed_slice_by_slice(tmp_path):

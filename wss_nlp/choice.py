@@ -326,7 +326,11 @@ def choose_layer(
             notes[family] = how
         else:
             x = _bic_scale(family_score, lo, hi)
+            notes[family] = "the BIC's, + ln(n) for the fitted scale"
         crit, problem, beta, _ = score(family, x)
+        if family in notes and notes[family].startswith("the BIC's"):
+            # a scale fitted to the data is one more parameter, which tr(H^-1 K) does not count
+            crit += float(np.log(vp.data.size))
         best[family] = (crit, 2.0**x * big_r, problem, beta)
     # the paper's model is the null hypothesis: a layer must be preferred by "very strong" evidence
     penalty = {m: (nw.LAYER_EVIDENCE if m != "plain" else 0.0) for m in best}

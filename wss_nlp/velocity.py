@@ -125,7 +125,7 @@ class VelocityOptions:
     )
 
     near_wall: str = option(
-        "off",
+        "auto",
         "wall-layer columns for layers thinner than a voxel: off, auto (plain or a family, chosen by BIC), "
         "or one family (wall_law: Reichardt's law of the wall; exponential: laminar layers)",
         cli="--near-wall",
