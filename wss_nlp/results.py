@@ -82,6 +82,11 @@ class SliceResult:
                 )
         out.extend(f"slice {self.index}: {n}" for n in self.notes)
         nwc = self.near_wall
+        if nwc is not None and nwc.criterion.startswith("no velocity noise"):
+            out.append(
+                f"slice {self.index}: near-wall layer not considered: {nwc.criterion} (noise-free data?); "
+                "pass --noise-velocity, or --near-wall wall_law/exponential with --layer-scale"
+            )
         if nwc is not None and nwc.ambiguous:
             runner = min((m for m in nwc.values if m != nwc.model), key=lambda m: nwc.values[m])
             out.append(
