@@ -222,30 +222,48 @@ CRITERION_BETAS = 10.0 ** -np.arange(3.0, 13.5, 0.5)
 GOLDEN_STEPS = 8
 
 
-def _bic(problem: vel.VelocityProblem, sigma: np.ndarray, plain: vel.VelocityProblem | None = None):
-    r"""``min_beta chi^2 + ln(n) dof`` of a velocity problem, the minimizing beta and its coefficients.
-
-    ``plain``: the problem without the layer columns, whose pencils then
-    serve the enriched one (:class:`wss_nlp.tikhonov.BorderedTikhonov`).
+class _Criterion:
+    r"""``min_beta chi^2 + ln(n) dof`` of the plain problem with optional extra (layer) columns.
 
     Notes
     -----
-    :math:`\chi^2(\beta) = \sum_i (T_i c_\beta - u_i)^2/\sigma_i^2` with the
+    :math:`\chi^2(\beta) = \sum_i (M_i \theta_\beta - u_i)^2/\sigma_i^2` with the
     per-voxel noise :math:`\sigma_i`, and
     :math:`\mathrm{dof} = \operatorname{tr}(H_\beta^{-1} K)` the effective
     number of parameters: Schwarz's criterion with the smoother's trace in
     place of the parameter count (Hastie & Tibshirani 1990, Sec. 3.5).
+    :math:`\chi^2` is evaluated as the quadratic form
+    :math:`\theta^\top M^\top \Sigma^{-1} M \theta - 2 \theta^\top M^\top \Sigma^{-1} u + u^\top \Sigma^{-1} u`
+    with the plain block formed once (relative rounding about 1e-13 of
+    :math:`u^\top\Sigma^{-1}u`, far below the BIC differences that decide); extra
+    columns go through the plain problem's pencils
+    (:class:`wss_nlp.tikhonov.BorderedTikhonov`).
     """
-    if plain is None:
-        tk = problem.tikhonov
-        coef, dof = tk.coefficients(CRITERION_BETAS), tk.traces(CRITERION_BETAS)
-    else:
-        extra = problem.operator[:, plain.operator.shape[1] :]
-        coef, dof = BorderedTikhonov(plain.tikhonov, extra).coefficients_and_traces(CRITERION_BETAS)
-    chi2 = np.sum(((coef @ problem.operator.T - problem.data[None, :]) / sigma[None, :]) ** 2, axis=1)
-    crit = chi2 + np.log(problem.data.size) * dof
-    i = int(np.argmin(crit))
-    return float(crit[i]), float(CRITERION_BETAS[i]), coef[i]
+
+    def __init__(self, plain: vel.VelocityProblem, sigma: np.ndarray):
+        self.plain, self.inv_var = plain, 1.0 / np.asarray(sigma, float) ** 2
+        t = plain.operator
+        self.tst = t.T @ (self.inv_var[:, None] * t)
+        self.tsu = t.T @ (self.inv_var * plain.data)
+        self.usu = float(plain.data @ (self.inv_var * plain.data))
+        self.log_n = float(np.log(plain.data.size))
+
+    def __call__(self, extra: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
+        """The criterion, the minimizing beta and its coefficients (plain ones first, then the extra columns')."""
+        if extra is None:
+            tk = self.plain.tikhonov
+            coef, dof = tk.coefficients(CRITERION_BETAS), tk.traces(CRITERION_BETAS)
+            quad, lin = self.tst, self.tsu
+        else:
+            coef, dof = BorderedTikhonov(self.plain.tikhonov, extra).coefficients_and_traces(CRITERION_BETAS)
+            se = self.inv_var[:, None] * extra
+            tse = self.plain.operator.T @ se
+            quad = np.block([[self.tst, tse], [tse.T, extra.T @ se]])
+            lin = np.concatenate([self.tsu, se.T @ self.plain.data])
+        chi2 = np.einsum("bi,ij,bj->b", coef, quad, coef) - 2 * coef @ lin + self.usu
+        crit = chi2 + self.log_n * dof
+        i = int(np.argmin(crit))
+        return float(crit[i]), float(CRITERION_BETAS[i]), coef[i]
 
 
 def _golden(score, lo: float, hi: float, steps: int = GOLDEN_STEPS) -> float:
@@ -285,11 +303,11 @@ def choose_layer(
     scripts/results/near_wall.md). Without it both families compete.
 
     Candidates: the plain basis; ``exponential`` at the scale minimizing
-    :func:`_bic` (octaves :data:`LAYER_RATIOS` x mean R, refined by
+    :class:`_Criterion` (octaves :data:`LAYER_RATIOS` x mean R, refined by
     golden-section search in log l); ``wall_law`` at the scale where the
     fitted layer obeys the law of the wall, :math:`u_\tau \ell = \nu`
     (:func:`_wall_law_scale`; by BIC like the exponential when ``nu_m2_s``
-    is None). Each is scored by :func:`_bic` at its best beta; the smallest
+    is None). Each is scored by :class:`_Criterion` at its best beta; the smallest
     score wins. ``mode`` restricts the candidates (``"auto"``: all; a family
     name: that family, plain excluded). ``around`` (an earlier choice on a
     nearby geometry, e.g. before the dephasing pass) keeps its family and
@@ -298,17 +316,19 @@ def choose_layer(
     """
     big_r = float(vp.disk_map.coefficients[0])
     quad = nw.LayerQuadrature(vp, grid)
+    criterion = _Criterion(vp, sigma)
     tried, best, notes = [], {}, {}
-    plain, plain_beta, _ = _bic(vp, sigma)
+    plain, plain_beta, _ = criterion()
     if mode == "auto":
         best["plain"] = (plain, float("nan"), vp, plain_beta)
         tried.append(("plain", float("nan"), plain))
+    stretch = nw.stretch(vp.disk_map)
 
     def score(family, log_ratio):
-        problem = nw.enrich(vp, grid, family, 2.0**log_ratio * big_r, vopt.laplacian_power, quad)
-        crit, beta, coef = _bic(problem, sigma, vp)
+        basis = nw.EnrichedBasis(vp.basis, family, 2.0**log_ratio * big_r / stretch)
+        crit, beta, coef = criterion(quad.columns(basis))
         tried.append((family, 2.0**log_ratio, crit))
-        return crit, problem, beta, coef
+        return crit, basis, beta, coef
 
     if around is not None and around.model in nw.FAMILIES:
         families: tuple = (around.model,)
@@ -327,10 +347,11 @@ def choose_layer(
         else:
             x = _bic_scale(family_score, lo, hi)
             notes[family] = "the BIC's, + ln(n) for the fitted scale"
-        crit, problem, beta, _ = score(family, x)
+        crit, basis, beta, _ = score(family, x)
         if family in notes and notes[family].startswith("the BIC's"):
             # a scale fitted to the data is one more parameter, which tr(H^-1 K) does not count
             crit += float(np.log(vp.data.size))
+        problem = vp.with_layer(basis, quad.columns(basis), vopt.laplacian_power)
         best[family] = (crit, 2.0**x * big_r, problem, beta)
     # the paper's model is the null hypothesis: a layer must be preferred by "very strong" evidence
     penalty = {m: (nw.LAYER_EVIDENCE if m != "plain" else 0.0) for m in best}
@@ -383,8 +404,8 @@ def _wall_law_scale(score, lo: float, hi: float, big_r: float, nu_m2_s: float, n
     """
 
     def consistency(x):
-        crit, problem, _, c = score(x)
-        u_tau = c[n_base] * problem.basis.column_scale  # m/s: the m = 0 layer column is u_tau f(d/l)
+        crit, basis, _, c = score(x)
+        u_tau = c[n_base] * basis.column_scale  # m/s: the m = 0 layer column is u_tau f(d/l)
         ell_m = 2.0**x * big_r / 1000.0
         return u_tau * ell_m / nu_m2_s - 1.0, crit
 

@@ -232,7 +232,6 @@ class BorderedTikhonov:
         self.border = base._tw.T @ self.extra  # B
         self.corner = te.T @ self.extra  # C
         self.extra_rhs = te.T @ base.data  # e
-        self.operator = np.hstack([base.operator, self.extra])
 
     def _per_beta(self, betas):
         k = self.extra.shape[1]
