@@ -342,7 +342,8 @@ def choose_layer(
         lo, hi = brackets[family]
         family_score = functools.partial(score, family)
         if family == "wall_law" and nu_m2_s is not None:
-            x, how = _wall_law_scale(family_score, lo, hi, big_r, nu_m2_s, vp.basis.size)
+            predicted = None if reynolds is None or reynolds <= 0 else blasius_scale(reynolds)
+            x, how = _wall_law_scale(family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted)
             notes[family] = how
         else:
             x = _bic_scale(family_score, lo, hi)
@@ -387,7 +388,23 @@ def _bic_scale(score, lo: float, hi: float) -> float:
     return x if score(x)[0] <= crit[k] else float(grid[k])
 
 
-def _wall_law_scale(score, lo: float, hi: float, big_r: float, nu_m2_s: float, n_base: int) -> tuple[float, str]:
+def blasius_scale(reynolds: float) -> float:
+    r"""log2 of the viscous length over the radius that Blasius's friction law predicts for a smooth pipe.
+
+    Notes
+    -----
+    :math:`f = 0.316\,Re^{-1/4}` (Darcy; Blasius 1913, smooth pipes up to
+    about Re = 1e5) and :math:`u_\tau = U\sqrt{f/8}` give
+    :math:`Re_\tau = u_\tau R/\nu = 0.0994\,Re^{7/8}` and
+    :math:`\ell/R = 1/Re_\tau`. Only a starting window for the scan of
+    :func:`_wall_law_scale`, never the answer.
+    """
+    return float(-np.log2(0.0994 * reynolds**0.875))
+
+
+def _wall_law_scale(
+    score, lo: float, hi: float, big_r: float, nu_m2_s: float, n_base: int, predicted: float | None = None
+) -> tuple[float, str]:
     r"""log2(l/R) at which the fitted wall-law layer is self-consistent, and how it was found.
 
     Notes
@@ -399,29 +416,41 @@ def _wall_law_scale(score, lo: float, hi: float, big_r: float, nu_m2_s: float, n
     the density). ``g`` is scanned on quarter octaves, each sign change is
     refined by bisection in log l to 1/128 octave, and of several roots the
     one with the smallest BIC is taken (spurious roots sit where the
-    layer's amplitude changes sign, far from the data's optimum). Without
-    a root the BIC's scale is used and the record says so.
+    layer's amplitude changes sign, far from the data's optimum). With a
+    ``predicted`` log2(l/R) (:func:`blasius_scale`) the scan starts two
+    octaves either side of it and widens to the whole range only if that
+    window holds no root. Without a root the BIC's scale is used and the
+    record says so.
     """
+    memo: dict = {}
 
     def consistency(x):
-        crit, basis, _, c = score(x)
-        u_tau = c[n_base] * basis.column_scale  # m/s: the m = 0 layer column is u_tau f(d/l)
-        ell_m = 2.0**x * big_r / 1000.0
-        return u_tau * ell_m / nu_m2_s - 1.0, crit
+        if x not in memo:
+            crit, basis, _, c = score(x)
+            u_tau = c[n_base] * basis.column_scale  # m/s: the m = 0 layer column is u_tau f(d/l)
+            memo[x] = (u_tau * 2.0**x * big_r / 1000.0 / nu_m2_s - 1.0, crit)
+        return memo[x]
+
+    def roots_on(xs):
+        vals = [consistency(float(x)) for x in xs]
+        found = []
+        for i in range(xs.size - 1):
+            (ga, _), (gb, _) = vals[i], vals[i + 1]
+            if np.sign(ga) != np.sign(gb):
+                a, b = float(xs[i]), float(xs[i + 1])
+                for _ in range(5):
+                    m = (a + b) / 2
+                    gm, _ = consistency(m)
+                    a, b = (m, b) if np.sign(gm) == np.sign(ga) else (a, m)
+                x = (a + b) / 2
+                found.append((consistency(x)[1], x))
+        return found
 
     xs = np.arange(hi, lo - 1e-9, -0.25)
-    vals = [consistency(float(x)) for x in xs]
-    roots = []
-    for i in range(xs.size - 1):
-        (ga, _), (gb, _) = vals[i], vals[i + 1]
-        if np.sign(ga) != np.sign(gb):
-            a, b = float(xs[i]), float(xs[i + 1])
-            for _ in range(5):
-                m = (a + b) / 2
-                gm, _ = consistency(m)
-                a, b = (m, b) if np.sign(gm) == np.sign(ga) else (a, m)
-            x = (a + b) / 2
-            roots.append((consistency(x)[1], x))
+    window = xs if predicted is None else xs[np.abs(xs - predicted) <= 2.0]
+    roots = roots_on(window) if window.size > 1 else []
+    if not roots and window.size < xs.size:
+        roots = roots_on(xs)
     if not roots:
         return _bic_scale(score, lo, hi), "no scale satisfies u_tau l = nu; the BIC's scale"
     crit, x = min(roots)
