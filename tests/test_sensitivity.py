@@ -33,15 +33,8 @@ class Pipeline:
         self.v = vel.solve(self.vp, VOPT)
 
     def mean(self, m=None, alpha=None, gamma=None, center=None, u=None, beta=None):
-        lum, res, g = self.res.lumen, self.res, self.g
-        pr = geo.GeometryProblem(
-            res.grid,
-            res.magnitude if m is None else m,
-            lum.center if center is None else center,
-            lum.r0,
-            self.r1,
-            lum.r_area,
-        )
+        res, g = self.res, self.g
+        pr = _geometry_problem(res, self.r1, m, center)
         go = geo.with_options(
             GOPT, alpha=g.alpha if alpha is None else alpha, gamma=g.gamma if gamma is None else gamma
         )
@@ -59,6 +52,13 @@ def laminar():
     acq, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=3)
     res = reconstruct(acq, ReconstructionOptions(dephasing_correction=False, uncertainty=False))[0]
     return Pipeline(res, acq.viscosity_pa_s)
+
+
+def _geometry_problem(res, r1, m=None, center=None):
+    """The geometry problem of a reconstructed slice, with its magnitude or centre replaced (re-solves)."""
+    lum = res.lumen
+    m = res.magnitude if m is None else m
+    return geo.GeometryProblem(res.grid, m, lum.center if center is None else center, lum.r0, r1, lum.r_area)
 
 
 def _central(f, x, h):
@@ -152,14 +152,7 @@ def test_coupled_derivatives_match_resolves():
     weight = res.coupled_info["velocity_weight"]
 
     def solve(m=None, u=None, center=None, **scalars):
-        pr = geo.GeometryProblem(
-            res.grid,
-            res.magnitude if m is None else m,
-            lum.center if center is None else center,
-            lum.r0,
-            lum.r1,
-            lum.r_area,
-        )
+        pr = _geometry_problem(res, lum.r1, m, center)
         gopt = opts.geometry if "gamma" not in scalars else geo.with_options(opts.geometry, gamma=scalars.pop("gamma"))
         c = cpl.solve(
             pr, gopt, res.velocity_image if u is None else u, opts.velocity, start_g, start_v, weight, **scalars

@@ -285,7 +285,6 @@ def _golden(score, lo: float, hi: float, steps: int = GOLDEN_STEPS) -> float:
 
 def choose_layer(
     vp: vel.VelocityProblem,
-    grid,
     sigma: np.ndarray,
     mode: str,
     vopt: vel.VelocityOptions,
@@ -315,7 +314,7 @@ def choose_layer(
     problem (the plain one or its enrichment) and the record of the choice.
     """
     big_r = float(vp.disk_map.coefficients[0])
-    quad = nw.LayerQuadrature(vp, grid)
+    quad = nw.LayerQuadrature(vp)
     criterion = _Criterion(vp, sigma)
     tried, best, notes = [], {}, {}
     plain, plain_beta, _ = criterion()
@@ -459,7 +458,6 @@ def _wall_law_scale(
 
 def layer_model(
     vp: vel.VelocityProblem,
-    grid,
     raw,
     lumen,
     venc,
@@ -479,7 +477,7 @@ def layer_model(
     """
     vopt = options.velocity
     if vopt.layer_scale_mm is not None:
-        problem = nw.enrich(vp, grid, vopt.near_wall, vopt.layer_scale_mm, vopt.laplacian_power)
+        problem = nw.enrich(vp, vopt.near_wall, vopt.layer_scale_mm, vopt.laplacian_power)
         big_r = float(vp.disk_map.coefficients[0])
         return problem, nw.NearWallChoice(
             vopt.near_wall, vopt.layer_scale_mm, vopt.layer_scale_mm / big_r, "given (--layer-scale)"
@@ -489,7 +487,7 @@ def layer_model(
         return vp, nw.NearWallChoice("plain", criterion=f"no velocity noise estimate ({noise.method}): plain basis")
     nu = None if viscosity_pa_s is None or density is None else viscosity_pa_s / density[0]
     reynolds = None if nu is None else nw.bulk_reynolds(vp, nu)
-    problem, choice = choose_layer(vp, grid, noise.details["per_voxel"], vopt.near_wall, vopt, nu, around, reynolds)
+    problem, choice = choose_layer(vp, noise.details["per_voxel"], vopt.near_wall, vopt, nu, around, reynolds)
     if density is not None:
         choice.density_kg_m3, choice.density_source = density
     choice.reynolds = float("nan") if reynolds is None else reynolds

@@ -94,6 +94,16 @@ def profile_second_derivative(family: str, y) -> np.ndarray:
     raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
 
 
+def cell_half_widths(cell_mm, t) -> tuple[np.ndarray, np.ndarray]:
+    """Half-widths (mm) of a quadrature cell's projections on the wall normal at polar angle ``t``.
+
+    The normal is radial to first order, so a ``dx x dy`` cell projects as
+    two boxes of half-widths ``dx |cos t| / 2`` and ``dy |sin t| / 2``
+    (their convolution is the trapezoid of :func:`cell_mean`).
+    """
+    return cell_mm[0] / 2 * np.abs(np.cos(t)), cell_mm[1] / 2 * np.abs(np.sin(t))
+
+
 def stretch(disk_map) -> float:
     r"""``S = r_in + eta (mean R - r_in)``: :math:`\partial_\rho |\phi_R|` at the wall, averaged over the angle (mm)."""
     return float(disk_map.r_in + disk_map.eta * (disk_map.coefficients[0] - disk_map.r_in))
@@ -173,9 +183,7 @@ class EnrichedBasis:
         return ca.mtimes(ca.DM(self.transform).T, self.symbolic_raw(xi))
 
     def radial_raw(self, rho) -> np.ndarray:
-        rho = np.ravel(rho).astype(float)
-        f = profile(self.family, (1 - rho) / self.scale)
-        return np.vstack([self.base.radial_raw(rho)] + [f * rho**m for m, _ in self.layer_terms])
+        return np.vstack([self.base.radial_raw(rho), self.layer_radial(rho)[0]])
 
     def layer_radial(self, rho, cells=None) -> tuple[np.ndarray, np.ndarray]:
         """Radial factors ``f((1 - rho)/scale) rho^m`` of the layer columns and their rho-derivatives, (n_layer, n).
@@ -311,20 +319,15 @@ class LayerQuadrature:
     Parameters
     ----------
     problem : wss_nlp.velocity.VelocityProblem
-        The assembled plain problem (its voxels, map and reference points).
-    grid : wss_nlp.measurement.VoxelGrid
-        The image grid of the problem.
+        The assembled plain problem (its voxels, map and quadrature cell size).
     """
 
-    def __init__(self, problem, grid):
+    def __init__(self, problem):
         vox, dm = problem.voxels, problem.disk_map
         self.rho, self.t = (a.reshape(vox.px.shape) for a in dm.inverse(vox.px.ravel(), vox.py.ravel()))
         self.stretch = stretch(dm)
-        q = int(round(np.sqrt(vox.px.shape[1])))
-        # half-widths (mm) of each cell's projection on the wall normal, which is radial to first order
-        self.half_x = grid.dx / q / 2 * np.abs(np.cos(self.t))
-        self.half_y = grid.dy / q / 2 * np.abs(np.sin(self.t))
-        self.order = q
+        self.order = int(round(np.sqrt(vox.px.shape[1])))
+        self.half_x, self.half_y = cell_half_widths(problem.cell_mm, self.t)
         self.depth = (1 - self.rho) * self.stretch  # mm from the wall, negative outside
         self.area = np.sum(cell_mean("inside", self.depth, self.half_x, self.half_y), axis=1)
 
@@ -449,14 +452,14 @@ LAYER_EVIDENCE = 10.0
 AMBIGUOUS_MARGIN = 2.0
 
 
-def enrich(problem, grid, family: str, scale_mm: float, laplacian_power: int, quadrature=None):
+def enrich(problem, family: str, scale_mm: float, laplacian_power: int):
     """``problem`` (plain basis) with the layer columns of ``family`` at scale ``l = scale_mm`` appended."""
     basis = EnrichedBasis(problem.basis, family, scale_mm / stretch(problem.disk_map))
-    quadrature = LayerQuadrature(problem, grid) if quadrature is None else quadrature
+    quadrature = LayerQuadrature(problem)
     return problem.with_layer(basis, quadrature.columns(basis), laplacian_power)
 
 
-def scale_sensitivity(problem, coefficients, beta: float, grid, wss_matrix, nu_m2_s: float):
+def scale_sensitivity(problem, coefficients, beta: float, wss_matrix, nu_m2_s: float):
     r"""How the law-of-the-wall scale responds to the fit, and the WSS to the scale.
 
     Returns ``(dg_da0, dg_dlog, dtau_dlog)``: the derivatives of
@@ -484,7 +487,7 @@ def scale_sensitivity(problem, coefficients, beta: float, grid, wss_matrix, nu_m
     w = problem.weights / problem.area
     hmat = m_op.T @ (w[:, None] * m_op) + beta / np.pi * problem.gram
     dm = np.zeros_like(m_op)
-    dm[:, nb:] = LayerQuadrature(problem, grid).columns_dlog_scale(basis)
+    dm[:, nb:] = LayerQuadrature(problem).columns_dlog_scale(basis)
     theta = np.asarray(coefficients, float)
     resid = problem.data - m_op @ theta
     dtheta_dlog = np.linalg.solve(hmat, dm.T @ (w * resid) - m_op.T @ (w * (dm @ theta)))

@@ -302,7 +302,7 @@ def reconstruct_slice(
     if options.velocity.near_wall != "off" and options.method == "coupled":
         layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
     elif options.velocity.near_wall != "off":
-        vp, near = layer_model(vp, grid, magnitude, lumen, venc, options, where, viscosity_pa_s, density)
+        vp, near = layer_model(vp, magnitude, lumen, venc, options, where, viscosity_pa_s, density)
     beta_choice = _beta(vp, near, magnitude, lumen, venc, options, where, viscosity_pa_s)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
@@ -330,9 +330,7 @@ def reconstruct_slice(
         )
         if near is not None and near.model != "plain":
             # the first pass's geometry was biased by the dephasing just corrected, and the layer scale with it
-            vp, near = layer_model(
-                vp, grid, magnitude, lumen, venc, options, where, viscosity_pa_s, density, around=near
-            )
+            vp, near = layer_model(vp, magnitude, lumen, venc, options, where, viscosity_pa_s, density, around=near)
             beta_choice = _beta(vp, near, magnitude, lumen, venc, options, where, viscosity_pa_s)
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = time.perf_counter() - t0
@@ -354,7 +352,7 @@ def reconstruct_slice(
     if options.uncertainty:
         t0 = time.perf_counter()
         sensitivity, note = uncertainty(
-            problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options, cres, near, grid
+            problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options, cres, near
         )
         notes += [note] if note else []
         t["uncertainty"] = time.perf_counter() - t0
@@ -391,7 +389,7 @@ def _beta(vp, near, raw, lumen, venc, options: ReconstructionOptions, where: str
     return choose_beta(vp, raw, lumen, venc, options, where, viscosity_pa_s)
 
 
-def _add_scale_spread(s, vp, v, w, near, grid, viscosity_pa_s: float, sigma_m: float, sigma_u) -> None:
+def _add_scale_spread(s, vp, v, w, near, viscosity_pa_s: float, sigma_m: float, sigma_u) -> None:
     """Let the band carry the law-of-the-wall scale's response to the noise (chain rule through l).
 
     The scale is a function of the data (``u_tau l = nu``), so the WSS moves
@@ -403,7 +401,7 @@ def _add_scale_spread(s, vp, v, w, near, grid, viscosity_pa_s: float, sigma_m: f
     """
     smat, _ = wss_mod.wss_matrix(v.basis, v.disk_map, viscosity_pa_s, w.phi.size)
     nu = viscosity_pa_s / near.density_kg_m3
-    dg_da0, dg_dlog, dtau_dlog = nw.scale_sensitivity(vp, v.coefficients, v.beta, grid, smat, nu)
+    dg_da0, dg_dlog, dtau_dlog = nw.scale_sensitivity(vp, v.coefficients, v.beta, smat, nu)
     dlog_dp = -dg_da0 * s.d_coef_v[v.basis.base.size] / dg_dlog
     c = v.disk_map.coefficients
     ds = np.hypot(rad.evaluate(c, w.phi), rad.evaluate(c, w.phi, 1))
@@ -433,7 +431,6 @@ def uncertainty(
     options: ReconstructionOptions,
     coupled_result=None,
     near=None,
-    grid=None,
 ):
     """Sensitivities and the linearized band (sets ``w.tau_std``, ``w.mean_std``); returns ``(Sensitivity, note)``.
 
@@ -453,7 +450,7 @@ def uncertainty(
     except WssNlpError as exc:
         return None, f"no uncertainty band: {exc}"
     if near is not None and near.model == "wall_law" and nw.CONSISTENT in near.criterion:
-        _add_scale_spread(s, vp, v, w, near, grid, viscosity_pa_s, sigma_m, sigma_u)
+        _add_scale_spread(s, vp, v, w, near, viscosity_pa_s, sigma_m, sigma_u)
     w.tau_std, w.mean_std, s.mean_std_magnitude, s.mean_std_velocity = s.band(sigma_m, sigma_u)
     s.tau_std, s.mean_std = w.tau_std, w.mean_std
     s.noise.update({"sigma_m": sigma_m, "method": how})

@@ -291,11 +291,7 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     dradial = pb.select_radial @ (pb.cheb_derivative @ tk)
     if polynomial is not basis:  # cell means, as in the fit: a point rule would differentiate the steep layer badly
         stretch = nw.stretch(vp.disk_map)
-        cells = (
-            None
-            if vp.cell_mm is None
-            else tuple(c / 2 / stretch * np.abs(f(th0)) for c, f in zip(vp.cell_mm, (np.cos, np.sin)))
-        )
+        cells = None if vp.cell_mm is None else tuple(h / stretch for h in nw.cell_half_widths(vp.cell_mm, th0))
         layer, dlayer = basis.layer_radial(rho0, cells)
         radial, dradial = np.vstack([radial, layer]), np.vstack([dradial, dlayer])
     orders = np.array([m for m, _ in basis.angular_terms()], float)[:, None]

@@ -179,9 +179,7 @@ class VelocityProblem:
     voxels: meas.LumenVoxels
     disk_map: DiskMap
     basis: Any  # a basis of wss_nlp.velocity_basis (or wss_nlp.near_wall.EnrichedBasis)
-    reference_points: tuple | None = None  # (xi_x, xi_y) of the sub-voxel points inside the lumen
-    average: Any = None  # sparse (n_vox, n_points) voxel-mean matrix of those points
-    cell_mm: tuple | None = None  # (dx, dy) of one quadrature cell
+    cell_mm: tuple | None = None  # (dx, dy) of one quadrature cell (the near-wall layer integrates across it)
 
     @property
     def area(self) -> float:
@@ -255,8 +253,7 @@ def assemble(
     rho, t = disk_map.inverse(px, py)
     avg = vox.mean_matrix()
     rho = np.minimum(rho, 1.0)
-    ref = (rho * np.cos(t), rho * np.sin(t))
-    operator = basis.evaluate(*ref, average=avg)
+    operator = basis.evaluate(rho * np.cos(t), rho * np.sin(t), average=avg)
     return VelocityProblem(
         operator=operator,
         weights=vox.fraction * grid.voxel_area,
@@ -266,8 +263,6 @@ def assemble(
         voxels=vox,
         disk_map=disk_map,
         basis=basis,
-        reference_points=ref,
-        average=avg,
         cell_mm=(grid.dx / q, grid.dy / q),
     )
 
