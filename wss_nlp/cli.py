@@ -103,7 +103,9 @@ def _errors_rows(err: metrics.Errors):
 
 # ------------------------------------------------------------------ commands
 def cmd_phantom(args) -> int:
-    outputs.check_outputs(files={"-o": args.output, "--truth": args.truth})
+    outputs.check_outputs(
+        files={"-o": args.output, "--truth": args.truth}, folders={"--dicom": args.dicom, "--nifti": args.nifti}
+    )
     snr = None if args.snr <= 0 else args.snr
     truth: phantoms.Truth | phantoms.StackTruth
     if args.stack:
@@ -129,13 +131,31 @@ def cmd_phantom(args) -> int:
             "wraps (aliasing); 'reconstruct' unwraps it (or refuses it when it cannot)",
             file=sys.stderr,
         )
-    wio.write_acquisition(args.output, acq)
-    if args.truth:
-        try:
-            _write_truth(args.truth, truth)
-        except BaseException:
-            os.remove(args.output)  # the pair is written whole or not at all
-            raise
+    with outputs.StagedFolder(args.dicom) as dcm, outputs.StagedFolder(args.nifti) as nii:
+        if dcm.path or nii.path:  # the same images as a scanner exports them, for trying 'wss-nlp import'
+            from . import scanner_exports
+
+            scan = scanner_exports.Scan(
+                acq.magnitude,
+                acq.velocity_images(),
+                float(acq.venc_m_s or 1.25 * peak),
+                acq.voxel_size_mm,
+                acq.origin_mm,
+                slice_spacing_mm=acq.slice_spacing_mm or 1.0,
+            )
+            if dcm.path:
+                scanner_exports.write_dicom(dcm.path, scan, args.vendor)
+            if nii.path:
+                scanner_exports.write_nifti(nii.path, scan)
+        wio.write_acquisition(args.output, acq)
+        if args.truth:
+            try:
+                _write_truth(args.truth, truth)
+            except BaseException:
+                os.remove(args.output)  # the pair is written whole or not at all
+                raise
+        dcm.commit()
+        nii.commit()
     print(
         f"wrote {args.output}: {args.case}, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
         f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels"
@@ -438,6 +458,29 @@ def cmd_export(args) -> int:
     return 0
 
 
+def cmd_import(args) -> int:
+    from . import importing, scanner
+
+    outputs.check_outputs(files={"-o": args.output}, inputs=[p for p in args.paths if os.path.isfile(p)])
+    if not args.output.endswith((".h5", ".hdf5")):
+        raise InputError(f"-o {args.output}: name an HDF5 file (.h5)")
+    wio.check_density(args.density, "--density")
+    if args.viscosity is not None and not args.viscosity > 0:
+        raise InputError(f"--viscosity {args.viscosity}: must be > 0 Pa*s (e.g. 3.5e-3 for blood)")
+    options = scanner.ImportOptions(
+        venc_m_s=args.venc,
+        viscosity_pa_s=args.viscosity,
+        density_kg_m3=args.density,
+        flip_through_plane=args.flip_through_plane,
+    )
+    imp = importing.import_paths(args.paths, options, args.phase_units, args.frame_interval)
+    scanner.write_import(args.output, imp, argv=["wss-nlp", *args.argv])
+    print(f"wrote {args.output}: {imp.summary()}")
+    if imp.trigger_times_ms is not None:
+        print("note: a time-resolved file; 'reconstruct' reads single frames so far (wss_nlp.files.read_frames)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="wss-nlp",
@@ -491,6 +534,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ph.add_argument("-o", "--output", required=True, help="input file to write")
     ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
+    ph.add_argument(
+        "--dicom", default=None, metavar="FOLDER", help="also write the images as DICOM files (for 'wss-nlp import')"
+    )
+    ph.add_argument(
+        "--vendor",
+        choices=["siemens", "philips", "ge", "enhanced"],
+        default="siemens",
+        help="DICOM convention of --dicom (default %(default)s)",
+    )
+    ph.add_argument("--nifti", default=None, metavar="FOLDER", help="also write NIfTI files with JSON sidecars")
     ph.set_defaults(func=cmd_phantom)
 
     a = sub.add_parser("analyze", help="how alpha and beta were chosen (table and residual curves)")
@@ -563,6 +616,33 @@ def build_parser() -> argparse.ArgumentParser:
         help="mm between slices (default: the result's slice_spacing_mm, stored by reconstruct)",
     )
     ex.set_defaults(func=cmd_export)
+
+    im = sub.add_parser(
+        "import",
+        help="scanner exports (DICOM folder/files or NIfTI) to an input file",
+        description="Read a magnitude and a phase (or velocity) series from DICOM (Siemens, Philips, GE, enhanced "
+        "multi-frame) or NIfTI (with dcm2niix JSON sidecars) and write an input file of the format document; "
+        "venc, voxel size, origin, slice spacing and trigger times come from the headers. See the docs page "
+        "'Your own data'.",
+    )
+    im.add_argument("paths", nargs="+", metavar="PATH", help="DICOM folders or files, or NIfTI files")
+    im.add_argument("-o", "--output", required=True, help="input file to write (.h5)")
+    im.add_argument("--venc", type=float, default=None, metavar="M_S", help="velocity encoding in m/s (overrides)")
+    im.add_argument("--viscosity", type=float, default=None, metavar="PA_S", help="dynamic viscosity to store")
+    im.add_argument("--density", type=float, default=None, metavar="KG_M3", help="fluid density to store")
+    im.add_argument(
+        "--flip-through-plane", action="store_true", help="negate the through-plane velocity (forward flow negative)"
+    )
+    im.add_argument(
+        "--phase-units",
+        default=None,
+        choices=["rad", "siemens", "cm/s", "mm/s", "m/s"],
+        help="units of the phase images' values when the headers do not state them",
+    )
+    im.add_argument(
+        "--frame-interval", type=float, default=None, metavar="MS", help="ms between NIfTI frames (if not in header)"
+    )
+    im.set_defaults(func=cmd_import)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")
     c.add_argument("result")

@@ -233,8 +233,8 @@ def read_acquisition(path) -> Acquisition:
     with f:
         if "trigger_times_ms" in f.attrs:
             raise InputError(
-                f"{src}: a time-resolved (cine) file ('trigger_times_ms'); this version reads single "
-                "frames only: write one frame per file"
+                f"{src}: a time-resolved (cine) file ('trigger_times_ms'); 'reconstruct' reads single frames "
+                "only so far: write one frame per file (wss_nlp.files.read_frames reads the frames)"
             )
 
         def dataset(name):
@@ -275,6 +275,68 @@ def read_acquisition(path) -> Acquisition:
         raise InputError(f"{src}: missing dataset 'velocity' (or 'phase' with 'venc_m_s')")
     acq.validate()
     return acq
+
+
+def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
+    """Read a time-resolved (cine) input file: ``(frames, trigger_times_ms, cardiac_period_ms)``.
+
+    Every image dataset has the leading time axis ``(nt, nz, ny, nx)``; each
+    frame is validated like a single-frame file. The period defaults to the
+    last trigger time plus the mean frame spacing (the format document).
+    """
+    import h5py
+
+    src = str(path)
+    if not os.path.exists(src):
+        raise InputError(f"{src}: no such file")
+    try:
+        f = h5py.File(src, "r")
+    except OSError as exc:
+        raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
+    with f:
+        if "trigger_times_ms" not in f.attrs:
+            raise InputError(f"{src}: not time-resolved (no attribute 'trigger_times_ms'); use read_acquisition")
+        times = np.asarray(f.attrs["trigger_times_ms"], dtype=float).ravel()
+        if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
+            raise InputError(f"{src}: 'trigger_times_ms' must be finite and increasing, got {times.tolist()}")
+        nt = times.size
+        arrays = {}
+        for name in ("magnitude", "velocity", "phase"):
+            if name in f:
+                arr = np.asarray(f[name][()], dtype=float)
+                if arr.ndim != 4 or arr.shape[0] != nt:
+                    raise InputError(
+                        f"{src}: '{name}' of a time-resolved file must have shape (nt = {nt}, nz, ny, nx), "
+                        f"got {arr.shape}"
+                    )
+                arrays[name] = arr
+        if "magnitude" not in arrays:
+            raise InputError(f"{src}: missing dataset 'magnitude'")
+        common = {
+            "voxel_size_mm": _attr(f, "voxel_size_mm", src, required=True, size=2),
+            "origin_mm": _attr(f, "origin_mm", src, required=True, size=2),
+            "slice_spacing_mm": _attr(f, "slice_spacing_mm", src),
+            "venc_m_s": _attr(f, "venc_m_s", src),
+            "viscosity_pa_s": _attr(f, "viscosity_pa_s", src),
+            "density_kg_m3": _attr(f, "density_kg_m3", src),
+        }
+        period = _attr(f, "cardiac_period_ms", src)
+    frames = []
+    for it in range(nt):
+        acq = Acquisition(
+            magnitude=arrays["magnitude"][it],
+            velocity=arrays["velocity"][it] if "velocity" in arrays else None,
+            phase=arrays["phase"][it] if "phase" in arrays else None,
+            source=f"{src} (frame {it})",
+            **common,
+        )
+        acq.validate()
+        frames.append(acq)
+    if period is None:
+        period = float(times[-1] + (np.mean(np.diff(times)) if nt > 1 else 0.0))
+    elif not period > times[-1]:
+        raise InputError(f"{src}: 'cardiac_period_ms' {period:g} must exceed the last trigger time {times[-1]:g}")
+    return frames, times, float(period)
 
 
 @contextlib.contextmanager

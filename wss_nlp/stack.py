@@ -470,12 +470,15 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     options : :class:`wss_nlp.reconstruct.ReconstructionOptions` (alpha, beta, bases, ...).
     stack : StackOptions
     progress : callable ``(done, total, slice_result)`` or None, called per finished slice.
-    What a long solve is doing (segments, sweeps) goes to the ``wss_nlp.stack`` logger at INFO level.
 
     Returns
     -------
     (results, info): ``results[k]`` is a :class:`wss_nlp.reconstruct.SliceResult`
     or None for a slice that failed (``info.failed[k]`` says why).
+
+    Notes
+    -----
+    What a long solve is doing (segments, sweeps) goes to the ``wss_nlp.stack`` logger at INFO level.
     """
     stack = stack or StackOptions()
     if not supports(options):

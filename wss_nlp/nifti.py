@@ -1,0 +1,198 @@
+"""NIfTI phase-contrast images in (``wss-nlp import``): a magnitude and a phase (or velocity) file.
+
+Reads ``.nii`` / ``.nii.gz`` files (nibabel, an optional dependency:
+``pip install 'wss-nlp[nifti]'``) with their JSON sidecars where a converter
+(dcm2niix) wrote them, into :class:`~wss_nlp.scanner.Image2D` records.
+
+Notes
+-----
+A file holds ``data[i, j, k, t]``; the affine ``A`` maps voxel ``(i, j, k)``
+to millimetres. Image ``k`` of frame ``t`` is ``data[:, :, k, t].T`` (rows
+``j``, columns ``i``, as DICOM converters write them): its row direction is
+``A[:3, 0] / |A[:3, 0]|``, its column direction ``A[:3, 1] / |A[:3, 1]|``, its
+pixel spacing ``[|A[:3, 1]|, |A[:3, 0]|]`` and its first voxel lies at
+``A (0, 0, k, 1)``. Values are scaled by the header's ``scl_slope`` and
+``scl_inter`` (nibabel applies them).
+
+The role of a file comes from its sidecar's ``ImageType`` (``P``/``PHASE``
+against ``M``/``MAGNITUDE``), else from its name (``_ph``, ``phase``, ``vel``
+against ``mag``). The phase values' units come from ``--phase-units``, else
+from the sidecar: Siemens (``Manufacturer``) phase as dcm2niix writes it,
+``[-4096, 4096)`` for ``[-pi, pi)``, or radians when all values lie in
+``[-pi, pi]``. The venc comes from ``--venc`` or the sidecar's Siemens
+``SequenceName`` (``fl2d1_v150in``). Frame times: ``--frame-interval`` or the
+header's fourth pixel dimension when its time unit is ms or s.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from typing import Any
+
+import numpy as np
+
+from .dicom import PHASE_UNITS, siemens_venc
+from .errors import InputError
+from .scanner import Image2D
+
+#: Siemens phase as converters store it: this value stands for pi.
+SIEMENS_FULL_SCALE = 4096.0
+_VELOCITY = {"cm/s": 1e-2, "mm/s": 1e-3, "m/s": 1.0}
+
+
+def is_nifti(path: str) -> bool:
+    return str(path).lower().endswith((".nii", ".nii.gz"))
+
+
+def sidecar(path: str) -> dict:
+    """The JSON sidecar next to a NIfTI file (``name.json`` for ``name.nii[.gz]``), or ``{}``."""
+    stem = re.sub(r"\.nii(\.gz)?$", "", str(path), flags=re.IGNORECASE)
+    side = stem + ".json"
+    if not os.path.exists(side):
+        return {}
+    try:
+        with open(side) as fh:
+            data = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{side}: not a readable JSON sidecar ({exc}); fix or remove it") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{side}: a JSON sidecar must hold an object, got {type(data).__name__}")
+    return data
+
+
+def role_of(path: str, meta: dict) -> str:
+    """``"magnitude"`` or ``"phase"`` from the sidecar's ImageType, else the file name; an error if neither says."""
+    tokens = {str(t).strip().upper() for t in meta.get("ImageType", [])}
+    if tokens & {"P", "PHASE", "VELOCITY"}:
+        return "phase"
+    if tokens & {"M", "MAGNITUDE", "MAG"}:
+        return "magnitude"
+    name = os.path.basename(str(path)).lower()
+    if re.search(r"(_ph\b|_ph\.|phase|vel)", name):
+        return "phase"
+    if re.search(r"(mag|_m\.|_m\b)", name):
+        return "magnitude"
+    raise InputError(
+        f"{path}: cannot tell whether this is the magnitude or the phase image: no 'ImageType' in a JSON sidecar; "
+        "put 'mag' or 'phase' in the file name"
+    )
+
+
+def _units(path: str, meta: dict, values: np.ndarray, phase_units: str | None) -> tuple[np.ndarray, str]:
+    units = phase_units
+    peak = float(np.nanmax(np.abs(values))) if values.size else 0.0
+    if units is None:
+        if peak <= np.pi * (1 + 1e-6) and "siemens" in str(meta.get("Manufacturer", "")).lower():
+            units = "rad"
+        elif "siemens" in str(meta.get("Manufacturer", "")).lower():
+            units = "siemens"
+        else:
+            raise InputError(
+                f"{path}: the units of the phase values (up to {peak:.4g}) are not stated (no Siemens sidecar); "
+                "pass --phase-units (" + ", ".join(PHASE_UNITS) + ")"
+            )
+    if units == "siemens":
+        return np.pi * values / SIEMENS_FULL_SCALE, "rad"
+    if units == "rad":
+        return values, "rad"
+    if units in _VELOCITY:
+        return values * _VELOCITY[units], "m/s"
+    raise InputError(f"--phase-units {units}: choose from {', '.join(PHASE_UNITS)}")
+
+
+def _frame_times(img, path: str, nt: int, frame_interval_ms: float | None) -> list[float | None]:
+    if nt == 1:
+        return [None]
+    if frame_interval_ms is not None:
+        if not frame_interval_ms > 0:
+            raise InputError(f"--frame-interval {frame_interval_ms}: must be > 0 ms")
+        return [k * frame_interval_ms for k in range(nt)]
+    zooms = img.header.get_zooms()
+    unit = img.header.get_xyzt_units()[1]
+    if len(zooms) > 3 and zooms[3] > 0 and unit in ("msec", "sec"):
+        step = float(zooms[3]) * (1000.0 if unit == "sec" else 1.0)
+        return [k * step for k in range(nt)]
+    raise InputError(
+        f"{path}: {nt} frames but the header states no frame interval (pixdim[4] in ms or s); pass --frame-interval MS"
+    )
+
+
+def images_from_file(
+    path: str, phase_units: str | None = None, frame_interval_ms: float | None = None
+) -> list[Image2D]:
+    """The 2D images of one NIfTI file (every slice of every frame)."""
+    try:
+        import nibabel
+    except ImportError:
+        raise InputError("reading NIfTI needs nibabel, an optional dependency: pip install 'wss-nlp[nifti]'") from None
+    try:
+        img: Any = nibabel.load(path)
+        data = np.asarray(img.get_fdata(), dtype=np.float64)
+    except Exception as exc:  # nibabel raises several types for unreadable files
+        raise InputError(f"{path}: not a readable NIfTI file ({type(exc).__name__}: {exc})") from None
+    if data.ndim == 2:
+        data = data[:, :, None]
+    if data.ndim == 3:
+        data = data[..., None]
+    if data.ndim != 4:
+        raise InputError(
+            f"{path}: {data.ndim}D data {data.shape}; expected (x, y, z) or (x, y, z, t) of one velocity "
+            "component (3-component 4D flow volumes need a plane extraction, not yet supported)"
+        )
+    meta = sidecar(path)
+    role = role_of(path, meta)
+    affine = np.asarray(img.affine, dtype=np.float64)
+    di, dj = (float(np.linalg.norm(affine[:3, c])) for c in (0, 1))
+    if not (di > 0 and dj > 0):
+        raise InputError(f"{path}: the affine has a zero voxel size ({di}, {dj}); fix the header")
+    row_dir, col_dir = affine[:3, 0] / di, affine[:3, 1] / dj
+    values, units = (data, "") if role == "magnitude" else _units(path, meta, data, phase_units)
+    venc = None
+    venc_source = ""
+    if role == "phase" and meta.get("SequenceName"):
+        found = siemens_venc(str(meta["SequenceName"]))
+        if found is not None:
+            if found[1] not in ("in", "through"):
+                raise InputError(
+                    f"{path}: SequenceName {meta['SequenceName']!r} encodes the in-plane direction {found[1]!r}; "
+                    "wss-nlp needs the through-plane velocity, or --venc for this one"
+                )
+            venc, venc_source = found[0], f"sidecar SequenceName {meta['SequenceName']!r}"
+    nt = data.shape[3]
+    times = _frame_times(img, path, nt, frame_interval_ms)
+    series = str(meta.get("SeriesDescription", os.path.basename(path)))
+    out = []
+    for k in range(data.shape[2]):
+        position = (affine @ np.array([0.0, 0.0, k, 1.0]))[:3]
+        for t in range(nt):
+            out.append(
+                Image2D(
+                    where=f"{path} (slice {k}, frame {t})" if nt > 1 or data.shape[2] > 1 else path,
+                    role=role,
+                    pixels=values[:, :, k, t].T.copy(),
+                    units=units,
+                    position=position,
+                    row_dir=row_dir,
+                    col_dir=col_dir,
+                    spacing=(dj, di),
+                    trigger_ms=times[t],
+                    venc_m_s=venc,
+                    venc_source=venc_source,
+                    series=series,
+                    series_uid=str(path),
+                    vendor=str(meta.get("Manufacturer", "")).strip().title(),
+                )
+            )
+    return out
+
+
+def read_images(paths, phase_units: str | None = None, frame_interval_ms: float | None = None):
+    """Every image of the NIfTI files ``paths`` and a record of what was read."""
+    images: list[Image2D] = []
+    for path in paths:
+        if not os.path.isfile(path):
+            raise InputError(f"{path}: no such file")
+        images += images_from_file(path, phase_units, frame_interval_ms)
+    return images, {"format": "NIfTI", "paths": [str(p) for p in paths], "files": len(paths)}
