@@ -134,6 +134,19 @@ def test_cine_stack_round_trip_in_the_time_resolved_layout(kind, phantom, tmp_pa
         assert json.loads(f.attrs["import_json"])["slice_normal"] == pytest.approx([0.0, 0.8, -0.6])
     with pytest.raises(InputError, match="time-resolved"):
         files.read_acquisition(out)  # single-frame readers refuse it clearly
+    # frame 1 holds the phantom's own velocity (factor 1): its first slice reconstructs to the phantom's WSS
+    one = frames[1]
+    one = files.Acquisition(
+        magnitude=one.magnitude[:1],
+        phase=None if one.phase is None else one.phase[:1],
+        velocity=None if one.velocity is None else one.velocity[:1],
+        voxel_size_mm=one.voxel_size_mm,
+        origin_mm=one.origin_mm,
+        venc_m_s=one.venc_m_s,
+        viscosity_pa_s=acq.viscosity_pa_s,
+        density_kg_m3=acq.density_kg_m3,
+    )
+    assert reconstruct(one)[0].wss.mean == pytest.approx(phantom[2].wss.mean, rel=5e-3)
 
 
 def test_slices_are_ordered_along_the_normal_whatever_the_file_order(phantom, tmp_path):

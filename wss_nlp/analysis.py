@@ -48,6 +48,12 @@ def _plateaus(mask: np.ndarray, width: int = 2):
     return inner, outer
 
 
+def velocity_plateau(mask: np.ndarray) -> np.ndarray:
+    """The lumen plateau on which :func:`velocity_noise` measures the noise without venc (two voxels inside)."""
+    inner, _ = _plateaus(mask)
+    return inner & scipy.ndimage.binary_erosion(np.ones_like(mask), iterations=1)
+
+
 def magnitude_noise(
     m: np.ndarray,
     raw: np.ndarray,
@@ -178,10 +184,13 @@ def velocity_noise(
     of a uniform phase, ``venc / sqrt(3)``; it grows as the magnitude falls
     towards the wall (Appendix B). Then
     ``epsilon^2 = sum_i w_i sigma_u,i^2 / sum_i w_i`` with the partial-volume
-    weights of the misfit. Without ``venc`` (velocity data only) a
-    homoscedastic ``sigma_u`` is taken from the high frequencies on the
-    lumen plateau: ``r = u - (mean of the 4 neighbours)`` has variance
-    ``1.25 sigma_u^2`` for white noise.
+    weights of the misfit. Without ``venc`` (velocity data only) the level
+    ``s`` on the lumen plateau is taken from the high frequencies there
+    (``r = u - (mean of the 4 neighbours)`` has variance ``1.25 s^2`` for
+    white noise) and, since the velocity still comes from a phase, scaled
+    per voxel as the phase noise is: ``sigma_u,i = s m_p / |d_i|`` with
+    ``m_p`` the plateau's median magnitude and ``|d_i|`` floored at
+    ``sqrt(3) sigma / pi`` (where the cap above sets in).
     """
     where = where_prefix(source)
     sigma = complex_noise_sigma(raw, mask)
@@ -193,8 +202,7 @@ def velocity_noise(
             "phase noise: venc sigma / (pi |d_i|), sigma from the Rayleigh background",
             {"sigma_complex": sigma, "venc_m_s": venc, "per_voxel": su},
         )
-    inner, _ = _plateaus(mask)
-    inner &= scipy.ndimage.binary_erosion(np.ones_like(mask), iterations=1)
+    inner = velocity_plateau(mask)
     if inner.sum() < MIN_PLATEAU_VOXELS:
         raise NoiseEstimationError(
             f"{where}cannot estimate the velocity noise: no venc and the lumen is too small "
@@ -204,10 +212,17 @@ def velocity_noise(
     nb = 0.25 * (np.roll(u, 1, 0) + np.roll(u, -1, 0) + np.roll(u, 1, 1) + np.roll(u, -1, 1))
     r = (u - nb)[inner]
     s = robust_std(r) / np.sqrt(1.25)
+    # a velocity from a phase has noise proportional to 1 / |d_i| (as with venc): scale the plateau's level by
+    # the plateau magnitude over each voxel's, with |d_i| floored where the phase-noise cap of Appendix B sets in
+    m_plateau = float(np.median(raw[inner]))
+    floor = np.sqrt(3.0) * sigma / np.pi if np.isfinite(sigma) else 0.05 * m_plateau
+    mag = np.maximum(raw.ravel()[voxel_index], max(floor, 1e-300))
+    su = s * m_plateau / mag
+    eps = float(np.sqrt(np.sum(weights * su**2) / np.sum(weights)))
     return NoiseEstimate(
-        s,
-        "high-pass: MAD of u minus its 4-neighbour mean on the lumen plateau",
-        {"per_voxel": np.full(np.size(voxel_index), s)},
+        eps,
+        "high-pass: MAD of u minus its 4-neighbour mean on the lumen plateau, scaled by plateau magnitude / |d_i|",
+        {"plateau_m_s": s, "plateau_magnitude": m_plateau, "per_voxel": su},
     )
 
 

@@ -195,6 +195,9 @@ def choose_beta(
             noise.value,
             noise.method,
             options.kappa_beta,
+            # the last betas agree with "every smaller one" (few or none) almost trivially: reaching them means
+            # nothing balanced
+            satisfied=bool(i < betas.size - BALANCE_TAIL),
             criterion=ratio,
         )
 
@@ -219,6 +222,8 @@ def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.Para
 LAYER_RATIOS = 2.0 ** -np.arange(4.0, 13.0)
 #: betas over which each candidate's criterion is minimized (half decades).
 CRITERION_BETAS = 10.0 ** -np.arange(3.0, 13.5, 0.5)
+#: A balancing choice among the last this many grid betas has too few smaller ones to balance against.
+BALANCE_TAIL = 3
 GOLDEN_STEPS = 8
 
 
@@ -358,6 +363,14 @@ def choose_layer(
     order = sorted(best, key=lambda m: best[m][0] + penalty[m])
     chosen = order[0]
     margin = best[order[1]][0] + penalty[order[1]] - best[chosen][0] - penalty[chosen] if len(order) > 1 else np.inf
+    unresolved = float("nan")
+    voxel_mm = max(vp.cell_mm or (np.nan,)) * quad.order
+    at_floor = chosen != "plain" and best[chosen][3] <= CRITERION_BETAS[-1] * (1 + 1e-9)
+    thin = chosen == "exponential" and best[chosen][1] < voxel_mm / nw.UNRESOLVED_FRACTION
+    if mode == "auto" and (thin or at_floor):
+        # a jump at the wall, not a layer: no WSS follows from it; keep the paper's model and flag the slice
+        unresolved, chosen = best[chosen][1], "plain"
+        margin = float("nan")
     how = "BIC = chi^2 + ln(n) tr(H^-1 K), each model at its best beta; "
     how += f"a layer needs a BIC {nw.LAYER_EVIDENCE:g} below plain"
     if reynolds is not None and mode == "auto" and around is None:
@@ -372,6 +385,7 @@ def choose_layer(
         tried=tried,
         ambiguous=bool(margin < nw.AMBIGUOUS_MARGIN),
         quad_order=quad.order,
+        unresolved_mm=unresolved,
         beta=best[chosen][3],
     )
     return best[chosen][2], choice

@@ -473,7 +473,20 @@ def cmd_import(args) -> int:
         density_kg_m3=args.density,
         flip_through_plane=args.flip_through_plane,
     )
-    imp = importing.import_paths(args.paths, options, args.phase_units, args.frame_interval)
+    plane = None
+    if args.plane is not None:
+        from .plane import Plane
+
+        plane = Plane(
+            point=tuple(args.plane[:3]),
+            normal=tuple(args.plane[3:]),
+            fov_mm=args.plane_fov,
+            voxel_mm=args.plane_voxel,
+            slices=args.plane_slices,
+            spacing_mm=args.plane_spacing,
+        )
+        plane.check()
+    imp = importing.import_paths(args.paths, options, args.phase_units, args.frame_interval, plane)
     scanner.write_import(args.output, imp, argv=["wss-nlp", *args.argv])
     print(f"wrote {args.output}: {imp.summary()}")
     if imp.trigger_times_ms is not None:
@@ -641,6 +654,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     im.add_argument(
         "--frame-interval", type=float, default=None, metavar="MS", help="ms between NIfTI frames (if not in header)"
+    )
+    im.add_argument(
+        "--plane",
+        type=float,
+        nargs=6,
+        default=None,
+        metavar=("X", "Y", "Z", "NX", "NY", "NZ"),
+        help="4D flow (NIfTI magnitude + *_vx/_vy/_vz files): cut the volume by the plane through (X, Y, Z) mm "
+        "with normal (NX, NY, NZ), in the affine's world frame",
+    )
+    im.add_argument("--plane-fov", type=float, default=40.0, metavar="MM", help="side of the plane (default 40)")
+    im.add_argument(
+        "--plane-voxel", type=float, default=None, metavar="MM", help="plane voxel (default: the volume's largest)"
+    )
+    im.add_argument("--plane-slices", type=int, default=1, metavar="N", help="parallel slices (a stack; default 1)")
+    im.add_argument(
+        "--plane-spacing", type=float, default=None, metavar="MM", help="between those slices (default: the voxel)"
     )
     im.set_defaults(func=cmd_import)
 

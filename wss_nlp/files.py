@@ -40,6 +40,8 @@ class Acquisition:
     source: str = "<memory>"
     extra_attrs: dict = field(default_factory=dict)
     velocity_inplane: np.ndarray | None = None  # (2, nz, ny, nx): in-plane components x, y in m/s (4D flow)
+    resampled_from: str | None = None  # how the images were cut from a volume (wss-nlp import --plane), else None
+    noise_venc_m_s: float | None = None  # the components' venc when the velocity combines several (noise model only)
 
     @property
     def nz(self) -> int:
@@ -151,6 +153,8 @@ class Acquisition:
                     "to radians, or use 'wss-nlp import')"
                 )
                 raise InputError(f"{src}: 'phase' must lie in (-pi, pi] radians, found |phase| up to {big:.4g}{hint}")
+        if self.noise_venc_m_s is not None and not self.noise_venc_m_s > 0:
+            raise InputError(f"{src}: 'noise_venc_m_s' must be > 0 m/s, got {self.noise_venc_m_s}")
         if self.viscosity_pa_s is not None and not self.viscosity_pa_s > 0:
             raise InputError(f"{src}: 'viscosity_pa_s' must be > 0, got {self.viscosity_pa_s}")
         check_density(self.density_kg_m3, f"{src}: 'density_kg_m3'")
@@ -219,17 +223,24 @@ def _velocity_components(f, dataset, src, shape):
     return through, np.stack([vx, vy])
 
 
-def read_acquisition(path) -> Acquisition:
-    """Read and validate an input file (see the format document)."""
+def _open_input(path):
+    """``(name, open h5py.File)`` of an input file; a missing or non-HDF5 file is an :class:`InputError`."""
     import h5py
 
     src = str(path)
     if not os.path.exists(src):
         raise InputError(f"{src}: no such file")
     try:
-        f = h5py.File(src, "r")
+        return src, h5py.File(src, "r")
     except OSError as exc:
         raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
+
+
+def read_acquisition(path) -> Acquisition:
+    """Read and validate an input file (see the format document)."""
+    import h5py
+
+    src, f = _open_input(path)
     with f:
         if "trigger_times_ms" in f.attrs:
             raise InputError(
@@ -270,11 +281,20 @@ def read_acquisition(path) -> Acquisition:
             viscosity_pa_s=_attr(f, "viscosity_pa_s", src),
             density_kg_m3=_attr(f, "density_kg_m3", src),
             source=src,
+            resampled_from=_text_attr(f, "resampled_from"),
+            noise_venc_m_s=_attr(f, "noise_venc_m_s", src),
         )
     if acq.velocity is None and acq.phase is None:
         raise InputError(f"{src}: missing dataset 'velocity' (or 'phase' with 'venc_m_s')")
     acq.validate()
     return acq
+
+
+def _text_attr(f, name: str) -> str | None:
+    value = f.attrs.get(name)
+    if value is None:
+        return None
+    return value.decode() if isinstance(value, bytes) else str(value)
 
 
 def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
@@ -284,15 +304,7 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
     frame is validated like a single-frame file. The period defaults to the
     last trigger time plus the mean frame spacing (the format document).
     """
-    import h5py
-
-    src = str(path)
-    if not os.path.exists(src):
-        raise InputError(f"{src}: no such file")
-    try:
-        f = h5py.File(src, "r")
-    except OSError as exc:
-        raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
+    src, f = _open_input(path)
     with f:
         if "trigger_times_ms" not in f.attrs:
             raise InputError(f"{src}: not time-resolved (no attribute 'trigger_times_ms'); use read_acquisition")
@@ -301,7 +313,7 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
             raise InputError(f"{src}: 'trigger_times_ms' must be finite and increasing, got {times.tolist()}")
         nt = times.size
         arrays = {}
-        for name in ("magnitude", "velocity", "phase"):
+        for name in ("magnitude", "velocity", "phase", "velocity_x", "velocity_y"):
             if name in f:
                 arr = np.asarray(f[name][()], dtype=float)
                 if arr.ndim != 4 or arr.shape[0] != nt:
@@ -312,6 +324,8 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
                 arrays[name] = arr
         if "magnitude" not in arrays:
             raise InputError(f"{src}: missing dataset 'magnitude'")
+        if ("velocity_x" in arrays) != ("velocity_y" in arrays):
+            raise InputError(f"{src}: 'velocity_x' and 'velocity_y' come together; one of them is missing")
         common = {
             "voxel_size_mm": _attr(f, "voxel_size_mm", src, required=True, size=2),
             "origin_mm": _attr(f, "origin_mm", src, required=True, size=2),
@@ -321,13 +335,20 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
             "density_kg_m3": _attr(f, "density_kg_m3", src),
         }
         period = _attr(f, "cardiac_period_ms", src)
+        resampled = _text_attr(f, "resampled_from")
+        noise_venc = _attr(f, "noise_venc_m_s", src)
     frames = []
     for it in range(nt):
         acq = Acquisition(
             magnitude=arrays["magnitude"][it],
             velocity=arrays["velocity"][it] if "velocity" in arrays else None,
             phase=arrays["phase"][it] if "phase" in arrays else None,
+            velocity_inplane=(
+                np.stack([arrays["velocity_x"][it], arrays["velocity_y"][it]]) if "velocity_x" in arrays else None
+            ),
             source=f"{src} (frame {it})",
+            resampled_from=resampled,
+            noise_venc_m_s=noise_venc,
             **common,
         )
         acq.validate()
@@ -376,22 +397,51 @@ def atomic_write(path, data) -> None:
 def write_acquisition(path, acq: Acquisition) -> None:
     """Write an input file in the public format (atomic)."""
     with atomic_h5(path) as f:
-        f.create_dataset("magnitude", data=acq.magnitude)
-        if acq.velocity is not None:
-            f.create_dataset("velocity", data=acq.velocity)
-        if acq.phase is not None:
-            f.create_dataset("phase", data=acq.phase)
-        if acq.velocity_inplane is not None:  # extra datasets: readers of the single-component layout ignore them
-            f.create_dataset("velocity_x", data=acq.velocity_inplane[0])
-            f.create_dataset("velocity_y", data=acq.velocity_inplane[1])
-        f.attrs["voxel_size_mm"] = np.asarray(acq.voxel_size_mm, dtype=float)
-        f.attrs["origin_mm"] = np.asarray(acq.origin_mm, dtype=float)
-        for name in ("slice_spacing_mm", "venc_m_s", "viscosity_pa_s", "density_kg_m3"):
-            val = getattr(acq, name)
-            if val is not None:
-                f.attrs[name] = float(val)
-        for k, v in acq.extra_attrs.items():
-            f.attrs[k] = v
+        _write_input(f, [acq])
+
+
+def write_frames(path, frames: list[Acquisition], trigger_times_ms, cardiac_period_ms: float | None = None) -> None:
+    """Write a time-resolved (cine) input file: the frames' images with a leading time axis (atomic).
+
+    The frames share everything but their images; the inverse of :func:`read_frames`.
+    """
+    times = np.asarray(trigger_times_ms, dtype=float).ravel()
+    if times.size != len(frames) or np.any(np.diff(times) <= 0):
+        raise InputError(f"{path}: {len(frames)} frames need as many increasing trigger times, got {times.tolist()}")
+    with atomic_h5(path) as f:
+        _write_input(f, frames, time_axis=True)
+        f.attrs["trigger_times_ms"] = times
+        if cardiac_period_ms is not None:
+            f.attrs["cardiac_period_ms"] = float(cardiac_period_ms)
+
+
+def _write_input(f, frames: list[Acquisition], time_axis: bool = False) -> None:
+    """Datasets and attributes of one frame, or of frames with a leading time axis, into an open file."""
+    acq = frames[0]
+
+    def images(get):
+        return np.stack([get(a) for a in frames]) if time_axis else get(acq)
+
+    f.create_dataset("magnitude", data=images(lambda a: a.magnitude))
+    if acq.velocity is not None:
+        f.create_dataset("velocity", data=images(lambda a: a.velocity))
+    if acq.phase is not None:
+        f.create_dataset("phase", data=images(lambda a: a.phase))
+    if acq.velocity_inplane is not None:  # extra datasets: readers of the single-component layout ignore them
+        f.create_dataset("velocity_x", data=images(lambda a: a.velocity_inplane[0]))
+        f.create_dataset("velocity_y", data=images(lambda a: a.velocity_inplane[1]))
+    f.attrs["voxel_size_mm"] = np.asarray(acq.voxel_size_mm, dtype=float)
+    f.attrs["origin_mm"] = np.asarray(acq.origin_mm, dtype=float)
+    for name in ("slice_spacing_mm", "venc_m_s", "viscosity_pa_s", "density_kg_m3"):
+        val = getattr(acq, name)
+        if val is not None:
+            f.attrs[name] = float(val)
+    if acq.resampled_from is not None:
+        f.attrs["resampled_from"] = acq.resampled_from
+    if acq.noise_venc_m_s is not None:
+        f.attrs["noise_venc_m_s"] = float(acq.noise_venc_m_s)
+    for k, v in acq.extra_attrs.items():
+        f.attrs[k] = v
 
 
 def provenance(options: dict | None = None, argv=None) -> dict:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from . import dicom, nifti
 from .errors import InputError
+from .plane import Plane
 from .scanner import Imported, ImportOptions, assemble
 
 
@@ -16,6 +17,7 @@ def import_paths(
     options: ImportOptions | None = None,
     phase_units: str | None = None,
     frame_interval_ms: float | None = None,
+    plane: Plane | None = None,
 ) -> Imported:
     """Read DICOM (folders or files) or NIfTI files and assemble one acquisition.
 
@@ -31,7 +33,11 @@ def import_paths(
         (one of :data:`wss_nlp.dicom.PHASE_UNITS`).
     frame_interval_ms : float, optional
         Time between NIfTI frames when the header does not state it.
+    plane : Plane, optional
+        Cut 4D-flow NIfTI volumes (a magnitude and three velocity components)
+        by this plane (:mod:`wss_nlp.plane`).
     """
+    options = options or ImportOptions()
     paths = [str(p) for p in paths]
     if not paths:
         raise InputError("import: name the DICOM folder(s)/files or the NIfTI files to read")
@@ -41,9 +47,11 @@ def import_paths(
     if kinds == {True, False}:
         raise InputError(f"{', '.join(paths)}: mixes NIfTI and DICOM; import one kind at a time")
     if True in kinds:
-        images, record = nifti.read_images(paths, phase_units, frame_interval_ms)
+        images, record = nifti.read_images(paths, phase_units, frame_interval_ms, plane, options.venc_m_s)
     else:
+        if plane is not None:
+            raise InputError("--plane cuts NIfTI 4D-flow volumes; DICOM 4D flow: convert to NIfTI first (dcm2niix)")
         if frame_interval_ms is not None:
             raise InputError("--frame-interval applies to NIfTI only; DICOM states the trigger times (0018,1060)")
         images, record = dicom.read_images(paths, phase_units)
-    return assemble(images, options or ImportOptions(), record)
+    return assemble(images, options, record)

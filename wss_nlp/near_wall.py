@@ -388,6 +388,10 @@ class NearWallChoice:
         Standard deviation of ``log l`` from the velocity noise (law of the wall with the band; else NaN).
     quad_order : int
         Quadrature cells per voxel axis of the layer columns (:class:`LayerQuadrature`).
+    unresolved_mm : float
+        When the best model was a layer the data cannot resolve (an ``exponential`` layer thinner than
+        the voxel over :data:`UNRESOLVED_FRACTION`, or any layer whose criterion is smallest at the
+        smallest beta tried): its scale (the plain model is used and the slice is SUSPECT); else NaN.
     """
 
     model: str
@@ -399,6 +403,7 @@ class NearWallChoice:
     tried: list = field(default_factory=list)
     ambiguous: bool = False
     quad_order: int = 0
+    unresolved_mm: float = float("nan")  # scale of a best-fitting layer too thin to resolve (the slice is SUSPECT)
     beta: float = float("nan")
     density_kg_m3: float = float("nan")
     density_source: str = ""
@@ -446,6 +451,11 @@ CONSISTENT = "u_tau l = nu"
 #: BIC advantage a layer model needs over the plain basis to be chosen (Kass & Raftery 1995, J. Am. Stat. Assoc.
 #: 90, 773-795: a difference above 10 is "very strong" evidence): the paper's model stays unless the data insist.
 LAYER_EVIDENCE = 10.0
+
+#: A saturating (laminar) layer thinner than the voxel over this is not resolved by voxel means: they see only a
+#: velocity jump at the wall, whose WSS ``mu a / l`` the data cannot fix. The developing entrance flow, this
+#: family's use, chose l >= h / 5 on every phantom, h and seed (scripts/results/near_wall*.md).
+UNRESOLVED_FRACTION = 10.0
 
 #: BIC difference below which a model choice is reported as ambiguous (Kass & Raftery 1995: "not worth more than a
 #: bare mention" below 2).

@@ -33,9 +33,14 @@ from typing import Any
 
 import numpy as np
 
+import logging
+
 from .dicom import PHASE_UNITS, siemens_venc
 from .errors import InputError
+from .plane import Plane, resample
 from .scanner import Image2D
+
+log = logging.getLogger(__name__)
 
 #: Siemens phase as converters store it: this value stands for pi.
 SIEMENS_FULL_SCALE = 4096.0
@@ -119,14 +124,14 @@ def _frame_times(img, path: str, nt: int, frame_interval_ms: float | None) -> li
     )
 
 
-def images_from_file(
-    path: str, phase_units: str | None = None, frame_interval_ms: float | None = None
-) -> list[Image2D]:
-    """The 2D images of one NIfTI file (every slice of every frame)."""
+def _load(path: str):
+    """``(image, data (x, y, z, t), sidecar)`` of one NIfTI file."""
     try:
         import nibabel
     except ImportError:
         raise InputError("reading NIfTI needs nibabel, an optional dependency: pip install 'wss-nlp[nifti]'") from None
+    if not os.path.isfile(path):
+        raise InputError(f"{path}: no such file")
     try:
         img: Any = nibabel.load(path)
         data = np.asarray(img.get_fdata(), dtype=np.float64)
@@ -138,10 +143,17 @@ def images_from_file(
         data = data[..., None]
     if data.ndim != 4:
         raise InputError(
-            f"{path}: {data.ndim}D data {data.shape}; expected (x, y, z) or (x, y, z, t) of one velocity "
-            "component (3-component 4D flow volumes need a plane extraction, not yet supported)"
+            f"{path}: {data.ndim}D data {data.shape}; expected (x, y, z) or (x, y, z, t) of one image or one "
+            "velocity component (a 4D-flow file per component; see --plane)"
         )
-    meta = sidecar(path)
+    return img, data, sidecar(path)
+
+
+def images_from_file(
+    path: str, phase_units: str | None = None, frame_interval_ms: float | None = None
+) -> list[Image2D]:
+    """The 2D images of one NIfTI file (every slice of every frame)."""
+    img, data, meta = _load(path)
     role = role_of(path, meta)
     affine = np.asarray(img.affine, dtype=np.float64)
     di, dj = (float(np.linalg.norm(affine[:3, c])) for c in (0, 1))
@@ -188,11 +200,146 @@ def images_from_file(
     return out
 
 
-def read_images(paths, phase_units: str | None = None, frame_interval_ms: float | None = None):
-    """Every image of the NIfTI files ``paths`` and a record of what was read."""
+_DIRECTION_AXIS = {"rl": "x", "lr": "x", "ap": "y", "pa": "y", "fh": "z", "hf": "z"}
+
+
+def component_of(path: str, meta: dict) -> str | None:
+    """World axis (``x``, ``y``, ``z``) of a velocity component file, from the sidecar or the name, or None."""
+    found = siemens_venc(str(meta.get("SequenceName", "")))
+    if found is not None and found[1] in _DIRECTION_AXIS:
+        return _DIRECTION_AXIS[found[1]]
+    stem = re.sub(r"\.nii(\.gz)?$", "", os.path.basename(str(path)), flags=re.IGNORECASE).lower()
+    m = re.search(r"(?:^|[_\-.])v?([xyz])$", stem)
+    return m.group(1) if m else None
+
+
+def _component_velocity(path: str, meta: dict, data: np.ndarray, phase_units: str | None, venc: float | None):
+    values, units = _units(path, meta, data, phase_units)
+    if units == "m/s":
+        return values
+    found = siemens_venc(str(meta.get("SequenceName", "")))
+    venc = venc if venc is not None else (found[0] if found else None)
+    if venc is None:
+        raise InputError(f"{path}: phase values need the venc to become velocities: pass --venc M_S")
+    return venc * values / np.pi
+
+
+def plane_images(
+    paths, plane: Plane, phase_units: str | None, frame_interval_ms: float | None, venc_m_s: float | None
+) -> list[Image2D]:
+    """A magnitude file and three velocity-component files (4D flow), resampled on ``plane`` (see wss_nlp.plane)."""
+    plane.check()
+    loaded = {str(p): _load(str(p)) for p in paths}
+    magnitude: str | None = None
+    components: dict[str, str] = {}
+    for path, (_, _, meta) in loaded.items():
+        axis = component_of(path, meta)
+        if axis is None and role_of(path, meta) == "magnitude":
+            if magnitude is not None:
+                raise InputError(f"{magnitude} and {path}: two magnitude files; pass one")
+            magnitude = path
+        elif axis is None:
+            raise InputError(
+                f"{path}: which velocity component is this? Name it *_vx, *_vy or *_vz (world axes of the "
+                "affine), or give a sidecar SequenceName with the encoding direction (rl, ap, fh)"
+            )
+        elif axis in components:
+            raise InputError(f"{components[axis]} and {path}: two files for the {axis} component")
+        else:
+            components[axis] = path
+    missing = [a for a in "xyz" if a not in components]
+    if magnitude is None or missing:
+        what = "a magnitude file" if magnitude is None else f"the {', '.join(missing)} component(s)"
+        raise InputError(f"--plane needs a magnitude file and three velocity components; {what} missing")
+    img, mag, meta = loaded[magnitude]
+    affine = np.asarray(img.affine, dtype=np.float64)
+    for path in components.values():
+        other = loaded[path]
+        if other[1].shape != mag.shape or not np.allclose(np.asarray(other[0].affine), affine, atol=1e-4):
+            raise InputError(f"{path}: its grid {other[1].shape} or affine differs from {magnitude}'s; resample first")
+    velocity = {
+        a: _component_velocity(p, loaded[p][2], loaded[p][1], phase_units, venc_m_s) for a, p in components.items()
+    }
+    nt = mag.shape[3]
+    times = _frame_times(img, magnitude, nt, frame_interval_ms)
+    centres = plane.centres(affine)
+    e1, e2, n = plane.axes()
+    h = plane.sampling(affine)[0]
+    vendor = str(meta.get("Manufacturer", "")).strip().title()
+    out = []
+    for t in range(nt):
+        mag_t = resample(mag[..., t], affine, centres, magnitude, order=plane.order)
+        u = np.stack(
+            [resample(velocity[a][..., t], affine, centres, components[a], order=plane.order) for a in "xyz"], axis=-1
+        )
+        parts = {"magnitude": mag_t, "velocity": u @ n, "velocity_x": u @ e1, "velocity_y": u @ e2}
+        for k in range(centres.shape[0]):
+            for role, values in parts.items():
+                out.append(
+                    Image2D(
+                        where=f"{magnitude} (plane slice {k}, frame {t})",
+                        role=role,
+                        pixels=values[k],
+                        units="" if role == "magnitude" else "m/s",
+                        position=centres[k, 0, 0],
+                        row_dir=e1,
+                        col_dir=e2,
+                        spacing=(h, h),
+                        trigger_ms=times[t],
+                        series=f"{role} on the plane",
+                        series_uid=role,
+                        vendor=vendor,
+                    )
+                )
+    _check_perpendicular(out)
+    return out
+
+
+def _check_perpendicular(images: list[Image2D]) -> None:
+    """Warn when the in-plane velocity in the vessel exceeds the through-plane one (a tilted plane, wrong axes)."""
+    by: dict[str, dict[str, np.ndarray]] = {}
+    for im in images:
+        by.setdefault(im.where, {})[im.role] = im.pixels
+    peak = max(by.values(), key=lambda d: float(np.abs(d["velocity"]).mean()))
+    mag = peak["magnitude"]
+    lumen = mag > 0.5 * (np.percentile(mag, 10) + np.percentile(mag, 99))
+    if lumen.sum() < 4:
+        return
+    through = float(np.median(np.abs(peak["velocity"][lumen])))
+    inplane = float(np.median(np.hypot(peak["velocity_x"][lumen], peak["velocity_y"][lumen])))
+    if inplane > through:
+        log.warning(
+            "in the vessel the in-plane velocity (median %.3g m/s) exceeds the through-plane one (%.3g m/s): the "
+            "plane is not perpendicular to the vessel, or the component files' axes or signs are not the "
+            "affine's world axes; check --plane",
+            inplane,
+            through,
+        )
+
+
+def read_images(
+    paths,
+    phase_units: str | None = None,
+    frame_interval_ms: float | None = None,
+    plane: Plane | None = None,
+    venc_m_s: float | None = None,
+):
+    """Every image of the NIfTI files ``paths`` (or the 4D-flow volumes cut by ``plane``) and a record."""
+    record: dict = {"format": "NIfTI", "paths": [str(p) for p in paths], "files": len(paths)}
     images: list[Image2D] = []
+    if plane is not None:
+        images = plane_images(paths, plane, phase_units, frame_interval_ms, venc_m_s)
+        record["plane"] = {
+            "point": [float(v) for v in plane.point],
+            "normal": [round(float(v), 6) for v in np.cross(images[0].row_dir, images[0].col_dir)],
+            "fov_mm": plane.fov_mm,
+            "voxel_mm": images[0].spacing[0],
+            "slices": plane.slices,
+            "interpolation": "nearest voxel" if plane.order == 0 else "trilinear",
+        }
+        return images, record
     for path in paths:
         if not os.path.isfile(path):
             raise InputError(f"{path}: no such file")
         images += images_from_file(path, phase_units, frame_interval_ms)
-    return images, {"format": "NIfTI", "paths": [str(p) for p in paths], "files": len(paths)}
+    return images, record

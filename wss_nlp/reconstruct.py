@@ -275,6 +275,7 @@ def reconstruct_slice(
     index: int = 0,
     venc: float | None = None,
     density: tuple[float, str] = (DEFAULT_DENSITY, "default (blood)"),
+    noise_venc: float | None = None,
 ) -> SliceResult:
     """Geometry (Sec. 2), velocity (Sec. 3) and WSS (Sec. 4) of one slice.
 
@@ -284,12 +285,20 @@ def reconstruct_slice(
     (:func:`wss_nlp.measurement.dephasing_factors`); an extension of the
     paper's model that removes the radius bias from intra-voxel dephasing.
     ``density`` (kg/m^3 and its source) serves the law-of-the-wall layer.
+    ``noise_venc`` sets the velocity noise (``venc sigma / (pi |d_i|)``)
+    when there is no ``venc`` (velocity combined from encoded components)
+    and the lumen has no plateau to measure it on: the plateau's level is
+    preferred, as it also holds what the data's placement adds (resampled
+    images; ``scripts/results/plane_extraction.md``).
     """
     where = f"{source} slice {index}"
     t = {}
     t0 = time.perf_counter()
     norm, m, lumen = pp.preprocess(magnitude, grid, where, options.screen.vessel)
     t["preprocess"] = time.perf_counter() - t0
+    nvenc = venc
+    if venc is None and an.velocity_plateau(lumen.noise_mask).sum() < an.MIN_PLATEAU_VOXELS:
+        nvenc = noise_venc
 
     t0 = time.perf_counter()
     problem = geo.GeometryProblem(grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area)
@@ -302,8 +311,8 @@ def reconstruct_slice(
     if options.velocity.near_wall != "off" and options.method == "coupled":
         layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
     elif options.velocity.near_wall != "off":
-        vp, near = layer_model(vp, magnitude, lumen, venc, options, where, viscosity_pa_s, density)
-    beta_choice = _beta(vp, near, magnitude, lumen, venc, options, where, viscosity_pa_s)
+        vp, near = layer_model(vp, magnitude, lumen, nvenc, options, where, viscosity_pa_s, density)
+    beta_choice = _beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
 
@@ -330,15 +339,15 @@ def reconstruct_slice(
         )
         if near is not None and near.model != "plain":
             # the first pass's geometry was biased by the dephasing just corrected, and the layer scale with it
-            vp, near = layer_model(vp, magnitude, lumen, venc, options, where, viscosity_pa_s, density, around=near)
-            beta_choice = _beta(vp, near, magnitude, lumen, venc, options, where, viscosity_pa_s)
+            vp, near = layer_model(vp, magnitude, lumen, nvenc, options, where, viscosity_pa_s, density, around=near)
+            beta_choice = _beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = time.perf_counter() - t0
 
     info, cres = {}, None
     if options.method == "coupled":
         t0 = time.perf_counter()
-        cres, info = solve_coupled(problem, g, v, magnitude, norm, lumen, velocity_image, venc, options, where)
+        cres, info = solve_coupled(problem, g, v, magnitude, norm, lumen, velocity_image, nvenc, options, where)
         g, v = cres.geometry, cres.velocity
         t["coupled"] = time.perf_counter() - t0
 
@@ -352,7 +361,7 @@ def reconstruct_slice(
     if options.uncertainty:
         t0 = time.perf_counter()
         sensitivity, note = uncertainty(
-            problem, g, vp, v, w, magnitude, norm, lumen, venc, viscosity_pa_s, options, cres, near
+            problem, g, vp, v, w, magnitude, norm, lumen, nvenc, viscosity_pa_s, options, cres, near
         )
         notes += [note] if note else []
         t["uncertainty"] = time.perf_counter() - t0
@@ -576,7 +585,16 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
                 )
             else:
                 res = reconstruct_slice(
-                    acq.magnitude[iz], velocity[iz], acq.grid, mu, options, acq.source, iz, acq.venc_m_s, density
+                    acq.magnitude[iz],
+                    velocity[iz],
+                    acq.grid,
+                    mu,
+                    options,
+                    acq.source,
+                    iz,
+                    acq.venc_m_s,
+                    density,
+                    noise_venc=acq.noise_venc_m_s,
                 )
         except WssNlpError as exc:
             if acq.nz == 1:
@@ -591,6 +609,18 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
     return out
 
 
+#: What every slice of an input cut from a volume (``resampled_from``) says.
+RESAMPLED_NOTE = (
+    "the images were cut from a 4D-flow volume (wss-nlp import --plane): each voxel is the nearest volume "
+    "voxel's, up to half a voxel from where it was measured; radius errors of several percent and WSS errors "
+    "of 3-15 % are typical (docs, 'Your own data': scripts/results/plane_extraction.md)"
+)
+#: A lumen cut from a volume with a mean radius under this many plane voxels is flagged SUSPECT: with radius
+#: 3.6 voxels the WSS missed by up to 1700 %, mostly where no other check fired; with 5.5 voxels by at most
+#: 14.5 % on unflagged slices (scripts/results/plane_extraction.md).
+RESAMPLED_MIN_RADIUS_VOXELS = 5.0
+
+
 def _with_screens(results, screens: dict, acq: Acquisition):
     """Attach what the plausibility screen found, and the fit's consistency check, to each slice."""
     for r in results:
@@ -600,9 +630,22 @@ def _with_screens(results, screens: dict, acq: Acquisition):
         if found is not None:
             r.notes.extend(n for n in found.notes if n not in r.notes)
             r.screen = dict(found.record)
+        coarse = False
+        if acq.resampled_from and RESAMPLED_NOTE not in r.notes:
+            r.notes.append(RESAMPLED_NOTE)
+            radius_voxels = float(r.geometry.coefficients[0]) / acq.grid.h
+            if radius_voxels < RESAMPLED_MIN_RADIUS_VOXELS:
+                coarse = True
+                r.notes.append(
+                    f"SUSPECT: a lumen of {radius_voxels:.1f} voxels' radius cut from a volume: too coarse for "
+                    f"resampled data (under {RESAMPLED_MIN_RADIUS_VOXELS:g}); its WSS is not trustworthy"
+                )
         if isinstance(r, SliceResult):
             warning, ratio = plaus.check_fit(r, acq.magnitude[r.index], acq.venc_m_s)
-            r.screen.update(velocity_residual_to_noise=ratio, suspect=bool(warning))
+            unresolved = r.near_wall is not None and bool(np.isfinite(r.near_wall.unresolved_mm))
+            unbalanced = r.beta_choice is not None and r.beta_choice.rule == "balance" and not r.beta_choice.satisfied
+            suspect = bool(warning) or unresolved or unbalanced or coarse
+            r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect)
             if warning:
                 r.notes.append(warning)
     return results

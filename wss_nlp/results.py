@@ -80,12 +80,28 @@ class SliceResult:
                     f"({ch.noise:.3g}); model error dominates, took {ch.name} = {ch.chosen:.3g} where the "
                     "residual stopped falling"
                 )
+        ch = self.beta_choice
+        if ch is not None and ch.rule == "balance" and not ch.satisfied:
+            out.append(
+                f"slice {self.index}: SUSPECT: beta reached the end of its range ({ch.chosen:.2g}) without a "
+                f"balance: the WSS kept changing by more than {ch.tau:g} noise deviations as beta fell, which "
+                "noise cannot do; the data hold something the voxel model does not describe (resampled or "
+                "misregistered images, another acquisition model); this slice's WSS is not trustworthy"
+            )
         out.extend(f"slice {self.index}: {n}" for n in self.notes)
         nwc = self.near_wall
         if nwc is not None and nwc.criterion.startswith("no velocity noise"):
             out.append(
                 f"slice {self.index}: near-wall layer not considered: {nwc.criterion} (noise-free data?); "
                 "pass --noise-velocity, or --near-wall wall_law/exponential with --layer-scale"
+            )
+        if nwc is not None and np.isfinite(nwc.unresolved_mm):
+            out.append(
+                f"slice {self.index}: SUSPECT: the velocity does not vanish at the wall within a voxel: the best "
+                f"fit is a layer {nwc.unresolved_mm:.2g} mm thick that the voxel data cannot resolve (under "
+                f"1/{nw.UNRESOLVED_FRACTION:g} of the voxel, or fitted without any regularization); its WSS is not "
+                "determined and the plain model's is not trustworthy either (causes: misregistered or resampled "
+                "images, an acquisition the box model does not describe)"
             )
         if nwc is not None and nwc.ambiguous:
             runner = min((m for m in nwc.values if m != nwc.model), key=lambda m: nwc.values[m])

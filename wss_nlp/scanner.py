@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import InputError
-from .files import Acquisition, atomic_h5, write_acquisition
+from .files import Acquisition, write_acquisition, write_frames
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ class Image2D:
     """
 
     where: str
-    role: str  # "magnitude" or "phase"
+    role: str  # "magnitude", "phase"; resampled volumes: "velocity" (through-plane), "velocity_x", "velocity_y"
     pixels: np.ndarray
     units: str
     position: np.ndarray  # (3,) mm, centre of voxel (0, 0)
@@ -87,11 +87,13 @@ class Imported:
     """An assembled acquisition: images ``(nt, nz, ny, nx)`` and where every number came from."""
 
     magnitude: np.ndarray
-    phase: np.ndarray  # radians
+    phase: np.ndarray | None  # radians, from phase images
+    velocity: np.ndarray | None  # m/s, through-plane, from resampled velocity volumes
+    inplane: np.ndarray | None  # m/s, (nt, 2, nz, ny, nx): components along x and y of the image frame
     voxel_size_mm: tuple[float, float]
     origin_mm: tuple[float, float]
     slice_spacing_mm: float | None
-    venc_m_s: float
+    venc_m_s: float | None
     trigger_times_ms: np.ndarray | None
     cardiac_period_ms: float | None
     viscosity_pa_s: float | None
@@ -106,7 +108,9 @@ class Imported:
         """Frame ``it`` as an :class:`~wss_nlp.files.Acquisition` (what ``reconstruct`` reads)."""
         return Acquisition(
             magnitude=self.magnitude[it],
-            phase=self.phase[it],
+            phase=None if self.phase is None else self.phase[it],
+            velocity=None if self.velocity is None else self.velocity[it],
+            velocity_inplane=None if self.inplane is None else self.inplane[it],
             voxel_size_mm=self.voxel_size_mm,
             origin_mm=self.origin_mm,
             slice_spacing_mm=self.slice_spacing_mm,
@@ -114,6 +118,18 @@ class Imported:
             viscosity_pa_s=self.viscosity_pa_s,
             density_kg_m3=self.density_kg_m3,
             source=source,
+            resampled_from=self.resampled_from,
+            noise_venc_m_s=self.record.get("component_venc_m_s"),
+        )
+
+    @property
+    def resampled_from(self) -> str | None:
+        plane = self.record.get("plane")
+        if not plane:
+            return None
+        return (
+            f"a 4D-flow volume cut by the plane through {plane['point']} mm with normal {plane['normal']} "
+            f"({plane['interpolation']})"
         )
 
     def summary(self) -> str:
@@ -128,7 +144,10 @@ class Imported:
         if self.trigger_times_ms is not None:
             t = self.trigger_times_ms
             text += f", {nt} frames at {t[0]:.4g}-{t[-1]:.4g} ms"
-        text += f"; venc {self.venc_m_s:.4g} m/s ({rec.get('venc_source', '?')})"
+        if self.venc_m_s is not None:
+            text += f"; venc {self.venc_m_s:.4g} m/s ({rec.get('venc_source', '?')})"
+        if rec.get("plane"):
+            text += f"; resampled on the plane through {rec['plane']['point']} normal {rec['plane']['normal']}"
         if rec.get("flip_through_plane"):
             text += "; through-plane velocity flipped"
         return text
@@ -201,10 +220,12 @@ def assemble(images: list[Image2D], options: ImportOptions, record: dict) -> Imp
     """Sort images into ``(nt, nz)`` and check they form one acquisition (see the module notes)."""
     if not images:
         raise InputError(f"{record.get('paths', '?')}: no images found")
-    by_role = {r: [im for im in images if im.role == r] for r in ("magnitude", "phase")}
-    for role, found in by_role.items():
-        if not found:
-            other = "phase" if role == "magnitude" else "magnitude"
+    through = "velocity" if any(im.role == "velocity" for im in images) else "phase"
+    roles = ["magnitude", through] + [r for r in ("velocity_x", "velocity_y") if any(im.role == r for im in images)]
+    by_role = {r: [im for im in images if im.role == r] for r in roles}
+    for role in ("magnitude", through):
+        if not by_role[role]:
+            other = through if role == "magnitude" else "magnitude"
             raise InputError(
                 f"{images[0].where}: found {len(by_role[other])} {other} images but no {role} image; "
                 f"pass the {role} series too (a folder holding both, or both sets of files)"
@@ -244,15 +265,25 @@ def assemble(images: list[Image2D], options: ImportOptions, record: dict) -> Imp
             "pass every frame of both series (or only complete slices)"
         )
     trigger = _trigger_times(grid, nt, nz)
-    venc, venc_source = _venc(by_role["phase"], options)
-    phase = np.empty((nt, nz, *first.pixels.shape))
-    magnitude = np.empty_like(phase)
-    for iz in range(nz):
-        for it in range(nt):
-            magnitude[it, iz] = grid["magnitude"][iz][it].pixels
-            phase[it, iz] = _to_phase(grid["phase"][iz][it], venc)
+
+    def stacked(role, convert=lambda im: im.pixels):
+        return np.array([[convert(grid[role][iz][it]) for iz in range(nz)] for it in range(nt)], dtype=float)
+
+    magnitude = stacked("magnitude")
+    phase = velocity = inplane = None
+    venc: float | None
+    if through == "phase":
+        venc, venc_source = _venc(by_role["phase"], options)
+        phase = stacked("phase", lambda im: _to_phase(im, venc))
+    else:  # u . n of a volume's components may exceed the venc of each: no venc is stored (the record keeps it)
+        venc, venc_source = None, "not stored: the through-plane velocity combines three encoded components"
+        record["component_venc_m_s"] = options.venc_m_s
+        velocity = stacked("velocity")
+    if "velocity_x" in grid:
+        inplane = np.stack([stacked("velocity_x"), stacked("velocity_y")], axis=1)
     if options.flip_through_plane:
-        phase = -phase
+        phase = None if phase is None else -phase
+        velocity = None if velocity is None else -velocity
     period = next((im.period_ms for im in images if im.period_ms), None) if trigger is not None else None
     record = dict(record)
     record.update(
@@ -269,6 +300,8 @@ def assemble(images: list[Image2D], options: ImportOptions, record: dict) -> Imp
     return Imported(
         magnitude=magnitude,
         phase=phase,
+        velocity=velocity,
+        inplane=inplane,
         voxel_size_mm=(float(first.spacing[0]), float(first.spacing[1])),
         origin_mm=(float(first.position @ e_r), float(first.position @ e_c)),
         slice_spacing_mm=spacing,
@@ -352,26 +385,11 @@ def _to_phase(im: Image2D, venc: float) -> np.ndarray:
 
 def write_import(path: str, imp: Imported, argv=None) -> None:
     """Write ``imp`` as an input file of the contract (atomic); several frames in the time-resolved layout."""
-    attrs = {"import_json": json.dumps(imp.record, default=str), "import_command": " ".join(argv or [])}
-    for it in range(imp.nt):  # every frame obeys the single-frame rules (shapes, finiteness, phase range, ...)
-        imp.frame(it, f"{path} (frame {it})").validate()
+    frames = [imp.frame(it, f"{path} (frame {it})") for it in range(imp.nt)]
+    for acq in frames:  # every frame obeys the single-frame rules (shapes, finiteness, phase range, ...)
+        acq.validate()
+    frames[0].extra_attrs.update(import_json=json.dumps(imp.record, default=str), import_command=" ".join(argv or []))
     if imp.trigger_times_ms is None:
-        acq = imp.frame(0, path)
-        acq.extra_attrs.update(attrs)
-        write_acquisition(path, acq)
-        return
-    with atomic_h5(path) as f:
-        f.create_dataset("magnitude", data=imp.magnitude)
-        f.create_dataset("phase", data=imp.phase)
-        f.attrs["trigger_times_ms"] = np.asarray(imp.trigger_times_ms, dtype=float)
-        if imp.cardiac_period_ms is not None:
-            f.attrs["cardiac_period_ms"] = float(imp.cardiac_period_ms)
-        f.attrs["voxel_size_mm"] = np.asarray(imp.voxel_size_mm, dtype=float)
-        f.attrs["origin_mm"] = np.asarray(imp.origin_mm, dtype=float)
-        f.attrs["venc_m_s"] = float(imp.venc_m_s)
-        for name in ("slice_spacing_mm", "viscosity_pa_s", "density_kg_m3"):
-            val = getattr(imp, name)
-            if val is not None:
-                f.attrs[name] = float(val)
-        for k, v in attrs.items():
-            f.attrs[k] = v
+        write_acquisition(path, frames[0])
+    else:
+        write_frames(path, frames, imp.trigger_times_ms, imp.cardiac_period_ms)
