@@ -102,10 +102,38 @@ def _errors_rows(err: metrics.Errors):
 
 
 # ------------------------------------------------------------------ commands
+def _phantom_cine(args) -> int:
+    from . import pulsatile
+
+    if args.dicom or args.nifti or args.stack:
+        raise InputError("--case womersley writes a time-resolved HDF5 input only (no --dicom, --nifti, --stack)")
+    snr = None if args.snr <= 0 else args.snr
+    frames, truth = pulsatile.make_cine(h_mm=args.h, snr=snr, seed=args.seed, frames=args.frames, venc=args.venc)
+    wio.write_frames(args.output, frames, truth.times_ms, truth.period_ms)
+    if args.truth:
+        try:
+            pulsatile.write_truth(args.truth, truth)
+        except BaseException:
+            os.remove(args.output)  # the pair is written whole or not at all
+            raise
+    acq = frames[0]
+    print(
+        f"wrote {args.output}: womersley (Womersley number {truth.flow.womersley(1):.1f}), {args.frames} frames "
+        f"over {truth.period_ms:g} ms, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
+        f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels"
+    )
+    if args.truth:
+        tau = truth.tau()
+        print(f"wrote {args.truth}: exact WSS over the cycle ({tau.min():.3g} to {tau.max():.3g} Pa)")
+    return 0
+
+
 def cmd_phantom(args) -> int:
     outputs.check_outputs(
         files={"-o": args.output, "--truth": args.truth}, folders={"--dicom": args.dicom, "--nifti": args.nifti}
     )
+    if args.case == "womersley":
+        return _phantom_cine(args)
     snr = None if args.snr <= 0 else args.snr
     truth: phantoms.Truth | phantoms.StackTruth
     if args.stack:
@@ -166,9 +194,62 @@ def cmd_phantom(args) -> int:
     return 0
 
 
+def _is_time_resolved(path: str) -> bool:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return "trigger_times_ms" in f.attrs
+    except OSError:
+        return False  # read_acquisition names the problem
+
+
+def _reconstruct_cine(args, options) -> int:
+    from . import cine
+
+    frames, times, period = wio.read_frames(args.input)
+    acq = frames[0]
+    print(
+        f"{args.input}: {len(frames)} frames over {period:g} ms, {acq.nz} slice(s) of {acq.magnitude.shape[2]} x "
+        f"{acq.magnitude.shape[1]} voxels, h = {acq.grid.h:g} mm",
+        file=sys.stderr,
+    )
+
+    def progress(done, total, seconds):
+        sys.stderr.write(f"  frame {done}/{total}: {seconds:.1f} s elapsed\n")
+        sys.stderr.flush()
+
+    result = cine.reconstruct_cine(frames, times, period, options, progress=progress)
+    with outputs.StagedFolder(args.figures) as staged:
+        series = cine.write_result(args.output, result, options.as_dict(), argv=["wss-nlp", *args.argv])
+        if staged.path:
+            from .plotting import save_cine_figures
+
+            save_cine_figures(series, result, staged.path)
+        staged.commit()
+    for k, frame in enumerate(result.frames):
+        for r in frame:
+            for msg in r.warnings:
+                sys.stderr.write(f"wss-nlp: warning: frame {k}: {msg}\n")
+    for s in series:
+        for note in s.notes:
+            sys.stderr.write(f"wss-nlp: warning: slice {s.index}: {note}\n")
+        print(
+            f"slice {s.index}: time-averaged WSS {s.time_average_mean:.4g} Pa, TAWSS {np.mean(s.tawss):.4g} Pa "
+            f"(wall mean), OSI {np.min(s.osi):.3f}-{np.max(s.osi):.3f}, peak mean WSS {np.max(s.mean):.4g} Pa at "
+            f"{times[int(np.nanargmax(s.mean))]:g} ms"
+        )
+    print(f"wrote {args.output}")
+    if args.figures:
+        print(f"figures in {args.figures}")
+    return 0
+
+
 def cmd_reconstruct(args) -> int:
     options = options_from_args(args)
     outputs.check_outputs(files={"-o": args.output}, folders={"--figures": args.figures}, inputs=[args.input])
+    if _is_time_resolved(args.input):
+        return _reconstruct_cine(args, options)
     acq = wio.read_acquisition(args.input)
     print(
         f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
@@ -489,8 +570,6 @@ def cmd_import(args) -> int:
     imp = importing.import_paths(args.paths, options, args.phase_units, args.frame_interval, plane)
     scanner.write_import(args.output, imp, argv=["wss-nlp", *args.argv])
     print(f"wrote {args.output}: {imp.summary()}")
-    if imp.trigger_times_ms is not None:
-        print("note: a time-resolved file; 'reconstruct' reads single frames so far (wss_nlp.files.read_frames)")
     return 0
 
 
@@ -528,7 +607,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.set_defaults(func=cmd_reconstruct)
 
     ph = sub.add_parser("phantom", help="write a synthetic acquisition (and its truth)")
-    ph.add_argument("--case", choices=list(phantoms.CASES), default="laminar")
+    ph.add_argument(
+        "--case",
+        choices=[*phantoms.CASES, "womersley"],
+        default="laminar",
+        help="womersley: a time-resolved (cine) phantom, Womersley flow over one cycle (--frames)",
+    )
+    ph.add_argument("--frames", type=int, default=20, help="womersley: frames over the cycle (default %(default)s)")
     ph.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
     ph.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none")
     ph.add_argument("--seed", type=int, default=0)

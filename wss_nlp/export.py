@@ -21,13 +21,51 @@ from .errors import InputError
 from .files import read_result
 
 
+def _cine_slices(f) -> list[dict]:
+    """Per slice of a time-resolved result: the wall averaged over the frames, the cycle-mean WSS, TAWSS, OSI."""
+    from .cine import cycle_weights
+
+    out = []
+    for name in sorted(k for k in f if k.startswith("slice_")):
+        g = f[name]
+        frames = g["frames"]
+        walls = [
+            (frames[k]["wss/wall_x_mm"][()], frames[k]["wss/wall_y_mm"][()])
+            for k in sorted(frames)
+            if "wss/wall_x_mm" in frames[k]
+        ]
+        n_phi = g["wss/phi"].size
+        nan = np.full(n_phi, np.nan)
+        tau = g["wss/tau_pa"][()]
+        weights = cycle_weights(g["wss/time_ms"][()], float(f.attrs["cardiac_period_ms"]))
+        d = {
+            "name": name,
+            "phi": g["wss/phi"][()],
+            "wall_x": np.mean([w[0] for w in walls], axis=0) if walls else nan,
+            "wall_y": np.mean([w[1] for w in walls], axis=0) if walls else nan,
+            "tau": np.nansum(weights[:, None] * tau, axis=0) / np.sum(weights[np.isfinite(tau[:, 0])]),
+            "tawss": g["wss/tawss_pa"][()],
+            "osi": g["wss/osi"][()],
+            "failed": not walls,
+        }
+        out.append(d)
+    return out
+
+
 def wall_mesh(path: str, slice_spacing_mm: float | None = None):
-    """``(points (n, 3), cells [(type, connectivity)], point_data dict)`` of a result file's wall."""
+    """``(points (n, 3), cells [(type, connectivity)], point_data dict)`` of a result file's wall.
+
+    A time-resolved result gives the wall averaged over the frames, ``tau_pa`` the WSS averaged over the
+    cycle, and ``tawss_pa`` and ``osi``.
+    """
     import h5py
 
-    slices = read_result(path)
     with h5py.File(path, "r") as f:
         stored = f.attrs.get("slice_spacing_mm")
+        cine = "trigger_times_ms" in f.attrs and any("wss/tawss_pa" in f[k] for k in f if k.startswith("slice_"))
+        slices = _cine_slices(f) if cine else None
+    if slices is None:
+        slices = read_result(path)
     dz = slice_spacing_mm if slice_spacing_mm is not None else (None if stored is None else float(stored))
     missing = [d["name"] for d in slices if "wall_x" not in d and not d.get("failed")]
     if missing:
@@ -37,7 +75,7 @@ def wall_mesh(path: str, slice_spacing_mm: float | None = None):
     n_phi = slices[0]["phi"].size
     if any(d["phi"].size != n_phi for d in slices):
         raise InputError(f"{path}: the slices have different numbers of wall angles; cannot join them as a surface")
-    points, tau, std, vec = [], [], [], []
+    points, tau, std, vec, tawss, osi = [], [], [], [], [], []
     for k, d in enumerate(slices):
         nan = np.full(n_phi, np.nan)
         x = d.get("wall_x", nan)
@@ -46,6 +84,8 @@ def wall_mesh(path: str, slice_spacing_mm: float | None = None):
         tau.append(d["tau"])
         std.append(d.get("tau_std", nan))
         vec.append(d.get("tau_vector", np.full((n_phi, 3), np.nan)))
+        tawss.append(d.get("tawss", nan))
+        osi.append(d.get("osi", nan))
     ok = [bool(np.all(np.isfinite(p))) for p in points]
     j = np.arange(n_phi)
     if len(slices) == 1:
@@ -65,6 +105,9 @@ def wall_mesh(path: str, slice_spacing_mm: float | None = None):
         data["tau_std_pa"] = np.concatenate(std)
     if any(np.isfinite(v).any() for v in vec):
         data["wss_vector_pa"] = np.vstack(vec)
+    if any(np.isfinite(v).any() for v in tawss):
+        data["tawss_pa"] = np.concatenate(tawss)
+        data["osi"] = np.concatenate(osi)
     return np.nan_to_num(np.vstack(points)), cells, data
 
 

@@ -244,8 +244,8 @@ def read_acquisition(path) -> Acquisition:
     with f:
         if "trigger_times_ms" in f.attrs:
             raise InputError(
-                f"{src}: a time-resolved (cine) file ('trigger_times_ms'); 'reconstruct' reads single frames "
-                "only so far: write one frame per file (wss_nlp.files.read_frames reads the frames)"
+                f"{src}: a time-resolved (cine) file ('trigger_times_ms'): read it with read_frames "
+                "(wss-nlp reconstruct reads both layouts)"
             )
 
         def dataset(name):
@@ -301,7 +301,9 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
     """Read a time-resolved (cine) input file: ``(frames, trigger_times_ms, cardiac_period_ms)``.
 
     Every image dataset has the leading time axis ``(nt, nz, ny, nx)``; each
-    frame is validated like a single-frame file. The period defaults to the
+    frame is validated like a single-frame file, except that a frame holding
+    NaN or Inf is returned as it is (the cine reconstruction reports it by
+    index and bridges it) unless every frame does. The period defaults to the
     last trigger time plus the mean frame spacing (the format document).
     """
     src, f = _open_input(path)
@@ -351,10 +353,15 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
             noise_venc_m_s=noise_venc,
             **common,
         )
-        acq.validate()
-        frames.append(acq)
+        if not acq.nonfinite_slices():
+            acq.validate()
+        frames.append(acq)  # a frame with NaN/Inf is kept: the cine reconstruction fails it by index, not the file
+    if all(a.nonfinite_slices() for a in frames):
+        frames[0].validate()  # every frame is bad: the single-frame message names the problem
+    if period is None and nt == 1:
+        raise InputError(f"{src}: one frame and no 'cardiac_period_ms': the cycle's length is not defined; add it")
     if period is None:
-        period = float(times[-1] + (np.mean(np.diff(times)) if nt > 1 else 0.0))
+        period = float(times[-1] + np.mean(np.diff(times)))
     elif not period > times[-1]:
         raise InputError(f"{src}: 'cardiac_period_ms' {period:g} must exceed the last trigger time {times[-1]:g}")
     return frames, times, float(period)
@@ -511,88 +518,92 @@ def write_result(path, results, options: dict, argv=None, extra_attrs: dict | No
         if getattr(results, "stack", None) is not None:
             f.attrs["stack_json"] = json.dumps(results.stack.as_dict(), default=float)
         for r in results:
-            s = f.create_group(f"slice_{r.index:03d}")
-            if isinstance(r, FailedSlice):
-                _write_failed(s, r)
-                continue
-            _write_core(s, r)
-            if getattr(r, "screen", None):
-                s.attrs["screen_json"] = json.dumps(r.screen, default=float)
-            if getattr(r, "near_wall", None) is not None:
-                s.attrs["near_wall_json"] = json.dumps(r.near_wall.as_dict(), default=float)
-            if not hasattr(r, "velocity"):  # a classical method (wss_nlp.baselines): no velocity model to store
-                s.attrs["baseline_json"] = json.dumps(r.info)
-                s["geometry"].attrs["segmentation_threshold"] = r.geometry.threshold
-                continue
-            g, v, w = r.geometry, r.velocity, r.wss
-            if getattr(r, "coupled_info", None):
-                s.attrs["coupled_json"] = json.dumps(r.coupled_info)
-            gg = s["geometry"]
-            gg.attrs.update(
-                {
-                    "gamma_mm": g.gamma,
-                    "box_r0_mm": g.box[0],
-                    "box_r1_mm": g.box[1],
-                    "box_active": g.box_active,
-                    "residual_norm_mm": g.residual_norm,
-                    "penalty_mm2": g.penalty,
-                    "options_json": json.dumps(g.options, default=str),
-                }
-            )
-            _stats_attrs(gg, g.stats, "solver_")
-            wg = s["wss"]
-            vec = getattr(w, "vector", None)
-            if vec is not None:  # stacks with three velocity components (wss_nlp.wss.wss_vector)
-                for name, arr in (
-                    ("vector_pa", vec.vector),
-                    ("normal_3d", vec.normal),
-                    ("axial_pa", vec.axial),
-                    ("circumferential_pa", vec.circumferential),
-                    ("normal_part_pa", vec.normal_part),
-                    ("magnitude_pa", vec.magnitude),
-                ):
-                    wg[name] = arr
-                wg.attrs["mean_axial_pa"] = rad.arc_length_mean(vec.axial, g.radius(w.phi), g.radius(w.phi, 1))
-                wg.attrs["mean_magnitude_pa"] = rad.arc_length_mean(vec.magnitude, g.radius(w.phi), g.radius(w.phi, 1))
-            if getattr(w, "tau_std", None) is not None:
-                wg["tau_std_pa"] = w.tau_std
-                wg.attrs["mean_std_pa"] = float(w.mean_std)
-            sen = getattr(r, "sensitivity", None)
-            if sen is not None:
-                _write_sensitivity(s.create_group("sensitivity"), sen, r.grid.shape, r.grid.h)
-            vg = s.create_group("velocity")
-            vg["coefficients"] = v.coefficients
-            vg["voxel_index"] = v.voxel_index
-            vg["voxel_fraction"] = v.voxel_fraction
-            vg["fitted_m_s"] = v.fitted
-            vg.attrs.update(
-                {
-                    "basis_json": json.dumps(v.basis.describe()),
-                    "r_in_mm": v.disk_map.r_in,
-                    "eta": v.disk_map.eta,
-                    "residual_norm_m_s": v.residual_norm,
-                    "penalty": v.penalty,
-                    "options_json": json.dumps(v.options, default=str),
-                }
-            )
-            _stats_attrs(vg, v.stats, "solver_")
-            for ch in (r.alpha_choice, r.beta_choice):
-                if ch is None:
-                    continue
-                ag = s.create_group(f"analysis/{ch.name}")
-                ag["parameters"] = np.asarray(ch.parameters, dtype=float)
-                ag["residuals"] = np.asarray(ch.residuals, dtype=float)
-                ag["criterion"] = np.asarray(ch.criterion, dtype=float)
-                ag.attrs.update(
-                    {
-                        "rule": ch.rule,
-                        "chosen": float(ch.chosen),
-                        "noise": float(ch.noise),
-                        "noise_method": ch.noise_method,
-                        "tau": float(ch.tau),
-                        "satisfied": bool(ch.satisfied),
-                    }
-                )
+            write_slice_group(f.create_group(f"slice_{r.index:03d}"), r)
+
+
+def write_slice_group(s, r) -> None:
+    """One slice's result into the group ``s``: the contract's datasets and everything else the result holds."""
+    if isinstance(r, FailedSlice):
+        _write_failed(s, r)
+        return
+    _write_core(s, r)
+    if getattr(r, "screen", None):
+        s.attrs["screen_json"] = json.dumps(r.screen, default=float)
+    if getattr(r, "near_wall", None) is not None:
+        s.attrs["near_wall_json"] = json.dumps(r.near_wall.as_dict(), default=float)
+    if not hasattr(r, "velocity"):  # a classical method (wss_nlp.baselines): no velocity model to store
+        s.attrs["baseline_json"] = json.dumps(r.info)
+        s["geometry"].attrs["segmentation_threshold"] = r.geometry.threshold
+        return
+    g, v, w = r.geometry, r.velocity, r.wss
+    if getattr(r, "coupled_info", None):
+        s.attrs["coupled_json"] = json.dumps(r.coupled_info)
+    gg = s["geometry"]
+    gg.attrs.update(
+        {
+            "gamma_mm": g.gamma,
+            "box_r0_mm": g.box[0],
+            "box_r1_mm": g.box[1],
+            "box_active": g.box_active,
+            "residual_norm_mm": g.residual_norm,
+            "penalty_mm2": g.penalty,
+            "options_json": json.dumps(g.options, default=str),
+        }
+    )
+    _stats_attrs(gg, g.stats, "solver_")
+    wg = s["wss"]
+    vec = getattr(w, "vector", None)
+    if vec is not None:  # stacks with three velocity components (wss_nlp.wss.wss_vector)
+        for name, arr in (
+            ("vector_pa", vec.vector),
+            ("normal_3d", vec.normal),
+            ("axial_pa", vec.axial),
+            ("circumferential_pa", vec.circumferential),
+            ("normal_part_pa", vec.normal_part),
+            ("magnitude_pa", vec.magnitude),
+        ):
+            wg[name] = arr
+        wg.attrs["mean_axial_pa"] = rad.arc_length_mean(vec.axial, g.radius(w.phi), g.radius(w.phi, 1))
+        wg.attrs["mean_magnitude_pa"] = rad.arc_length_mean(vec.magnitude, g.radius(w.phi), g.radius(w.phi, 1))
+    if getattr(w, "tau_std", None) is not None:
+        wg["tau_std_pa"] = w.tau_std
+        wg.attrs["mean_std_pa"] = float(w.mean_std)
+    sen = getattr(r, "sensitivity", None)
+    if sen is not None:
+        _write_sensitivity(s.create_group("sensitivity"), sen, r.grid.shape, r.grid.h)
+    vg = s.create_group("velocity")
+    vg["coefficients"] = v.coefficients
+    vg["voxel_index"] = v.voxel_index
+    vg["voxel_fraction"] = v.voxel_fraction
+    vg["fitted_m_s"] = v.fitted
+    vg.attrs.update(
+        {
+            "basis_json": json.dumps(v.basis.describe()),
+            "r_in_mm": v.disk_map.r_in,
+            "eta": v.disk_map.eta,
+            "residual_norm_m_s": v.residual_norm,
+            "penalty": v.penalty,
+            "options_json": json.dumps(v.options, default=str),
+        }
+    )
+    _stats_attrs(vg, v.stats, "solver_")
+    for ch in (r.alpha_choice, r.beta_choice):
+        if ch is None:
+            return
+        ag = s.create_group(f"analysis/{ch.name}")
+        ag["parameters"] = np.asarray(ch.parameters, dtype=float)
+        ag["residuals"] = np.asarray(ch.residuals, dtype=float)
+        ag["criterion"] = np.asarray(ch.criterion, dtype=float)
+        ag.attrs.update(
+            {
+                "rule": ch.rule,
+                "chosen": float(ch.chosen),
+                "noise": float(ch.noise),
+                "noise_method": ch.noise_method,
+                "tau": float(ch.tau),
+                "satisfied": bool(ch.satisfied),
+            }
+        )
 
 
 @dataclass

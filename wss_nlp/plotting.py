@@ -399,3 +399,45 @@ def figure_stack(results, spacing_mm: float):
         fig.suptitle(f"blank rows: slices {failed} failed (see the result file)")
     fig.tight_layout()
     return fig
+
+
+def figure_cine(series, times_ms, truth_tau=None):
+    """One slice over the cycle: WSS(t, phi), the mean WSS(t) (with the truth), and TAWSS and OSI around the wall.
+
+    ``truth_tau`` (nt,) is the exact mean WSS of each frame, for phantoms.
+    """
+    fig, axes = _subplots(1, 3, figsize=(14, 4.2))
+    ax = axes[0]
+    deg = np.degrees(series.phi)
+    im = ax.pcolormesh(deg, times_ms, series.tau, shading="nearest", cmap="coolwarm")
+    lim = np.nanmax(np.abs(series.tau))
+    im.set_clim(-lim, lim)
+    fig.colorbar(im, ax=ax, label="WSS [Pa]")
+    ax.set(xlabel="wall angle phi [deg]", ylabel="time after trigger [ms]", title="WSS(t, phi)")
+    ax = axes[1]
+    ax.plot(times_ms, series.mean, "o-", label="reconstructed (wall mean)")
+    if series.failed.any():
+        ax.plot(np.asarray(times_ms)[series.failed], np.zeros(int(series.failed.sum())), "rx", label="failed frame")
+    if truth_tau is not None:
+        ax.plot(times_ms, truth_tau, "k--", label="truth")
+    ax.axhline(0.0, color="0.7", lw=0.8)
+    ax.set(xlabel="time after trigger [ms]", ylabel="mean WSS [Pa]", title="mean WSS over the cycle")
+    ax.legend(fontsize=8)
+    ax = axes[2]
+    ax.plot(deg, series.tawss, label="TAWSS [Pa]")
+    ax.set(xlabel="wall angle phi [deg]", ylabel="TAWSS [Pa]", title="TAWSS and OSI around the wall")
+    twin = ax.twinx()
+    twin.plot(deg, series.osi, color="C3", label="OSI")
+    twin.set_ylim(0, 0.5)
+    twin.set_ylabel("OSI", color="C3")
+    fig.tight_layout()
+    return fig
+
+
+def save_cine_figures(series, result, folder: str, truth_tau=None) -> list[str]:
+    """``cine_slice_NNN.png`` for every slice of a cine reconstruction; returns the paths."""
+    paths = []
+    for s in series:
+        fig = figure_cine(s, result.times_ms, truth_tau)
+        paths.append(save_figure(fig, os.path.join(folder, f"cine_slice_{s.index:03d}.png")))
+    return paths
