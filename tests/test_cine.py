@@ -153,3 +153,12 @@ def test_export_of_a_time_resolved_result_carries_tawss_and_osi(tmp_path):
         assert np.allclose(mesh.point_data["tau_pa"], mean)
         walls = [g["frames"][k]["wss/wall_x_mm"][()] for k in g["frames"]]
         assert np.allclose(mesh.points[:, 0], np.mean(walls, axis=0))
+
+
+def test_demo_cine_prints_the_cycle_against_the_truth(tmp_path, capsys):
+    assert main(["demo", "--case", "cine", "--h", "1.5", "-o", str(tmp_path / "demo")]) == 0
+    out = capsys.readouterr().out
+    assert "TAWSS true [Pa]" in out and "OSI true" in out
+    assert (tmp_path / "demo" / "cine_slice_000.png").exists()
+    frames, times, _ = files.read_frames(str(tmp_path / "demo" / "input.h5"))
+    assert len(frames) == times.size == 20
