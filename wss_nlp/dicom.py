@@ -196,7 +196,17 @@ def _phase_pixels(ds, item, stored: np.ndarray, vendor: str, where: str, units: 
                 f"{where}: phase rescale intercept {intercept:g} (0028,1052) is not -{full:g} = -RescaleSlope "
                 f"2^(BitsStored - 1) of Siemens's convention; pass --phase-units to state the units"
             )
-        return np.pi * value / full, "rad"
+        return to_physical(value, units, full, where)
+    return to_physical(value, units, None, where)
+
+
+def to_physical(value: np.ndarray, units: str, full_scale: float | None, where: str) -> tuple[np.ndarray, str]:
+    """Phase values in ``units`` (one of :data:`PHASE_UNITS`) as ``(radians, "rad")`` or ``(m/s, "m/s")``.
+
+    ``full_scale`` is the stored value that stands for pi (``siemens`` units only).
+    """
+    if units == "siemens" and full_scale:
+        return np.pi * value / full_scale, "rad"
     if units == "rad":
         return value, "rad"
     if units in _VELOCITY_FACTOR:

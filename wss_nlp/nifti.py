@@ -35,7 +35,7 @@ import numpy as np
 
 import logging
 
-from .dicom import PHASE_UNITS, siemens_venc
+from .dicom import PHASE_UNITS, siemens_venc, to_physical
 from .errors import InputError
 from .plane import Plane, resample
 from .scanner import Image2D
@@ -44,7 +44,6 @@ log = logging.getLogger(__name__)
 
 #: Siemens phase as converters store it: this value stands for pi.
 SIEMENS_FULL_SCALE = 4096.0
-_VELOCITY = {"cm/s": 1e-2, "mm/s": 1e-3, "m/s": 1.0}
 
 
 def is_nifti(path: str) -> bool:
@@ -98,13 +97,7 @@ def _units(path: str, meta: dict, values: np.ndarray, phase_units: str | None) -
                 f"{path}: the units of the phase values (up to {peak:.4g}) are not stated (no Siemens sidecar); "
                 "pass --phase-units (" + ", ".join(PHASE_UNITS) + ")"
             )
-    if units == "siemens":
-        return np.pi * values / SIEMENS_FULL_SCALE, "rad"
-    if units == "rad":
-        return values, "rad"
-    if units in _VELOCITY:
-        return values * _VELOCITY[units], "m/s"
-    raise InputError(f"--phase-units {units}: choose from {', '.join(PHASE_UNITS)}")
+    return to_physical(values, units, SIEMENS_FULL_SCALE, path)
 
 
 def _frame_times(img, path: str, nt: int, frame_interval_ms: float | None) -> list[float | None]:
