@@ -365,8 +365,12 @@ def choose_layer(
     margin = best[order[1]][0] + penalty[order[1]] - best[chosen][0] - penalty[chosen] if len(order) > 1 else np.inf
     unresolved = float("nan")
     voxel_mm = max(vp.cell_mm or (np.nan,)) * quad.order
-    at_floor = chosen != "plain" and best[chosen][3] <= CRITERION_BETAS[-1] * (1 + 1e-9)
-    thin = chosen == "exponential" and best[chosen][1] < voxel_mm / nw.UNRESOLVED_FRACTION
+    # a saturating layer that is thinner than the voxels resolve, or that needs no regularization at all, is a
+    # velocity jump at the wall; the wall law is exempt: its scale is fixed by u_tau l = nu, not by the data's
+    # shape, and on turbulent data its best beta may well be the smallest (the soak's aliased Re_tau 998 runs)
+    exponential = chosen == "exponential"
+    at_floor = exponential and best[chosen][3] <= CRITERION_BETAS[-1] * (1 + 1e-9)
+    thin = exponential and best[chosen][1] < voxel_mm / nw.UNRESOLVED_FRACTION
     if mode == "auto" and (thin or at_floor):
         # a jump at the wall, not a layer: no WSS follows from it; keep the paper's model and flag the slice
         unresolved, chosen = best[chosen][1], "plain"

@@ -389,9 +389,9 @@ class NearWallChoice:
     quad_order : int
         Quadrature cells per voxel axis of the layer columns (:class:`LayerQuadrature`).
     unresolved_mm : float
-        When the best model was a layer the data cannot resolve (an ``exponential`` layer thinner than
-        the voxel over :data:`UNRESOLVED_FRACTION`, or any layer whose criterion is smallest at the
-        smallest beta tried): its scale (the plain model is used and the slice is SUSPECT); else NaN.
+        When the best model was an ``exponential`` layer the data cannot resolve (thinner than the voxel
+        over :data:`UNRESOLVED_FRACTION`, or with its criterion smallest at the smallest beta tried): its
+        scale (the plain model is used and the slice is SUSPECT); else NaN.
     """
 
     model: str
