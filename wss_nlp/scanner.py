@@ -272,12 +272,13 @@ def assemble(images: list[Image2D], options: ImportOptions, record: dict) -> Imp
     magnitude = stacked("magnitude")
     phase = velocity = inplane = None
     venc: float | None
+    component_venc = None
     if through == "phase":
         venc, venc_source = _venc(by_role["phase"], options)
         phase = stacked("phase", lambda im: _to_phase(im, venc))
     else:  # u . n of a volume's components may exceed the venc of each: no venc is stored (the record keeps it)
         venc, venc_source = None, "not stored: the through-plane velocity combines three encoded components"
-        record["component_venc_m_s"] = options.venc_m_s
+        component_venc = options.venc_m_s
         velocity = stacked("velocity")
     if "velocity_x" in grid:
         inplane = np.stack([stacked("velocity_x"), stacked("velocity_y")], axis=1)
@@ -297,6 +298,8 @@ def assemble(images: list[Image2D], options: ImportOptions, record: dict) -> Imp
         series={role: sorted({im.series for im in found}) for role, found in by_role.items()},
         images=len(images),
     )
+    if component_venc is not None:
+        record["component_venc_m_s"] = component_venc
     return Imported(
         magnitude=magnitude,
         phase=phase,
