@@ -334,3 +334,42 @@ def test_trigger_times_that_disagree_between_series(phantom, tmp_path, capsys):
         ds.TriggerTime = float(ds.TriggerTime) + 30.0  # frames are 50 ms apart
         ds.save_as(f)
     _fails(capsys, ["import", str(folder), "-o", str(tmp_path / "in.h5")], "trigger times differ", "one cine")
+
+
+# ------------------------------------------------------------------ header fuzz: no internal error, whatever is off
+MUTATIONS = {
+    "no_position": lambda ds: delattr(ds, "ImagePositionPatient"),
+    "no_orientation": lambda ds: delattr(ds, "ImageOrientationPatient"),
+    "no_spacing": lambda ds: delattr(ds, "PixelSpacing"),
+    "zero_spacing": lambda ds: setattr(ds, "PixelSpacing", [0.0, 1.0]),
+    "skew_orientation": lambda ds: setattr(ds, "ImageOrientationPatient", [1.0, 0, 0, 0.7, 0.7, 0]),
+    "text_trigger": lambda ds: setattr(ds, "TriggerTime", "12.5"),
+    "no_image_type": lambda ds: delattr(ds, "ImageType"),
+    "no_pixels": lambda ds: delattr(ds, "PixelData"),
+    "short_pixels": lambda ds: setattr(ds, "PixelData", ds.PixelData[:100]),
+    "odd_intercept": lambda ds: setattr(ds, "RescaleIntercept", "-1000"),
+    "no_manufacturer": lambda ds: delattr(ds, "Manufacturer"),
+    "bad_sequence_name": lambda ds: setattr(ds, "SequenceName", "fl2d1_vXXin"),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MUTATIONS))
+def test_mutated_headers_give_one_line_or_a_file(name, phantom, tmp_path, capsys):
+    """Every phase file of a Siemens export mutated one way: exit 0 with a readable input, or exit 2 with one
+    line naming a file; never an internal error (exit 1) or a half-written output."""
+    import pydicom
+
+    folder = _siemens(tmp_path, phantom[0])
+    for f in folder.glob("pha_*.dcm"):
+        ds = pydicom.dcmread(f)
+        MUTATIONS[name](ds)
+        ds.save_as(f)
+    out = tmp_path / "in.h5"
+    rc = main(["import", str(folder), "-o", str(out), "--viscosity", "3.5e-3"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc in (0, 2), err
+    if rc == 2:
+        assert err[-1].startswith("wss-nlp: error:") and str(tmp_path) in err[-1]
+        assert not out.exists()
+    else:
+        files.read_acquisition(str(out))
