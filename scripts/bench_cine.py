@@ -1,0 +1,62 @@
+#!/usr/bin/env python
+"""Cost of a cine slice: 20 frames against one slice, in one run (issue 15 target: within 10x one slice).
+
+The Womersley phantom (``wss_nlp.pulsatile.make_cine``) at h = 1 mm, SNR 25: the median time of one frame
+reconstructed alone (the single-frame pipeline, default options as cine frames get them: plain basis, with
+the uncertainty band) against ``wss_nlp.cine.reconstruct_cine`` of all frames, and their ratio. Frames do
+not reuse the built solvers yet, so the ratio is about the number of frames. Writes
+``scripts/results/bench_cine.md``.
+
+    python scripts/bench_cine.py [--frames 20] [--h 1.0] [--runs 3]
+"""
+
+import argparse
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from _report import RESULTS, write_report
+from wss_nlp import cine, pulsatile
+from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+
+TARGET_RATIO = 10.0
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--frames", type=int, default=20)
+    p.add_argument("--h", type=float, default=1.0)
+    p.add_argument("--runs", type=int, default=3)
+    p.add_argument("--out", default=RESULTS)
+    args = p.parse_args(argv)
+    frames, truth = pulsatile.make_cine(h_mm=args.h, snr=25, seed=0, frames=args.frames)
+    options = ReconstructionOptions()
+    plain = replace(options, velocity=replace(options.velocity, near_wall="off"))
+    singles, cines = [], []
+    for _ in range(args.runs):
+        t0 = time.perf_counter()
+        reconstruct(frames[1], plain)
+        singles.append(time.perf_counter() - t0)
+        t0 = time.perf_counter()
+        cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, options)
+        cines.append(time.perf_counter() - t0)
+    one, all_frames = float(np.median(singles)), float(np.median(cines))
+    ratio = all_frames / one
+    lines = [
+        f"Womersley phantom, h = {args.h:g} mm, SNR 25, {args.frames} frames; medians of {args.runs} runs "
+        "(ratios in one run).",
+        "Made by `python scripts/bench_cine.py" + "".join(f" {a}" for a in sys.argv[1:]) + "`.",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+        f"| one frame alone [s] | {one:.2f} |",
+        f"| {args.frames} frames (cine) [s] | {all_frames:.2f} |",
+        f"| ratio (target <= {TARGET_RATIO:g}) | {ratio:.1f}{'' if ratio <= TARGET_RATIO else ' (missed)'} |",
+    ]
+    write_report(args.out, "bench_cine.md", lines)
+
+
+if __name__ == "__main__":
+    main()
