@@ -238,7 +238,6 @@ def _open_input(path):
 
 def read_acquisition(path) -> Acquisition:
     """Read and validate an input file (see the format document)."""
-    import h5py
 
     src, f = _open_input(path)
     with f:
@@ -249,19 +248,8 @@ def read_acquisition(path) -> Acquisition:
             )
 
         def dataset(name):
-            if name not in f:
-                return None
-            obj = f[name]
-            if not isinstance(obj, h5py.Dataset):
-                raise InputError(f"{src}: '{name}' must be a dataset")
-            kind = obj.dtype.kind
-            if kind == "c":
-                fix = "its modulus (np.abs)" if name == "magnitude" else "real values (np.angle of the complex image)"
-                raise InputError(f"{src}: '{name}' is complex ({obj.dtype}); store {fix}")
-            if kind not in "fiub":
-                raise InputError(f"{src}: '{name}' must hold numbers, got dtype {obj.dtype}")
-            arr = np.asarray(obj[()], dtype=float)
-            if arr.ndim == 2:  # a single slice stored without the nz axis
+            arr = _numeric_dataset(f, name, src)
+            if arr is not None and arr.ndim == 2:  # a single slice stored without the nz axis
                 arr = arr[None]
             return arr
 
@@ -274,20 +262,45 @@ def read_acquisition(path) -> Acquisition:
             velocity=velocity,
             velocity_inplane=inplane,
             phase=dataset("phase"),
-            voxel_size_mm=_attr(f, "voxel_size_mm", src, required=True, size=2),
-            origin_mm=_attr(f, "origin_mm", src, required=True, size=2),
-            slice_spacing_mm=_attr(f, "slice_spacing_mm", src),
-            venc_m_s=_attr(f, "venc_m_s", src),
-            viscosity_pa_s=_attr(f, "viscosity_pa_s", src),
-            density_kg_m3=_attr(f, "density_kg_m3", src),
             source=src,
-            resampled_from=_text_attr(f, "resampled_from"),
-            noise_venc_m_s=_attr(f, "noise_venc_m_s", src),
+            **_input_attrs(f, src),
         )
     if acq.velocity is None and acq.phase is None:
         raise InputError(f"{src}: missing dataset 'velocity' (or 'phase' with 'venc_m_s')")
     acq.validate()
     return acq
+
+
+def _numeric_dataset(f, name: str, src: str) -> np.ndarray | None:
+    """Dataset ``name`` as floats, or None if absent; groups, complex and text data are errors."""
+    import h5py
+
+    if name not in f:
+        return None
+    obj = f[name]
+    if not isinstance(obj, h5py.Dataset):
+        raise InputError(f"{src}: '{name}' must be a dataset")
+    kind = obj.dtype.kind
+    if kind == "c":
+        fix = "its modulus (np.abs)" if name == "magnitude" else "real values (np.angle of the complex image)"
+        raise InputError(f"{src}: '{name}' is complex ({obj.dtype}); store {fix}")
+    if kind not in "fiub":
+        raise InputError(f"{src}: '{name}' must hold numbers, got dtype {obj.dtype}")
+    return np.asarray(obj[()], dtype=float)
+
+
+def _input_attrs(f, src: str) -> dict:
+    """The attributes an input file shares between its frames, as :class:`Acquisition` fields."""
+    return {
+        "voxel_size_mm": _attr(f, "voxel_size_mm", src, required=True, size=2),
+        "origin_mm": _attr(f, "origin_mm", src, required=True, size=2),
+        "slice_spacing_mm": _attr(f, "slice_spacing_mm", src),
+        "venc_m_s": _attr(f, "venc_m_s", src),
+        "viscosity_pa_s": _attr(f, "viscosity_pa_s", src),
+        "density_kg_m3": _attr(f, "density_kg_m3", src),
+        "resampled_from": _text_attr(f, "resampled_from"),
+        "noise_venc_m_s": _attr(f, "noise_venc_m_s", src),
+    }
 
 
 def _text_attr(f, name: str) -> str | None:
@@ -316,8 +329,8 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
         nt = times.size
         arrays = {}
         for name in ("magnitude", "velocity", "phase", "velocity_x", "velocity_y"):
-            if name in f:
-                arr = np.asarray(f[name][()], dtype=float)
+            arr = _numeric_dataset(f, name, src)
+            if arr is not None:
                 if arr.ndim != 4 or arr.shape[0] != nt:
                     raise InputError(
                         f"{src}: '{name}' of a time-resolved file must have shape (nt = {nt}, nz, ny, nx), "
@@ -328,17 +341,8 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
             raise InputError(f"{src}: missing dataset 'magnitude'")
         if ("velocity_x" in arrays) != ("velocity_y" in arrays):
             raise InputError(f"{src}: 'velocity_x' and 'velocity_y' come together; one of them is missing")
-        common = {
-            "voxel_size_mm": _attr(f, "voxel_size_mm", src, required=True, size=2),
-            "origin_mm": _attr(f, "origin_mm", src, required=True, size=2),
-            "slice_spacing_mm": _attr(f, "slice_spacing_mm", src),
-            "venc_m_s": _attr(f, "venc_m_s", src),
-            "viscosity_pa_s": _attr(f, "viscosity_pa_s", src),
-            "density_kg_m3": _attr(f, "density_kg_m3", src),
-        }
+        common = _input_attrs(f, src)
         period = _attr(f, "cardiac_period_ms", src)
-        resampled = _text_attr(f, "resampled_from")
-        noise_venc = _attr(f, "noise_venc_m_s", src)
     frames = []
     for it in range(nt):
         acq = Acquisition(
@@ -349,8 +353,6 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
                 np.stack([arrays["velocity_x"][it], arrays["velocity_y"][it]]) if "velocity_x" in arrays else None
             ),
             source=f"{src} (frame {it})",
-            resampled_from=resampled,
-            noise_venc_m_s=noise_venc,
             **common,
         )
         if not acq.nonfinite_slices():
