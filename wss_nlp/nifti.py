@@ -37,7 +37,7 @@ import logging
 
 from .dicom import PHASE_UNITS, siemens_venc, to_physical
 from .errors import InputError
-from .plane import Plane, resample
+from .plane import Plane, sample, voxel_index
 from .scanner import Image2D
 
 log = logging.getLogger(__name__)
@@ -259,12 +259,12 @@ def plane_images(
     e1, e2, n = plane.axes()
     h = plane.sampling(affine)[0]
     vendor = str(meta.get("Manufacturer", "")).strip().title()
+    index = voxel_index(affine, centres, mag.shape, magnitude)  # the same points for every frame and component
+    grid_shape = centres.shape[:-1]
     out = []
     for t in range(nt):
-        mag_t = resample(mag[..., t], affine, centres, magnitude, order=plane.order)
-        u = np.stack(
-            [resample(velocity[a][..., t], affine, centres, components[a], order=plane.order) for a in "xyz"], axis=-1
-        )
+        mag_t = sample(mag[..., t], index, plane.order).reshape(grid_shape)
+        u = np.stack([sample(velocity[a][..., t], index, plane.order).reshape(grid_shape) for a in "xyz"], axis=-1)
         parts = {"magnitude": mag_t, "velocity": u @ n, "velocity_x": u @ e1, "velocity_y": u @ e2}
         for k in range(centres.shape[0]):
             for role, values in parts.items():

@@ -103,24 +103,33 @@ class Plane:
         return p + s[:, None, None, None] * n + t[None, :, None, None] * e2 + t[None, None, :, None] * e1
 
 
-def resample(volume: np.ndarray, affine: np.ndarray, points: np.ndarray, where: str, order: int = 1) -> np.ndarray:
-    """Values of ``volume[i, j, k]`` at world ``points (..., 3)``: trilinear (``order`` 1) or of the nearest voxel (0).
+def voxel_index(affine: np.ndarray, points: np.ndarray, shape, where: str) -> np.ndarray:
+    """Voxel index coordinates ``(3, n)`` of world ``points (..., 3)`` in a volume of ``shape``.
 
-    A point outside the volume (beyond half a voxel) is an error.
+    A point outside the volume (beyond half a voxel) is an error; points within half a voxel of the outer
+    centres take the edge value.
     """
-    import scipy.ndimage
-
     inverse = np.linalg.inv(np.asarray(affine, dtype=float))
     flat = points.reshape(-1, 3)
     index = flat @ inverse[:3, :3].T + inverse[:3, 3]
-    shape = np.asarray(volume.shape[:3])
-    outside = np.any((index < -0.5) | (index > shape - 0.5), axis=1)
+    upper = np.asarray(shape[:3]) - 1
+    outside = np.any((index < -0.5) | (index > upper + 0.5), axis=1)
     if outside.any():
         worst = flat[outside][0]
         raise InputError(
             f"{where}: the plane leaves the volume (e.g. at {np.round(worst, 1).tolist()} mm); move the point, "
             "or shrink --plane-fov / --plane-slices"
         )
-    index = np.clip(index, 0, shape - 1)  # half a voxel beyond the outer centres: the edge value
-    values = scipy.ndimage.map_coordinates(volume, index.T, order=order, mode="nearest")
-    return values.reshape(points.shape[:-1])
+    return np.clip(index, 0, upper).T
+
+
+def sample(volume: np.ndarray, index: np.ndarray, order: int = 1) -> np.ndarray:
+    """Values of ``volume`` at voxel coordinates ``index (3, n)``: trilinear (``order`` 1) or nearest voxel (0)."""
+    import scipy.ndimage
+
+    return scipy.ndimage.map_coordinates(volume, index, order=order, mode="nearest")
+
+
+def resample(volume: np.ndarray, affine: np.ndarray, points: np.ndarray, where: str, order: int = 1) -> np.ndarray:
+    """Values of ``volume[i, j, k]`` at world ``points (..., 3)`` (:func:`voxel_index`, :func:`sample`)."""
+    return sample(volume, voxel_index(affine, points, volume.shape, where), order).reshape(points.shape[:-1])
