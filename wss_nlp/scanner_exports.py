@@ -259,10 +259,6 @@ def _write_enhanced(pydicom, folder, scan: Scan, mag, phase, slope, intercept) -
 
 def write_nifti(folder: str, scan: Scan, frame_interval_ms: float | None = None) -> list[str]:
     """Write ``scan`` as dcm2niix does for Siemens: ``mag.nii.gz`` and ``phase_ph.nii.gz`` with JSON sidecars."""
-    try:
-        import nibabel
-    except ImportError:
-        raise InputError("writing NIfTI needs nibabel, an optional dependency: pip install 'wss-nlp[nifti]'") from None
     os.makedirs(folder, exist_ok=True)
     dy, dx = scan.voxel_size_mm
     affine = np.eye(4)
@@ -278,15 +274,7 @@ def write_nifti(folder: str, scan: Scan, frame_interval_ms: float | None = None)
         ("phase_ph", phase, ["ORIGINAL", "PRIMARY", "P", "ND"], (slope, intercept)),
     ):
         data = np.transpose(stored, (3, 2, 1, 0)).astype(np.int16)  # (nt, nz, ny, nx) -> (x, y, z, t)
-        img = nibabel.Nifti1Image(data, affine)
-        img.header.set_slope_inter(*scl)
-        img.header.set_xyzt_units("mm", "msec")
-        if frame_interval_ms is not None:
-            zooms = list(img.header.get_zooms())
-            zooms[3] = frame_interval_ms
-            img.header.set_zooms(zooms)
-        path = os.path.join(folder, f"{name}.nii.gz")
-        nibabel.save(img, path)
+        path = _save_nifti(os.path.join(folder, f"{name}.nii.gz"), data, affine, frame_interval_ms, scl)
         meta = {"Manufacturer": "Siemens", "ImageType": image_type, "SeriesDescription": f"pc {name}"}
         if name != "mag":
             meta["SequenceName"] = f"fl2d1_v{100.0 * scan.venc_m_s:g}in"
@@ -379,19 +367,27 @@ def make_flow_volume(
 
 def write_flow_volume(folder: str, volume: FlowVolume, frame_interval_ms: float = 40.0) -> list[str]:
     """``mag.nii.gz`` and ``flow_vx/vy/vz.nii.gz`` (velocity in m/s, float32), as a converter writes 4D flow."""
+    os.makedirs(folder, exist_ok=True)
+    pairs = [("mag", volume.magnitude)] + [(f"flow_v{c}", volume.velocity[k]) for k, c in enumerate("xyz")]
+    return [
+        _save_nifti(os.path.join(folder, f"{name}.nii.gz"), data.astype(np.float32), volume.affine, frame_interval_ms)
+        for name, data in pairs
+    ]
+
+
+def _save_nifti(path: str, data: np.ndarray, affine, frame_interval_ms: float | None, scl=None) -> str:
+    """One NIfTI file in mm and ms, with the frame interval in pixdim[4] and the scaling ``(slope, inter)``."""
     try:
         import nibabel
     except ImportError:
         raise InputError("writing NIfTI needs nibabel, an optional dependency: pip install 'wss-nlp[nifti]'") from None
-    os.makedirs(folder, exist_ok=True)
-    files = []
-    for name, data in [("mag", volume.magnitude)] + [(f"flow_v{c}", volume.velocity[k]) for k, c in enumerate("xyz")]:
-        img = nibabel.Nifti1Image(data.astype(np.float32), volume.affine)
-        img.header.set_xyzt_units("mm", "msec")
+    img = nibabel.Nifti1Image(data, affine)
+    if scl is not None:
+        img.header.set_slope_inter(*scl)
+    img.header.set_xyzt_units("mm", "msec")
+    if frame_interval_ms is not None:
         zooms = list(img.header.get_zooms())
         zooms[3] = frame_interval_ms
         img.header.set_zooms(zooms)
-        path = os.path.join(folder, f"{name}.nii.gz")
-        nibabel.save(img, path)
-        files.append(path)
-    return files
+    nibabel.save(img, path)
+    return path
