@@ -71,11 +71,12 @@ _PHASE_TYPES = {"P", "PHASE", "PHASE MAP", "VELOCITY", "VELOCITY MAP", "PHASE CO
 _MAGNITUDE_TYPES = {"M", "MAG", "MAGNITUDE", "M_PCA", "M_FFE", "FFE_M", "M_SE", "NORM"}
 
 
-def _require_pydicom():
+def require_pydicom(what: str = "reading"):
+    """The pydicom module, or an :class:`InputError` saying how to install it."""
     try:
         import pydicom
     except ImportError:
-        raise InputError("reading DICOM needs pydicom, an optional dependency: pip install 'wss-nlp[dicom]'") from None
+        raise InputError(f"{what} DICOM needs pydicom, an optional dependency: pip install 'wss-nlp[dicom]'") from None
     return pydicom
 
 
@@ -380,7 +381,7 @@ def images_from_dataset(ds, path: str, phase_units: str | None = None) -> list[I
 
 def read_images(paths, phase_units: str | None = None) -> tuple[list[Image2D], dict]:
     """Every magnitude and phase image under ``paths`` and a record of what was read and skipped."""
-    pydicom = _require_pydicom()
+    pydicom = require_pydicom()
     files = find_files(paths)
     images: list[Image2D] = []
     skipped: list[str] = []

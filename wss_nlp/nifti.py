@@ -117,12 +117,18 @@ def _frame_times(img, path: str, nt: int, frame_interval_ms: float | None) -> li
     )
 
 
-def _load(path: str):
-    """``(image, data (x, y, z, t), sidecar)`` of one NIfTI file."""
+def require_nibabel(what: str = "reading"):
+    """The nibabel module, or an :class:`InputError` saying how to install it."""
     try:
         import nibabel
     except ImportError:
-        raise InputError("reading NIfTI needs nibabel, an optional dependency: pip install 'wss-nlp[nifti]'") from None
+        raise InputError(f"{what} NIfTI needs nibabel, an optional dependency: pip install 'wss-nlp[nifti]'") from None
+    return nibabel
+
+
+def _load(path: str):
+    """``(image, data (x, y, z, t), sidecar)`` of one NIfTI file."""
+    nibabel = require_nibabel()
     if not os.path.isfile(path):
         raise InputError(f"{path}: no such file")
     try:

@@ -17,7 +17,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .dicom import require_pydicom
 from .errors import InputError
+from .nifti import require_nibabel
 
 VENDORS = ("siemens", "philips", "ge", "enhanced")
 MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"
@@ -64,15 +66,7 @@ class Scan:
         return None if self.trigger_times_ms is None else float(self.trigger_times_ms[it])
 
 
-def _pydicom():
-    try:
-        import pydicom
-    except ImportError:
-        raise InputError("writing DICOM needs pydicom, an optional dependency: pip install 'wss-nlp[dicom]'") from None
-    return pydicom
-
-
-def _base(pydicom, sop_class: str, series_uid: str, number: int, description: str, manufacturer: str):
+def _base(sop_class: str, series_uid: str, number: int, description: str, manufacturer: str):
     from pydicom.dataset import FileDataset, FileMetaDataset
     from pydicom.uid import UID, ExplicitVRLittleEndian, generate_uid
 
@@ -130,7 +124,7 @@ def stored_phase(scan: Scan, vendor: str) -> tuple[np.ndarray, float, float]:
 
 def write_dicom(folder: str, scan: Scan, vendor: str = "siemens") -> list[str]:
     """Write ``scan`` as DICOM files of one vendor's convention into ``folder``; returns the files."""
-    pydicom = _pydicom()
+    require_pydicom("writing")
     from pydicom.uid import generate_uid
 
     if vendor not in VENDORS:
@@ -139,7 +133,7 @@ def write_dicom(folder: str, scan: Scan, vendor: str = "siemens") -> list[str]:
     mag, _ = stored_magnitude(scan)
     phase, slope, intercept = stored_phase(scan, vendor)
     if vendor == "enhanced":
-        return [_write_enhanced(pydicom, folder, scan, mag, phase, slope, intercept)]
+        return [_write_enhanced(folder, scan, mag, phase, slope, intercept)]
     files = []
     nt, nz = scan.magnitude.shape[:2]
     manufacturer = {"siemens": "SIEMENS", "philips": "Philips Medical Systems", "ge": "GE MEDICAL SYSTEMS"}[vendor]
@@ -148,7 +142,7 @@ def write_dicom(folder: str, scan: Scan, vendor: str = "siemens") -> list[str]:
         uid = generate_uid()
         for iz in range(nz):
             for it in range(nt):
-                ds = _base(pydicom, MR_IMAGE_STORAGE, uid, number, f"pc {role}", manufacturer)
+                ds = _base(MR_IMAGE_STORAGE, uid, number, f"pc {role}", manufacturer)
                 ds.InstanceNumber = 1 + it + nt * iz
                 _plane(ds, scan, iz)
                 if scan.trigger_times_ms is not None:
@@ -180,7 +174,7 @@ def write_dicom(folder: str, scan: Scan, vendor: str = "siemens") -> list[str]:
     return files
 
 
-def _write_enhanced(pydicom, folder, scan: Scan, mag, phase, slope, intercept) -> str:
+def _write_enhanced(folder, scan: Scan, mag, phase, slope, intercept) -> str:
     """One enhanced MR multi-frame file holding both series (standard tags only)."""
     from pydicom.dataset import Dataset
     from pydicom.sequence import Sequence
@@ -192,7 +186,7 @@ def _write_enhanced(pydicom, folder, scan: Scan, mag, phase, slope, intercept) -
             setattr(d, k, v)
         return d
 
-    ds = _base(pydicom, ENHANCED_MR_IMAGE_STORAGE, generate_uid(), 1, "pc enhanced", "SIEMENS")
+    ds = _base(ENHANCED_MR_IMAGE_STORAGE, generate_uid(), 1, "pc enhanced", "SIEMENS")
     ds.ImageType = ["ORIGINAL", "PRIMARY", "VELOCITY", "NONE"]
     units = item(CodeValue="cm/s", CodingSchemeDesignator="UCUM", CodeMeaning="centimeter per second")
     shared = item(
@@ -377,10 +371,7 @@ def write_flow_volume(folder: str, volume: FlowVolume, frame_interval_ms: float 
 
 def _save_nifti(path: str, data: np.ndarray, affine, frame_interval_ms: float | None, scl=None) -> str:
     """One NIfTI file in mm and ms, with the frame interval in pixdim[4] and the scaling ``(slope, inter)``."""
-    try:
-        import nibabel
-    except ImportError:
-        raise InputError("writing NIfTI needs nibabel, an optional dependency: pip install 'wss-nlp[nifti]'") from None
+    nibabel = require_nibabel("writing")
     img = nibabel.Nifti1Image(data, affine)
     if scl is not None:
         img.header.set_slope_inter(*scl)
