@@ -143,15 +143,22 @@ def truncated_error_msq(f: np.ndarray, s: float) -> np.ndarray:
     return s**2 * (g(b) - g(a)) + f**2 * cdf(a) + (1 - f) ** 2 * cdf(-b)
 
 
-def complex_noise_sigma(raw: np.ndarray, mask: np.ndarray) -> float:
+def complex_noise_sigma(raw: np.ndarray, mask: np.ndarray, signal: np.ndarray | None = None) -> float:
     """Per-channel standard deviation of complex Gaussian noise from the background.
 
     The background magnitude is Rayleigh distributed, ``E[|d|^2] = 2 sigma^2``.
+    ``signal`` (raw units, the image's shape) is the predicted noise-free
+    magnitude there, subtracted in power, ``E[|d|^2] = |s|^2 + 2 sigma^2``:
+    a k-space acquisition's point-spread function carries the vessel's
+    signal past the two voxels of background margin (measured: the plain
+    estimate 1.2-1.9 times too high with a Hamming filter and twofold
+    zero-filling).
     """
     _, outer = _plateaus(mask)
     if outer.sum() < MIN_PLATEAU_VOXELS:
         return float("nan")
-    return float(np.sqrt(np.mean(raw[outer] ** 2) / 2))
+    power = raw[outer] ** 2 - (0.0 if signal is None else np.asarray(signal)[outer] ** 2)
+    return float(np.sqrt(max(float(np.mean(power)), 0.0) / 2))
 
 
 def phase_noise_std(raw_at_voxels: np.ndarray, sigma: float, venc: float) -> np.ndarray:
@@ -172,6 +179,7 @@ def velocity_noise(
     weights: np.ndarray,
     venc: float | None,
     source: str = "",
+    signal: np.ndarray | None = None,
 ) -> NoiseEstimate:
     """Noise level ``epsilon`` of the velocity, in the units of the velocity misfit.
 
@@ -193,7 +201,7 @@ def velocity_noise(
     ``sqrt(3) sigma / pi`` (where the cap above sets in).
     """
     where = where_prefix(source)
-    sigma = complex_noise_sigma(raw, mask)
+    sigma = complex_noise_sigma(raw, mask, signal)
     if venc is not None and np.isfinite(sigma):
         su = phase_noise_std(raw.ravel()[voxel_index], sigma, venc)
         eps = float(np.sqrt(np.sum(weights * su**2) / np.sum(weights)))

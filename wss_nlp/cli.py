@@ -6,6 +6,7 @@ Exit codes: 0 success, 1 solver failure, 2 bad input or usage.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import os
 import sys
@@ -20,6 +21,7 @@ from . import outputs
 from . import phantoms
 from . import schema
 from .errors import InputError, WssNlpError
+from .kspace import AcquisitionOptions
 from .reconstruct import ReconstructionOptions, reconstruct
 
 
@@ -108,7 +110,9 @@ def _phantom_cine(args) -> int:
     if args.dicom or args.nifti or args.stack:
         raise InputError("--case womersley writes a time-resolved HDF5 input only (no --dicom, --nifti, --stack)")
     snr = None if args.snr <= 0 else args.snr
-    frames, truth = pulsatile.make_cine(h_mm=args.h, snr=snr, seed=args.seed, frames=args.frames, venc=args.venc)
+    frames, truth = pulsatile.make_cine(
+        h_mm=args.h, snr=snr, seed=args.seed, frames=args.frames, venc=args.venc, psf=_phantom_psf(args)
+    )
     wio.write_frames(args.output, frames, truth.times_ms, truth.period_ms)
     if args.truth:
         try:
@@ -126,6 +130,22 @@ def _phantom_cine(args) -> int:
         tau = truth.tau()
         print(f"wrote {args.truth}: exact WSS over the cycle ({tau.min():.3g} to {tau.max():.3g} Pa)")
     return 0
+
+
+def _phantom_psf(args):
+    """The k-space acquisition a phantom asks for (``--acquisition kspace``), or None for voxel means.
+
+    A phantom has no data to choose a filter from: ``--kspace-filter auto`` acquires without one.
+    """
+    how = schema.from_args(AcquisitionOptions, args)
+    psf = how.psf((args.h, args.h))
+    return psf if psf is None or psf.filter != "auto" else dataclasses.replace(psf, filter="none")
+
+
+def _acquired_text(psf) -> str:
+    if psf is None:
+        return "voxel means"
+    return f"k-space acquisition, {psf.filter} filter, zero-filling {psf.zero_fill[1]:g} x {psf.zero_fill[0]:g}"
 
 
 def cmd_phantom(args) -> int:
@@ -146,11 +166,18 @@ def cmd_phantom(args) -> int:
             seed=args.seed,
             venc=args.venc,
             swirl_per_s=args.swirl,
+            psf=_phantom_psf(args),
         )
         args.case = f"{args.stack} stack ({args.nz} slices, {args.spacing:g} mm apart)"
     else:
         acq, truth = phantoms.make_phantom(
-            args.case, h_mm=args.h, snr=snr, seed=args.seed, venc=args.venc, as_phase=not args.velocity
+            args.case,
+            h_mm=args.h,
+            snr=snr,
+            seed=args.seed,
+            venc=args.venc,
+            as_phase=not args.velocity,
+            psf=_phantom_psf(args),
         )
     peak = max(phantoms.peak_velocity(t.flow) for t in getattr(truth, "slices", [truth]))
     if acq.venc_m_s is not None and acq.venc_m_s < peak:
@@ -170,6 +197,12 @@ def cmd_phantom(args) -> int:
                 acq.voxel_size_mm,
                 acq.origin_mm,
                 slice_spacing_mm=acq.slice_spacing_mm or 1.0,
+                acquired_matrix=None
+                if acq.acquired_voxel_size_mm is None
+                else tuple(  # type: ignore[arg-type]
+                    int(round(n * v / a))
+                    for n, v, a in zip(acq.magnitude.shape[1:], acq.voxel_size_mm, acq.acquired_voxel_size_mm)
+                ),
             )
             if dcm.path:
                 scanner_exports.write_dicom(dcm.path, scan, args.vendor)
@@ -186,7 +219,7 @@ def cmd_phantom(args) -> int:
         nii.commit()
     print(
         f"wrote {args.output}: {args.case}, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
-        f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels"
+        f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels ({_acquired_text(_phantom_psf(args))})"
     )
     if args.truth:
         means = [t.mean_wss for t in getattr(truth, "slices", [truth])]
@@ -689,6 +722,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="DICOM convention of --dicom (default %(default)s)",
     )
     ph.add_argument("--nifti", default=None, metavar="FOLDER", help="also write NIfTI files with JSON sidecars")
+    schema.add_arguments(ph, AcquisitionOptions)  # acquire in k-space: --acquisition kspace --kspace-filter ...
     ph.set_defaults(func=cmd_phantom)
 
     a = sub.add_parser("analyze", help="how alpha and beta were chosen (table and residual curves)")

@@ -307,6 +307,7 @@ _FRAME_SEQUENCES = (
     "CardiacSynchronizationSequence",
     "MRVelocityEncodingSequence",
     "RealWorldValueMappingSequence",
+    "MRFOVGeometrySequence",
 )
 _FRAME_VALUES = {
     "MRImageFrameTypeSequence": ("FrameType", "ComplexImageComponent"),
@@ -328,6 +329,37 @@ def _frame_view(ds, index: int) -> types.SimpleNamespace:
                 if value is not None:
                     setattr(view, attr, value)
     return view
+
+
+def acquired_matrix(ds, item, where: str) -> tuple[int, int] | None:
+    """``(ny, nx)`` k-space samples of the acquisition along the image's columns and rows, or None if not stated.
+
+    Classic images: Acquisition Matrix (0018,1310) ``[frequency rows, frequency columns, phase rows, phase
+    columns]``, of which one frequency and one phase value are non-zero: ``[Nf, 0, 0, Np]`` is phase encoding
+    along the columns (In-plane Phase Encoding Direction COL: ``Np`` samples down a column, ``Nf`` along a
+    row), ``[0, Nf, Np, 0]`` along the rows. Enhanced images: MR FOV/Geometry Sequence (0018,9107) with MR
+    Acquisition Frequency Encoding Steps (0018,9058), MR Acquisition Phase Encoding Steps in-plane (0018,9231)
+    and In-plane Phase Encoding Direction. Partial-Fourier and parallel-imaging details are not modelled.
+    """
+    fov = getattr(item, "MRFOVGeometrySequence", None) if item is not None else None
+    if fov:
+        geo = fov[0]
+        nf = getattr(geo, "MRAcquisitionFrequencyEncodingSteps", None)
+        npe = getattr(geo, "MRAcquisitionPhaseEncodingStepsInPlane", None)
+        direction = str(getattr(geo, "InPlanePhaseEncodingDirection", "")).upper()
+        if not nf or not npe or direction not in ("ROW", "COL", "COLUMN"):
+            return None
+        return (int(npe), int(nf)) if direction.startswith("COL") else (int(nf), int(npe))
+    matrix = getattr(ds, "AcquisitionMatrix", None)
+    if matrix is None or len(matrix) != 4:
+        return None
+    fr, fc, pr, pc = (int(v) for v in matrix)
+    if fr and pc and not (fc or pr):
+        return pc, fr  # phase encoding down the columns
+    if fc and pr and not (fr or pc):
+        return fc, pr
+    log.info("%s: Acquisition Matrix %s has no one frequency and one phase value; acquired size unknown", where, matrix)
+    return None
 
 
 def images_from_dataset(ds, path: str, phase_units: str | None = None) -> list[Image2D]:
@@ -367,6 +399,7 @@ def images_from_dataset(ds, path: str, phase_units: str | None = None) -> list[I
             series_uid=str(getattr(ds, "SeriesInstanceUID", series)),
             vendor=vendor,
             period_ms=period_ms,
+            acquired_matrix=acquired_matrix(ds, item, where),
         )
         if role == "phase":
             holder = item if item is not None else ds

@@ -42,6 +42,7 @@ class Acquisition:
     velocity_inplane: np.ndarray | None = None  # (2, nz, ny, nx): in-plane components x, y in m/s (4D flow)
     resampled_from: str | None = None  # how the images were cut from a volume (wss-nlp import --plane), else None
     noise_venc_m_s: float | None = None  # the components' venc when the velocity combines several (noise model only)
+    acquired_voxel_size_mm: tuple[float, float] | None = None  # (dy, dx) of the k-space resolution; None: the voxels
 
     @property
     def nz(self) -> int:
@@ -155,6 +156,13 @@ class Acquisition:
                 raise InputError(f"{src}: 'phase' must lie in (-pi, pi] radians, found |phase| up to {big:.4g}{hint}")
         if self.noise_venc_m_s is not None and not self.noise_venc_m_s > 0:
             raise InputError(f"{src}: 'noise_venc_m_s' must be > 0 m/s, got {self.noise_venc_m_s}")
+        if self.acquired_voxel_size_mm is not None and not all(
+            a >= v * (1 - 1e-6) for a, v in zip(self.acquired_voxel_size_mm, self.voxel_size_mm)
+        ):
+            raise InputError(
+                f"{src}: 'acquired_voxel_size_mm' {tuple(self.acquired_voxel_size_mm)} must be >= 'voxel_size_mm' "
+                f"{tuple(self.voxel_size_mm)} per axis (the k-space resolution before zero-filling)"
+            )
         if self.viscosity_pa_s is not None and not self.viscosity_pa_s > 0:
             raise InputError(f"{src}: 'viscosity_pa_s' must be > 0, got {self.viscosity_pa_s}")
         check_density(self.density_kg_m3, f"{src}: 'density_kg_m3'")
@@ -300,6 +308,7 @@ def _input_attrs(f, src: str) -> dict:
         "density_kg_m3": _attr(f, "density_kg_m3", src),
         "resampled_from": _text_attr(f, "resampled_from"),
         "noise_venc_m_s": _attr(f, "noise_venc_m_s", src),
+        "acquired_voxel_size_mm": _attr(f, "acquired_voxel_size_mm", src, size=2),
     }
 
 
@@ -449,6 +458,8 @@ def _write_input(f, frames: list[Acquisition], time_axis: bool = False) -> None:
         f.attrs["resampled_from"] = acq.resampled_from
     if acq.noise_venc_m_s is not None:
         f.attrs["noise_venc_m_s"] = float(acq.noise_venc_m_s)
+    if acq.acquired_voxel_size_mm is not None:
+        f.attrs["acquired_voxel_size_mm"] = np.asarray(acq.acquired_voxel_size_mm, dtype=float)
     for k, v in acq.extra_attrs.items():
         f.attrs[k] = v
 

@@ -20,6 +20,7 @@ import numpy as np
 
 import casadi as ca
 
+from . import kspace
 from . import measurement as meas
 from . import radius as rad
 from .errors import InputError, SolverError
@@ -138,6 +139,7 @@ class GeometryProblem:
     r0: float  # box lower bound, mm
     r1: float  # box upper bound, mm
     r_ref: float  # reference (equal-area) radius, mm
+    psf: kspace.PSF | None = None  # None: voxel means (box model); else the k-space point-spread function
 
     def __post_init__(self):
         if not 0 < self.r0 < self.r1:
@@ -175,7 +177,7 @@ class TikhonovNLP:
     penalty: ca.MX  # ||R - R_ref||^2_{H^s}
     reference: np.ndarray  # R_ref coefficients
     weights: np.ndarray  # H^s weights
-    model: meas.AnnulusModel
+    model: meas.AnnulusModel | kspace.KSpaceMagnitudeModel
     gamma: float
     constant_misfit: float  # misfit of the voxels outside the annulus
 
@@ -198,16 +200,26 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions, gamma_sym
     ``|V_i|`` in mm^2 makes the first term the L^2(D) norm of the
     piecewise-constant residual. Voxels outside the annulus of
     :class:`wss_nlp.measurement.AnnulusModel` contribute a constant.
+    With ``problem.psf`` (a k-space acquisition) ``F_i`` is the magnitude of
+    the PSF-filtered lumen indicator on a window about the wall annulus
+    (:func:`wss_nlp.kspace.magnitude_model`), the rest again a constant.
     """
     n = options.n_fourier
-    model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, quad_order(problem, options))
+    q = quad_order(problem, options)
     gamma = effective_gamma(problem, options)
     c = ca.MX.sym("c", rad.n_coefficients(n))
     alpha = ca.MX.sym("alpha")  # a parameter, so one solver serves a whole alpha sequence
+    width = gamma if gamma_symbol is None else gamma_symbol  # a symbol lets callers differentiate in gamma
+    model: meas.AnnulusModel | kspace.KSpaceMagnitudeModel
+    if problem.psf is None:
+        model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
+        predicted = meas.magnitude_model(model, c, width, options.heaviside)
+    else:
+        model = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf)
+        predicted = kspace.magnitude_model(model, c, width, options.heaviside)
     m = problem.magnitude.ravel()
     area = problem.grid.voxel_area
-    width = gamma if gamma_symbol is None else gamma_symbol  # a symbol lets callers differentiate in gamma
-    residual = np.sqrt(area) * (meas.magnitude_model(model, c, width, options.heaviside) - ca.DM(m[model.annulus]))
+    residual = np.sqrt(area) * (predicted - ca.DM(m[model.annulus]))
     ref = np.zeros(rad.n_coefficients(n))
     if options.prior == "area":
         ref[0] = problem.r_ref
@@ -219,6 +231,21 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions, gamma_sym
     outside = np.setdiff1d(np.arange(m.size), np.concatenate([model.annulus, model.inside]))
     const = area * (np.sum((1 - m[model.inside]) ** 2) + np.sum(m[outside] ** 2))
     return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, float(const))
+
+
+def model_image(problem: GeometryProblem, options: GeometryOptions, result: GeometryResult) -> np.ndarray:
+    """The forward model's normalized magnitude of ``result`` as an image (0 outside the fitted voxels)."""
+    q = quad_order(problem, options)
+    out = np.zeros(problem.magnitude.size)
+    if problem.psf is None:
+        model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
+        out[model.inside] = 1.0
+        out[model.annulus] = meas.magnitude_model(model, result.coefficients, result.gamma, options.heaviside)
+    else:
+        ks = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, result.gamma, problem.psf)
+        out[ks.inside] = 1.0
+        out[ks.annulus] = kspace.magnitude_model(ks, result.coefficients, result.gamma, options.heaviside)
+    return out.reshape(problem.magnitude.shape)
 
 
 def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
@@ -246,7 +273,8 @@ def finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
         stats=stats,
         box=(problem.r0, problem.r1),
         box_active=active,
-        options={k: v for k, v in vars(options).items()},
+        # the acquisition model as resolved for this slice (zero-filling may come from the file)
+        options={**vars(options), "acquisition": problem.psf.describe() if problem.psf else {"model": "box"}},
     )
 
 

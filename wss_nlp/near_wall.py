@@ -329,7 +329,12 @@ class LayerQuadrature:
         self.order = int(round(np.sqrt(vox.px.shape[1])))
         self.half_x, self.half_y = cell_half_widths(problem.cell_mm, self.t)
         self.depth = (1 - self.rho) * self.stretch  # mm from the wall, negative outside
-        self.area = np.sum(cell_mean("inside", self.depth, self.half_x, self.half_y), axis=1)
+        inside = cell_mean("inside", self.depth, self.half_x, self.half_y)
+        self.area = np.sum(inside, axis=1)
+        self.averager = problem.averager
+        if self.averager is not None:
+            self.keep = problem.weights > 0
+            self.psf_area = np.where(self.keep, self.averager(inside), 1.0)
 
     def columns(self, basis: EnrichedBasis) -> np.ndarray:
         """``(n_voxels, n_layer)``: voxel means of the layer columns of ``basis``, scaled as in its ``evaluate``.
@@ -349,11 +354,17 @@ class LayerQuadrature:
         f = cell_mean(basis.family, self.depth / ell, self.half_x / ell, self.half_y / ell, moment=moment)
         f = f * basis.column_scale
         rho = np.minimum(self.rho, 1.0)
-        cols = [
-            np.sum(f * rho**m * (np.cos(m * self.t) if kind == "cos" else np.sin(m * self.t)), axis=1)
-            for m, kind in basis.layer_terms
-        ]
-        return np.stack(cols, axis=1) / self.area[:, None]
+        cells = np.stack(
+            [
+                f * rho**m * (np.cos(m * self.t) if kind == "cos" else np.sin(m * self.t))
+                for m, kind in basis.layer_terms
+            ],
+            axis=-1,
+        )
+        if self.averager is None:
+            return cells.sum(axis=1) / self.area[:, None]
+        # k-space: the PSF image of the cell integrals over the image of the cells' lumen parts (as T_i)
+        return np.where(self.keep[:, None], self.averager(cells) / self.psf_area[:, None], 0.0)
 
 
 @dataclass

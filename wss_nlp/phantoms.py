@@ -24,6 +24,7 @@ from importlib import resources
 
 import numpy as np
 
+from . import kspace
 from . import radius as rad
 from .errors import InputError
 from .files import Acquisition
@@ -438,6 +439,7 @@ def acquire(
     venc: float | None = None,
     rho: float = 1.0,
     spacing_mm: float = 0.025,
+    psf: kspace.PSF | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
     """Simulate one phase-contrast slice.
 
@@ -449,6 +451,8 @@ def acquire(
     apart (at most 60 x 60 per voxel). Returns ``|d|``, ``arg d``, the
     noise-free voxel-mean velocity and ``venc`` (default 1.25 max|u|). The
     phase convention is the file format's: ``velocity = venc phase / pi``.
+    With ``psf`` the magnitude and phase come from a k-space acquisition
+    (:func:`wss_nlp.kspace.acquire`; the voxel means stay the truth's).
     """
     n_sub = int(np.clip(np.ceil(grid.h / spacing_mm), 4, 60))
     xc, yc = grid.centers()
@@ -467,9 +471,17 @@ def acquire(
         signal[iy] = (rho * ins * np.exp(1j * np.pi * u / venc)).mean(axis=1)
         cnt = ins.sum(axis=1)
         u_mean[iy] = np.where(cnt > 0, (u * ins).sum(axis=1) / np.maximum(cnt, 1), 0.0)
-    if snr is not None:
+    if psf is not None:
+        signal = kspace.acquire(lambda x, y: lumen_signal(flow, x, y, venc, rho), grid, psf, snr, rng, rho)
+    elif snr is not None:
         signal = complex_noise(signal, rho / snr, rng)
     return np.abs(signal), np.angle(signal), u_mean, venc
+
+
+def lumen_signal(flow: Flow, x, y, venc: float, rho: float = 1.0) -> np.ndarray:
+    """The complex signal ``rho chi_Omega exp(i pi u / venc)`` at physical points (mm)."""
+    ins = flow.lumen.inside(x, y)
+    return rho * ins * np.exp(1j * np.pi * np.where(ins, flow.velocity(x, y), 0.0) / venc)
 
 
 def peak_velocity(flow: Flow) -> float:
@@ -566,6 +578,7 @@ def make_phantom(
     venc: float | None = None,
     offset: bool = True,
     as_phase: bool = True,
+    psf: kspace.PSF | None = None,
 ) -> tuple[Acquisition, Truth]:
     """Seeded phantom factory: ``(acquisition, truth)`` for one slice.
 
@@ -585,6 +598,10 @@ def make_phantom(
         Shift the vessel by a random sub-voxel amount against the grid.
     as_phase : bool
         Store ``phase`` and ``venc_m_s`` (as a scanner does) rather than ``velocity``.
+    psf : wss_nlp.kspace.PSF or None
+        Acquire in k-space with this filter and zero-filling
+        (:func:`wss_nlp.kspace.acquire`) instead of taking voxel means; the
+        file then records ``acquired_voxel_size_mm``.
     """
     if case not in CASES:
         raise InputError(f"unknown phantom case {case!r}; choose from {', '.join(CASES)}")
@@ -597,7 +614,7 @@ def make_phantom(
     origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
     flow.lumen.center = (float(shift[0]), float(shift[1]))
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
-    mag, phase, u_mean, venc = acquire(flow, grid, snr, rng, venc=venc)
+    mag, phase, u_mean, venc = acquire(flow, grid, snr, rng, venc=venc, psf=psf)
     acq = Acquisition(
         magnitude=mag[None],
         phase=phase[None] if as_phase else None,
@@ -608,8 +625,11 @@ def make_phantom(
         viscosity_pa_s=flow.viscosity_pa_s,
         density_kg_m3=getattr(flow, "density_kg_m3", None),
         source=f"phantom:{case}",
+        acquired_voxel_size_mm=None if psf is None else (h_mm * psf.zero_fill[0], h_mm * psf.zero_fill[1]),
     )
     params = {"case": case, "h_mm": h_mm, "snr": -1.0 if snr is None else float(snr), "seed": seed, "venc_m_s": venc}
+    if psf is not None:
+        params["acquisition"] = psf.describe()
     return acq, Truth(name=case, flow=flow, velocity_image=u_mean, parameters=params)
 
 
@@ -739,6 +759,7 @@ def make_stack(
     flow_rate_ml_s: float = 40.0,
     viscosity_pa_s: float = 3.5e-3,
     swirl_per_s: float | None = None,
+    psf: kspace.PSF | None = None,
 ) -> tuple[Acquisition, StackTruth]:
     """Seeded stack factory: ``nz`` slices ``spacing_mm`` apart through a 3D phantom.
 
@@ -758,6 +779,7 @@ def make_stack(
     encoding with fresh noise. For the circular ``tapered`` tube the exact
     WSS vector is then known: axial ``2 mu U / R`` and circumferential
     ``2 mu Omega sqrt(1 + R'(z)^2)`` (docs, "Stacks of slices").
+    ``psf`` acquires every slice in k-space (as :func:`make_phantom`).
     """
     if case not in STACK_CASES:
         raise InputError(f"unknown stack phantom {case!r}; choose from {', '.join(STACK_CASES)}")
@@ -782,7 +804,7 @@ def make_stack(
         venc = 1.25 * max(f.u_max for f in flows)
     mags, phases, truths, inplane = [], [], [], []
     for k, flow in enumerate(flows):
-        mag, phase, u_mean, _ = acquire(flow, grid, snr, rng, venc=venc)
+        mag, phase, u_mean, _ = acquire(flow, grid, snr, rng, venc=venc, psf=psf)
         mags.append(mag)
         phases.append(phase)
         truths.append(Truth(name=f"{case}[{k}]", flow=flow, velocity_image=u_mean))
@@ -790,7 +812,7 @@ def make_stack(
             comps = []
             for which in (0, 1):
                 sw = SwirlComponent(lumen=flow.lumen, viscosity_pa_s=viscosity_pa_s, omega=swirl_per_s, which=which)
-                _, ph, _, _ = acquire(sw, grid, snr, rng, venc=venc)
+                _, ph, _, _ = acquire(sw, grid, snr, rng, venc=venc, psf=psf)
                 comps.append(venc * ph / np.pi)
             inplane.append(comps)
     acq = Acquisition(
@@ -803,6 +825,7 @@ def make_stack(
         viscosity_pa_s=viscosity_pa_s,
         source=f"phantom:{case}-stack",
         velocity_inplane=np.transpose(np.array(inplane), (1, 0, 2, 3)) if inplane else None,
+        acquired_voxel_size_mm=None if psf is None else (h_mm * psf.zero_fill[0], h_mm * psf.zero_fill[1]),
     )
     params = {
         "case": case,

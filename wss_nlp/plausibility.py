@@ -306,6 +306,7 @@ def check_fit(result, raw_magnitude: np.ndarray, venc: float | None) -> tuple[st
                 v.voxel_index,
                 v.voxel_fraction * result.grid.voxel_area,
                 venc,
+                signal=result.lumen.signal,
             ).value
         except WssNlpError:
             return "", float("nan")

@@ -99,9 +99,16 @@ def histogram_peaks(magnitude: np.ndarray, source: str = "") -> Normalization:
     return norm
 
 
-def normalize_magnitude(magnitude: np.ndarray, norm: Normalization) -> np.ndarray:
-    """``T((m_raw - m0)/(m1 - m0))`` with ``T(x) = max(0, min(1, x))`` (Appendix B)."""
-    return np.clip((np.asarray(magnitude, dtype=float) - norm.m0) / (norm.m1 - norm.m0), 0.0, 1.0)
+def normalize_magnitude(magnitude: np.ndarray, norm: Normalization, clip_upper: bool = True) -> np.ndarray:
+    """``T((m_raw - m0)/(m1 - m0))`` with ``T(x) = max(0, min(1, x))`` (Appendix B).
+
+    ``clip_upper=False`` keeps values above 1: with a k-space acquisition
+    (:mod:`wss_nlp.kspace`) the Gibbs overshoot inside the wall is signal the
+    model predicts, not noise.
+    """
+    return np.clip(
+        (np.asarray(magnitude, dtype=float) - norm.m0) / (norm.m1 - norm.m0), 0.0, 1.0 if clip_upper else None
+    )
 
 
 @dataclass
@@ -118,6 +125,9 @@ class Lumen:
     others: list = field(default_factory=list)  # other vessels in view: dicts center_mm, equal_area_radius_mm, voxels
     chosen_by: str = "the largest lumen"
     others_mask: np.ndarray | None = None  # (ny, nx) bool, the regions of the other vessels
+    # predicted noise-free magnitude (raw units) where a k-space PSF carries the vessel's signal into the
+    # background; the noise estimates subtract it (wss_nlp.analysis.complex_noise_sigma). None: box model
+    signal: np.ndarray | None = None
 
     @property
     def noise_mask(self) -> np.ndarray:
@@ -243,12 +253,13 @@ def _label_at(labels: np.ndarray, sizes: np.ndarray, grid: VoxelGrid, point, src
 
 
 def preprocess(
-    magnitude: np.ndarray, grid: VoxelGrid, source: str = "", vessel=None
+    magnitude: np.ndarray, grid: VoxelGrid, source: str = "", vessel=None, clip_upper: bool = True
 ) -> tuple[Normalization, np.ndarray, Lumen]:
     """Appendix B for one slice: histogram peaks, the normalized magnitude and the lumen found in it.
 
-    ``vessel`` (x, y in mm) chooses among several vessels (:func:`find_lumen`).
+    ``vessel`` (x, y in mm) chooses among several vessels (:func:`find_lumen`); ``clip_upper``
+    as for :func:`normalize_magnitude`.
     """
     norm = histogram_peaks(magnitude, source)
-    m = normalize_magnitude(magnitude, norm)
+    m = normalize_magnitude(magnitude, norm, clip_upper)
     return norm, m, find_lumen(m, grid, source, vessel)

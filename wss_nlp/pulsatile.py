@@ -33,6 +33,7 @@ import scipy.special
 
 from .errors import InputError
 from .files import Acquisition
+from .kspace import PSF
 from .measurement import VoxelGrid
 from .phantoms import PER_MM, Circle, Flow, Truth, acquire
 
@@ -147,13 +148,15 @@ def make_cine(
     period_ms: float = 1000.0,
     bulk_harmonics: tuple = CAROTID_HARMONICS,
     venc: float | None = None,
+    psf: PSF | None = None,
 ) -> tuple[list[Acquisition], CineTruth]:
     """Seeded cine phantom: Womersley flow in a rigid pipe, ``frames`` frames evenly over one cycle.
 
     Returns the frames (one :class:`~wss_nlp.files.Acquisition` each, phase data, one venc for the whole
     series: 1.25 x the peak over the cycle unless given) and the truth. The sub-voxel offset is drawn once
     (the vessel does not move); the noise is fresh in every frame. Womersley number of the first harmonic
-    about 15 for the defaults (blood, 10 mm radius, 1 s cycle).
+    about 15 for the defaults (blood, 10 mm radius, 1 s cycle). ``psf`` acquires every frame in k-space
+    (:func:`wss_nlp.phantoms.acquire`).
     """
     if frames < 2:
         raise InputError(f"a cine phantom needs >= 2 frames, got {frames}")
@@ -176,7 +179,7 @@ def make_cine(
     out, truths = [], []
     for t in times:
         frame_flow = flow.at(t / 1000.0)
-        mag, phase, u_mean, _ = acquire(frame_flow, grid, snr, rng, venc=venc)
+        mag, phase, u_mean, _ = acquire(frame_flow, grid, snr, rng, venc=venc, psf=psf)
         out.append(
             Acquisition(
                 magnitude=mag[None],
@@ -187,6 +190,7 @@ def make_cine(
                 viscosity_pa_s=flow.viscosity_pa_s,
                 density_kg_m3=flow.density_kg_m3,
                 source=f"phantom:womersley t = {t:g} ms",
+                acquired_voxel_size_mm=None if psf is None else (h_mm * psf.zero_fill[0], h_mm * psf.zero_fill[1]),
             )
         )
         truths.append(Truth(name="womersley", flow=frame_flow, velocity_image=u_mean, parameters={"t_ms": t}))

@@ -16,9 +16,10 @@ import numpy as np
 
 from . import baselines as bl
 from . import coupled as cpl
+from . import dephasing as deph
 from . import geometry as geo
+from . import kspace
 from . import analysis as an
-from . import measurement as meas
 from . import near_wall as nw
 from . import plausibility as plaus
 from . import preprocess as pp
@@ -36,6 +37,7 @@ from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are
     DEPHASING_BETA_RULES,
     balance_alpha,
     choose_alpha,
+    kspace_filter,
     choose_beta,
     gcv_beta,
     layer_model,
@@ -43,7 +45,7 @@ from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are
 )
 from .errors import InputError, WssNlpError
 from .files import DEFAULT_DENSITY, Acquisition, FailedSlice, check_density
-from .measurement import DEPHASING_THRESHOLD, VoxelGrid
+from .measurement import VoxelGrid
 from .results import SliceResult
 from .schema import option
 
@@ -103,6 +105,7 @@ class ReconstructionOptions:
     baseline: bl.BaselineOptions = field(default_factory=bl.BaselineOptions)  # method "oyre" / "stalder"
     stack: stk.StackOptions = field(default_factory=stk.StackOptions)  # nz > 1: z-regularization (wss_nlp.stack)
     screen: plaus.ScreenOptions = field(default_factory=plaus.ScreenOptions)  # vessel choice, unwrapping
+    acquisition: kspace.AcquisitionOptions = field(default_factory=kspace.AcquisitionOptions)  # box or k-space PSF
     n_phi: int = option(360, "angles at which tau is reported, >= 360", cli="--n-phi", toml=("n_phi",), group=WSS_GROUP)
     viscosity_pa_s: float | None = option(
         None,
@@ -232,6 +235,11 @@ class ReconstructionOptions:
             raise InputError(
                 "the coupled method does not take a near-wall layer yet; use --method decoupled or --near-wall off"
             )
+        if self.method == "coupled" and self.acquisition.model == "kspace":
+            raise InputError(
+                "--method coupled takes the box model only (its velocity misfit is written for voxel means); "
+                "use --method decoupled with --acquisition kspace"
+            )
         if self.alpha_rule not in ALPHA_RULES:
             raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
         if self.dephasing_beta_rule not in DEPHASING_BETA_RULES:
@@ -276,6 +284,7 @@ def reconstruct_slice(
     venc: float | None = None,
     density: tuple[float, str] = (DEFAULT_DENSITY, "default (blood)"),
     noise_venc: float | None = None,
+    psf: kspace.PSF | None = None,
 ) -> SliceResult:
     """Geometry (Sec. 2), velocity (Sec. 3) and WSS (Sec. 4) of one slice.
 
@@ -289,24 +298,28 @@ def reconstruct_slice(
     when there is no ``venc`` (velocity combined from encoded components)
     and the lumen has no plateau to measure it on: the plateau's level is
     preferred, as it also holds what the data's placement adds (resampled
-    images; ``scripts/results/plane_extraction.md``).
+    images; ``scripts/results/plane_extraction.md``). ``psf`` (a k-space
+    acquisition, :mod:`wss_nlp.kspace`) replaces the voxel means of every
+    forward model by the point-spread function.
     """
     where = f"{source} slice {index}"
     t = {}
     t0 = time.perf_counter()
-    norm, m, lumen = pp.preprocess(magnitude, grid, where, options.screen.vessel)
+    norm, m, lumen = pp.preprocess(magnitude, grid, where, options.screen.vessel, clip_upper=psf is None)
     t["preprocess"] = time.perf_counter() - t0
     nvenc = venc
     if venc is None and an.velocity_plateau(lumen.noise_mask).sum() < an.MIN_PLATEAU_VOXELS:
         nvenc = noise_venc
 
     t0 = time.perf_counter()
-    problem = geo.GeometryProblem(grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area)
+    problem = geo.GeometryProblem(grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area, psf=psf)
     g, alpha_choice = choose_alpha(problem, magnitude, norm, lumen, options, where)
+    if psf is not None:  # the PSF's tails reach into the background the noise estimates use
+        lumen = replace(lumen, signal=norm.m1 * geo.model_image(problem, options.geometry, g))
     t["geometry"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity)
+    vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity, psf=psf)
     near, layer_notes = None, []
     if options.velocity.near_wall != "off" and options.method == "coupled":
         layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
@@ -316,33 +329,67 @@ def reconstruct_slice(
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
 
-    factors = None
-    t0 = time.perf_counter()
-    if options.dephasing_correction and venc is not None:
+    factors, notes_deph = None, []
+    passes = 1 if psf is None else KSPACE_PASSES
+    # box: one corrective pass (the factors hardly move after it); k-space: the phase mixing reaches further
+    # than a wall voxel, so passes repeat until the wall stops moving, each judged by how well its state
+    # explains the measured magnitude (a pass that explains it worse is undone)
+    previous, window, explained = None, None, float("inf")
+    for k in range(passes + 1):
+        if not (options.dephasing_correction and venc is not None):
+            break
+        t0 = time.perf_counter()
         # Dephasing is set by the velocity variation inside wall voxels, which a beta tuned for WSS may smooth
         # away (turbulent boundary layers); GCV targets the voxel-level prediction that matters here.
         v_deph = v
         if options.dephasing_beta_rule == "gcv":
             v_deph = vel.solve(vp, replace(options.velocity, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
-        factors = meas.dephasing_factors(vp.voxels, v_deph.evaluate_physical, venc, near_wall=(g.coefficients, grid.h))
+        corr = deph.correct(
+            m, magnitude, norm.m0, velocity_image, vp, v_deph.evaluate_physical, venc, g.coefficients, g.center,
+            grid, psf, window,
+        )  # fmt: skip
+        t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
+        if psf is not None:
+            if k == 0:  # the first geometry assumed no phase: its own model is the one a pass must beat
+                window, explained = corr.window, corr.misfit_still
+            elif corr.misfit_moving >= explained:
+                problem, g, vp, v, near, beta_choice, lumen = previous  # type: ignore[misc]
+                t["dephasing_passes"] = k - 1
+                if k == 1:  # later passes that do not help just end the iteration
+                    notes_deph.append(deph.UNEXPLAINED_NOTE)
+                break
+            else:
+                explained = corr.misfit_moving
+            lumen = replace(lumen, signal=corr.signal)  # the phases' prediction of the background tails
+        factors = corr.factors if factors is None else factors
         t["dephasing_beta"] = float(v_deph.beta)
-    t["dephasing_check"] = time.perf_counter() - t0
-    # a second pass only pays where some wall voxel loses more than 1 % of its magnitude
-    if factors is not None and np.min(factors) < 1 - DEPHASING_THRESHOLD:
+        # a further pass only pays where some wall voxel loses more than 1 % of its magnitude
+        if k == passes or not corr.worth_a_pass:
+            break
         t0 = time.perf_counter()
-        m_corr = m.copy().ravel()
-        m_corr[vp.voxels.index] = np.clip(m_corr[vp.voxels.index] / np.maximum(factors, 1e-3), 0.0, 1.0)
-        problem = geo.GeometryProblem(grid, m_corr.reshape(m.shape), lumen.center, lumen.r0, lumen.r1, lumen.r_area)
+        previous = (problem, g, vp, v, near, beta_choice, lumen)
+        problem = replace(problem, magnitude=corr.magnitude)
         g = geo.solve(problem, geo.with_options(options.geometry, alpha=g.alpha), x0=g.coefficients)
         vp = vel.assemble(
-            grid, velocity_image, g.coefficients, g.center, options.velocity, basis=getattr(vp.basis, "base", vp.basis)
+            grid,
+            corr.velocity,
+            g.coefficients,
+            g.center,
+            options.velocity,
+            basis=getattr(vp.basis, "base", vp.basis),
+            psf=psf,
         )
         if near is not None and near.model != "plain":
             # the first pass's geometry was biased by the dephasing just corrected, and the layer scale with it
             vp, near = layer_model(vp, magnitude, lumen, nvenc, options, where, viscosity_pa_s, density, around=near)
             beta_choice = _beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
-        t["dephasing_pass"] = time.perf_counter() - t0
+        t["dephasing_pass"] = t.get("dephasing_pass", 0.0) + time.perf_counter() - t0
+        t["dephasing_passes"] = k + 1
+        moved = np.max(np.abs(g.radius(rad.uniform_angles(72)) - previous[1].radius(rad.uniform_angles(72))))
+        if psf is None or moved < KSPACE_PASS_TOL * grid.h:
+            break
+    t.setdefault("dephasing_check", 0.0)
 
     info, cres = {}, None
     if options.method == "coupled":
@@ -354,10 +401,10 @@ def reconstruct_slice(
     t0 = time.perf_counter()
     w = wss_mod.from_reconstruction(v, options.n_phi, viscosity_pa_s)
     t["wss"] = time.perf_counter() - t0
-    t["min_dephasing_factor"] = float(np.min(factors)) if factors is not None else 1.0
+    t["min_dephasing_factor"] = float(np.min(factors, initial=1.0)) if factors is not None else 1.0
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
-    notes, sensitivity = layer_notes, None
+    notes, sensitivity = layer_notes + notes_deph, None
     if options.uncertainty:
         t0 = time.perf_counter()
         sensitivity, note = uncertainty(
@@ -384,6 +431,10 @@ def reconstruct_slice(
         notes,
         near_wall=near,
     )
+
+
+#: Largest number of dephasing passes with the k-space model, and the wall movement (in voxels) that ends them.
+KSPACE_PASSES, KSPACE_PASS_TOL = 3, 1e-3
 
 
 def _beta(vp, near, raw, lumen, venc, options: ReconstructionOptions, where: str, viscosity_pa_s: float):
@@ -454,7 +505,7 @@ def uncertainty(
         else:
             s = sens.decoupled(problem, options.geometry, g, vp, options.velocity, v, viscosity_pa_s, w.phi.size)
         sigma_m, sigma_u, how = sens.noise_levels(
-            raw, lumen.noise_mask, norm.m0, norm.m1, s.u_index, venc, options.noise_sigma
+            raw, lumen.noise_mask, norm.m0, norm.m1, s.u_index, venc, options.noise_sigma, lumen.signal
         )
     except WssNlpError as exc:
         return None, f"no uncertainty band: {exc}"
@@ -554,15 +605,23 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
     mu = acq.viscosity(options.viscosity_pa_s)
     density = acq.density(options.density_kg_m3)
     acq, screens = plaus.screen(acq, options.screen)
+    psf = options.acquisition.psf(acq.voxel_size_mm, acq.acquired_voxel_size_mm, f"{acq.source}: ")
+    if psf is not None and options.method == "coupled":  # --acquisition auto on a file with acquired_voxel_size_mm
+        raise InputError(
+            f"{acq.source}: the file states its acquired resolution, so --acquisition auto chose the k-space model, "
+            "which --method coupled does not take yet; pass --acquisition box or --method decoupled"
+        )
+    if psf is not None and psf.filter == "auto":
+        psf = kspace_filter(acq.magnitude, acq.grid, psf, options, f"{acq.source}: ")
     out = Results()
     if stack_applies(acq, options):
-        results, info = stk.reconstruct_stack(acq, options, options.stack, progress)
+        results, info = stk.reconstruct_stack(acq, options, options.stack, progress, psf)
         out.extend(
             r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
             for k, r in enumerate(results)
         )
         out.stack = info
-        return _with_screens(out, screens, acq)
+        return _with_screens(out, screens, acq, psf)
     velocity = acq.velocity_images()
     bad = set(acq.nonfinite_slices())
     for iz in range(acq.nz):
@@ -595,12 +654,13 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
                     acq.venc_m_s,
                     density,
                     noise_venc=acq.noise_venc_m_s,
+                    psf=psf,
                 )
         except WssNlpError as exc:
             if acq.nz == 1:
                 raise
             res = FailedSlice(iz, str(exc), options.n_phi, options.geometry.n_fourier)
-        _with_screens([res], screens, acq)
+        _with_screens([res], screens, acq, psf)
         out.append(res)
         if progress is not None:
             progress(iz + 1, acq.nz, res)
@@ -608,6 +668,13 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
         raise WssNlpError(f"{acq.source}: no slice could be reconstructed: " + "; ".join(r.reason for r in out))
     return out
 
+
+#: Acquired / reported voxel size above which a file counts as zero-filled (the box model then misdescribes it).
+ZERO_FILL_TOLERANCE = 1.05
+ZERO_FILLED_NOTE = (
+    "SUSPECT: the file states an acquired resolution of {acquired} mm for {voxel} mm voxels (zero-filled "
+    "k-space), which the box model does not describe; use --acquisition kspace (or auto)"
+)
 
 #: What every slice of an input cut from a volume (``resampled_from``) says.
 RESAMPLED_NOTE = (
@@ -621,11 +688,29 @@ RESAMPLED_NOTE = (
 RESAMPLED_MIN_RADIUS_VOXELS = 5.0
 
 
-def _with_screens(results, screens: dict, acq: Acquisition):
-    """Attach what the plausibility screen found, and the fit's consistency check, to each slice."""
+def _with_screens(results, screens: dict, acq: Acquisition, psf=None):
+    """Attach what the plausibility screen found, and the fit's consistency check, to each slice.
+
+    Also what the acquisition model implies: a file that states zero-filling (``acquired_voxel_size_mm``
+    above the voxel size) reconstructed with the box model is SUSPECT (the model does not describe such
+    images: ``scripts/results/kspace.md``), and an ambiguous k-space filter choice is said.
+    """
+    acquired = acq.acquired_voxel_size_mm
+    zero_filled = acquired is not None and any(a > v * ZERO_FILL_TOLERANCE for a, v in zip(acquired, acq.voxel_size_mm))
     for r in results:
         if isinstance(r, FailedSlice):
             continue
+        box_on_kspace = zero_filled and psf is None and isinstance(r, SliceResult)
+        note = ZERO_FILLED_NOTE.format(acquired=acquired, voxel=acq.voxel_size_mm)
+        if box_on_kspace and note not in r.notes:
+            r.notes.append(note)
+        choice = None if psf is None else psf.choice
+        if choice and choice["ambiguous"] and isinstance(r, SliceResult):
+            r.notes.append(
+                f"k-space filter chosen from the data: {choice['chosen']}, but {choice['runner_up']} fits the "
+                f"magnitude almost as well ({100 * choice['margin']:.1f} % more misfit); pass --kspace-filter if "
+                "you know the scanner's"
+            )
         found = screens.get(r.index)
         if found is not None:
             r.notes.extend(n for n in found.notes if n not in r.notes)
@@ -644,7 +729,7 @@ def _with_screens(results, screens: dict, acq: Acquisition):
             warning, ratio = plaus.check_fit(r, acq.magnitude[r.index], acq.venc_m_s)
             unresolved = r.near_wall is not None and bool(np.isfinite(r.near_wall.unresolved_mm))
             unbalanced = r.beta_choice is not None and r.beta_choice.rule == "balance" and not r.beta_choice.satisfied
-            suspect = bool(warning) or unresolved or unbalanced or coarse
+            suspect = bool(warning) or unresolved or unbalanced or coarse or box_on_kspace
             r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect)
             if warning:
                 r.notes.append(warning)

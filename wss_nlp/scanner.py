@@ -70,6 +70,7 @@ class Image2D:
     series_uid: str = ""  # what tells two series apart
     vendor: str = ""
     period_ms: float | None = None
+    acquired_matrix: tuple[int, int] | None = None  # (ny, nx) k-space samples, from the header if it says
 
 
 @dataclass
@@ -99,6 +100,7 @@ class Imported:
     viscosity_pa_s: float | None
     density_kg_m3: float | None
     record: dict = field(default_factory=dict)
+    acquired_voxel_size_mm: tuple[float, float] | None = None
 
     @property
     def nt(self) -> int:
@@ -120,6 +122,7 @@ class Imported:
             source=source,
             resampled_from=self.resampled_from,
             noise_venc_m_s=self.record.get("component_venc_m_s"),
+            acquired_voxel_size_mm=self.acquired_voxel_size_mm,
         )
 
     @property
@@ -300,6 +303,7 @@ def assemble(images: list[Image2D], options: ImportOptions, record: dict) -> Imp
     )
     if component_venc is not None:
         record["component_venc_m_s"] = component_venc
+    acquired = _acquired_voxel(images, record)
     return Imported(
         magnitude=magnitude,
         phase=phase,
@@ -314,7 +318,33 @@ def assemble(images: list[Image2D], options: ImportOptions, record: dict) -> Imp
         viscosity_pa_s=options.viscosity_pa_s,
         density_kg_m3=options.density_kg_m3,
         record=record,
+        acquired_voxel_size_mm=acquired,
     )
+
+
+def _acquired_voxel(images: list[Image2D], record: dict) -> tuple[float, float] | None:
+    """``(dy, dx)`` of the k-space resolution from the headers' acquisition matrix, if every image states the same.
+
+    ``reconstructed size x spacing / acquired samples`` per axis; recorded in ``record`` either way. A matrix
+    larger than the image (the scanner reduced the resolution) is recorded but not used.
+    """
+    found = {im.acquired_matrix for im in images}
+    if found == {None}:
+        record["acquired_matrix"] = "not stated in the headers"
+        return None
+    if len(found) > 1:
+        record["acquired_matrix"] = f"differs between images ({sorted(map(str, found))}); not used"
+        log.warning("the images state different acquisition matrices (%s); no acquired_voxel_size_mm", found)
+        return None
+    ny_acq, nx_acq = images[0].acquired_matrix  # type: ignore[misc]
+    ny, nx = images[0].pixels.shape
+    dy, dx = images[0].spacing
+    size = (ny * dy / ny_acq, nx * dx / nx_acq)
+    record["acquired_matrix"] = [ny_acq, nx_acq]
+    if size[0] < dy * (1 - 1e-6) or size[1] < dx * (1 - 1e-6):
+        record["acquired_matrix"] = f"{[ny_acq, nx_acq]} exceeds the image's {[ny, nx]}; not used"
+        return None
+    return (float(size[0]), float(size[1]))
 
 
 def _trigger_times(grid: dict, nt: int, nz: int) -> np.ndarray | None:

@@ -42,6 +42,7 @@ class Scan:
     col_dir: tuple[float, float, float] = (0.0, 1.0, 0.0)
     trigger_times_ms: tuple[float, ...] | None = None
     cardiac_period_ms: float | None = None
+    acquired_matrix: tuple[int, int] | None = None  # (ny, nx) k-space samples (phase encoding down the columns)
 
     def __post_init__(self):
         self.magnitude = np.asarray(self.magnitude, dtype=float)
@@ -99,6 +100,9 @@ def _plane(ds, scan: Scan, iz: int) -> None:
     ds.ImageOrientationPatient = [float(v) for v in (*scan.row_dir, *scan.col_dir)]
     ds.PixelSpacing = [float(scan.voxel_size_mm[0]), float(scan.voxel_size_mm[1])]
     ds.SliceThickness = float(scan.slice_spacing_mm)
+    if scan.acquired_matrix is not None:  # [frequency rows, frequency columns, phase rows, phase columns]
+        ds.AcquisitionMatrix = [int(scan.acquired_matrix[1]), 0, 0, int(scan.acquired_matrix[0])]
+        ds.InPlanePhaseEncodingDirection = "COL"
 
 
 def stored_magnitude(scan: Scan) -> tuple[np.ndarray, float]:
@@ -242,6 +246,16 @@ def _write_enhanced(folder, scan: Scan, mag, phase, slope, intercept) -> str:
                 else:
                     stored.append(mag[it, iz])
                 frames.append(fg)
+    if scan.acquired_matrix is not None:
+        shared.MRFOVGeometrySequence = Sequence(
+            [
+                item(
+                    InPlanePhaseEncodingDirection="COLUMN",
+                    MRAcquisitionFrequencyEncodingSteps=int(scan.acquired_matrix[1]),
+                    MRAcquisitionPhaseEncodingStepsInPlane=int(scan.acquired_matrix[0]),
+                )
+            ]
+        )
     ds.SharedFunctionalGroupsSequence = Sequence([shared])
     ds.PerFrameFunctionalGroupsSequence = Sequence(frames)
     ds.NumberOfFrames = len(frames)

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import functools
 import time
+from typing import Any
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -44,6 +45,7 @@ import casadi as ca
 
 from . import coupled as cpl
 from . import geometry as geo
+from . import kspace
 from . import measurement as meas
 from . import near_wall as nw
 from . import radius as rad
@@ -83,19 +85,38 @@ class Sensitivity:
     mean_std_velocity: float = float("nan")
     noise: dict = field(default_factory=dict)
     seconds: float = 0.0
+    correlation: tuple | None = None  # (R_y, R_x, image shape): correlated (k-space) noise; None: independent
 
     @property
     def names(self) -> tuple[str, ...]:
         return SCALARS
 
     def band(self, sigma_m: float, sigma_u: np.ndarray) -> tuple[np.ndarray, float, float, float]:
-        """``(tau_std, mean_std, mean_std from m, mean_std from u)`` for per-voxel noise levels."""
+        """``(tau_std, mean_std, mean_std from m, mean_std from u)`` for per-voxel noise levels.
+
+        Independent voxels (box model): ``sum_i g_i^2 sigma_i^2``. With :attr:`correlation` (a k-space
+        acquisition: filtered, zero-filled noise) ``g^T D R D g``, ``R = R_y (x) R_x`` the separable noise
+        correlation of :func:`wss_nlp.kspace.noise_correlation` and ``D`` the per-voxel standard deviations.
+        """
         sigma_u = np.broadcast_to(np.asarray(sigma_u, float), self.u_index.shape)
-        var_m = sigma_m**2 * np.sum(self.d_tau_d_m**2, axis=1)
-        var_u = np.sum((self.d_tau_d_u * sigma_u) ** 2, axis=1)
-        mean_m = sigma_m**2 * float(np.sum(self.d_mean_d_m**2))
-        mean_u = float(np.sum((self.d_mean_d_u * sigma_u) ** 2))
+        square = self._square_sum
+        var_m = sigma_m**2 * square(self.d_tau_d_m, self.m_index)
+        var_u = square(self.d_tau_d_u * sigma_u, self.u_index)
+        mean_m = sigma_m**2 * float(square(self.d_mean_d_m[None, :], self.m_index)[0])
+        mean_u = float(square((self.d_mean_d_u * sigma_u)[None, :], self.u_index)[0])
         return np.sqrt(var_m + var_u), float(np.sqrt(mean_m + mean_u)), float(np.sqrt(mean_m)), float(np.sqrt(mean_u))
+
+    def _square_sum(self, g: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """Per row of ``g`` (values at the voxels ``index``): ``g R g^T`` (``R = I`` without a correlation)."""
+        if self.correlation is None:
+            return np.sum(g**2, axis=1)
+        ry, rx, (_, nx) = self.correlation
+        iy, ix = np.divmod(np.asarray(index), nx)
+        rows, cols = np.unique(iy), np.unique(ix)
+        image = np.zeros((g.shape[0], rows.size, cols.size))
+        image[:, np.searchsorted(rows, iy), np.searchsorted(cols, ix)] = g
+        smoothed = np.einsum("ab,nbc,dc->nad", ry[np.ix_(rows, rows)], image, rx[np.ix_(cols, cols)])
+        return np.einsum("nad,nad->n", image, smoothed)
 
 
 # --------------------------------------------------------------------------- symbolic pieces
@@ -194,6 +215,44 @@ def geometry_parameter_derivatives(
     return hmat, dgrad, model.annulus
 
 
+def kspace_parameter_derivatives(
+    problem: geo.GeometryProblem, options: geo.GeometryOptions, coefficients: np.ndarray, alpha: float, gamma: float
+):
+    """:func:`geometry_parameter_derivatives` for the k-space magnitude model (:func:`wss_nlp.kspace.magnitude_model`).
+
+    Notes
+    -----
+    The same quantities, ``H`` and ``d grad / d [m_window; alpha; gamma; c_x; c_y]``, from one CasADi graph
+    of the functional with ``gamma`` and a centre shift as symbols: ``H`` and the mixed derivatives by
+    CasADi's exact (forward-over-reverse) differentiation, ``d grad / d m = -2 sqrt(|V|) J^T`` with ``J``
+    the residual's Jacobian. Returns ``(H, dgrad, window voxel indices)``.
+    """
+    n = options.n_fourier
+    q = geo.quad_order(problem, options)
+    if problem.psf is None:
+        raise InputError("kspace_parameter_derivatives: the problem has no k-space PSF")
+    model = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf)
+    c, g, shift = ca.MX.sym("c", rad.n_coefficients(n)), ca.MX.sym("gamma"), ca.MX.sym("shift", 2)
+    root_area = np.sqrt(problem.grid.voxel_area)
+    data = problem.magnitude.ravel()[model.annulus]
+    res = root_area * (kspace.magnitude_model(model, c, g, options.heaviside, shift=shift) - ca.DM(data))
+    w = rad.sobolev_weights(n, options.sobolev_s)
+    ref = np.zeros(c.numel())
+    if options.prior == "area":
+        ref[0] = problem.r_ref
+    dc = c - ca.DM(ref)
+    grad = ca.gradient(ca.sumsqr(res) + alpha * ca.dot(ca.DM(w) * dc, dc), c)
+    outputs = [ca.jacobian(grad, c), ca.jacobian(res, c), ca.jacobian(grad, ca.vertcat(g, shift))]
+    fun = ca.Function("kspace_kkt", [c, g, shift], outputs)
+    hmat, jac, mixed = (np.asarray(a) for a in fun(coefficients, gamma, np.zeros(2)))
+    n_a = model.annulus.size
+    dgrad = np.zeros((c.numel(), n_a + 4))
+    dgrad[:, :n_a] = -2 * root_area * jac.T
+    dgrad[:, n_a] = 2 * w * (coefficients - ref)
+    dgrad[:, n_a + 1 :] = mixed
+    return 0.5 * (hmat + hmat.T), dgrad, model.annulus
+
+
 def bordered(hmat: np.ndarray, g_active: np.ndarray) -> np.ndarray:
     """The KKT matrix ``[[H, G_A^T], [G_A, 0]]`` of a problem with linear active constraints ``G_A x = const``."""
     n, k = hmat.shape[0], g_active.shape[0]
@@ -236,7 +295,8 @@ def geometry_kkt(
     is where IPOPT's multipliers are nonzero (run with ``clip_inactive_lam``,
     so inactive ones are exactly zero). Returns ``(dc/dp, annulus indices)``.
     """
-    hmat, dgrad, annulus = geometry_parameter_derivatives(problem, options, coefficients, alpha, gamma)
+    derivatives = geometry_parameter_derivatives if problem.psf is None else kspace_parameter_derivatives
+    hmat, dgrad, annulus = derivatives(problem, options, coefficients, alpha, gamma)
     box = rad.design_matrix(options.box_angles(), options.n_fourier)
     return solve_kkt(bordered(hmat, box[lam_box != 0]), dgrad, "geometry sensitivity"), annulus
 
@@ -298,7 +358,7 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     is_cos = np.array([kind == "cos" for _, kind in basis.angular_terms()])[:, None]
     ang = np.where(is_cos, np.cos(orders * th0), np.sin(orders * th0))
     dang = np.where(is_cos, -orders * np.sin(orders * th0), orders * np.cos(orders * th0))
-    avg = vox.mean_matrix()
+    avg = _averaging(vp)
     op = np.asarray(avg @ (ang * radial).T) @ basis.transform
     if polynomial is not basis:  # the layer's voxel means as the fit used them (exact across each cell)
         op[:, polynomial.size :] = vp.operator[:, polynomial.size :]
@@ -311,12 +371,20 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     )
 
 
+def _averaging(vp: vel.VelocityProblem):
+    """Voxel values from inside-point values: the box model's means, or the k-space PSF weights."""
+    if vp.averager is None:
+        return vp.voxels.mean_matrix()
+    signal = vp.averager(vp.voxels.inside.astype(float))
+    return kspace.AveragingOperator(vp.averager, vp.voxels.inside, signal, vp.weights > 0)
+
+
 @dataclass
 class OperatorDerivative:
     """``T~_h`` and the pieces of its derivative: ``dT_k = avg diag(drho_k) A_rho + avg diag(dt_k) A_t``."""
 
     op: np.ndarray  # (n_vox, n_basis)
-    avg: scipy.sparse.csr_matrix  # (n_vox, n_points): voxel means over the inside points
+    avg: Any  # (n_vox, n_points): voxel means over the inside points (sparse), or kspace.AveragingOperator
     a_rho: np.ndarray  # (n_points, n_basis): d basis / d rho at the points
     a_theta: np.ndarray  # (n_points, n_basis): d basis / d t
     drho: np.ndarray  # (n_points, n_dir)
@@ -472,6 +540,14 @@ def decoupled(
     out = _wss_sensitivity(
         vp.basis, vopt.eta, viscosity_pa_s, n_phi, c_r0, ctr, cv0, r_in, dr_in, dcr, dcv, annulus, vp.voxels.index
     )
+    if problem.psf is not None:
+        (ny, nx), psf = problem.grid.shape, problem.psf
+        out.correlation = (
+            kspace.noise_correlation(ny, psf.zero_fill[0], psf.filter),
+            kspace.noise_correlation(nx, psf.zero_fill[1], psf.filter),
+            (ny, nx),
+        )
+        out.noise["correlation"] = f"k-space noise: {psf.filter} filter, zero-filling {list(psf.zero_fill)}"
     out.seconds = time.perf_counter() - t_start
     out.noise["active_box_constraints"] = int(np.count_nonzero(anchor.box_multipliers))
     return out
@@ -639,6 +715,7 @@ def noise_levels(
     u_index: np.ndarray,
     venc: float | None,
     sigma: float | None = None,
+    signal: np.ndarray | None = None,
 ) -> tuple[float, np.ndarray, str]:
     """Per-voxel noise ``(sigma_m, sigma_u[u_index], how)`` from the complex noise level (Appendix B).
 
@@ -647,7 +724,8 @@ def noise_levels(
     """
     how = "given"
     if sigma is None:
-        sigma, how = complex_noise_sigma(raw_magnitude, mask), "Rayleigh background"
+        sigma = complex_noise_sigma(raw_magnitude, mask, signal)
+        how = "Rayleigh background" + (", predicted PSF tails subtracted" if signal is not None else "")
     if not np.isfinite(sigma) or sigma <= 0:
         raise NoiseEstimationError(
             "cannot estimate the complex noise level for the uncertainty band (no background "

@@ -48,8 +48,8 @@ import scipy.linalg
 import casadi as ca
 
 from . import analysis as an
+from . import dephasing as deph
 from . import geometry as geo
-from . import measurement as meas
 from . import preprocess as pp
 from . import radius as rad
 from . import velocity as vel
@@ -58,7 +58,6 @@ from .errors import InputError, SolverError, WssNlpError
 from .choice import choose_beta, gcv_beta
 from .coupled import sparse_dm
 from .files import Acquisition
-from .measurement import DEPHASING_THRESHOLD
 from .results import SliceResult
 from .schema import option
 from .solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
@@ -403,12 +402,12 @@ def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float,
 
 
 # ------------------------------------------------------------------ driver
-def _prepare(acq: Acquisition, iz: int, magnitude, velocity, finite: bool, vessel=None) -> _Slice:
+def _prepare(acq: Acquisition, iz: int, magnitude, velocity, finite: bool, vessel=None, psf=None) -> _Slice:
     where = f"{acq.source} slice {iz}"
     if not finite:
         raise InputError(f"{where}: the images contain NaN or Inf")
-    norm, m, lumen = pp.preprocess(magnitude, acq.grid, where, vessel)
-    problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area)
+    norm, m, lumen = pp.preprocess(magnitude, acq.grid, where, vessel, clip_upper=psf is None)
+    problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area, psf=psf)
     return _Slice(iz, problem, norm, lumen, m, np.asarray(velocity, dtype=float))
 
 
@@ -461,7 +460,7 @@ def segments_of(ok: list[int]) -> list[list[int]]:
     return out
 
 
-def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = None, progress=None):
+def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = None, progress=None, psf=None):
     """Reconstruct all slices of a stack with z-regularization.
 
     Parameters
@@ -470,6 +469,8 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     options : :class:`wss_nlp.reconstruct.ReconstructionOptions` (alpha, beta, bases, ...).
     stack : StackOptions
     progress : callable ``(done, total, slice_result)`` or None, called per finished slice.
+    psf : wss_nlp.kspace.PSF or None
+        The k-space acquisition model of every slice (None: voxel means).
 
     Returns
     -------
@@ -495,7 +496,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     bad = set(acq.nonfinite_slices())  # any image of the slice, in-plane velocity components included
     for iz in range(acq.nz):
         try:
-            prepared[iz] = _prepare(acq, iz, acq.magnitude[iz], velocity[iz], iz not in bad, options.screen.vessel)
+            prepared[iz] = _prepare(acq, iz, acq.magnitude[iz], velocity[iz], iz not in bad, options.screen.vessel, psf)
         except WssNlpError as exc:
             failed[iz] = str(exc)
     if not prepared:
@@ -546,7 +547,21 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             )
         ] * len(vps)
 
-    def solve_segment(seg, problems, x0, strategy):
+    def predict_dephasing(seg, vps, geoms, windows=None):
+        """Each slice's :class:`wss_nlp.dephasing.Correction` from a GCV-beta velocity (windows: k-space misfits)."""
+        out = []
+        for i, (k, vp) in enumerate(zip(seg, vps)):
+            v_deph = vel.solve(vp, replace(vopt, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
+            p, g = prepared[k], geoms[i]
+            out.append(
+                deph.correct(
+                    p.magnitude, acq.magnitude[k], p.norm.m0, p.velocity_image, vp, v_deph.evaluate_physical,
+                    acq.venc_m_s, g.coefficients, g.center, acq.grid, psf, None if windows is None else windows[i],
+                )
+            )  # fmt: skip
+        return out
+
+    def solve_segment(seg, problems, x0, strategy, velocity_images=None):
         """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats, beta choices, betas)``."""
         t0 = time.perf_counter()
         sg = [SliceGeometry(pb, gopt, kappa) for pb in problems]
@@ -567,15 +582,17 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
         geoms = [
             geo.finish(pb, gopt, sl.nlp, coef[i], gstats[i], gopt.alpha) for i, (pb, sl) in enumerate(zip(problems, sg))
         ]
+        images = velocity_images or [prepared[k].velocity_image for k in seg]
         vps = [
-            vel.assemble(acq.grid, prepared[k].velocity_image, g.coefficients, g.center, vopt, basis=basis)
-            for k, g in zip(seg, geoms)
+            vel.assemble(acq.grid, u, g.coefficients, g.center, vopt, basis=basis, psf=psf)
+            for u, g in zip(images, geoms)
         ]
         choices, betas = choose_betas(seg, vps)
         vcoef, vstats = fit_velocity(vps, strategy, betas)
         t["velocity"] = t.get("velocity", 0.0) + time.perf_counter() - t0
         return coef, geoms, vps, vcoef, vstats, choices, betas
 
+    unexplained: list[int] = []  # slices whose k-space dephasing prediction was rejected
     for seg in segs:
         strategy = stack.strategy
         if strategy == "auto":
@@ -587,28 +604,25 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
         coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(seg, problems, x0, strategy)
         factors: list[Any] = [None] * len(seg)
         if options.dephasing_correction and acq.venc_m_s is not None:
-            # as reconstruct_slice: predict wall-voxel signal loss from a GCV-beta velocity, then one more pass
+            # as reconstruct_slice (one pass): predict the signal loss from a GCV-beta velocity, then solve again
             t0 = time.perf_counter()
-            for i, vp in enumerate(vps):
-                v_deph = vel.solve(vp, replace(vopt, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
-                factors[i] = meas.dephasing_factors(
-                    vp.voxels, v_deph.evaluate_physical, acq.venc_m_s, near_wall=(geoms[i].coefficients, acq.grid.h)
-                )
+            corrections = predict_dephasing(seg, vps, geoms)
+            factors = [c.factors for c in corrections]
             t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
-            if min(float(np.min(f)) for f in factors) < 1 - DEPHASING_THRESHOLD:
+            if any(c.worth_a_pass for c in corrections):
                 logger.info(f"slices {seg[0]}-{seg[-1]}: second pass on dephasing-corrected magnitudes")
-                corrected = []
-                for i, (k, vp) in enumerate(zip(seg, vps)):
-                    m_corr = prepared[k].magnitude.copy().ravel()
-                    m_corr[vp.voxels.index] = np.clip(m_corr[vp.voxels.index] / np.maximum(factors[i], 1e-3), 0, 1)
-                    pb = problems[i]
-                    corrected.append(
-                        geo.GeometryProblem(
-                            pb.grid, m_corr.reshape(pb.magnitude.shape), pb.center, pb.r0, pb.r1, pb.r_ref
-                        )
-                    )
-                coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(seg, corrected, coef, strategy)
+                before = (coef, geoms, vps, vcoef, vstats, choices, betas)
+                corrected = [replace(pb, magnitude=c.magnitude) for pb, c in zip(problems, corrections)]
+                coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(
+                    seg, corrected, coef, strategy, [c.velocity for c in corrections]
+                )
                 info.dephasing_pass = True
+                if psf is not None:  # judged as in reconstruct_slice: undone if it explains the magnitude worse
+                    after = predict_dephasing(seg, vps, geoms, [c.window for c in corrections])
+                    if any(a.misfit_moving >= c.misfit_still for a, c in zip(after, corrections)):
+                        coef, geoms, vps, vcoef, vstats, choices, betas = before
+                        unexplained.extend(seg)
+                        info.dephasing_pass = False
         planar = None
         if acq.velocity_inplane is not None:
             t0 = time.perf_counter()
@@ -643,8 +657,8 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             if not np.all(np.isfinite(w.tau)):
                 raise SolverError(f"{acq.source} slice {k}: wall shear stress is not finite")
             p = prepared[k]
-            sec = {"min_dephasing_factor": float(np.min(factors[i])) if factors[i] is not None else 1.0}
-            notes = []
+            sec = {"min_dephasing_factor": float(np.min(factors[i], initial=1.0)) if factors[i] is not None else 1.0}
+            notes = [deph.UNEXPLAINED_NOTE] if k in unexplained else []
             if betas[i] != choices[i].chosen:
                 notes.append(
                     f"stack: beta = {betas[i]:.3g}, the geometric median of the {choices[i].rule} choices "

@@ -23,6 +23,7 @@ import numpy as np
 
 import casadi as ca
 
+from . import kspace
 from . import measurement as meas
 from . import near_wall as nw
 from . import radius as rad
@@ -32,6 +33,10 @@ from .schema import option
 from .solver import SolverStats, ipopt_options, run_nlpsol
 from .tikhonov import LinearTikhonov
 from .velocity_basis import BASES, make_basis
+
+
+#: Smallest modeled signal (K * chi)_i, relative to the lumen's, of a voxel in the k-space velocity fit.
+MIN_KSPACE_SIGNAL = 0.02
 
 
 @dataclass(frozen=True)
@@ -180,6 +185,7 @@ class VelocityProblem:
     disk_map: DiskMap
     basis: Any  # a basis of wss_nlp.velocity_basis (or wss_nlp.near_wall.EnrichedBasis)
     cell_mm: tuple | None = None  # (dx, dy) of one quadrature cell (the near-wall layer integrates across it)
+    averager: Any = None  # k-space acquisition: the PSF image of point values (wss_nlp.kspace.Averager); None: box
 
     @property
     def area(self) -> float:
@@ -234,7 +240,13 @@ class VelocityResult:
 
 
 def assemble(
-    grid: meas.VoxelGrid, velocity_image: np.ndarray, coefficients, center, options: VelocityOptions, basis=None
+    grid: meas.VoxelGrid,
+    velocity_image: np.ndarray,
+    coefficients,
+    center,
+    options: VelocityOptions,
+    basis=None,
+    psf: kspace.PSF | None = None,
 ) -> VelocityProblem:
     """Assemble ``T~_h``, the partial volumes and the data on the voxels meeting the lumen.
 
@@ -242,6 +254,14 @@ def assemble(
     -----
     ``T~_h(v)_i = (1/|V_i cap Omega|) int_{V_i cap Omega} v(phi_R^{-1}(x)) dx``
     by the midpoint rule on the sub-voxel points inside the lumen.
+
+    With a k-space ``psf`` the voxel phase is, to first order in the phase
+    variation, the signal-weighted mean ``T_i v = (K * chi v)_i / (K * chi)_i``
+    (:class:`wss_nlp.kspace.Averager`; ``K`` the PSF, ``chi`` the lumen) and
+    the weight ``|V_i| (K * chi)_i`` replaces ``|V_i cap Omega|`` (the same
+    formulas with the box PSF). Voxels whose modeled signal
+    ``(K * chi)_i`` is below :data:`MIN_KSPACE_SIGNAL` carry no reliable
+    phase and are left out.
     """
     basis = options.make_basis() if basis is None else basis
     disk_map = options.make_map(coefficients, center)
@@ -253,10 +273,21 @@ def assemble(
     rho, t = disk_map.inverse(px, py)
     avg = vox.mean_matrix()
     rho = np.minimum(rho, 1.0)
-    operator = basis.evaluate(rho * np.cos(t), rho * np.sin(t), average=avg)
+    averager = None
+    if psf is None:
+        operator = basis.evaluate(rho * np.cos(t), rho * np.sin(t), average=avg)
+        weights = vox.fraction * grid.voxel_area
+    else:
+        averager = kspace.Averager(grid, vox.index, q, psf)
+        signal = averager(vox.inside.astype(float))
+        keep = signal >= MIN_KSPACE_SIGNAL
+        values = np.zeros(vox.inside.shape + (basis.size,))
+        values[vox.inside] = basis.evaluate(rho * np.cos(t), rho * np.sin(t))
+        operator = np.where(keep[:, None], averager(values) / np.where(keep, signal, 1.0)[:, None], 0.0)
+        weights = np.where(keep, signal, 0.0) * grid.voxel_area  # weight 0: the voxel's points still radiate
     return VelocityProblem(
         operator=operator,
-        weights=vox.fraction * grid.voxel_area,
+        weights=weights,
         data=np.asarray(velocity_image, dtype=float).ravel()[vox.index],
         data_image=np.asarray(velocity_image, dtype=float),
         gram=basis.laplacian_gram(options.laplacian_power),
@@ -264,6 +295,7 @@ def assemble(
         disk_map=disk_map,
         basis=basis,
         cell_mm=(grid.dx / q, grid.dy / q),
+        averager=averager,
     )
 
 

@@ -1,0 +1,67 @@
+#!/usr/bin/env python
+"""Cost of the k-space measurement model against the box model on the same slice, in one run.
+
+Issue 14's target: a slice within 2x the box model's time. The laminar phantom acquired in k-space
+(Hamming filter, no zero-filling), SNR 25, seed 0, at each h: median wall time of ``reconstruct`` with
+``--acquisition box`` and with ``--acquisition kspace`` (default options otherwise, no band: the band is
+box-only), their ratio, and the k-space slice's split into geometry, velocity and dephasing passes. Writes
+``scripts/results/bench_kspace.md``.
+
+    python scripts/bench_kspace.py [--h 1.5,1.0,0.6,0.3] [--runs 3] [--case laminar]
+"""
+
+import argparse
+import sys
+import time
+
+import numpy as np
+
+from _report import RESULTS, write_report
+from wss_nlp import kspace
+from wss_nlp import phantoms as ph
+from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+
+TARGET_RATIO = 2.0
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--h", default="1.5,1.0,0.6,0.3")
+    p.add_argument("--runs", type=int, default=3)
+    p.add_argument("--case", default="laminar")
+    p.add_argument("--out", default=RESULTS)
+    args = p.parse_args(argv)
+    psf = kspace.PSF("hamming", (1.0, 1.0))
+    lines = [
+        f"Phantom '{args.case}' acquired in k-space (Hamming, F = 1), SNR 25, seed 0; medians of {args.runs} "
+        "runs, both models in one run; no uncertainty band.",
+        "Made by `python scripts/bench_kspace.py" + "".join(f" {a}" for a in sys.argv[1:]) + "`.",
+        "",
+        f"| h [mm] | box [s] | k-space [s] | ratio (target <= {TARGET_RATIO:g}) | k-space geometry / velocity / "
+        "dephasing [s] | passes |",
+        "|---|---|---|---|---|---|",
+    ]
+    for h in (float(v) for v in args.h.split(",")):
+        acq, _ = ph.make_phantom(args.case, h_mm=h, snr=25.0, seed=0, psf=psf)
+        times: dict = {"box": [], "kspace": []}
+        split = None
+        for _ in range(args.runs):
+            for model in times:
+                how = kspace.AcquisitionOptions(model, "hamming")
+                options = ReconstructionOptions(uncertainty=False, acquisition=how)
+                t0 = time.perf_counter()
+                r = reconstruct(acq, options)[0]
+                times[model].append(time.perf_counter() - t0)
+                if model == "kspace":
+                    split = r.seconds
+        box, ksp = float(np.median(times["box"])), float(np.median(times["kspace"]))
+        deph = split.get("dephasing_check", 0.0) + split.get("dephasing_pass", 0.0)
+        lines.append(
+            f"| {h:g} | {box:.2f} | {ksp:.2f} | {ksp / box:.1f}{'' if ksp / box <= TARGET_RATIO else ' (missed)'} | "
+            f"{split['geometry']:.2f} / {split['velocity']:.2f} / {deph:.2f} | {split.get('dephasing_passes', 0)} |"
+        )
+    write_report(args.out, "bench_kspace.md", lines)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,542 @@
+"""The scanner's point-spread function: a Cartesian k-space measurement model.
+
+A Cartesian acquisition samples the Fourier transform of the complex signal
+``s = rho chi_Omega exp(i pi u / venc)`` at the ``N`` lowest frequencies per
+axis, multiplies them by a k-space filter ``w`` and reconstructs ``n = F N``
+image points over the same field of view (``F`` the zero-filling factor).
+Every image value is then the signal convolved with a periodic,
+separable point-spread function (PSF) instead of the voxel average of
+Sec. 7 (the "box" model):
+
+.. math::
+
+    I(x_j, y_i) = \\int s(x, y)\\, K_y(y_i - y)\\, K_x(x_j - x)\\, dx\\, dy,
+    \\qquad
+    K(d) = \\frac{1}{L} \\sum_{|k| \\le N/2} w'(k) \\cos\\frac{2 \\pi k d}{L},
+
+with ``L`` the field of view and ``w'`` the filter with half weight on the
+two Nyquist lines ``k = +-N/2`` of an even ``N``: the real part of the
+scanner's asymmetric sampling ``-N/2 <= k < N/2`` (the imaginary part it adds
+is one k-space line, below 1 % of the edge signal; measured in
+``tests/test_kspace.py``). The integral is the model's ``q x q`` sub-voxel
+midpoint rule, so :meth:`PSF.kernel` is an ``(n, n q)`` matrix per axis and
+the model costs two dense products per image instead of one block sum
+(``O(n^2 q)`` per row of the window instead of ``O(q^2)`` per voxel).
+
+Filters (``w`` as a function of ``x = k / (N/2)`` in [-1, 1]): "none";
+"hamming" ``0.54 + 0.46 cos(pi x)``; "tukey" (tapered cosine, flat for
+``|x| <= 0.5``, a half cosine down to 0 at ``|x| = 1``); "fermi"
+``1 / (1 + exp((|x| - 0.9) / 0.05))``, normalized to ``w(0) = 1``. They are
+applied per axis (separable). Vendors' exact parameters differ and are not
+in the DICOM headers we read; these are common textbook settings.
+
+:func:`acquire` simulates such an acquisition independently of the model:
+the signal on a fine grid, its FFT, the central crop, the filter, zero-filling
+and the inverse FFT (``numpy.fft``), noise added in k-space.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import casadi as ca
+
+from . import radius as rad
+from .errors import InputError
+from .schema import option
+
+log = logging.getLogger(__name__)
+
+ACQUISITIONS = ("auto", "box", "kspace")
+FILTERS = ("none", "hamming", "tukey", "fermi")
+#: ``--kspace-filter auto``: the filter whose geometry fit explains the magnitude best (wss_nlp.choice).
+FILTER_CHOICES = ("auto",) + FILTERS
+TUKEY_FLAT = 0.5  # flat part of the Tukey window, fraction of k_max
+FERMI_RADIUS, FERMI_WIDTH = 0.9, 0.05  # fractions of k_max
+#: Acquired voxels beyond the wall annulus whose magnitude the geometry fit includes (ringing decays like 1/d).
+WINDOW_ACQUIRED_VOXELS = 3.0
+#: Smoothing of |.| in the magnitude model (fraction of the lumen signal), far below any image's noise.
+ABS_SMOOTHING = 1e-3
+
+
+@dataclass(frozen=True)
+class AcquisitionOptions:
+    """How the scanner turned the signal into voxels.
+
+    Attributes
+    ----------
+    model : {"auto", "box", "kspace"}
+        "box": every voxel is the mean of the signal over the voxel (the
+        paper's model, Sec. 7). "kspace": the PSF of a Cartesian acquisition
+        with ``kspace_filter`` and ``zero_fill`` (:class:`PSF`). "auto"
+        (default): "kspace" when the file states its acquired resolution
+        (``acquired_voxel_size_mm``, written by ``wss-nlp import`` from the
+        DICOM headers), else "box".
+    kspace_filter : {"auto", "none", "hamming", "tukey", "fermi"}
+        "auto" (default): the filter whose geometry fit leaves the smallest
+        magnitude misfit (:func:`wss_nlp.choice.kspace_filter`); the
+        standard DICOM headers do not state it.
+    zero_fill : float or None
+        Reported voxels per acquired voxel along each axis (2 for an image
+        interpolated to twice the acquired matrix); None: the file's
+        ``acquired_voxel_size_mm`` divided by its voxel size, else 1.
+    """
+
+    schema_group = "acquisition model (k-space point-spread function)"
+
+    model: str = option(
+        "auto",
+        "measurement model of a voxel: box (voxel mean, the paper's), kspace (Cartesian point-spread function), "
+        "or auto (kspace when the file states acquired_voxel_size_mm, else box)",
+        cli="--acquisition",
+        toml=("acquisition",),
+        choices=ACQUISITIONS,
+    )
+    kspace_filter: str = option(
+        "auto",
+        "k-space filter the scanner applied (with the kspace model); auto: the one whose geometry fit "
+        "explains the magnitude best",
+        cli="--kspace-filter",
+        toml=("kspace_filter",),
+        choices=FILTER_CHOICES,
+    )
+    zero_fill: float | None = option(
+        None,
+        "reported voxels per acquired voxel (default: from the file's acquired_voxel_size_mm, else 1)",
+        cli="--zero-fill",
+        toml=("zero_fill",),
+    )
+
+    def __post_init__(self):
+        if self.model not in ACQUISITIONS:
+            raise InputError(f"acquisition model must be one of {', '.join(ACQUISITIONS)}, got {self.model!r}")
+        if self.kspace_filter not in FILTER_CHOICES:
+            raise InputError(f"k-space filter must be one of {', '.join(FILTER_CHOICES)}, got {self.kspace_filter!r}")
+        if self.zero_fill is not None and not self.zero_fill >= 1:
+            raise InputError(f"--zero-fill must be >= 1 (reported voxels per acquired voxel), got {self.zero_fill}")
+
+    def psf(self, voxel_size_mm, acquired_voxel_size_mm=None, where: str = "") -> PSF | None:
+        """The PSF of a slice with ``voxel_size_mm = (dy, dx)``, or None for the box model.
+
+        Its filter is "auto" when it is to be chosen from the data (:func:`wss_nlp.choice.kspace_filter`).
+        """
+        if self.model == "box" or (self.model == "auto" and acquired_voxel_size_mm is None):
+            return None
+        fill: tuple[float, float]
+        if self.zero_fill is not None:
+            fill = (float(self.zero_fill), float(self.zero_fill))
+        elif acquired_voxel_size_mm is not None:
+            acq = np.asarray(acquired_voxel_size_mm, dtype=float)
+            fill = (float(acq[0] / voxel_size_mm[0]), float(acq[1] / voxel_size_mm[1]))
+            if min(fill) < 1 - 1e-6:
+                raise InputError(
+                    f"{where}acquired_voxel_size_mm {tuple(acq)} is smaller than the voxel size "
+                    f"{tuple(voxel_size_mm)}; "
+                    "it must be the acquired (k-space) resolution, >= the reported voxel"
+                )
+        else:
+            fill = (1.0, 1.0)
+        return PSF(self.kspace_filter, (max(fill[0], 1.0), max(fill[1], 1.0)))
+
+
+def filter_weights(k, n_acquired: int, kind: str) -> np.ndarray:
+    """The k-space filter ``w(k)`` at integer frequencies ``|k| <= n_acquired / 2``."""
+    x = np.abs(np.asarray(k, dtype=float)) / (n_acquired / 2)
+    if kind == "none":
+        return np.ones_like(x)
+    if kind == "hamming":
+        return 0.54 + 0.46 * np.cos(np.pi * x)
+    if kind == "tukey":
+        taper = np.clip((x - TUKEY_FLAT) / (1 - TUKEY_FLAT), 0.0, 1.0)
+        return 0.5 * (1 + np.cos(np.pi * taper))
+    if kind == "fermi":
+        return (1 + np.exp(-FERMI_RADIUS / FERMI_WIDTH)) / (1 + np.exp((x - FERMI_RADIUS) / FERMI_WIDTH))
+    raise InputError(f"unknown k-space filter {kind!r}; choose from {', '.join(FILTERS)}")
+
+
+def acquired_points(n: int, zero_fill: float) -> int:
+    """``N = round(n / F)`` k-space samples of an axis with ``n`` reported points."""
+    return max(1, int(round(n / zero_fill)))
+
+
+def frequencies(n_acquired: int) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric frequencies ``k`` and the weights ``w'`` of the Nyquist split (1 elsewhere)."""
+    half = n_acquired // 2
+    k = np.arange(-half, half + 1)
+    split = np.ones(k.size)
+    if n_acquired % 2 == 0:
+        split[[0, -1]] = 0.5
+    return k, split
+
+
+@dataclass(frozen=True)
+class PSF:
+    """Separable point-spread function of a Cartesian acquisition (see the module notes)."""
+
+    filter: str = "none"
+    zero_fill: tuple[float, float] = (1.0, 1.0)  # (y, x)
+    choice: dict | None = field(default=None, compare=False, hash=False)  # how an "auto" filter was chosen
+
+    def describe(self) -> dict:
+        out = {"model": "kspace", "kspace_filter": self.filter, "zero_fill": list(self.zero_fill)}
+        return out if self.choice is None else {**out, "filter_choice": self.choice}
+
+    def kernel(self, n: int, spacing_mm: float, order: int, axis: int, rows=None, cols=None) -> np.ndarray:
+        """``K[j, m]``: weight of fine point ``m`` (``order`` per voxel) in image point ``j`` of one axis.
+
+        Notes
+        -----
+        ``K[j, m] = (Delta / L) sum_k w'(k) w(k) cos(2 pi k (x_j - xi_m) / L)`` with
+        ``Delta = spacing / order`` the fine cell, ``L = n spacing`` and
+        ``xi_m`` the midpoints of the fine cells (:func:`wss_nlp.measurement.subvoxel_offsets`);
+        ``sum_m K[j, m] = w(0) = 1``. ``axis`` 0 is y, 1 is x; ``rows`` and
+        ``cols`` select image points and fine points.
+        """
+        n_acq = acquired_points(n, self.zero_fill[axis])
+        k, split = frequencies(n_acq)
+        wk = split * filter_weights(k, n_acq, self.filter)
+        fov = n * spacing_mm
+        x = np.arange(n, dtype=float) * spacing_mm if rows is None else np.asarray(rows, dtype=float) * spacing_mm
+        m = np.arange(n * order) if cols is None else np.asarray(cols)
+        xi = (m + 0.5) * spacing_mm / order - 0.5 * spacing_mm
+        d = x[:, None] - xi[None, :]
+        # sum over k of w_k cos(2 pi k d / L): one matrix product over the frequencies
+        arg = 2 * np.pi / fov * k
+        return (spacing_mm / order / fov) * (
+            np.cos(d[..., None] * arg) @ wk if d.size * k.size < 5e7 else _cos_sum(d, arg, wk)
+        )
+
+
+def _cos_sum(d: np.ndarray, arg: np.ndarray, wk: np.ndarray) -> np.ndarray:
+    out = np.zeros(d.shape)
+    for a, w in zip(arg, wk):  # large kernels: frequency by frequency keeps memory at one kernel
+        out += w * np.cos(a * d)
+    return out
+
+
+# ------------------------------------------------------------------ fine-grid averaging (velocity, dephasing)
+class Averager:
+    """PSF-weighted image values from values at the sub-voxel points of the lumen voxels.
+
+    The box model's voxel mean over the voxel's own points becomes, for the
+    k-space model, ``sum_p K_y(y_i - y_p) K_x(x_j - x_p) v_p`` over every
+    point ``p`` of every lumen voxel (the whole lumen), computed as two
+    dense products on the bounding box of the lumen's fine grid.
+
+    Parameters
+    ----------
+    grid : wss_nlp.measurement.VoxelGrid
+    index : (n_vox,) flat voxel indices (row-major) whose ``order x order`` points carry the values
+    order : int
+    psf : PSF
+    out_index : flat indices of the voxels to report (default ``index``)
+    """
+
+    def __init__(self, grid, index: np.ndarray, order: int, psf: PSF, out_index=None):
+        ny, nx = grid.shape
+        iy, ix = np.divmod(np.asarray(index), nx)
+        sub = np.arange(order)
+        # fine row / column of every (voxel, point) in the voxel-major, row-major point order of subvoxel_points
+        fy = (iy[:, None] * order + sub[None, :])[:, :, None].repeat(order, axis=2)
+        fx = (ix[:, None] * order + sub[None, :])[:, None, :].repeat(order, axis=1)
+        fy0, fx0 = int(fy.min()), int(fx.min())
+        self.fy, self.fx = (fy - fy0).reshape(index.size, -1), (fx - fx0).reshape(index.size, -1)
+        self.shape = (int(fy.max()) - fy0 + 1, int(fx.max()) - fx0 + 1)
+        oy, ox = np.divmod(np.asarray(index if out_index is None else out_index), nx)
+        rows_y, rows_x = np.unique(oy), np.unique(ox)
+        self.out_y, self.out_x = np.searchsorted(rows_y, oy), np.searchsorted(rows_x, ox)
+        self.ky = psf.kernel(ny, grid.dy, order, 0, rows_y, fy0 + np.arange(self.shape[0]))
+        self.kx = psf.kernel(nx, grid.dx, order, 1, rows_x, fx0 + np.arange(self.shape[1]))
+
+    def __call__(self, values: np.ndarray) -> np.ndarray:
+        """``values`` of shape (n_vox, order^2[, k]) at the points -> (n_out[, k]) image values."""
+        values = np.asarray(values)
+        fine = np.zeros(self.shape + values.shape[2:], dtype=values.dtype)
+        fine[self.fy, self.fx] = values
+        out = np.tensordot(self.ky, fine, axes=(1, 0))  # (rows_y, fine_x, ...)
+        out = np.tensordot(self.kx, np.moveaxis(out, 1, 0), axes=(1, 0))  # (rows_x, rows_y, ...)
+        return out[self.out_x, self.out_y]
+
+
+def signal_scale(raw: np.ndarray, background: float, moving: np.ndarray) -> float:
+    """Least-squares ``rho`` in ``raw - background ~ rho |K chi e^{i theta}|`` over the voxels with ``moving > 1/2``.
+
+    With a wide PSF the lumen's plateau itself dephases, so the histogram's
+    plateau (Appendix B) underestimates ``rho``; the predicted ``moving``
+    image fixes the scale.
+    """
+    use = moving > 0.5
+    if not use.any():
+        raise InputError("no voxel of the predicted lumen signal exceeds half the plateau; the vessel is unresolved")
+    return float(np.sum(moving[use] * (raw[use] - background)) / np.sum(moving[use] ** 2))
+
+
+def noise_correlation(n: int, zero_fill: float, kind: str, rows=None) -> np.ndarray:
+    """Correlation of the image noise between points ``rows`` of one axis (unit diagonal).
+
+    Notes
+    -----
+    White k-space noise, filtered by ``w`` and zero-filled, has in the image
+    the covariance ``sigma^2 rho(x_i - x_j)`` per axis with
+    ``rho(d) = sum_k w'(k) w(k)^2 cos(2 pi k d / L) / sum_k w'(k) w(k)^2``
+    (symmetric frequencies, Nyquist split as in :meth:`PSF.kernel`): 1 on
+    the diagonal; zero-filling (F > 1) and filters correlate neighbours.
+    """
+    n_acq = acquired_points(n, zero_fill)
+    k, split = frequencies(n_acq)
+    w2 = split * filter_weights(k, n_acq, kind) ** 2
+    x = np.arange(n) if rows is None else np.asarray(rows)
+    d = (x[:, None] - x[None, :]) / n
+    return np.cos(2 * np.pi * d[..., None] * k) @ w2 / np.sum(w2)
+
+
+class AveragingOperator:
+    """``A[i, p] = a_ip / s_i``: the k-space velocity operator's weights as a linear map from inside points to voxels.
+
+    ``a_ip`` are the PSF weights of :class:`Averager` restricted to the lumen's
+    inside points, ``s_i = sum_p a_ip`` the modeled signal; rows with ``keep``
+    False are zero. ``A @ X`` and ``A.T @ y`` are evaluated with two dense
+    products each (never the dense matrix); the pair passes a dot test
+    (``tests/test_kspace.py``). Plays the role of
+    :meth:`wss_nlp.measurement.LumenVoxels.mean_matrix` in the sensitivities.
+    """
+
+    def __init__(self, averager: Averager, inside: np.ndarray, signal: np.ndarray, keep: np.ndarray):
+        self.averager, self.inside = averager, np.asarray(inside, bool)
+        self.scale = np.where(keep, 1.0 / np.where(keep, signal, 1.0), 0.0)
+        self.shape = (self.scale.size, int(self.inside.sum()))
+
+    def __matmul__(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x)
+        values = np.zeros(self.inside.shape + x.shape[1:], dtype=x.dtype)
+        values[self.inside] = x
+        out = self.averager(values)
+        return out * self.scale.reshape((-1,) + (1,) * (out.ndim - 1))
+
+    @property
+    def T(self) -> _Adjoint:  # noqa: N802 (the numpy spelling of a transpose)
+        return _Adjoint(self)
+
+
+class _Adjoint:
+    def __init__(self, op: AveragingOperator):
+        self.op = op
+
+    def __matmul__(self, y: np.ndarray) -> np.ndarray:
+        op, av = self.op, self.op.averager
+        y = np.asarray(y, dtype=float)
+        extra = y.shape[1:]
+        out = np.zeros((av.ky.shape[0], av.kx.shape[0]) + extra)
+        np.add.at(out, (av.out_y, av.out_x), y * op.scale.reshape((-1,) + (1,) * len(extra)))
+        fine = np.tensordot(av.ky.T, out, axes=(1, 0))  # (fine_y, rows_x, ...)
+        fine = np.moveaxis(np.tensordot(av.kx.T, np.moveaxis(fine, 1, 0), axes=(1, 0)), 0, 1)  # (fine_y, fine_x)
+        return fine[av.fy, av.fx][op.inside]
+
+
+def window_index(grid, center, reach_mm: float, psf: PSF) -> np.ndarray:
+    """Flat indices of the voxels within ``reach_mm`` plus ``WINDOW_ACQUIRED_VOXELS`` acquired voxels of ``center``."""
+    xc, yc = grid.centers()
+    dist = np.hypot(xc - center[0], yc - center[1]).ravel()
+    return np.flatnonzero(dist <= reach_mm + WINDOW_ACQUIRED_VOXELS * max(psf.zero_fill) * grid.h)
+
+
+def dephasing_correction(
+    grid, voxels, velocity_at, venc: float, psf: PSF, out_index: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the phase variation does to a k-space image, predicted from a velocity reconstruction.
+
+    Returns ``(still, moving, phase_error)``: ``still = |K chi|`` and
+    ``moving = |K chi e^{i theta}|`` on the voxels ``out_index`` (the
+    magnitude without and with the phase; their difference is what
+    dephasing took from the magnitude), and
+    ``phase_error = (venc / pi) arg(K chi e^{i theta}) - (K chi u) / (K chi)``
+    on the lumen voxels, the difference between the measured phase and the
+    linear velocity model of :func:`wss_nlp.velocity.assemble`
+    (``theta = pi u / venc``).
+
+    Notes
+    -----
+    The k-space counterpart of :func:`wss_nlp.measurement.dephasing_factors`:
+    with the PSF every voxel mixes the phases of its neighbourhood (side lobes
+    included), so the magnitude loss is added back, ``m + still - moving``,
+    rather than divided out (a ratio is unstable where ringing crosses zero),
+    and the
+    velocity data become ``u - phase_error``, which the linear model then
+    fits exactly at the predicting velocity (one fixed-point step of the
+    nonlinear phase model). ``voxels`` are the lumen voxels
+    (:class:`wss_nlp.measurement.LumenVoxels`); ``velocity_at(x, y)`` gives
+    m/s at points in mm.
+    """
+    order = int(round(np.sqrt(voxels.px.shape[1])))
+    u = np.zeros(voxels.px.shape)
+    u[voxels.inside] = velocity_at(voxels.px[voxels.inside], voxels.py[voxels.inside])
+    chi = voxels.inside.astype(float)
+    theta = np.pi * u / venc
+    parts = np.stack([chi, chi * np.cos(theta), chi * np.sin(theta), chi * u], axis=-1)
+    everywhere = np.union1d(out_index, voxels.index)
+    image = Averager(grid, voxels.index, order, psf, everywhere)(parts)
+    at_out, at_lumen = np.searchsorted(everywhere, out_index), np.searchsorted(everywhere, voxels.index)
+    still, moving = np.abs(image[at_out, 0]), np.hypot(image[at_out, 1], image[at_out, 2])
+    lum = image[at_lumen]
+    signal = np.where(np.abs(lum[:, 0]) > 1e-12, lum[:, 0], 1.0)
+    # arg relative to the sign of the signal: where ringing makes K chi negative the phase turns by pi
+    phase = np.angle((lum[:, 1] + 1j * lum[:, 2]) * np.sign(signal))
+    return still, moving, venc / np.pi * phase - lum[:, 3] / signal
+
+
+# ------------------------------------------------------------------ geometry: |PSF * H_gamma(R - |x|)|
+@dataclass
+class KSpaceMagnitudeModel:
+    """The fine-grid pieces of the k-space magnitude model of one slice (see :func:`magnitude_model`).
+
+    ``annulus`` (the voxels whose magnitude enters the fit, named as in
+    :class:`wss_nlp.measurement.AnnulusModel`) and ``inside`` (voxels inside
+    every admissible lumen and outside the window) keep the box model's
+    meaning for the callers.
+    """
+
+    annulus: np.ndarray
+    inside: np.ndarray
+    rho: np.ndarray  # (n_free,) distance of the free fine points to the centre
+    phi: np.ndarray  # (n_free,) their polar angles
+    x: np.ndarray  # (n_free,) their coordinates relative to the centre, mm
+    y: np.ndarray
+    free: np.ndarray  # (n_free,) their flat indices in the fine bounding box (column-major: x fastest is y)
+    constant: np.ndarray  # (fine_y, fine_x) 1 inside r0, 0 elsewhere
+    ky: np.ndarray  # (window rows, fine_y)
+    kx: np.ndarray  # (window cols, fine_x)
+    select: np.ndarray  # flat (column-major) positions of the annulus voxels in the (rows, cols) block
+    order: int
+
+
+def magnitude_setup(grid, center, r0: float, r1: float, order: int, gamma: float, psf: PSF) -> KSpaceMagnitudeModel:
+    """Split the fine grid into constant and radius-dependent points and build the window's kernels.
+
+    Fine points farther than ``6 gamma`` inside ``r0`` are 1, farther than
+    ``6 gamma`` outside ``r1`` are 0 (``H_gamma`` within 1e-16 of its
+    limits); the window is every voxel whose centre lies within
+    ``WINDOW_ACQUIRED_VOXELS`` acquired voxels of the annulus ``[r0, r1]``.
+    """
+    ny, nx = grid.shape
+    margin_fine = 6 * gamma + 0.5 * grid.h
+    reach = r1 + margin_fine
+    fine_y = (np.arange(ny * order) + 0.5) * grid.dy / order - 0.5 * grid.dy + grid.origin_mm[1]
+    fine_x = (np.arange(nx * order) + 0.5) * grid.dx / order - 0.5 * grid.dx + grid.origin_mm[0]
+    cols_f = np.flatnonzero(np.abs(fine_x - center[0]) <= reach)
+    rows_f = np.flatnonzero(np.abs(fine_y - center[1]) <= reach)
+    if cols_f.size == 0 or rows_f.size == 0:
+        raise InputError("the geometry box lies outside the image")
+    fx, fy = np.meshgrid(fine_x[cols_f] - center[0], fine_y[rows_f] - center[1])
+    rho = np.hypot(fx, fy)
+    constant = (rho < r0 - 6 * gamma).astype(float)
+    free = np.flatnonzero(((rho >= r0 - 6 * gamma) & (rho <= r1 + 6 * gamma)).T)  # column-major, as CasADi's reshape
+    rho_t, phi_t = rho.T.ravel()[free], np.arctan2(fy, fx).T.ravel()[free]
+    x_t, y_t = fx.T.ravel()[free], fy.T.ravel()[free]
+
+    xc, yc = grid.centers()
+    dist = np.hypot(xc - center[0], yc - center[1]).ravel()
+    margin = WINDOW_ACQUIRED_VOXELS * max(psf.zero_fill) * grid.h
+    window = np.flatnonzero((dist >= r0 - margin) & (dist <= r1 + margin))
+    inside = np.flatnonzero(dist < r0 - margin)
+    iy, ix = np.divmod(window, nx)
+    rows, cols = np.unique(iy), np.unique(ix)
+    ky = psf.kernel(ny, grid.dy, order, 0, rows, rows_f)
+    kx = psf.kernel(nx, grid.dx, order, 1, cols, cols_f)
+    # the block is (rows, cols); CasADi stores it column-major
+    select = np.searchsorted(cols, ix) * rows.size + np.searchsorted(rows, iy)
+    return KSpaceMagnitudeModel(window, inside, rho_t, phi_t, x_t, y_t, free, constant, ky, kx, select, order)
+
+
+def magnitude_model(model: KSpaceMagnitudeModel, coefficients, gamma, heaviside: str = "erf", shift=None):
+    """``|K_y H K_x^T|`` on the window voxels: the k-space counterpart of eq. (discForw) (CasADi or NumPy).
+
+    Notes
+    -----
+    ``H`` is the fine image of ``H_gamma(R(phi) - |xi|)`` (constant where it
+    does not depend on R); the magnitude is ``sqrt(I^2 + eps^2)`` with
+    ``eps`` = :data:`ABS_SMOOTHING`, smooth where Gibbs ringing crosses zero.
+    Cost per evaluation about ``2 n_w n_f^2`` flops for ``n_w`` window rows
+    and ``n_f`` fine rows. ``shift`` (CasADi, 2 entries) moves the centre of
+    ``R`` by that much (mm): the polar coordinates of the free points become
+    symbolic, so derivatives in the centre are exact (the sensitivities).
+    """
+    from .measurement import smoothed_heaviside
+
+    symbolic = isinstance(coefficients, (ca.MX, ca.SX))
+    n = rad.n_fourier_from_size(coefficients.numel() if symbolic else np.size(coefficients))
+    fy, fx = model.constant.shape
+    if symbolic:
+        if shift is None:
+            radius, rho = ca.mtimes(ca.DM(rad.design_matrix(model.phi, n)), coefficients), ca.DM(model.rho)
+        else:
+            dx, dy = ca.DM(model.x) - shift[0], ca.DM(model.y) - shift[1]
+            rho, phi = ca.sqrt(dx * dx + dy * dy), ca.atan2(dy, dx)
+            cos = [ca.cos(k * phi) for k in range(1, n + 1)]
+            sin = [ca.sin(k * phi) for k in range(1, n + 1)]
+            radius = ca.mtimes(ca.horzcat(ca.DM.ones(model.x.size), *cos, *sin), coefficients)
+        vals = smoothed_heaviside(radius - rho, gamma, heaviside)
+        scatter = ca.DM(
+            ca.Sparsity.triplet(fy * fx, model.free.size, model.free.tolist(), list(range(model.free.size))),
+            np.ones(model.free.size),
+        )
+        fine = ca.reshape(ca.DM(model.constant.T.ravel()) + ca.mtimes(scatter, vals), fy, fx)
+        image = ca.mtimes(ca.mtimes(ca.DM(model.ky), fine), ca.DM(model.kx.T))
+        signal = ca.vec(image)[model.select.tolist()]
+        return ca.sqrt(signal * signal + ABS_SMOOTHING**2)
+    basis = rad.design_matrix(model.phi, n)
+    vals = smoothed_heaviside(basis @ np.asarray(coefficients, dtype=float) - model.rho, gamma, heaviside)
+    flat = model.constant.T.ravel().copy()
+    flat[model.free] += vals
+    fine = flat.reshape(fx, fy).T
+    image = model.ky @ fine @ model.kx.T
+    signal = image.T.ravel()[model.select]
+    return np.sqrt(signal**2 + ABS_SMOOTHING**2)
+
+
+# ------------------------------------------------------------------ phantoms: acquisition in k-space
+def acquire(
+    signal_at, grid, psf: PSF, snr: float | None, rng: np.random.Generator, rho: float = 1.0, spacing_mm: float = 0.025
+) -> np.ndarray:
+    """Complex image of a Cartesian acquisition of ``signal_at`` (independent of :meth:`PSF.kernel`).
+
+    Notes
+    -----
+    The signal is sampled at the midpoints of ``S x S`` cells per voxel
+    (``S = clip(ceil(h / spacing), 4, 40)``); its DFT, shifted to the
+    voxel-centre origin, approximates the continuous Fourier transform at the
+    acquired frequencies ``-N/2 <= k < N/2`` (the scanner's asymmetric
+    sampling). These are filtered, zero-filled to ``n`` and inverse
+    transformed. Noise: white complex noise of standard deviation
+    ``rho / snr`` per channel in the image reconstructed at the acquired
+    resolution without filter, added in k-space (so filtering lowers it and
+    zero-filling correlates it, as on a scanner).
+
+    Parameters
+    ----------
+    signal_at : callable
+        ``(x, y) -> complex signal`` at physical points (mm), arrays of one shape.
+    """
+    ny, nx = grid.shape
+    s = int(np.clip(np.ceil(grid.h / spacing_mm), 4, 40))
+    fine_y = grid.origin_mm[1] + (np.arange(ny * s) + 0.5) * grid.dy / s - 0.5 * grid.dy
+    fine_x = grid.origin_mm[0] + (np.arange(nx * s) + 0.5) * grid.dx / s - 0.5 * grid.dx
+    spectrum = np.zeros((ny * s, nx * s), dtype=complex)
+    for start in range(0, ny * s, 256):  # row blocks keep memory small at fine resolution
+        py, px = np.meshgrid(fine_y[start : start + 256], fine_x, indexing="ij")
+        spectrum[start : start + 256] = signal_at(px, py)
+    spectrum = np.fft.fft2(spectrum)
+    out = np.zeros((ny, nx), dtype=complex)
+    n_acq = (acquired_points(ny, psf.zero_fill[0]), acquired_points(nx, psf.zero_fill[1]))
+    k = [np.arange(-(na // 2), na - na // 2) for na in n_acq]  # the scanner's -N/2 <= k < N/2
+    # fine cell midpoints sit delta = (1/S - 1)/2 voxel from the voxel centres: shift the phase back
+    shift = [np.exp(-2j * np.pi * kk * (0.5 / s - 0.5) / n) for kk, n in zip(k, (ny, nx))]
+    block = spectrum[np.ix_(k[0] % (ny * s), k[1] % (nx * s))] * np.outer(shift[0], shift[1]) / (s * s)
+    if snr is not None:
+        noise = rho / snr * (rng.standard_normal(n_acq) + 1j * rng.standard_normal(n_acq))
+        block = block + np.fft.fft2(noise)[np.ix_(k[0] % n_acq[0], k[1] % n_acq[1])] * (ny * nx) / (n_acq[0] * n_acq[1])
+    block = block * np.outer(filter_weights(k[0], n_acq[0], psf.filter), filter_weights(k[1], n_acq[1], psf.filter))
+    out[np.ix_(k[0] % ny, k[1] % nx)] = block
+    return np.fft.ifft2(out)
