@@ -381,7 +381,7 @@ def balancing_principle(gram_estimates: np.ndarray, gram_noise: np.ndarray, kapp
     return int(np.flatnonzero(ratio <= kappa)[0]), ratio
 
 
-def balance_grams(operator, weights, data, gram, betas, functional, sigma_u):
+def balance_grams(operator, weights, data, gram, betas, functional, sigma_u, correlate=None):
     """Gram matrices of ``S c_beta`` and of their noise parts for the linear velocity problem, and the residuals.
 
     Notes
@@ -394,17 +394,17 @@ def balance_grams(operator, weights, data, gram, betas, functional, sigma_u):
     generalized eigendecomposition (:meth:`wss_nlp.tikhonov.LinearTikhonov.balance_grams`).
     Returns ``(gram_estimates, gram_noise, residual_norms)``.
     """
-    return LinearTikhonov(operator, weights, data, gram).balance_grams(betas, functional, sigma_u)
+    return LinearTikhonov(operator, weights, data, gram).balance_grams(betas, functional, sigma_u, correlate)
 
 
-def wss_balance(operator, weights, data, gram, betas, wss_matrix, sigma_u, kappa: float):
+def wss_balance(operator, weights, data, gram, betas, wss_matrix, sigma_u, kappa: float, correlate=None):
     """The balancing principle for beta on the WSS ``tau = S c`` (``wss_matrix``, Pa, at the wall points).
 
     ``betas`` must decrease; ``sigma_u`` (m/s) per voxel. Returns
     ``(index, ratio, residual_norms)``: see :func:`balancing_principle`
-    and :func:`balance_grams`.
+    and :func:`balance_grams` (``correlate``: correlated noise, ``x -> C x``).
     """
-    g_est, g_noise, res = balance_grams(operator, weights, data, gram, betas, wss_matrix, sigma_u)
+    g_est, g_noise, res = balance_grams(operator, weights, data, gram, betas, wss_matrix, sigma_u, correlate)
     j, ratio = balancing_principle(g_est, g_noise, kappa)
     return j, ratio, res
 

@@ -185,8 +185,17 @@ def choose_beta(
         return _noise_free_choice("beta", rule, options.velocity.beta, noise)
     if rule == "balance":
         smat, _ = wss_mod.wss_matrix(vp.basis, vp.disk_map, viscosity_pa_s, options.n_phi)
+        correlate = None if vp.noise_correlation is None else vp.noise_correlation.apply
         i, ratio, res = an.wss_balance(
-            vp.operator, vp.weights, vp.data, vp.gram, betas, smat, noise.details["per_voxel"], options.kappa_beta
+            vp.operator,
+            vp.weights,
+            vp.data,
+            vp.gram,
+            betas,
+            smat,
+            noise.details["per_voxel"],
+            options.kappa_beta,
+            correlate,
         )
         return an.ParameterChoice(
             "beta",
@@ -253,7 +262,9 @@ class _Criterion:
         self.tst = t.T @ (self.inv_var[:, None] * t)
         self.tsu = t.T @ (self.inv_var * plain.data)
         self.usu = float(plain.data @ (self.inv_var * plain.data))
-        self.log_n = float(np.log(plain.data.size))
+        # correlated (k-space) noise: chi^2 and the sample count of nu n effectively independent voxels
+        self.nu = 1.0 if plain.noise_correlation is None else plain.noise_correlation.effective_fraction
+        self.log_n = float(np.log(self.nu * plain.data.size))
 
     def __call__(self, extra: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
         """The criterion, the minimizing beta and its coefficients (plain ones first, then the extra columns')."""
@@ -268,7 +279,7 @@ class _Criterion:
             quad = np.block([[self.tst, tse], [tse.T, extra.T @ se]])
             lin = np.concatenate([self.tsu, se.T @ self.plain.data])
         chi2 = np.einsum("bi,ij,bj->b", coef, quad, coef) - 2 * coef @ lin + self.usu
-        crit = chi2 + self.log_n * dof
+        crit = self.nu * chi2 + self.log_n * dof
         i = int(np.argmin(crit))
         return float(crit[i]), float(CRITERION_BETAS[i]), coef[i]
 
@@ -357,7 +368,7 @@ def choose_layer(
         crit, basis, beta, _ = score(family, x)
         if family in notes and notes[family].startswith("the BIC's"):
             # a scale fitted to the data is one more parameter, which tr(H^-1 K) does not count
-            crit += float(np.log(vp.data.size))
+            crit += criterion.log_n
         problem = vp.with_layer(basis, quad.columns(basis), vopt.laplacian_power)
         best[family] = (crit, 2.0**x * big_r, problem, beta)
     # the paper's model is the null hypothesis: a layer must be preferred by "very strong" evidence

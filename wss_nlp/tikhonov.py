@@ -157,7 +157,7 @@ class LinearTikhonov:
             out[idx] = np.sum((1.0 - ref / np.pi * lam)[None, :] / d, axis=1)
         return out
 
-    def balance_grams(self, betas, functional, sigma) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def balance_grams(self, betas, functional, sigma, correlate=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         r"""Gram matrices of the estimates ``S c_beta`` and of their noise parts, and the residual norms.
 
         Notes
@@ -169,6 +169,8 @@ class LinearTikhonov:
         = \sum_{a,b} Q_{ab} R_{ab} / (d_{j,a} d_{k,b})` with
         :math:`Q = (SV)^\top (SV)` and :math:`R = V^\top T^\top W \Sigma W T V`:
         every beta pair costs :math:`O(m^2)` after one :math:`O(m^3)` setup.
+        With correlated noise (``correlate(x) = C x``, unit-diagonal ``C``; a
+        k-space acquisition) :math:`\Sigma = D C D` in place of :math:`D^2`.
         Returns ``(gram_estimates, gram_noise, residual_norms)``.
         """
         sigma = np.asarray(sigma, dtype=float)
@@ -192,7 +194,7 @@ class LinearTikhonov:
         # E<e_j, e_k> = tr(S H_j^-1 N H_k^-1 S^T), N = T^T W Sigma W T; within a band the pencil diagonalizes both
         # inverses; across bands P = V_a^T N V_b couples them: tr(D_j^-1 P D_k^-1 (S V_b)^T (S V_a))
         twsig = self._tw * sigma[:, None]
-        n_mat = twsig.T @ twsig
+        n_mat = twsig.T @ (twsig if correlate is None else correlate(twsig))
         noise = np.empty((n_beta, n_beta))
         for ia, va, sva, inv_a in noise_root:
             nva = va.T @ n_mat

@@ -186,6 +186,7 @@ class VelocityProblem:
     basis: Any  # a basis of wss_nlp.velocity_basis (or wss_nlp.near_wall.EnrichedBasis)
     cell_mm: tuple | None = None  # (dx, dy) of one quadrature cell (the near-wall layer integrates across it)
     averager: Any = None  # k-space acquisition: the PSF image of point values (wss_nlp.kspace.Averager); None: box
+    noise_correlation: Any = None  # k-space: the voxels' noise correlation (wss_nlp.kspace.NoiseCorrelation)
 
     @property
     def area(self) -> float:
@@ -296,6 +297,7 @@ def assemble(
         basis=basis,
         cell_mm=(grid.dx / q, grid.dy / q),
         averager=averager,
+        noise_correlation=None if psf is None else kspace.NoiseCorrelation(grid.shape, psf, vox.index),
     )
 
 
