@@ -155,6 +155,7 @@ def cmd_phantom(args) -> int:
     if args.case == "womersley":
         return _phantom_cine(args)
     snr = None if args.snr <= 0 else args.snr
+    psf = _phantom_psf(args)
     truth: phantoms.Truth | phantoms.StackTruth
     if args.stack:
         acq, truth = phantoms.make_stack(
@@ -166,7 +167,7 @@ def cmd_phantom(args) -> int:
             seed=args.seed,
             venc=args.venc,
             swirl_per_s=args.swirl,
-            psf=_phantom_psf(args),
+            psf=psf,
         )
         args.case = f"{args.stack} stack ({args.nz} slices, {args.spacing:g} mm apart)"
     else:
@@ -177,7 +178,7 @@ def cmd_phantom(args) -> int:
             seed=args.seed,
             venc=args.venc,
             as_phase=not args.velocity,
-            psf=_phantom_psf(args),
+            psf=psf,
         )
     peak = max(phantoms.peak_velocity(t.flow) for t in getattr(truth, "slices", [truth]))
     if acq.venc_m_s is not None and acq.venc_m_s < peak:
@@ -219,7 +220,7 @@ def cmd_phantom(args) -> int:
         nii.commit()
     print(
         f"wrote {args.output}: {args.case}, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
-        f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels ({_acquired_text(_phantom_psf(args))})"
+        f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels ({_acquired_text(psf)})"
     )
     if args.truth:
         means = [t.mean_wss for t in getattr(truth, "slices", [truth])]
