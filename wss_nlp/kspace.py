@@ -37,7 +37,6 @@ and the inverse FFT (``numpy.fft``), noise added in k-space.
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -47,8 +46,6 @@ import casadi as ca
 from . import radius as rad
 from .errors import InputError
 from .schema import option
-
-log = logging.getLogger(__name__)
 
 ACQUISITIONS = ("auto", "box", "kspace")
 FILTERS = ("none", "hamming", "tukey", "fermi")
