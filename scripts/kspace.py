@@ -10,10 +10,11 @@ no filter at the reported resolution (``none, F = 1``) and a Hamming filter with
 defaults (near-wall model ``auto``, beta by balancing, alpha fixed, no band) and ``--acquisition box`` or
 ``--acquisition kspace`` with the matching filter; the mismatch rows give the k-space model the wrong filter.
 Report seeds 100.. (development used seeds 0-7; the tests use 5, 7 and 11). Writes
-``scripts/results/kspace.md``.
+``scripts/results/kspace.md``. With ``--method coupled`` the coupled method (its own near-wall default: the
+plain basis) with the box and the k-space model, into ``scripts/results/kspace_coupled.md``.
 
     python scripts/kspace.py [--seeds 5] [--cases laminar,manufactured,turbulent] [--h 1.5,1.0,0.6,0.3]
-                             [--snr 25,10] [--jobs 2]
+                             [--snr 25,10] [--jobs 2] [--method decoupled|coupled]
 """
 
 import sys
@@ -39,14 +40,21 @@ MODELS = (
 )
 
 
+def _models(method: str) -> tuple:
+    """The model rows of a method: all four for decoupled, box and k-space (right filter) for coupled."""
+    return MODELS if method == "decoupled" else MODELS[:2]
+
+
 def _one(job):
-    case, acq_name, h, snr, seed = job
+    case, acq_name, h, snr, seed, method = job
     psf = ACQUISITIONS[acq_name]
     acq, truth = ph.make_phantom(case, h_mm=h, snr=snr, seed=seed, psf=psf)
     out = {}
-    for label, model, assumed in MODELS:
+    for label, model, assumed in _models(method):
         kind = {None: psf.filter, "auto": "auto"}.get(assumed, "hamming" if psf.filter == "none" else "none")
-        options = ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions(model, kind))
+        options = ReconstructionOptions(
+            method=method, uncertainty=False, acquisition=kspace.AcquisitionOptions(model, kind)
+        )
         t0 = time.perf_counter()
         try:
             r = reconstruct(acq, options)[0]
@@ -75,19 +83,23 @@ def main() -> None:
     p = study_parser(__doc__, seeds=5, h="1.5,1.0,0.6,0.3", snr="25,10")
     p.set_defaults(cases="laminar,manufactured,turbulent")
     p.add_argument("--jobs", type=int, default=2)
+    p.add_argument("--method", choices=("decoupled", "coupled"), default="decoupled")
     args = p.parse_args()
     cases = args.cases.split(",")
     hs = [float(v) for v in args.h.split(",")]
     snrs = [float(v) for v in args.snr.split(",")]
     seeds = range(SEED0, SEED0 + args.seeds)
-    jobs = [(c, a, h, s, seed) for c in cases for a in ACQUISITIONS for s in snrs for h in hs for seed in seeds]
+    jobs = [
+        (c, a, h, s, seed, args.method) for c in cases for a in ACQUISITIONS for s in snrs for h in hs for seed in seeds
+    ]
     t0 = time.perf_counter()
     with ProcessPoolExecutor(args.jobs) as pool:
         results = dict(pool.map(_one, jobs))
     lines = [
         f"Seeds {SEED0}-{SEED0 + args.seeds - 1}; mean WSS error relative to the exact mean WSS (mean |.| and "
         "worst |.| over the seeds), radius relative L2 error (mean), slices flagged SUSPECT, seconds per "
-        "reconstruction (mean). Defaults otherwise (near-wall auto, beta by balancing, no band).",
+        "reconstruction (mean). Defaults otherwise (near-wall auto, beta by balancing, no band)"
+        + (", method coupled (plain velocity basis)." if args.method == "coupled" else "."),
         "Made by `python scripts/kspace.py" + "".join(f" {a}" for a in sys.argv[1:]) + "`.",
         "",
         "| case | acquisition | SNR | h [mm] | model | WSS err mean | worst | radius err | SUSPECT | filter used | s |",
@@ -97,8 +109,8 @@ def main() -> None:
         for a in ACQUISITIONS:
             for s in snrs:
                 for h in hs:
-                    for label, _, _ in MODELS:
-                        rows = [results[(c, a, h, s, seed)][label] for seed in seeds]
+                    for label, _, _ in _models(args.method):
+                        rows = [results[(c, a, h, s, seed, args.method)][label] for seed in seeds]
                         ok = [r for r in rows if "failed" not in r]
                         failed = len(rows) - len(ok)
                         if not ok:
@@ -113,7 +125,7 @@ def main() -> None:
                             + f" | {_filters(ok)} | {np.mean([r['seconds'] for r in ok]):.1f} |"
                         )
     lines += ["", f"Total {time.perf_counter() - t0:.0f} s on {args.jobs} processes."]
-    write_report(args.out, "kspace.md", lines)
+    write_report(args.out, "kspace.md" if args.method == "decoupled" else "kspace_coupled.md", lines)
 
 
 if __name__ == "__main__":

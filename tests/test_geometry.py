@@ -106,3 +106,33 @@ def test_prior_zero_shrinks_radius(laminar_snr25):
     area = geo.solve(prob, geo.GeometryOptions(alpha=0.05, prior="area")).coefficients[0]
     zero = geo.solve(prob, geo.GeometryOptions(alpha=0.05, prior="zero")).coefficients[0]
     assert zero < area - 0.01
+
+
+def test_cached_solver_serves_other_magnitudes_exactly(laminar_snr25):
+    """The magnitude values are solver parameters: one built solver (geo.solver_for) solves a second image on
+    the same grid, centre and box to the same coefficients as a solver built for that image (same IPOPT
+    iterates: equal to rounding), and a different box gets its own solver."""
+    problem = geometry_problem(laminar_snr25[0])
+    opts = geo.GeometryOptions()
+    first = geo.solver_for(problem, opts)
+    rng = np.random.default_rng(11)
+    other = geo.GeometryProblem(
+        problem.grid,
+        np.clip(problem.magnitude + 0.05 * rng.normal(size=problem.magnitude.shape), 0, 1),
+        problem.center,
+        problem.r0,
+        problem.r1,
+        problem.r_ref,
+    )
+    assert geo.solver_for(other, geo.with_options(opts, alpha=2 * opts.alpha)) is first
+    reused = first.solve(opts.alpha, None, other)
+    fresh = geo.IpoptGeometrySolver(other, opts).solve(opts.alpha)
+    assert reused.stats.iterations == fresh.stats.iterations
+    assert np.max(np.abs(reused.coefficients - fresh.coefficients)) < 1e-12
+    assert reused.residual_norm == pytest.approx(fresh.residual_norm, rel=1e-12)
+    own = geo.solve_ipopt(problem, opts)
+    assert np.max(np.abs(own.coefficients - reused.coefficients)) > 1e-4  # the other image's answer differs
+    wider = geo.GeometryProblem(
+        problem.grid, problem.magnitude, problem.center, problem.r0, problem.r1 + 0.5, problem.r_ref
+    )
+    assert geo.solver_for(wider, opts) is not first

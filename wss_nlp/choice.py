@@ -79,11 +79,11 @@ def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: Recons
         g = geo.solve(problem, gopt)
         return g, an.ParameterChoice("alpha", "fixed", g.alpha)
     if gopt.solver == "ipopt":
-        solver = geo.IpoptGeometrySolver(problem, gopt)
+        solver = geo.solver_for(problem, gopt)
         annulus = solver.nlp.model.annulus
 
         def run(alpha, prev):
-            return solver.solve(alpha, None if prev is None else prev.coefficients)
+            return solver.solve(alpha, None if prev is None else prev.coefficients, problem)
     else:
         annulus = meas.annulus_model(
             problem.grid, problem.center, problem.r0, problem.r1, geo.quad_order(problem, gopt)

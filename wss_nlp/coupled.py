@@ -20,6 +20,10 @@ exactly (``tests/test_coupled.py``). The voxel set and the precision weights
 The velocity data then inform the wall: the no-slip condition ``v = 0`` on
 ``partial Omega_R`` must be compatible with the measured velocities near the
 wall, which helps where the magnitude image is poor.
+
+With a k-space acquisition (``GeometryProblem.psf``) ``F_{gamma,h}`` is the
+k-space magnitude model and the voxel sums of ``T_i`` become the PSF image
+of the sub-voxel points (:func:`velocity_residual`, :mod:`wss_nlp.kspace`).
 """
 
 from __future__ import annotations
@@ -34,6 +38,7 @@ import casadi as ca
 
 from . import analysis as an
 from . import geometry as geo
+from . import kspace
 from . import measurement as meas
 from . import radius as rad
 from . import velocity as vel
@@ -126,20 +131,22 @@ def weight_from_data(
     velocity_image,
     venc: float | None,
     source: str = "",
+    signal=None,
 ) -> tuple[float, dict]:
     """The likelihood weight with both noise levels estimated (:mod:`wss_nlp.analysis`); also returns how.
 
     ``sigma_u`` for a voxel fully inside the lumen: ``venc sigma / (pi m1)``
     with ``sigma`` from the Rayleigh background and ``m1`` the raw lumen
     level (phase data), else the high-pass estimate on the lumen plateau.
+    ``signal`` (raw units, the image the geometry predicts) is subtracted
+    from the background before ``sigma`` is measured (the PSF's tails,
+    :func:`wss_nlp.analysis.complex_noise_sigma`).
     """
-    annulus = meas.annulus_model(
-        problem.grid, problem.center, problem.r0, problem.r1, geo.quad_order(problem, gopt)
-    ).annulus
+    annulus = geo.fitted_voxels(problem, gopt)
     delta = an.magnitude_noise(
         problem.magnitude, raw_magnitude, mask, norm.m0, norm.m1, problem.grid.voxel_area, annulus, source
     )
-    sigma = an.complex_noise_sigma(raw_magnitude, mask)
+    sigma = an.complex_noise_sigma(raw_magnitude, mask, signal=signal)
     if venc is not None and np.isfinite(sigma) and sigma > 0:
         sigma_u, how = venc * sigma / (np.pi * norm.m1), "venc sigma / (pi m1), sigma from the Rayleigh background"
     else:
@@ -166,22 +173,65 @@ class VelocityMisfitModel:
     voxel_area: float
     px: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (n_points,) absolute point coordinates, mm
     py: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    # k-space acquisition: the PSF image of the point values on the voxels ``index`` (kspace.Averager over the
+    # points of every voxel in ``points_index``); None: box model, the voxel sums of sum_matrix
+    averager: kspace.Averager | None = None
+    points_index: np.ndarray | None = None
+
+    def aggregate(self, values):
+        """Voxel values ``(n_vox, k)`` from point values ``(n_points, k)`` (CasADi): box sums or the PSF image."""
+        if self.averager is None:
+            return ca.mtimes(ca.DM(self.sum_matrix), values)
+        return self.averager.casadi(values)
+
+    @property
+    def point_weight(self) -> float:
+        """The weight of one sub-voxel point in ``s_i``: 1 (box sums) or ``1 / q^2`` (the PSF image, a fraction)."""
+        return 1.0 if self.averager is None else 1.0 / self.order**2
 
 
 def velocity_misfit_model(
-    grid: meas.VoxelGrid, velocity_image, magnitude, center, r1: float, n_fourier: int, order: int
+    grid: meas.VoxelGrid,
+    velocity_image,
+    magnitude,
+    center,
+    r1: float,
+    n_fourier: int,
+    order: int,
+    psf: kspace.PSF | None = None,
+    start=None,
 ) -> VelocityMisfitModel:
-    """The fixed voxel set, its precision weights and sub-voxel points (see :func:`velocity_residual`)."""
+    """The fixed voxel set, its precision weights and sub-voxel points (see :func:`velocity_residual`).
+
+    With a k-space ``psf`` the points stay those of every voxel that can meet
+    an admissible lumen (they radiate into their neighbours), and the voxel
+    set is every voxel whose modeled signal ``(K * chi)_i`` for the starting
+    radius ``start`` reaches :data:`wss_nlp.velocity.MIN_KSPACE_SIGNAL`, as
+    in the decoupled model (below it the phase is not the signal-weighted
+    mean velocity).
+    """
     xc, yc = grid.centers()
     dist = np.hypot(xc - center[0], yc - center[1]).ravel()
-    index = np.flatnonzero(dist <= r1 + 0.5 * np.hypot(grid.dx, grid.dy))
-    px, py = meas.subvoxel_points(grid, index, order)
+    points_index = np.flatnonzero(dist <= r1 + 0.5 * np.hypot(grid.dx, grid.dy))
+    px, py = meas.subvoxel_points(grid, points_index, order)
+    averager, index = None, points_index
+    if psf is not None:
+        if start is None:
+            raise InputError("the coupled k-space misfit needs the starting radius to choose its voxels")
+        rx, ry = np.ravel(px) - center[0], np.ravel(py) - center[1]
+        inside = (np.hypot(rx, ry) < rad.evaluate(start, np.arctan2(ry, rx))).reshape(points_index.size, -1)
+        reach = np.flatnonzero(dist <= r1 + kspace.WINDOW_ACQUIRED_VOXELS * max(psf.zero_fill) * grid.h)
+        signal = kspace.Averager(grid, points_index, order, psf, out_index=reach)(inside.astype(float))
+        index = reach[signal >= vel.MIN_KSPACE_SIGNAL]
+        averager = kspace.Averager(grid, points_index, order, psf, out_index=index)
     dx, dy = (px - center[0]).ravel(), (py - center[1]).ravel()
     r = np.hypot(dx, dy)
     phi = np.arctan2(dy, dx)
     nq = order * order
-    rows = np.repeat(np.arange(index.size), nq)
-    sums = scipy.sparse.csr_matrix((np.ones(rows.size), (rows, np.arange(rows.size))), shape=(index.size, rows.size))
+    rows = np.repeat(np.arange(points_index.size), nq)
+    sums = scipy.sparse.csr_matrix(
+        (np.ones(rows.size), (rows, np.arange(rows.size))), shape=(points_index.size, rows.size)
+    )
     m = np.clip(np.asarray(magnitude, float).ravel()[index], 0.0, 1.0)
     return VelocityMisfitModel(
         index,
@@ -196,6 +246,8 @@ def velocity_misfit_model(
         grid.voxel_area,
         px.ravel(),
         py.ravel(),
+        averager,
+        points_index,
     )
 
 
@@ -302,6 +354,14 @@ def velocity_residual(
     barely enters. With a sharp indicator and ``s_0 -> 0``
     this is the decoupled operator ``T~_h`` exactly; for ``s_i >= 1`` the
     floor changes ``T_i`` by at most ``s_0^2 / 2`` relative.
+
+    With a k-space acquisition (``model.averager``) the sums over a voxel's
+    points become the PSF image ``s_i = (K * chi)_i``, ``t_i = (K * chi v)_i``
+    over every point (:meth:`wss_nlp.kspace.Averager.casadi`; ``s_i`` is then a
+    fraction of the voxel and ``s_0 = floor / q^2``), and
+    ``T_i = t_i s_i / (s_i^2 + s_0^2)``: the first-order phase ``t_i / s_i``
+    of the decoupled k-space model, smooth where ringing takes ``s_i``
+    through zero.
     ``v_p = v(phi_R^{-1}(x_p))`` uses the closed-form inverse of eq. (trafo)
     for ``eta = 2``: ``rho = 2 r / (r_in + sqrt(r_in^2 + 4 (R - r_in) r))``.
 
@@ -360,13 +420,19 @@ def velocity_residual(
     sel_a, sel_r = sparse_dm(pb.select_angular), sparse_dm(pb.select_radial)  # one-hot: keep them sparse
     q_mat = ca.mtimes(sel_a.T, ca.repmat(c_raw, 1, pb.n_radial) * sel_r)
     v = sign * ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb)), tk))  # (1, n_pts)
-    agg = ca.DM(model.sum_matrix)
+    agg = model.aggregate
     u = ca.DM(model.data)
-    s = ca.mtimes(agg, chi.T)
-    t = ca.mtimes(agg, (chi * v).T)
+    s = agg(chi.T)
+    t = agg((chi * v).T)
     scale = ca.DM(np.sqrt(model.weights / np.sum(model.weights)))
-    den = ca.sqrt(s * s + floor**2)
-    res = scale * (t / den - u)
+    s0 = floor * model.point_weight
+    if model.averager is None:
+        den = ca.sqrt(s * s + s0**2)
+        ratio, dratio = 1 / den, -s / den**3  # g(s) and g'(s) in T = t g(s)
+    else:  # the PSF image of chi may ring below zero: t s / (s^2 + s0^2) keeps the sign of t / s
+        den = s * s + s0**2
+        ratio, dratio = s / den, (s0**2 - s * s) / den**2
+    res = scale * (t * ratio - u)
     if not jacobian:
         return res
     dv = ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb_derivative)), tk))
@@ -374,12 +440,12 @@ def velocity_residual(
     raw = ca.repmat(sign, basis.size, 1) * ca.mtimes(sel_a, ang) * ca.mtimes(sel_r, radial)  # (n_raw, n_pts)
     design = ca.DM(model.design)
     n_r = model.design.shape[1]
-    ds_dr = ca.mtimes(agg, ca.repmat(dchi.T, 1, n_r) * design)
-    dt_dr = ca.mtimes(agg, ca.repmat((dchi * v + chi * dv * drho).T, 1, n_r) * design)
-    dt_dv = ca.mtimes(ca.mtimes(agg, ca.repmat(chi.T, 1, basis.size) * raw.T), transform)
-    jac_r = ca.repmat(scale / den, 1, n_r) * (dt_dr - ca.repmat(t * s / (den * den), 1, n_r) * ds_dr)
-    jac_v = ca.repmat(scale / den, 1, basis.size) * dt_dv
-    return res, jac_r, jac_v, t / den - u
+    ds_dr = agg(ca.repmat(dchi.T, 1, n_r) * design)
+    dt_dr = agg(ca.repmat((dchi * v + chi * dv * drho).T, 1, n_r) * design)
+    dt_dv = ca.mtimes(agg(ca.repmat(chi.T, 1, basis.size) * raw.T), transform)
+    jac_r = ca.repmat(scale * ratio, 1, n_r) * dt_dr + ca.repmat(scale * t * dratio, 1, n_r) * ds_dr
+    jac_v = ca.repmat(scale * ratio, 1, basis.size) * dt_dv
+    return res, jac_r, jac_v, t * ratio - u
 
 
 @dataclass
@@ -411,8 +477,13 @@ def build(
     alpha: float,
     beta: float,
     quad_order: int = 3,
+    start=None,
 ) -> CoupledNLP:
-    """The coupled functional as a CasADi NLP (variables ``[c_R; c_v]``)."""
+    """The coupled functional as a CasADi NLP (variables ``[c_R; c_v]``).
+
+    ``start`` (radius coefficients) fixes the voxel set of a k-space
+    acquisition (``geometry_problem.psf``; see :func:`velocity_misfit_model`).
+    """
     if vopt.eta != 2:
         raise InputError(
             f"the coupled method uses the closed-form inverse of phi_R, which needs eta = 2 "
@@ -432,6 +503,8 @@ def build(
         geometry_problem.r1,
         gopt.n_fourier,
         q,
+        psf=geometry_problem.psf,
+        start=start,
     )
     res_v, jac_vr, jac_vv, err_v = velocity_residual(
         model, gnlp.c, c_v, basis, r_in, gamma, gopt.heaviside, jacobian=True
@@ -493,6 +566,7 @@ def solve(
         alpha,
         beta,
         options.quad_order,
+        start=start_geometry.coefficients,
     )
     # warm start from the decoupled solution: a small initial barrier parameter keeps IPOPT near it
     extra = {
@@ -530,7 +604,10 @@ def solve(
     g = geo.finish(geometry_problem, gopt, numeric, c_r, stats, alpha)
     g.box_multipliers = np.asarray(sol["lam_g"]).ravel()
     vopt_fixed = replace(vopt, inner_radius=dm.r_in)
-    vp = vel.assemble(geometry_problem.grid, velocity_image, c_r, g.center, vopt_fixed, basis=start_velocity.basis)
+    vp = vel.assemble(
+        geometry_problem.grid, velocity_image, c_r, g.center, vopt_fixed, basis=start_velocity.basis,
+        psf=geometry_problem.psf,
+    )  # fmt: skip
     v = vel.result(vp, vopt_fixed, c_v, beta, stats)
     stats.seconds = time.perf_counter() - t0
     return CoupledResult(g, v, stats, weight, (start_geometry.coefficients, start_velocity.coefficients), nlp)

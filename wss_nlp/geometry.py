@@ -179,7 +179,8 @@ class TikhonovNLP:
     weights: np.ndarray  # H^s weights
     model: meas.AnnulusModel | kspace.KSpaceMagnitudeModel
     gamma: float
-    constant_misfit: float  # misfit of the voxels outside the annulus
+    constant_misfit: float  # misfit of the voxels outside the annulus (of the magnitude it was built with)
+    data: ca.MX | None = None  # the annulus magnitude as a symbol (solvers reused across data), or None: constants
 
 
 def quad_order(problem: GeometryProblem, options: GeometryOptions) -> int:
@@ -190,7 +191,9 @@ def effective_gamma(problem: GeometryProblem, options: GeometryOptions) -> float
     return options.gamma if options.gamma is not None else problem.grid.h / quad_order(problem, options)
 
 
-def build_tikhonov(problem: GeometryProblem, options: GeometryOptions, gamma_symbol=None) -> TikhonovNLP:
+def build_tikhonov(
+    problem: GeometryProblem, options: GeometryOptions, gamma_symbol=None, data_symbol: bool = False
+) -> TikhonovNLP:
     """Build the CasADi expression of the Tikhonov functional (eq. (tik1)).
 
     Notes
@@ -203,6 +206,9 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions, gamma_sym
     With ``problem.psf`` (a k-space acquisition) ``F_i`` is the magnitude of
     the PSF-filtered lumen indicator on a window about the wall annulus
     (:func:`wss_nlp.kspace.magnitude_model`), the rest again a constant.
+    ``data_symbol`` makes the fitted magnitude values a symbol
+    (``TikhonovNLP.data``) instead of constants, so one solver serves every
+    magnitude image of the same grid, centre and box (:func:`solver_for`).
     """
     n = options.n_fourier
     q = quad_order(problem, options)
@@ -219,7 +225,8 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions, gamma_sym
         predicted = kspace.magnitude_model(model, c, width, options.heaviside)
     m = problem.magnitude.ravel()
     area = problem.grid.voxel_area
-    residual = np.sqrt(area) * (predicted - ca.DM(m[model.annulus]))
+    data = ca.MX.sym("m", model.annulus.size) if data_symbol else None
+    residual = np.sqrt(area) * (predicted - (ca.DM(m[model.annulus]) if data is None else data))
     ref = np.zeros(rad.n_coefficients(n))
     if options.prior == "area":
         ref[0] = problem.r_ref
@@ -228,9 +235,23 @@ def build_tikhonov(problem: GeometryProblem, options: GeometryOptions, gamma_sym
     penalty = ca.dot(ca.DM(w) * dc, dc)
     f = ca.sumsqr(residual) + alpha * penalty
     g = ca.mtimes(ca.DM(rad.design_matrix(options.box_angles(), n)), c)
+    const = _constant_misfit(m, model, area)
+    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, const, data)
+
+
+def _constant_misfit(m: np.ndarray, model, area: float) -> float:
+    """``|V| sum (F_i - m_i)^2`` of the voxels the functional does not fit (``F = 1`` inside, 0 outside)."""
     outside = np.setdiff1d(np.arange(m.size), np.concatenate([model.annulus, model.inside]))
-    const = area * (np.sum((1 - m[model.inside]) ** 2) + np.sum(m[outside] ** 2))
-    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, float(const))
+    return float(area * (np.sum((1 - m[model.inside]) ** 2) + np.sum(m[outside] ** 2)))
+
+
+def fitted_voxels(problem: GeometryProblem, options: GeometryOptions) -> np.ndarray:
+    """Flat indices of the voxels whose magnitude the functional fits (the annulus, or the k-space window)."""
+    q = quad_order(problem, options)
+    if problem.psf is None:
+        return meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q).annulus
+    gamma = effective_gamma(problem, options)
+    return kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf).annulus
 
 
 def model_image(problem: GeometryProblem, options: GeometryOptions, result: GeometryResult) -> np.ndarray:
@@ -257,8 +278,13 @@ def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
 
 def finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
     """GeometryResult of coefficients ``coef`` of the functional ``nlp`` (misfits, penalty, box activity)."""
-    fun = ca.Function("parts", [nlp.c], [ca.sumsqr(nlp.residual), nlp.penalty])
-    mis, pen = (float(v) for v in fun(coef))
+    m = problem.magnitude.ravel()
+    inputs, values = [nlp.c], [coef]
+    if nlp.data is not None:
+        inputs.append(nlp.data)
+        values.append(m[nlp.model.annulus])
+    fun = ca.Function("parts", inputs, [ca.sumsqr(nlp.residual), nlp.penalty])
+    mis, pen = (float(v) for v in fun(*values))
     r_box = rad.evaluate(coef, options.box_angles())
     slack = 1e-6 * problem.r1
     active = bool(np.any(r_box <= problem.r0 + slack) or np.any(r_box >= problem.r1 - slack))
@@ -267,7 +293,7 @@ def finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
         center=tuple(problem.center),
         alpha=float(alpha),
         gamma=nlp.gamma,
-        residual_norm=float(np.sqrt(mis + nlp.constant_misfit)),
+        residual_norm=float(np.sqrt(mis + _constant_misfit(m, nlp.model, problem.grid.voxel_area))),
         annulus_residual_norm=float(np.sqrt(mis)),
         penalty=pen,
         stats=stats,
@@ -279,16 +305,21 @@ def finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
 
 
 class IpoptGeometrySolver:
-    """IPOPT for the geometry functional, built once and reused for any alpha.
+    """IPOPT for the geometry functional, built once and reused for any alpha and any magnitude image.
 
     ``options.hessian = "gauss-newton"`` passes ``2 (J^T J + alpha W)`` as the
     Hessian of the Lagrangian (the constraints are linear), following
     CasADi's ``sysid.py`` example; "exact" uses CasADi's exact Hessian.
+    alpha and the fitted magnitude values are the NLP's parameters, so
+    :meth:`solve` takes a ``problem`` with another magnitude on the same
+    grid, centre and box (the dephasing passes, cine frames) without a
+    rebuild; :func:`solver_for` keeps recent solvers.
     """
 
     def __init__(self, problem: GeometryProblem, options: GeometryOptions):
         self.problem, self.options = problem, options
-        nlp = self.nlp = build_tikhonov(problem, options)
+        nlp = self.nlp = build_tikhonov(problem, options, data_symbol=True)
+        params = ca.vertcat(nlp.alpha, nlp.data)
         # clip_inactive_lam: IPOPT leaves ~1e-12 multipliers on inactive bounds, which sensitivity analysis
         # (wss_nlp.sensitivity) would read as active constraints
         extra = {"clip_inactive_lam": True}
@@ -296,29 +327,68 @@ class IpoptGeometrySolver:
             jac = ca.jacobian(nlp.residual, nlp.c)
             hess = 2 * ca.mtimes(jac.T, jac) + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights))
             self.solver = gauss_newton_ipopt(
-                "geometry", nlp.c, nlp.f, nlp.g, hess, nlp.alpha, options.tol, options.max_iter, extra
+                "geometry", nlp.c, nlp.f, nlp.g, hess, params, options.tol, options.max_iter, extra
             )
             return
         opts = ipopt_options(options.tol, options.max_iter, extra)
         if options.hessian == "limited-memory":
             opts["ipopt.hessian_approximation"] = "limited-memory"
-        self.solver = ca.nlpsol("geometry", "ipopt", {"x": nlp.c, "p": nlp.alpha, "f": nlp.f, "g": nlp.g}, opts)
+        self.solver = ca.nlpsol("geometry", "ipopt", {"x": nlp.c, "p": params, "f": nlp.f, "g": nlp.g}, opts)
 
-    def solve(self, alpha: float | None = None, x0=None) -> GeometryResult:
+    def solve(self, alpha: float | None = None, x0=None, problem: GeometryProblem | None = None) -> GeometryResult:
+        """Solve at ``alpha`` from ``x0`` for ``problem`` (default: the one built with; same grid, centre, box)."""
+        problem = self.problem if problem is None else problem
         alpha = self.options.alpha if alpha is None else float(alpha)
-        x0 = initial_guess(self.problem, self.options.n_fourier) if x0 is None else np.asarray(x0, dtype=float)
+        x0 = initial_guess(problem, self.options.n_fourier) if x0 is None else np.asarray(x0, dtype=float)
+        data = problem.magnitude.ravel()[self.nlp.model.annulus]
         sol, stats = run_nlpsol(
-            self.solver, "geometry (IPOPT)", x0=x0, p=alpha, lbg=self.problem.r0, ubg=self.problem.r1
+            self.solver,
+            "geometry (IPOPT)",
+            x0=x0,
+            p=np.concatenate([[alpha], data]),
+            lbg=problem.r0,
+            ubg=problem.r1,
         )
         stats.extra["hessian"] = self.options.hessian
-        out = finish(self.problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
+        out = finish(problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
         out.box_multipliers = np.asarray(sol["lam_g"]).ravel()
         return out
 
 
+#: How many built geometry solvers :func:`solver_for` keeps (a slice needs two or three; the filter choice four).
+SOLVER_CACHE_SIZE = 8
+_solvers: dict = {}
+
+
+def solver_for(problem: GeometryProblem, options: GeometryOptions) -> IpoptGeometrySolver:
+    """A built :class:`IpoptGeometrySolver` for ``problem``'s grid, centre, box and model and ``options``.
+
+    Reused when only the magnitude or alpha differ (both are solver
+    parameters); the least recently used of :data:`SOLVER_CACHE_SIZE` is
+    dropped. Pass the problem to :meth:`IpoptGeometrySolver.solve`.
+    """
+    key = (
+        problem.grid,
+        problem.magnitude.shape,
+        tuple(float(v) for v in problem.center),
+        float(problem.r0),
+        float(problem.r1),
+        float(problem.r_ref),
+        problem.psf,
+        replace(options, alpha=1.0),  # alpha is a parameter
+    )
+    solver = _solvers.pop(key, None)
+    if solver is None:
+        solver = IpoptGeometrySolver(problem, options)
+        while len(_solvers) >= SOLVER_CACHE_SIZE:
+            _solvers.pop(next(iter(_solvers)))
+    _solvers[key] = solver  # most recently used last
+    return solver
+
+
 def solve_ipopt(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
     """Minimize the geometry functional with IPOPT; the box goes to IPOPT."""
-    return IpoptGeometrySolver(problem, options).solve(options.alpha, x0)
+    return solver_for(problem, options).solve(options.alpha, x0, problem)
 
 
 def _project_box(y, hmat, box_matrix, r0, r1):

@@ -40,6 +40,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse
 
 import casadi as ca
 
@@ -256,6 +257,36 @@ class Averager:
         out = np.tensordot(self.ky, fine, axes=(1, 0))  # (rows_y, fine_x, ...)
         out = np.tensordot(self.kx, np.moveaxis(out, 1, 0), axes=(1, 0))  # (rows_x, rows_y, ...)
         return out[self.out_x, self.out_y]
+
+    def casadi(self, values):
+        """The same map for a CasADi matrix of point values, (n_points, k) -> (n_out, k), points voxel-major.
+
+        Notes
+        -----
+        Column ``j`` is scattered into the fine box ``F_j`` and mapped to
+        ``K_y F_j K_x^T``; all columns at once: one product with ``K_y`` on
+        the side-by-side blocks, then ``vec(G K_x^T) = (K_x (x) I) vec(G)``
+        with the Kronecker factor stored sparse (``n_x n_fx n_y`` entries).
+        Cost about ``2 k n_y n_fy n_fx + 2 k n_x n_fx n_y`` flops.
+        """
+        if getattr(self, "_casadi", None) is None:
+            n_fy, n_fx = self.shape
+            n_pts = self.fy.size
+            flat = (self.fy + n_fy * self.fx).ravel()  # column-major position in the fine box, as CasADi stores
+            scatter = ca.DM(ca.Sparsity.triplet(n_fy * n_fx, n_pts, flat.tolist(), list(range(n_pts))), np.ones(n_pts))
+            n_ry = self.ky.shape[0]
+            kron = scipy.sparse.csc_matrix(scipy.sparse.kron(self.kx, scipy.sparse.identity(n_ry)))
+            kron_dm = ca.DM(
+                ca.Sparsity(kron.shape[0], kron.shape[1], kron.indptr.tolist(), kron.indices.tolist()), kron.data
+            )
+            rows = (self.out_y + n_ry * self.out_x).tolist()
+            self._casadi = (scatter, ca.DM(self.ky), kron_dm, rows)
+        scatter, ky, kron, rows = self._casadi
+        n_fy, n_fx = self.shape
+        k = values.shape[1]
+        fine = ca.reshape(ca.mtimes(scatter, values), n_fy, n_fx * k)  # block j = F_j
+        part = ca.reshape(ca.mtimes(ky, fine), ky.shape[0] * n_fx, k)  # column j = vec(K_y F_j)
+        return ca.mtimes(kron, part)[rows, :]
 
 
 def signal_scale(raw: np.ndarray, background: float, moving: np.ndarray) -> float:

@@ -235,11 +235,6 @@ class ReconstructionOptions:
             raise InputError(
                 "the coupled method does not take a near-wall layer yet; use --method decoupled or --near-wall off"
             )
-        if self.method == "coupled" and self.acquisition.model == "kspace":
-            raise InputError(
-                "--method coupled takes the box model only (its velocity misfit is written for voxel means); "
-                "use --method decoupled with --acquisition kspace"
-            )
         if self.alpha_rule not in ALPHA_RULES:
             raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
         if self.dephasing_beta_rule not in DEPHASING_BETA_RULES:
@@ -394,7 +389,8 @@ def reconstruct_slice(
     info, cres = {}, None
     if options.method == "coupled":
         t0 = time.perf_counter()
-        cres, info = solve_coupled(problem, g, v, magnitude, norm, lumen, velocity_image, nvenc, options, where)
+        # vp.data_image: the velocity the last pass corrected (the k-space phase nonlinearity; box: the data)
+        cres, info = solve_coupled(problem, g, v, magnitude, norm, lumen, vp.data_image, nvenc, options, where)
         g, v = cres.geometry, cres.velocity
         t["coupled"] = time.perf_counter() - t0
 
@@ -528,7 +524,7 @@ def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options
         weight, how = copt.velocity_weight, {"weight_method": "given (--velocity-weight)"}
     else:
         weight, how = cpl.weight_from_data(
-            problem, options.geometry, raw, norm, lumen.noise_mask, velocity_image, venc, where.rstrip()
+            problem, options.geometry, raw, norm, lumen.noise_mask, velocity_image, venc, where.rstrip(), lumen.signal
         )
         how["weight_method"] = "likelihood: W sigma_m^2 / sigma_u^2 from the estimated noise levels"
     res = cpl.solve(problem, options.geometry, velocity_image, options.velocity, g, v, weight, copt)
@@ -606,11 +602,6 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
     density = acq.density(options.density_kg_m3)
     acq, screens = plaus.screen(acq, options.screen)
     psf = options.acquisition.psf(acq.voxel_size_mm, acq.acquired_voxel_size_mm, f"{acq.source}: ")
-    if psf is not None and options.method == "coupled":  # --acquisition auto on a file with acquired_voxel_size_mm
-        raise InputError(
-            f"{acq.source}: the file states its acquired resolution, so --acquisition auto chose the k-space model, "
-            "which --method coupled does not take yet; pass --acquisition box or --method decoupled"
-        )
     if psf is not None and psf.filter == "auto":
         psf = kspace_filter(acq.magnitude, acq.grid, psf, options, f"{acq.source}: ")
     out = Results()

@@ -540,17 +540,23 @@ def decoupled(
     out = _wss_sensitivity(
         vp.basis, vopt.eta, viscosity_pa_s, n_phi, c_r0, ctr, cv0, r_in, dr_in, dcr, dcv, annulus, vp.voxels.index
     )
-    if problem.psf is not None:
-        (ny, nx), psf = problem.grid.shape, problem.psf
-        out.correlation = (
-            kspace.noise_correlation(ny, psf.zero_fill[0], psf.filter),
-            kspace.noise_correlation(nx, psf.zero_fill[1], psf.filter),
-            (ny, nx),
-        )
-        out.noise["correlation"] = f"k-space noise: {psf.filter} filter, zero-filling {list(psf.zero_fill)}"
+    _attach_correlation(out, problem)
     out.seconds = time.perf_counter() - t_start
     out.noise["active_box_constraints"] = int(np.count_nonzero(anchor.box_multipliers))
     return out
+
+
+def _attach_correlation(out: Sensitivity, problem: geo.GeometryProblem) -> None:
+    """Give the band the noise correlation of a k-space acquisition (none for the box model)."""
+    if problem.psf is None:
+        return
+    (ny, nx), psf = problem.grid.shape, problem.psf
+    out.correlation = (
+        kspace.noise_correlation(ny, psf.zero_fill[0], psf.filter),
+        kspace.noise_correlation(nx, psf.zero_fill[1], psf.filter),
+        (ny, nx),
+    )
+    out.noise["correlation"] = f"k-space noise: {psf.filter} filter, zero-filling {list(psf.zero_fill)}"
 
 
 def coupled(
@@ -672,6 +678,7 @@ def coupled(
         m_index,
         u_index,
     )
+    _attach_correlation(out, problem)
     out.seconds = time.perf_counter() - t_start
     out.noise.update({"active_box_constraints": int(active.size), "kkt_residual_after_polish": polished})
     return out
@@ -686,9 +693,8 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
     coupled model; the box does not depend on the centre.
     """
     n_r = nlp.n_r
-    _, dgrad_geo, _ = geometry_parameter_derivatives(
-        problem, geo.with_options(gopt, alpha=nlp.alpha), x[:n_r], nlp.alpha, gamma
-    )
+    derivatives = geometry_parameter_derivatives if problem.psf is None else kspace_parameter_derivatives
+    _, dgrad_geo, _ = derivatives(problem, geo.with_options(gopt, alpha=nlp.alpha), x[:n_r], nlp.alpha, gamma)
     center = ca.MX.sym("center", 2)
     res_v = cpl.velocity_residual(
         nlp.velocity_model,
