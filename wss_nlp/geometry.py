@@ -319,6 +319,7 @@ class IpoptGeometrySolver:
     def __init__(self, problem: GeometryProblem, options: GeometryOptions):
         self.problem, self.options = problem, options
         nlp = self.nlp = build_tikhonov(problem, options, data_symbol=True)
+        assert nlp.data is not None  # data_symbol=True
         params = ca.vertcat(nlp.alpha, nlp.data)
         # clip_inactive_lam: IPOPT leaves ~1e-12 multipliers on inactive bounds, which sensitivity analysis
         # (wss_nlp.sensitivity) would read as active constraints
