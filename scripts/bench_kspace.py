@@ -7,7 +7,10 @@ Issue 14's target: a slice within 2x the box model's time. The laminar phantom a
 box-only), their ratio, and the k-space slice's split into geometry, velocity and dephasing passes. Writes
 ``scripts/results/bench_kspace.md``.
 
-    python scripts/bench_kspace.py [--h 1.5,1.0,0.6,0.3] [--runs 3] [--case laminar]
+    python scripts/bench_kspace.py [--h 1.5,1.0,0.6,0.3] [--runs 3] [--case laminar] [--method coupled]
+
+With ``--method coupled`` both columns are the coupled method (box or k-space model), the split adds the
+coupled solve's seconds; ``scripts/results/bench_kspace_coupled.md``.
 """
 
 import argparse
@@ -29,16 +32,17 @@ def main(argv=None):
     p.add_argument("--h", default="1.5,1.0,0.6,0.3")
     p.add_argument("--runs", type=int, default=3)
     p.add_argument("--case", default="laminar")
+    p.add_argument("--method", choices=("decoupled", "coupled"), default="decoupled")
     p.add_argument("--out", default=RESULTS)
     args = p.parse_args(argv)
     psf = kspace.PSF("hamming", (1.0, 1.0))
     lines = [
         f"Phantom '{args.case}' acquired in k-space (Hamming, F = 1), SNR 25, seed 0; medians of {args.runs} "
-        "runs, both models in one run; no uncertainty band.",
+        f"runs, both models in one run; no uncertainty band; method {args.method}.",
         "Made by `python scripts/bench_kspace.py" + "".join(f" {a}" for a in sys.argv[1:]) + "`.",
         "",
         f"| h [mm] | box [s] | k-space [s] | ratio (target <= {TARGET_RATIO:g}) | k-space geometry / velocity / "
-        "dephasing [s] | passes |",
+        "dephasing" + (" / coupled" if args.method == "coupled" else "") + " [s] | passes |",
         "|---|---|---|---|---|---|",
     ]
     for h in (float(v) for v in args.h.split(",")):
@@ -48,7 +52,7 @@ def main(argv=None):
         for _ in range(args.runs):
             for model in times:
                 how = kspace.AcquisitionOptions(model, "hamming")
-                options = ReconstructionOptions(uncertainty=False, acquisition=how)
+                options = ReconstructionOptions(method=args.method, uncertainty=False, acquisition=how)
                 t0 = time.perf_counter()
                 r = reconstruct(acq, options)[0]
                 times[model].append(time.perf_counter() - t0)
@@ -58,9 +62,11 @@ def main(argv=None):
         deph = split.get("dephasing_check", 0.0) + split.get("dephasing_pass", 0.0)
         lines.append(
             f"| {h:g} | {box:.2f} | {ksp:.2f} | {ksp / box:.1f}{'' if ksp / box <= TARGET_RATIO else ' (missed)'} | "
-            f"{split['geometry']:.2f} / {split['velocity']:.2f} / {deph:.2f} | {split.get('dephasing_passes', 0)} |"
+            f"{split['geometry']:.2f} / {split['velocity']:.2f} / {deph:.2f}"
+            + (f" / {split['coupled']:.2f}" if "coupled" in split else "")
+            + f" | {split.get('dephasing_passes', 0)} |"
         )
-    write_report(args.out, "bench_kspace.md", lines)
+    write_report(args.out, "bench_kspace.md" if args.method == "decoupled" else "bench_kspace_coupled.md", lines)
 
 
 if __name__ == "__main__":
