@@ -119,6 +119,57 @@ def test_magnitude_model_casadi_equals_numpy_and_its_jacobian_passes_a_taylor_te
     checks.assert_taylor(lambda z: np.asarray(fun(z)), lambda z, dz: np.asarray(jac(z)) @ dz, x0, d)
 
 
+def test_separable_psf_callback_equals_casadi_products_with_exact_derivatives():
+    """The BLAS-evaluated PSF operation (kspace.SeparablePSF) inside a nonlinear CasADi graph against the same
+    graph with CasADi's own products: values, Jacobian (forward mode, batched seeds), gradient (reverse mode,
+    the adjoint) and Hessian (forward over reverse) agree to rounding; the map and its adjoint pass a dot test."""
+    rng = np.random.default_rng(4)
+    ky, kx = rng.normal(size=(5, 7)), rng.normal(size=(4, 6))
+    op = kspace.SeparablePSF(ky, kx)
+    x, c = ca.MX.sym("x", 7, 6), ca.MX.sym("c", 3)
+    inner = ca.sin(x * c[0]) + c[1] * x**2 + c[2]
+    x0, c0 = rng.normal(size=(7, 6)), rng.normal(size=3)
+    outs = []
+    for image in (op(inner), ca.mtimes(ca.mtimes(ca.DM(ky), inner), ca.DM(kx.T))):
+        f = ca.sumsqr(image)
+        fun = ca.Function("f", [x, c], [image, ca.jacobian(image, c), ca.gradient(f, x), ca.hessian(f, c)[0]])
+        outs.append([np.asarray(v) for v in fun(x0, c0)])
+    for mine, plain in zip(*outs):
+        assert np.max(np.abs(mine - plain)) <= 1e-12 * max(1.0, np.max(np.abs(plain)))
+    adjoint = kspace.SeparablePSF(ky, kx, adjoint=True)
+    checks.dottest(
+        lambda v: op.apply(v.reshape(6, 7).T).T.ravel(),
+        lambda w: adjoint.apply(w.reshape(4, 5).T).T.ravel(),
+        42,
+        20,
+        rng,
+    )
+
+
+def test_separable_jacobian_equals_casadi_ad_and_the_solvers_agree():
+    """The geometry solver's k-space Jacobian, assembled by the chain rule with the BLAS PSF
+    (magnitude_model(jacobian=True)), equals CasADi's AD of the plain graph to rounding; IPOPT on it and the
+    projected Gauss-Newton method on the plain graph (two independent solvers) reach the same minimizer."""
+    psf = kspace.PSF("hamming", (2.0, 2.0))
+    c0 = np.zeros(rad.n_coefficients(4))
+    c0[0], c0[1], c0[6] = 9.0, 0.6, -0.4
+    model = kspace.magnitude_setup(GRID, (0.2, -0.3), 6.0, 12.0, 3, 1.0 / 3, psf)
+    c = ca.MX.sym("c", c0.size)
+    value, jac = kspace.magnitude_model(model, c, 1.0 / 3, jacobian=True)
+    plain = kspace.magnitude_model(model, c, 1.0 / 3)
+    fun = ca.Function("f", [c], [value, jac, plain, ca.jacobian(plain, c)])
+    v1, j1, v2, j2 = (np.asarray(a) for a in fun(c0))
+    assert np.max(np.abs(v1 - v2)) < 1e-13 and np.max(np.abs(j1 - j2)) < 1e-12 * np.max(np.abs(j2))
+    acq, _ = ph.make_phantom("laminar", h_mm=1.5, snr=25, seed=23, psf=psf)
+    _, m, lumen = pp.preprocess(acq.magnitude[0], acq.grid, clip_upper=False)
+    problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area, psf=psf)
+    opts = geo.GeometryOptions(tol=1e-12)
+    a = geo.IpoptGeometrySolver(problem, opts).solve()
+    b = geo.solve_projected_gauss_newton(problem, opts)
+    assert a.stats.converged and b.stats.converged
+    assert np.max(np.abs(a.coefficients - b.coefficients)) < 1e-6 * a.coefficients[0]
+
+
 def test_averaging_operator_dot_test():
     """The hand-written k-space averaging operator and its adjoint (two dense products each) pass a dot test."""
     psf = kspace.PSF("fermi", (2.0, 2.0))
@@ -535,7 +586,8 @@ def test_sharp_coupled_kspace_operator_is_the_decoupled_one(kspace_coupled):
     """With a (nearly) sharp indicator, no floor and R fixed, the coupled k-space voxel value t_i s_i / s_i^2 is
     the decoupled first-order phase operator (K chi v)/(K chi) on every voxel both keep (same sub-voxel points,
     same kernels): rounding-level agreement. The coupled set also keeps voxels just outside the lumen that
-    the PSF gives signal (>= MIN_KSPACE_SIGNAL), which the decoupled fit leaves out."""
+    the PSF gives signal (>= KSPACE_VOXEL_SIGNAL), which the decoupled fit leaves out, and leaves out voxels
+    below that signal, which the decoupled fit keeps down to MIN_KSPACE_SIGNAL."""
     res, _, nlp = kspace_coupled
     g, v = res.geometry, res.velocity
     model = nlp.velocity_model
@@ -551,7 +603,8 @@ def test_sharp_coupled_kspace_operator_is_the_decoupled_one(kspace_coupled):
     kept = vp.weights > 0
     common, pos, pos_vp = np.intersect1d(model.index, vp.voxels.index[kept], return_indices=True)
     ok = scale[pos] > 1e-6  # voxels whose weight is ~0 do not determine T_i through r_i
-    assert common.size == np.count_nonzero(kept) and ok.mean() > 0.9
+    strong = vp.voxels.index[vp.weights >= cpl.KSPACE_VOXEL_SIGNAL * res.grid.voxel_area * (1 + 1e-9)]
+    assert np.all(np.isin(strong, common)) and ok.mean() > 0.9
     t_coupled = r[pos][ok] / scale[pos][ok] + model.data[pos][ok]
     expected = (vp.operator[kept] @ c)[pos_vp][ok]
     assert np.allclose(t_coupled, expected, rtol=0, atol=1e-9 * np.max(np.abs(expected)))
@@ -582,6 +635,21 @@ def test_noise_free_coupled_kspace_gets_laminar_wss_within_one_percent():
     assert abs(mine.mean_wss_rel) < 0.01
     assert mine.radius_rel_l2 <= 1.05 * errors["decoupled", "kspace"].radius_rel_l2
     assert abs(errors["coupled", "box"].mean_wss_rel) > 3 * abs(mine.mean_wss_rel)
+
+
+def test_coupled_kspace_converges_on_unfiltered_low_snr_slices():
+    """Unfiltered k-space data (the sinc PSF rings most), SNR 10, h = 1 mm: the coupled solve converges and
+    stays within 5 % of the exact mean WSS (measured 0.1-3.0 % on seeds 105-112). With the voxel set down to
+    2 % or 5 % modeled signal IPOPT failed or stalled on 2 of 10 such slices (seeds 100-104, which chose
+    KSPACE_VOXEL_SIGNAL = 0.1); seeds 105-108 here were not used for that."""
+    for seed in range(105, 109):
+        acq, truth = ph.make_phantom("laminar", h_mm=1.0, snr=10, seed=seed, psf=kspace.PSF("none", (1.0, 1.0)))
+        options = rc.ReconstructionOptions(
+            method="coupled", uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "none")
+        )
+        r = rc.reconstruct(acq, options)[0]
+        assert r.converged, seed
+        assert abs(r.wss.mean - truth.mean_wss) / truth.mean_wss < 0.05, seed
 
 
 def test_coupled_kspace_sensitivities_match_resolves(kspace_coupled):

@@ -222,7 +222,7 @@ def velocity_misfit_model(
         inside = (np.hypot(rx, ry) < rad.evaluate(start, np.arctan2(ry, rx))).reshape(points_index.size, -1)
         reach = np.flatnonzero(dist <= r1 + kspace.WINDOW_ACQUIRED_VOXELS * max(psf.zero_fill) * grid.h)
         signal = kspace.Averager(grid, points_index, order, psf, out_index=reach)(inside.astype(float))
-        index = reach[signal >= vel.MIN_KSPACE_SIGNAL]
+        index = reach[signal >= KSPACE_VOXEL_SIGNAL]
         averager = kspace.Averager(grid, points_index, order, psf, out_index=index)
     dx, dy = (px - center[0]).ravel(), (py - center[1]).ravel()
     r = np.hypot(dx, dy)
@@ -253,6 +253,9 @@ def velocity_misfit_model(
 
 #: Floor ``s_0`` (in sub-voxel points) of the smoothed point count in ``T_i = t_i / sqrt(s_i^2 + s_0^2)``.
 DENOMINATOR_FLOOR = 0.05
+
+#: k-space misfit: smallest modeled signal (fraction of a voxel) of a voxel in the set, and the floor s_0.
+KSPACE_VOXEL_SIGNAL, KSPACE_FLOOR = 0.1, 0.0
 
 #: The radial factors are expanded on ``[0, RHO_MAX]``, the reference disk.
 RHO_MAX = 1.0
@@ -425,7 +428,7 @@ def velocity_residual(
     s = agg(chi.T)
     t = agg((chi * v).T)
     scale = ca.DM(np.sqrt(model.weights / np.sum(model.weights)))
-    s0 = floor * model.point_weight
+    s0 = floor * model.point_weight if model.averager is None else max(floor * model.point_weight, KSPACE_FLOOR)
     if model.averager is None:
         den = ca.sqrt(s * s + s0**2)
         ratio, dratio = 1 / den, -s / den**3  # g(s) and g'(s) in T = t g(s)

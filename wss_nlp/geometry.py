@@ -181,6 +181,7 @@ class TikhonovNLP:
     gamma: float
     constant_misfit: float  # misfit of the voxels outside the annulus (of the magnitude it was built with)
     data: ca.MX | None = None  # the annulus magnitude as a symbol (solvers reused across data), or None: constants
+    jacobian: ca.MX | None = None  # d residual / d c assembled by the chain rule (k-space solver form), or None
 
 
 def quad_order(problem: GeometryProblem, options: GeometryOptions) -> int:
@@ -192,7 +193,11 @@ def effective_gamma(problem: GeometryProblem, options: GeometryOptions) -> float
 
 
 def build_tikhonov(
-    problem: GeometryProblem, options: GeometryOptions, gamma_symbol=None, data_symbol: bool = False
+    problem: GeometryProblem,
+    options: GeometryOptions,
+    gamma_symbol=None,
+    data_symbol: bool = False,
+    separable_jacobian: bool = False,
 ) -> TikhonovNLP:
     """Build the CasADi expression of the Tikhonov functional (eq. (tik1)).
 
@@ -209,6 +214,9 @@ def build_tikhonov(
     ``data_symbol`` makes the fitted magnitude values a symbol
     (``TikhonovNLP.data``) instead of constants, so one solver serves every
     magnitude image of the same grid, centre and box (:func:`solver_for`).
+    ``separable_jacobian`` (k-space only) evaluates the PSF with BLAS and
+    sets ``TikhonovNLP.jacobian`` (:func:`wss_nlp.kspace.magnitude_model`
+    with ``jacobian=True``): the Gauss-Newton solver's form.
     """
     n = options.n_fourier
     q = quad_order(problem, options)
@@ -222,7 +230,10 @@ def build_tikhonov(
         predicted = meas.magnitude_model(model, c, width, options.heaviside)
     else:
         model = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf)
-        predicted = kspace.magnitude_model(model, c, width, options.heaviside)
+        if separable_jacobian:
+            predicted, d_predicted = kspace.magnitude_model(model, c, width, options.heaviside, jacobian=True)
+        else:
+            predicted = kspace.magnitude_model(model, c, width, options.heaviside)
     m = problem.magnitude.ravel()
     area = problem.grid.voxel_area
     data = ca.MX.sym("m", model.annulus.size) if data_symbol else None
@@ -236,7 +247,8 @@ def build_tikhonov(
     f = ca.sumsqr(residual) + alpha * penalty
     g = ca.mtimes(ca.DM(rad.design_matrix(options.box_angles(), n)), c)
     const = _constant_misfit(m, model, area)
-    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, const, data)
+    jac = np.sqrt(area) * d_predicted if problem.psf is not None and separable_jacobian else None
+    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, const, data, jac)
 
 
 def _constant_misfit(m: np.ndarray, model, area: float) -> float:
@@ -318,14 +330,15 @@ class IpoptGeometrySolver:
 
     def __init__(self, problem: GeometryProblem, options: GeometryOptions):
         self.problem, self.options = problem, options
-        nlp = self.nlp = build_tikhonov(problem, options, data_symbol=True)
+        gauss_newton = options.hessian == "gauss-newton"
+        nlp = self.nlp = build_tikhonov(problem, options, data_symbol=True, separable_jacobian=gauss_newton)
         assert nlp.data is not None  # data_symbol=True
         params = ca.vertcat(nlp.alpha, nlp.data)
         # clip_inactive_lam: IPOPT leaves ~1e-12 multipliers on inactive bounds, which sensitivity analysis
         # (wss_nlp.sensitivity) would read as active constraints
         extra = {"clip_inactive_lam": True}
-        if options.hessian == "gauss-newton":
-            jac = ca.jacobian(nlp.residual, nlp.c)
+        if gauss_newton:
+            jac = ca.jacobian(nlp.residual, nlp.c) if nlp.jacobian is None else nlp.jacobian
             hess = 2 * ca.mtimes(jac.T, jac) + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights))
             self.solver = gauss_newton_ipopt(
                 "geometry", nlp.c, nlp.f, nlp.g, hess, params, options.tol, options.max_iter, extra
@@ -385,6 +398,11 @@ def solver_for(problem: GeometryProblem, options: GeometryOptions) -> IpoptGeome
             _solvers.pop(next(iter(_solvers)))
     _solvers[key] = solver  # most recently used last
     return solver
+
+
+def clear_solvers() -> None:
+    """Forget the solvers :func:`solver_for` keeps (benchmarks time a slice as a user's first one)."""
+    _solvers.clear()
 
 
 def solve_ipopt(problem: GeometryProblem, options: GeometryOptions, x0=None) -> GeometryResult:
