@@ -19,6 +19,8 @@ from wss_nlp.errors import InputError
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
 from wss_nlp.velocity_basis import make_basis
 
+from conftest import assert_coupled_jacobian_is_exact
+
 
 @pytest.fixture(scope="module")
 def laminar_coarse():
@@ -92,19 +94,7 @@ def _coupled_nlp(res):
 
 def test_chain_rule_jacobian_equals_casadi_ad(laminar_coarse):
     _, _, res = laminar_coarse
-    g, v = res.geometry, res.velocity
-    nlp = _coupled_nlp(res)
-    rng = np.random.default_rng(2)
-    x = np.concatenate(
-        [
-            g.coefficients + 0.05 * rng.normal(size=g.coefficients.size),
-            v.coefficients * (1 + 0.1 * rng.normal(size=v.coefficients.size)),
-        ]
-    )
-    f = ca.Function("j", [nlp.x, nlp.gamma], [nlp.jacobian, ca.jacobian(nlp.residual, nlp.x)])
-    mine, ad = (np.asarray(a) for a in f(x, g.gamma))
-    # two exact derivatives of the same expression: they differ by rounding only
-    assert np.max(np.abs(mine - ad)) <= 1e-9 * np.max(np.abs(ad))
+    assert_coupled_jacobian_is_exact(_coupled_nlp(res), res.geometry, res.velocity)
 
 
 def test_objective_gradient_taylor(laminar_coarse):

@@ -25,6 +25,8 @@ from wss_nlp import sensitivity as sens
 from wss_nlp import wss as wss_mod
 from wss_nlp.errors import InputError
 
+from conftest import assert_coupled_jacobian_is_exact
+
 GRID = meas.VoxelGrid((40, 36), (1.0, 1.2), (-19.5, -20.8))
 
 
@@ -568,18 +570,8 @@ def test_coupled_kspace_jacobian_equals_casadi_ad(kspace_coupled):
     """The hand-assembled chain rule through the separable PSF image (Averager.casadi) against CasADi's AD of
     the same residual at a perturbed point: two exact derivatives, equal to rounding."""
     res, _, nlp = kspace_coupled
-    g, v = res.geometry, res.velocity
     assert nlp.velocity_model.averager is not None
-    rng = np.random.default_rng(2)
-    x = np.concatenate(
-        [
-            g.coefficients + 0.05 * rng.normal(size=g.coefficients.size),
-            v.coefficients * (1 + 0.1 * rng.normal(size=v.coefficients.size)),
-        ]
-    )
-    f = ca.Function("j", [nlp.x, nlp.gamma], [nlp.jacobian, ca.jacobian(nlp.residual, nlp.x)])
-    mine, ad = (np.asarray(a) for a in f(x, g.gamma))
-    assert np.max(np.abs(mine - ad)) <= 1e-9 * np.max(np.abs(ad))
+    assert_coupled_jacobian_is_exact(nlp, res.geometry, res.velocity)
 
 
 def test_sharp_coupled_kspace_operator_is_the_decoupled_one(kspace_coupled):

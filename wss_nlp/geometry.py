@@ -179,7 +179,6 @@ class TikhonovNLP:
     weights: np.ndarray  # H^s weights
     model: meas.AnnulusModel | kspace.KSpaceMagnitudeModel
     gamma: float
-    constant_misfit: float  # misfit of the voxels outside the annulus (of the magnitude it was built with)
     data: ca.MX | None = None  # the annulus magnitude as a symbol (solvers reused across data), or None: constants
     jacobian: ca.MX | None = None  # d residual / d c assembled by the chain rule (k-space solver form), or None
 
@@ -246,9 +245,8 @@ def build_tikhonov(
     penalty = ca.dot(ca.DM(w) * dc, dc)
     f = ca.sumsqr(residual) + alpha * penalty
     g = ca.mtimes(ca.DM(rad.design_matrix(options.box_angles(), n)), c)
-    const = _constant_misfit(m, model, area)
     jac = np.sqrt(area) * d_predicted if problem.psf is not None and separable_jacobian else None
-    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, const, data, jac)
+    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, data, jac)
 
 
 def _constant_misfit(m: np.ndarray, model, area: float) -> float:
