@@ -491,9 +491,6 @@ class SeparablePSF(ca.Callback):
         out[...] = self.apply(x)
         return 0
 
-    def eval(self, arg):
-        return [ca.DM(self.apply(np.asarray(arg[0].full())))]
-
     def _child(self, blocks: int, adjoint: bool) -> SeparablePSF:
         key = (blocks, adjoint)
         if key not in self._derived:
