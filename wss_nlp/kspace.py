@@ -278,7 +278,7 @@ class Averager:
             self._casadi = (scatter, SeparablePSF(self.ky, self.kx), (self.out_y + n_ry * self.out_x).tolist())
         scatter, psf_map, rows = self._casadi
         fine = ca.reshape(ca.mtimes(scatter, values), n_fy, n_fx * k)  # block j = F_j
-        blocks = psf_map._child(k, False)(fine)  # (n_ry, n_rx k), block j = K_y F_j K_x^T
+        blocks = psf_map.batched(k)(fine)  # (n_ry, n_rx k), block j = K_y F_j K_x^T
         return ca.reshape(blocks, n_ry * n_rx, k)[rows, :]
 
 
@@ -491,7 +491,8 @@ class SeparablePSF(ca.Callback):
         out[...] = self.apply(x)
         return 0
 
-    def _child(self, blocks: int, adjoint: bool) -> SeparablePSF:
+    def batched(self, blocks: int, adjoint: bool = False) -> SeparablePSF:
+        """The map (or its adjoint) on ``blocks`` side-by-side blocks, built once and kept by this instance."""
         key = (blocks, adjoint)
         if key not in self._derived:
             self._derived[key] = SeparablePSF(self.ky, self.kx, blocks, adjoint)
@@ -503,7 +504,7 @@ class SeparablePSF(ca.Callback):
     def get_forward(self, nfwd, name, inames, onames, opts):
         x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
         seed = ca.MX.sym("seed", self.shape_in[0], self.shape_in[1] * self.blocks * nfwd)
-        out = self._child(self.blocks * nfwd, self.adjoint)(seed)
+        out = self.batched(self.blocks * nfwd, self.adjoint)(seed)
         return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
 
     def has_reverse(self, nadj):
@@ -512,7 +513,7 @@ class SeparablePSF(ca.Callback):
     def get_reverse(self, nadj, name, inames, onames, opts):
         x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
         seed = ca.MX.sym("seed", self.shape_out[0], self.shape_out[1] * self.blocks * nadj)
-        out = self._child(self.blocks * nadj, not self.adjoint)(seed)
+        out = self.batched(self.blocks * nadj, not self.adjoint)(seed)
         return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
 
 
@@ -639,7 +640,7 @@ def magnitude_model(
         dh = ca.Function("dh", [g, w], [ca.jacobian(smoothed_heaviside(g, w, heaviside), g)]).map(model.free.size)
         slope = dh((radius - rho).T, gamma).T  # H' at each free point
         columns = ca.mtimes(scatter, ca.repmat(slope, 1, n_c) * ca.DM(rad.design_matrix(model.phi, n)))
-        blocks = model.operator._child(n_c, False)(ca.reshape(columns, fy, fx * n_c))
+        blocks = model.operator.batched(n_c)(ca.reshape(columns, fy, fx * n_c))
         d_signal = ca.reshape(blocks, model.ky.shape[0] * model.kx.shape[0], n_c)[model.select.tolist(), :]
         return magnitude, ca.repmat(signal / magnitude, 1, n_c) * d_signal
     basis = rad.design_matrix(model.phi, n)
