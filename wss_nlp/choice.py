@@ -68,15 +68,23 @@ def _noise_free_choice(name: str, rule: str, fixed: float, noise: an.NoiseEstima
     )
 
 
-def choose_alpha(problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str):
+def choose_alpha(
+    problem: geo.GeometryProblem, raw, norm, lumen, options: ReconstructionOptions, where: str, start=None
+):
     """Geometry solve with alpha fixed, from the discrepancy principle (eq. (disc)) or from balancing.
 
     The residual and the noise level are both taken on the annulus voxels
     (see :mod:`wss_nlp.analysis`); each solve starts from the previous one.
+    ``start``: radius coefficients near the solution (a neighbouring frame's); a fixed alpha with IPOPT
+    then starts there with a small barrier (:data:`wss_nlp.geometry.WARM_START`).
     """
     gopt = options.geometry
     if options.alpha_rule == "fixed":
-        g = geo.solve(problem, gopt)
+        if start is not None and gopt.solver == "ipopt":
+            solver = geo.solver_for(problem, gopt, warm=True)
+            g = solver.solve(gopt.alpha, np.asarray(start, float), problem, np.zeros(solver.nlp.g.numel()))
+        else:
+            g = geo.solve(problem, gopt)
         return g, an.ParameterChoice("alpha", "fixed", g.alpha)
     if gopt.solver == "ipopt":
         solver = geo.solver_for(problem, gopt)
@@ -238,7 +246,7 @@ BALANCE_TAIL = 3
 GOLDEN_STEPS = 8
 
 
-class _Criterion:
+class PlainCriterion:
     r"""``min_beta chi^2 + ln(n) dof`` of the plain problem with optional extra (layer) columns.
 
     Notes
@@ -268,6 +276,14 @@ class _Criterion:
 
     def __call__(self, extra: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
         """The criterion, the minimizing beta and its coefficients (plain ones first, then the extra columns')."""
+        chi2, dof, coef = self.curve(extra)
+        crit = self.nu * chi2 + self.log_n * dof
+        i = int(np.argmin(crit))
+        return float(crit[i]), float(CRITERION_BETAS[i]), coef[i]
+
+    def curve(self, extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``chi^2``, dof and coefficients on :data:`CRITERION_BETAS` (a criterion over several problems, the
+        frames of a cine slice in :mod:`wss_nlp.womersley`, weighs each with the joint ``ln n``)."""
         if extra is None:
             tk = self.plain.tikhonov
             coef, dof = tk.coefficients(CRITERION_BETAS), tk.traces(CRITERION_BETAS)
@@ -279,9 +295,7 @@ class _Criterion:
             quad = np.block([[self.tst, tse], [tse.T, extra.T @ se]])
             lin = np.concatenate([self.tsu, se.T @ self.plain.data])
         chi2 = np.einsum("bi,ij,bj->b", coef, quad, coef) - 2 * coef @ lin + self.usu
-        crit = self.nu * chi2 + self.log_n * dof
-        i = int(np.argmin(crit))
-        return float(crit[i]), float(CRITERION_BETAS[i]), coef[i]
+        return chi2, dof, coef
 
 
 def _golden(score, lo: float, hi: float, steps: int = GOLDEN_STEPS) -> float:
@@ -320,11 +334,11 @@ def choose_layer(
     scripts/results/near_wall.md). Without it both families compete.
 
     Candidates: the plain basis; ``exponential`` at the scale minimizing
-    :class:`_Criterion` (octaves :data:`LAYER_RATIOS` x mean R, refined by
+    :class:`PlainCriterion` (octaves :data:`LAYER_RATIOS` x mean R, refined by
     golden-section search in log l); ``wall_law`` at the scale where the
     fitted layer obeys the law of the wall, :math:`u_\tau \ell = \nu`
     (:func:`_wall_law_scale`; by BIC like the exponential when ``nu_m2_s``
-    is None). Each is scored by :class:`_Criterion` at its best beta; the smallest
+    is None). Each is scored by :class:`PlainCriterion` at its best beta; the smallest
     score wins. ``mode`` restricts the candidates (``"auto"``: all; a family
     name: that family, plain excluded). ``around`` (an earlier choice on a
     nearby geometry, e.g. before the dephasing pass) keeps its family and
@@ -333,7 +347,7 @@ def choose_layer(
     """
     big_r = float(vp.disk_map.coefficients[0])
     quad = nw.LayerQuadrature(vp)
-    criterion = _Criterion(vp, sigma)
+    criterion = PlainCriterion(vp, sigma)
     tried, best, notes = [], {}, {}
     plain, plain_beta, _ = criterion()
     if mode == "auto":

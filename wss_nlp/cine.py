@@ -29,6 +29,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from . import preprocess as pp
+from . import womersley
 from .errors import InputError, WssNlpError
 from .files import Acquisition, FailedSlice
 from .reconstruct import ReconstructionOptions, reconstruct
@@ -97,17 +99,36 @@ class CineSeries:
     osi: np.ndarray
     time_average_mean: float
     notes: list = field(default_factory=list)
+    tau_std: np.ndarray | None = None  # (nt, nphi), Pa: the band of the chosen model (NaN where unknown)
+    mean_std: np.ndarray | None = None  # (nt,), Pa
+    model: womersley.CineModelChoice | None = None  # the velocity model over the cycle and why
+
+
+@dataclass
+class CycleModel:
+    """The velocity model of one slice over the cycle: the choice, and the momentum model's WSS if chosen."""
+
+    choice: womersley.CineModelChoice
+    tau: np.ndarray | None = None  # (nt, nphi), Pa; NaN rows for frames the model was not fitted on
+    tau_std: np.ndarray | None = None
+    mean: np.ndarray | None = None  # (nt,)
+    mean_std: np.ndarray | None = None
 
 
 @dataclass
 class CineResult:
-    """Frames of a cine reconstruction: ``frames[k]`` holds the slice results of frame ``k``."""
+    """Frames of a cine reconstruction: ``frames[k]`` holds the slice results of frame ``k``.
+
+    ``models[iz]`` is slice ``iz``'s velocity model over the cycle (:class:`CycleModel`); where it is the
+    momentum model, the series take their WSS from it, else from the frames' own fits.
+    """
 
     frames: list
     times_ms: np.ndarray
     period_ms: float
     weights: np.ndarray
     notes: list = field(default_factory=list)
+    models: dict = field(default_factory=dict)
 
     @property
     def n_slices(self) -> int:
@@ -127,25 +148,53 @@ class CineResult:
 
         tau = rows(lambda r: r.wss.tau, phi.size)
         mean = rows(lambda r: [r.wss.mean], 1)[:, 0]
+        tau_std = rows(lambda r: r.wss.tau_std if r.wss.tau_std is not None else np.full(phi.size, np.nan), phi.size)
+        mean_std = rows(lambda r: [r.wss.mean_std], 1)[:, 0]
         center = rows(lambda r: np.asarray(r.geometry.center, dtype=float), 2)
         coefficients = rows(lambda r: r.geometry.coefficients, n_coef)
         radius = rows(lambda r: r.geometry.radius(phi), phi.size)
         alpha = rows(lambda r: [r.geometry.alpha], 1)[:, 0]
         beta = rows(lambda r: [r.velocity.beta], 1)[:, 0]
         notes = list(self.notes)
+        model = self.models.get(iz)
+        if model is not None and model.tau is not None:
+            # the momentum model's WSS on the frames it was fitted on; the others count as failed
+            good = good & np.all(np.isfinite(model.tau), axis=1)
+            tau, tau_std, mean, mean_std = model.tau, model.tau_std, model.mean, model.mean_std
+        if model is not None:
+            notes.append(model_note(model.choice))
         if not good.all():
             bad = np.nonzero(~good)[0].tolist()
-            notes.append(
-                f"frame(s) {bad} failed ({'; '.join(results[k].reason for k in bad[:3])}); TAWSS and OSI bridge "
-                "them by linear interpolation in time"
-            )
-        bridged = bridge(tau, good, self.times_ms, self.period_ms)
+            why = "; ".join(getattr(results[k], "reason", "not in the momentum model's fit") for k in bad[:3])
+            notes.append(f"frame(s) {bad} failed ({why}); TAWSS and OSI bridge them by linear interpolation in time")
+        bridged = bridge(np.where(good[:, None], tau, 0.0), good, self.times_ms, self.period_ms)
         tawss, osi = tawss_osi(bridged, self.weights)
-        mean_bridged = bridge(mean[:, None], good, self.times_ms, self.period_ms)[:, 0]
+        mean_bridged = bridge(np.where(good, mean, 0.0)[:, None], good, self.times_ms, self.period_ms)[:, 0]
         average = float(np.sum(self.weights * mean_bridged) / np.sum(self.weights))
         return CineSeries(
-            iz, phi, tau, mean, center, coefficients, radius, alpha, beta, ~good, tawss, osi, average, notes
+            iz, phi, np.where(good[:, None], tau, np.nan), np.where(good, mean, np.nan), center, coefficients,
+            radius, alpha, beta, ~good, tawss, osi, average, notes, tau_std, mean_std,
+            None if model is None else model.choice,
+        )  # fmt: skip
+
+
+def model_note(choice: womersley.CineModelChoice) -> str:
+    """One line on the cycle's velocity model for the result's warnings."""
+    if choice.model == "momentum":
+        how = "chosen by the BIC" if np.isfinite(choice.margin) else "forced (--cine-model momentum)"
+        return (
+            f"velocity over the cycle: the momentum balance of fully developed pulsatile flow (Womersley) with "
+            f"{choice.harmonics} harmonic(s), fitted to frames {choice.frames_used}, {how}"
+            + (f" (BIC margin {choice.margin:.0f})" if np.isfinite(choice.margin) else "")
+            + "; each frame's own fit is in frames/frame_NNN"
         )
+    if not choice.bic:
+        return f"velocity over the cycle: each frame's own fit ({choice.criterion})"
+    return (
+        f"velocity over the cycle: each frame's own fit; the momentum model (Womersley) did not fit the data "
+        f"{'well enough' if np.isfinite(choice.margin) else '(forced off)'}"
+        + (f" (BIC margin {choice.margin:.0f})" if np.isfinite(choice.margin) else "")
+    )
 
 
 #: Why cine frames take the plain basis when the near-wall choice is ``auto``.
@@ -156,6 +205,30 @@ PLAIN_FRAMES_NOTE = (
 )
 
 
+def shared_boxes(frames: list[Acquisition], options: ReconstructionOptions) -> dict:
+    """Per slice, the :class:`wss_nlp.preprocess.LumenBox` covering every frame's own lumen box.
+
+    Frames whose slice cannot be preprocessed (NaN, no vessel) are left out here; they fail on their own in
+    the reconstruction. A slice no frame can be preprocessed in gets no shared box.
+    """
+    ref = frames[0]
+    psf = options.acquisition.psf(ref.voxel_size_mm, ref.acquired_voxel_size_mm, f"{ref.source}: ")
+    boxes = {}
+    for iz in range(ref.nz):
+        lumens = []
+        for frame in frames:
+            image = frame.magnitude[iz]
+            if not np.all(np.isfinite(image)):
+                continue
+            try:
+                lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, psf is None)[2])
+            except WssNlpError:
+                continue
+        if lumens:
+            boxes[iz] = pp.LumenBox.covering(lumens)
+    return boxes
+
+
 def reconstruct_cine(
     frames: list[Acquisition],
     times_ms,
@@ -163,11 +236,15 @@ def reconstruct_cine(
     options: ReconstructionOptions | None = None,
     progress=None,
     layer_on_frames: bool = False,
+    share_box: bool = True,
 ) -> CineResult:
     """Reconstruct every frame (``frames[k]`` at ``times_ms[k]``); a frame that fails is recorded, not fatal.
 
     ``progress(done, total, seconds)`` is called after each frame. With ``near_wall = "auto"`` the frames
-    use the plain basis (:data:`PLAIN_FRAMES_NOTE`) unless ``layer_on_frames`` (for studies).
+    use the plain basis (:data:`PLAIN_FRAMES_NOTE`) unless ``layer_on_frames`` (for studies). The frames
+    of a slice share one polar origin and radius box (:func:`shared_boxes`), so they share the built
+    geometry solvers, and each frame's geometry starts from the previous frame's; ``share_box=False``
+    gives every frame its own box and a cold start (for studies).
     """
     options = options or ReconstructionOptions()
     notes = []
@@ -175,21 +252,90 @@ def reconstruct_cine(
         options = replace(options, velocity=replace(options.velocity, near_wall="off"))
         notes.append(PLAIN_FRAMES_NOTE)
     weights = cycle_weights(times_ms, period_ms)
+    boxes = shared_boxes(frames, options) if share_box else {}
     out: list[list] = []
     t0 = time.perf_counter()
+    omega = 2 * np.pi / (float(period_ms) / 1000.0)
+    k_max = womersley.max_harmonics(len(frames), options.cine.max_harmonics)
+    terms: dict = {}  # slice -> the frames' contributions to its cycle model (wss_nlp.womersley.FrameTerms)
     for k, frame in enumerate(frames):
         results: list
         try:
-            results = list(reconstruct(frame, options))
+            done = reconstruct(frame, options, boxes=boxes)
+            results = list(done)
+            if options.cine.model != "independent":
+                time_s = float(times_ms[k]) / 1000.0
+                _add_terms(terms, results, frame, k, time_s, options, k_max, omega, done.psf, boxes)
         except WssNlpError as exc:  # this frame only: the others still describe the cycle
             log.warning("frame %d failed: %s", k, exc)
             results = [FailedSlice(iz, f"frame {k}: {exc}") for iz in range(frame.nz)]
+        for r in results:
+            if not isinstance(r, FailedSlice):
+                r.problem = None  # summarized above; a long series would hold every frame's otherwise
         out.append(results)
+        for r in results:  # the next frame's geometry starts from this one's
+            if r.index in boxes and not isinstance(r, FailedSlice):
+                boxes[r.index] = replace(boxes[r.index], start=tuple(r.geometry.coefficients))
         if progress is not None:
             progress(k + 1, len(frames), time.perf_counter() - t0)
     if all(isinstance(r, FailedSlice) for frame in out for r in frame):
         raise WssNlpError(f"every frame failed; the first: {out[0][0].reason}")
-    return CineResult(out, np.asarray(times_ms, dtype=float), float(period_ms), weights, notes)
+    result = CineResult(out, np.asarray(times_ms, dtype=float), float(period_ms), weights, notes)
+    result.models = cycle_models(result, terms, frames[0], options, omega)
+    return result
+
+
+def _add_terms(
+    terms: dict, results: list, frame: Acquisition, k: int, time_s: float, options, k_max, omega, psf, boxes
+):
+    """Summarize frame ``k``'s slices for their cycle models (:func:`wss_nlp.womersley.frame_terms`).
+
+    The Womersley parameters take the slice's shared reference radius (without shared boxes: each frame's
+    own mean radius, quasi-statically).
+    """
+    nu = frame.viscosity(options.viscosity_pa_s) / frame.density(options.density_kg_m3)[0]
+    for r in results:
+        if isinstance(r, FailedSlice):
+            continue
+        problem = womersley.plain_problem(r, options, psf)
+        where = f"{frame.source} slice {r.index}"
+        sigma = womersley.velocity_sigma(r, problem, frame.magnitude[r.index], frame, options, where)
+        if sigma is not None:  # noise-free data give the models nothing to be weighed by
+            radius = boxes[r.index].r_area if r.index in boxes else float(r.geometry.coefficients[0])
+            terms.setdefault(r.index, []).append(
+                womersley.frame_terms(r, problem, sigma, k, time_s, k_max, omega, nu, radius)
+            )
+
+
+def cycle_models(result: CineResult, terms: dict, ref: Acquisition, options: ReconstructionOptions, omega) -> dict:
+    """Each slice's velocity model over the cycle (:func:`wss_nlp.womersley.choose`) and its WSS per frame."""
+    if options.cine.model == "independent":
+        choice = womersley.CineModelChoice("independent", criterion="independent frames (--cine-model independent)")
+        return {iz: CycleModel(choice) for iz in range(result.n_slices)}
+    mu = ref.viscosity(options.viscosity_pa_s)
+    nu = mu / ref.density(options.density_kg_m3)[0]
+    models = {}
+    for iz in range(result.n_slices):
+        usable = terms.get(iz, [])
+        if len(usable) < 2:
+            why = "fewer than two frames with a velocity noise estimate (noise-free data?): independent frames"
+            models[iz] = CycleModel(womersley.CineModelChoice("independent", criterion=why))
+            continue
+        choice, fitted = womersley.choose(usable, omega, nu, options.cine)
+        model = CycleModel(choice)
+        if fitted is not None:
+            n_t, n_phi = len(result.frames), options.n_phi
+            phi = next(r[iz].wss.phi for r in result.frames if not isinstance(r[iz], FailedSlice))
+            model.tau, model.tau_std = np.full((n_t, n_phi), np.nan), np.full((n_t, n_phi), np.nan)
+            model.mean, model.mean_std = np.full(n_t, np.nan), np.full(n_t, np.nan)
+            for t in usable:
+                k = t.index
+                model.tau[k], model.tau_std[k], model.mean[k], model.mean_std[k] = womersley.wall_shear(
+                    fitted, t, phi, mu
+                )
+        log.info("slice %d: %s", iz, model_note(choice))
+        models[iz] = model
+    return models
 
 
 def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[CineSeries]:
@@ -220,6 +366,11 @@ def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[
             g["wss/tau_pa"] = s.tau
             g["wss/time_ms"] = cine.times_ms
             g["wss/mean_pa_t"] = s.mean
+            if s.tau_std is not None and np.any(np.isfinite(s.tau_std)):
+                g["wss/tau_std_pa"] = s.tau_std  # the band of the model the slice's tau comes from
+                g["wss/mean_std_pa_t"] = s.mean_std
+            if s.model is not None:
+                g.attrs["cine_model_json"] = s.model.as_json()
             g["wss/tawss_pa"] = s.tawss
             g["wss/osi"] = s.osi
             g["wss"].attrs["mean_pa"] = s.time_average_mean

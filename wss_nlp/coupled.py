@@ -28,6 +28,8 @@ of the sub-voxel points (:func:`velocity_residual`, :mod:`wss_nlp.kspace`).
 
 from __future__ import annotations
 
+import functools
+
 import time
 from dataclasses import dataclass, field, replace
 
@@ -301,6 +303,15 @@ def polar_basis(basis, angles: np.ndarray, tol: float = 1e-12) -> PolarBasis:
     the interpolant on ``[0, RHO_MAX]`` is within ``tol`` (relative) of
     SciPy's Bessel functions.
     """
+    coef, deriv, select_r, select_a, terms = _polar_radial(basis, tol)
+    t = np.ravel(angles).astype(float)
+    angular = np.array([np.cos(m * t) if kind == "cos" else np.sin(m * t) for m, kind in terms])
+    return PolarBasis(coef, deriv, angular, select_r, select_a, terms)
+
+
+@functools.lru_cache(maxsize=16)  # bases are cached objects: the Chebyshev fit once per basis
+def _polar_radial(basis, tol: float):
+    """The angle-independent part of :func:`polar_basis`: radial Chebyshev form, row maps, distinct terms."""
     check = np.linspace(0, RHO_MAX, 301)
     rad_first, select_r = _distinct_rows(basis.radial_raw(check))
     ang_first, select_a = _distinct_rows(basis.angular_raw(np.linspace(0, 2 * np.pi, 97)))
@@ -314,8 +325,7 @@ def polar_basis(basis, angles: np.ndarray, tol: float = 1e-12) -> PolarBasis:
         if np.max(np.abs(approx - ref)) <= tol * scale:
             deriv = np.polynomial.chebyshev.chebder(coef.T).T * (2 / RHO_MAX)
             deriv = np.hstack([deriv, np.zeros((coef.shape[0], 1))])
-            terms = [basis.angular_terms()[i] for i in ang_first]
-            return PolarBasis(coef, deriv, basis.angular_raw(angles)[ang_first], select_r, select_a, terms)
+            return coef, deriv, select_r, select_a, [basis.angular_terms()[i] for i in ang_first]
     raise InputError(
         f"the {basis.kind} basis is too oscillatory for a degree-95 Chebyshev expansion; "
         "lower its size or use --method decoupled"

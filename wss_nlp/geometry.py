@@ -326,7 +326,7 @@ class IpoptGeometrySolver:
     rebuild; :func:`solver_for` keeps recent solvers.
     """
 
-    def __init__(self, problem: GeometryProblem, options: GeometryOptions):
+    def __init__(self, problem: GeometryProblem, options: GeometryOptions, warm: bool = False):
         self.problem, self.options = problem, options
         gauss_newton = options.hessian == "gauss-newton"
         nlp = self.nlp = build_tikhonov(problem, options, data_symbol=True, separable_jacobian=gauss_newton)
@@ -334,7 +334,9 @@ class IpoptGeometrySolver:
         params = ca.vertcat(nlp.alpha, nlp.data)
         # clip_inactive_lam: IPOPT leaves ~1e-12 multipliers on inactive bounds, which sensitivity analysis
         # (wss_nlp.sensitivity) would read as active constraints
-        extra = {"clip_inactive_lam": True}
+        extra: dict = {"clip_inactive_lam": True}
+        if warm:  # re-solves from a solution: start the barrier where it ended instead of at mu = 0.1
+            extra.update(WARM_START)
         if gauss_newton:
             jac = ca.jacobian(nlp.residual, nlp.c) if nlp.jacobian is None else nlp.jacobian
             hess = 2 * ca.mtimes(jac.T, jac) + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights))
@@ -347,8 +349,13 @@ class IpoptGeometrySolver:
             opts["ipopt.hessian_approximation"] = "limited-memory"
         self.solver = ca.nlpsol("geometry", "ipopt", {"x": nlp.c, "p": params, "f": nlp.f, "g": nlp.g}, opts)
 
-    def solve(self, alpha: float | None = None, x0=None, problem: GeometryProblem | None = None) -> GeometryResult:
-        """Solve at ``alpha`` from ``x0`` for ``problem`` (default: the one built with; same grid, centre, box)."""
+    def solve(
+        self, alpha: float | None = None, x0=None, problem: GeometryProblem | None = None, lam_g0=None
+    ) -> GeometryResult:
+        """Solve at ``alpha`` from ``x0`` for ``problem`` (default: the one built with; same grid, centre, box).
+
+        ``lam_g0``: the box multipliers to start from (a warm solver's re-solve from a solution).
+        """
         problem = self.problem if problem is None else problem
         alpha = self.options.alpha if alpha is None else float(alpha)
         x0 = initial_guess(problem, self.options.n_fourier) if x0 is None else np.asarray(x0, dtype=float)
@@ -360,6 +367,7 @@ class IpoptGeometrySolver:
             p=np.concatenate([[alpha], data]),
             lbg=problem.r0,
             ubg=problem.r1,
+            **({} if lam_g0 is None else {"lam_g0": lam_g0}),
         )
         stats.extra["hessian"] = self.options.hessian
         out = finish(problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
@@ -367,17 +375,29 @@ class IpoptGeometrySolver:
         return out
 
 
+#: IPOPT options of a warm re-solve (:class:`IpoptGeometrySolver` with ``warm=True``): the iterate and the
+#: multipliers are taken as given and the barrier starts small, so a re-solve from a solution to a tighter
+#: tolerance takes a few iterations instead of the 10-14 of a cold start.
+WARM_START = {
+    "ipopt.warm_start_init_point": "yes",
+    "ipopt.mu_init": 1e-9,
+    "ipopt.warm_start_bound_push": 1e-9,
+    "ipopt.warm_start_mult_bound_push": 1e-9,
+    "ipopt.warm_start_slack_bound_push": 1e-9,
+}
+
 #: How many built geometry solvers :func:`solver_for` keeps (a slice needs two or three; the filter choice four).
 SOLVER_CACHE_SIZE = 8
 _solvers: dict = {}
 
 
-def solver_for(problem: GeometryProblem, options: GeometryOptions) -> IpoptGeometrySolver:
+def solver_for(problem: GeometryProblem, options: GeometryOptions, warm: bool = False) -> IpoptGeometrySolver:
     """A built :class:`IpoptGeometrySolver` for ``problem``'s grid, centre, box and model and ``options``.
 
     Reused when only the magnitude or alpha differ (both are solver
     parameters); the least recently used of :data:`SOLVER_CACHE_SIZE` is
     dropped. Pass the problem to :meth:`IpoptGeometrySolver.solve`.
+    ``warm`` gives a solver for re-solves from a solution (:data:`WARM_START`).
     """
     key = (
         problem.grid,
@@ -388,10 +408,11 @@ def solver_for(problem: GeometryProblem, options: GeometryOptions) -> IpoptGeome
         float(problem.r_ref),
         problem.psf,
         replace(options, alpha=1.0),  # alpha is a parameter
+        warm,
     )
     solver = _solvers.pop(key, None)
     if solver is None:
-        solver = IpoptGeometrySolver(problem, options)
+        solver = IpoptGeometrySolver(problem, options, warm)
         while len(_solvers) >= SOLVER_CACHE_SIZE:
             _solvers.pop(next(iter(_solvers)))
     _solvers[key] = solver  # most recently used last

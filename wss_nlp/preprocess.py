@@ -12,7 +12,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.ndimage
@@ -146,6 +146,46 @@ class Lumen:
             f"{len(self.others)} other vessel(s) in view, not reconstructed: {where}; reconstructed "
             f"{self.chosen_by} (pass --vessel X,Y to choose another)"
         )
+
+
+@dataclass(frozen=True)
+class LumenBox:
+    """The polar origin and radius box of the geometry fit, shared by several images of one vessel.
+
+    The frames of a cine slice see the same vessel; with one origin, box and reference radius they share
+    one built geometry solver (:func:`wss_nlp.geometry.solver_for`) instead of building their own.
+    ``start`` (radius coefficients, e.g. the previous frame's) warm-starts the geometry solve.
+    """
+
+    center: tuple[float, float]  # mm
+    r0: float  # mm
+    r1: float  # mm
+    r_area: float  # mm, the reference radius (median of the images')
+    start: tuple[float, ...] | None = None  # radius coefficients to start the geometry from (mm)
+
+    @classmethod
+    def covering(cls, lumens: list[Lumen]) -> LumenBox:
+        """The box about the mean centre that contains every lumen's own box about its own centre.
+
+        A radius admissible about centre ``c_k`` lies within ``|c_k - c|`` of one admissible about ``c``,
+        so the bounds widen by the largest centre offset.
+        """
+        if not lumens:
+            raise ValueError("LumenBox.covering needs at least one lumen")
+        centers = np.array([lu.center for lu in lumens], dtype=float)
+        center = centers.mean(axis=0)
+        shift = float(np.max(np.hypot(*(centers - center).T)))
+        r0 = max(min(lu.r0 for lu in lumens) - shift, 0.25 * min(lu.r_area for lu in lumens))
+        return cls(
+            (float(center[0]), float(center[1])),
+            float(r0),
+            float(max(lu.r1 for lu in lumens) + shift),
+            float(np.median([lu.r_area for lu in lumens])),
+        )
+
+    def apply(self, lumen: Lumen) -> Lumen:
+        """``lumen`` with this origin, box and reference radius (its mask and noise regions unchanged)."""
+        return replace(lumen, center=self.center, r0=self.r0, r1=self.r1, r_area=self.r_area)
 
 
 def _region_summary(region: np.ndarray, grid: VoxelGrid) -> dict:

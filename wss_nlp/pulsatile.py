@@ -31,11 +31,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.special
 
+from . import womersley
 from .errors import InputError
 from .files import Acquisition
 from .kspace import PSF
 from .measurement import VoxelGrid
-from .phantoms import PER_MM, Circle, Flow, Truth, acquire
+from .phantoms import PER_MM, Circle, Flow, Truth, acquire, peak_velocity
 
 #: A carotid-like bulk-velocity waveform: mean and harmonics 1-4 (m/s, complex: amplitude and phase).
 CAROTID_HARMONICS = (0.18, 0.16 * np.exp(-1.0j), 0.10 * np.exp(-2.1j), 0.05 * np.exp(-3.0j), 0.03 * np.exp(-4.2j))
@@ -67,7 +68,7 @@ class WomersleyPipe(Flow):
             g0 = 8 * self.viscosity_pa_s * float(np.real(self.bulk_harmonics[0])) / self.radius_m**2  # V = G R^2/8mu
             terms = []
             for n, v_n in enumerate(self.bulk_harmonics[1:], start=1):
-                lam = 1j**1.5 * self.womersley(n)
+                lam = 1j**1.5 * self.womersley(n)  # = womersley.womersley_parameter(n, R, omega, nu)
                 shape = 1 - 2 * scipy.special.jv(1, lam) / (lam * scipy.special.jv(0, lam))
                 terms.append((n, lam, complex(v_n) / shape))  # the bulk velocity of harmonic n: V_n = A_n * shape
             self._table["coef"] = (g0, terms)
@@ -82,8 +83,7 @@ class WomersleyPipe(Flow):
         u = g0 / (4 * self.viscosity_pa_s) * (self.radius_m**2 - rr**2)
         omega = 2 * np.pi / self.period_s
         for n, lam, amp in terms:
-            shape = 1 - scipy.special.jv(0, lam * x) / scipy.special.jv(0, lam)
-            u = u + np.real(amp * shape * np.exp(1j * n * omega * t))
+            u = u + np.real(amp * womersley.shape(x, lam) * np.exp(1j * n * omega * t))
         return np.where(rr < self.radius_m, u, 0.0)
 
     def wall_shear(self, t_s) -> np.ndarray:
@@ -93,8 +93,8 @@ class WomersleyPipe(Flow):
         tau = np.full_like(t, g0 * self.radius_m / 2)
         omega = 2 * np.pi / self.period_s
         for n, lam, amp in terms:
-            ratio = scipy.special.jv(1, lam) / scipy.special.jv(0, lam)
-            tau = tau + np.real(-self.viscosity_pa_s * amp * lam / self.radius_m * ratio * np.exp(1j * n * omega * t))
+            slope = womersley.wall_slope(lam) / self.radius_m  # dS/dr at the wall
+            tau = tau + np.real(-self.viscosity_pa_s * amp * slope * np.exp(1j * n * omega * t))
         return tau
 
     def velocity(self, x, y):
@@ -126,13 +126,63 @@ class WomersleyPipe(Flow):
 
 
 @dataclass
+class DistendingWomersley(Flow):
+    """Womersley flow in a gently distending circular pipe: the rigid pipe's field stretched to ``R(t)``.
+
+    ``R(t) = R_0 (1 + epsilon sin(omega t))`` and ``u(r, t) = u_W(r R_0 / R(t), t)`` with :math:`u_W` the
+    rigid pipe's (``base``); the wall shear stress is exact for this field, ``tau(t) = tau_W(t) R_0 / R(t)``.
+    A kinematic phantom (the field of a moving wall is not a solution of the momentum balance): it tests that
+    every frame finds its own wall and that the momentum model follows it (:mod:`wss_nlp.womersley`).
+    """
+
+    base: WomersleyPipe | None = None
+    distension: float = 0.05
+    t_s: float = 0.0
+
+    @property
+    def density_kg_m3(self) -> float:
+        assert self.base is not None
+        return self.base.density_kg_m3
+
+    def stretch(self, t_s) -> np.ndarray:
+        """``R(t) / R_0``."""
+        assert self.base is not None
+        return 1.0 + self.distension * np.sin(2 * np.pi * np.asarray(t_s, dtype=float) / self.base.period_s)
+
+    def velocity(self, x, y):
+        assert self.base is not None
+        k, c = float(self.stretch(self.t_s)), self.lumen.center
+        return self.base.velocity(c[0] + (np.asarray(x) - c[0]) / k, c[1] + (np.asarray(y) - c[1]) / k)
+
+    def wall_gradient(self, phi):
+        assert self.base is not None
+        return self.base.wall_gradient(phi) / float(self.stretch(self.t_s))
+
+    def wall_shear(self, t_s) -> np.ndarray:
+        """Exact WSS (uniform around the wall) at times ``t_s``, Pa."""
+        assert self.base is not None
+        return self.base.wall_shear(t_s) / self.stretch(t_s)
+
+    def womersley(self, n: int = 1) -> float:
+        assert self.base is not None
+        return self.base.womersley(n)
+
+    def at(self, t_s: float) -> DistendingWomersley:
+        assert self.base is not None
+        base = self.base.at(t_s)
+        base.lumen = Circle(r=self.base.lumen.r, center=self.lumen.center)
+        lumen = Circle(r=float(self.base.lumen.r * self.stretch(t_s)), center=self.lumen.center)
+        return DistendingWomersley(lumen, self.viscosity_pa_s, base, self.distension, float(t_s))
+
+
+@dataclass
 class CineTruth:
     """What a cine phantom knows exactly: one :class:`~wss_nlp.phantoms.Truth` per frame and the cycle."""
 
     frames: list
     times_ms: np.ndarray
     period_ms: float
-    flow: WomersleyPipe
+    flow: Flow  # WomersleyPipe, DistendingWomersley or QuasiSteadyFlow: with wall_shear(t_s)
 
     def tau(self) -> np.ndarray:
         """Exact WSS of each frame (uniform around the pipe), Pa."""
@@ -149,8 +199,12 @@ def make_cine(
     bulk_harmonics: tuple = CAROTID_HARMONICS,
     venc: float | None = None,
     psf: PSF | None = None,
+    distension: float = 0.0,
 ) -> tuple[list[Acquisition], CineTruth]:
     """Seeded cine phantom: Womersley flow in a rigid pipe, ``frames`` frames evenly over one cycle.
+
+    ``distension`` > 0 makes the pipe breathe, ``R(t) = R_0 (1 + distension sin(omega t))``
+    (:class:`DistendingWomersley`).
 
     Returns the frames (one :class:`~wss_nlp.files.Acquisition` each, phase data, one venc for the whole
     series: 1.25 x the peak over the cycle unless given) and the truth. The sub-voxel offset is drawn once
@@ -158,23 +212,45 @@ def make_cine(
     about 15 for the defaults (blood, 10 mm radius, 1 s cycle). ``psf`` acquires every frame in k-space
     (:func:`wss_nlp.phantoms.acquire`).
     """
-    if frames < 2:
-        raise InputError(f"a cine phantom needs >= 2 frames, got {frames}")
-    if not h_mm > 0:
-        raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
+    _check_cine(frames, h_mm)
     rng = np.random.default_rng(seed)
     flow = WomersleyPipe(
         lumen=Circle(r=radius_mm), viscosity_pa_s=3.5e-3, period_s=period_ms / 1000.0, bulk_harmonics=bulk_harmonics
     )
-    half_fov = 1.5 * radius_mm
+    times = np.arange(frames) * period_ms / frames
+    r = np.linspace(0, radius_mm, 2001)
+    peak = max(float(np.max(np.abs(flow.profile(r, t / 1000.0)))) for t in times)  # the stretch keeps the peak
+    if not 0 <= distension < 0.3:
+        raise InputError(f"distension must lie in [0, 0.3), got {distension}")
+    cycle: Flow = flow
+    if distension > 0:
+        cycle = DistendingWomersley(Circle(r=radius_mm), flow.viscosity_pa_s, flow, distension)
+    half_fov = 1.5 * radius_mm * (1 + distension)
+    name = "womersley" if distension == 0 else f"distending womersley ({100 * distension:g} %)"
+    return _acquire_cycle(cycle, half_fov, h_mm, snr, rng, frames, period_ms, venc, psf, name, peak)
+
+
+def _check_cine(frames: int, h_mm: float) -> None:
+    if frames < 2:
+        raise InputError(f"a cine phantom needs >= 2 frames, got {frames}")
+    if not h_mm > 0:
+        raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
+
+
+def _acquire_cycle(flow, half_fov: float, h_mm, snr, rng, frames: int, period_ms: float, venc, psf, name, peak=None):
+    """Frames of ``flow`` (a flow with ``at(t_s)``) over one cycle, and the truth.
+
+    The sub-voxel offset is drawn once (the vessel does not move); the noise is fresh in every frame; one venc
+    for the series, 1.25 x the ``peak`` speed over the cycle (default: sampled) unless given.
+    """
     n = int(np.ceil(2 * half_fov / h_mm))
     shift = rng.uniform(-0.5, 0.5, size=2) * h_mm
     origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
     flow.lumen.center = (float(shift[0]), float(shift[1]))
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
     times = np.arange(frames) * period_ms / frames
-    r = np.linspace(0, radius_mm, 2001)
-    peak = max(float(np.max(np.abs(flow.profile(r, t / 1000.0)))) for t in times)
+    if peak is None:
+        peak = max(peak_velocity(flow.at(t / 1000.0)) for t in times)
     venc = 1.25 * peak if venc is None else venc
     out, truths = [], []
     for t in times:
@@ -189,12 +265,80 @@ def make_cine(
                 venc_m_s=venc,
                 viscosity_pa_s=flow.viscosity_pa_s,
                 density_kg_m3=flow.density_kg_m3,
-                source=f"phantom:womersley t = {t:g} ms",
+                source=f"phantom:{name} t = {t:g} ms",
                 acquired_voxel_size_mm=None if psf is None else (h_mm * psf.zero_fill[0], h_mm * psf.zero_fill[1]),
             )
         )
-        truths.append(Truth(name="womersley", flow=frame_flow, velocity_image=u_mean, parameters={"t_ms": t}))
+        truths.append(Truth(name=name, flow=frame_flow, velocity_image=u_mean, parameters={"t_ms": t}))
     return out, CineTruth(truths, times, float(period_ms), flow)
+
+
+@dataclass
+class QuasiSteadyFlow(Flow):
+    """A steady phantom flow scaled over the cycle by the bulk waveform: ``u(x, t) = f(t) u_s(x)``.
+
+    ``f(t) = V(t) / V_0`` with the bulk-velocity harmonics of :data:`CAROTID_HARMONICS` (flow reversal
+    included). Exact WSS ``f(t) tau_s``; it is not a solution of the momentum balance at the cycle's
+    Womersley number (the profile keeps its steady shape), so the momentum model
+    (:mod:`wss_nlp.womersley`) should turn it down: a phantom for the model choice.
+    """
+
+    base: Flow | None = None
+    density_kg_m3: float = 1060.0
+    period_s: float = 1.0
+    bulk_harmonics: tuple = CAROTID_HARMONICS
+    t_s: float = 0.0
+
+    def factor(self, t_s) -> np.ndarray:
+        """``f(t) = V(t) / V_0``."""
+        t = np.asarray(t_s, dtype=float)
+        omega = 2 * np.pi / self.period_s
+        v = np.full_like(t, float(np.real(self.bulk_harmonics[0])))
+        for n, v_n in enumerate(self.bulk_harmonics[1:], start=1):
+            v = v + np.real(complex(v_n) * np.exp(1j * n * omega * t))
+        return v / float(np.real(self.bulk_harmonics[0]))
+
+    def velocity(self, x, y):
+        assert self.base is not None
+        return float(self.factor(self.t_s)) * self.base.velocity(x, y)
+
+    def wall_gradient(self, phi):
+        assert self.base is not None
+        return float(self.factor(self.t_s)) * self.base.wall_gradient(phi)
+
+    def wall_shear(self, t_s) -> np.ndarray:
+        """Exact mean WSS (arc-length mean over the wall) at times ``t_s``, Pa."""
+        assert self.base is not None
+        return self.factor(t_s) * self.base.mean_wss()
+
+    def at(self, t_s: float) -> QuasiSteadyFlow:
+        return QuasiSteadyFlow(
+            self.lumen, self.viscosity_pa_s, self.base, self.density_kg_m3, self.period_s, self.bulk_harmonics, t_s
+        )
+
+
+def make_quasi_steady_cine(
+    case: str = "laminar",
+    h_mm: float = 1.0,
+    snr: float | None = 25.0,
+    seed: int = 0,
+    frames: int = 20,
+    period_ms: float = 1000.0,
+    venc: float | None = None,
+) -> tuple[list[Acquisition], CineTruth]:
+    """Seeded cine phantom of a steady case of :data:`wss_nlp.phantoms.CASES` scaled by the bulk waveform.
+
+    See :class:`QuasiSteadyFlow`; the frames as :func:`make_cine` makes them.
+    """
+    from .phantoms import CASES
+
+    if case not in CASES:
+        raise InputError(f"unknown phantom case {case!r}; choose from {', '.join(CASES)}")
+    _check_cine(frames, h_mm)
+    rng = np.random.default_rng(seed)
+    base, half_fov = CASES[case][0](h_mm, rng)
+    flow = QuasiSteadyFlow(base.lumen, base.viscosity_pa_s, base, period_s=period_ms / 1000.0)
+    return _acquire_cycle(flow, half_fov, h_mm, snr, rng, frames, period_ms, venc, None, f"quasi-steady {case}")
 
 
 def write_truth(path: str, truth: CineTruth, n_phi: int = 1440) -> None:

@@ -27,6 +27,7 @@ from . import radius as rad
 from . import sensitivity as sens
 from . import stack as stk
 from . import velocity as vel
+from . import womersley
 from . import wss as wss_mod
 from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are part of this module's API)
     ALPHA_RULES,
@@ -106,6 +107,7 @@ class ReconstructionOptions:
     stack: stk.StackOptions = field(default_factory=stk.StackOptions)  # nz > 1: z-regularization (wss_nlp.stack)
     screen: plaus.ScreenOptions = field(default_factory=plaus.ScreenOptions)  # vessel choice, unwrapping
     acquisition: kspace.AcquisitionOptions = field(default_factory=kspace.AcquisitionOptions)  # box or k-space PSF
+    cine: womersley.CineModelOptions = field(default_factory=womersley.CineModelOptions)  # frames tied in time
     n_phi: int = option(360, "angles at which tau is reported, >= 360", cli="--n-phi", toml=("n_phi",), group=WSS_GROUP)
     viscosity_pa_s: float | None = option(
         None,
@@ -280,6 +282,7 @@ def reconstruct_slice(
     density: tuple[float, str] = (DEFAULT_DENSITY, "default (blood)"),
     noise_venc: float | None = None,
     psf: kspace.PSF | None = None,
+    box: pp.LumenBox | None = None,
 ) -> SliceResult:
     """Geometry (Sec. 2), velocity (Sec. 3) and WSS (Sec. 4) of one slice.
 
@@ -295,12 +298,16 @@ def reconstruct_slice(
     preferred, as it also holds what the data's placement adds (resampled
     images; ``scripts/results/plane_extraction.md``). ``psf`` (a k-space
     acquisition, :mod:`wss_nlp.kspace`) replaces the voxel means of every
-    forward model by the point-spread function.
+    forward model by the point-spread function. ``box`` replaces the lumen's own
+    polar origin, radius box and reference radius (cine frames share one, and
+    with it the built geometry solver) and may carry a warm start.
     """
     where = f"{source} slice {index}"
     t = {}
     t0 = time.perf_counter()
     norm, m, lumen = pp.preprocess(magnitude, grid, where, options.screen.vessel, clip_upper=psf is None)
+    if box is not None:
+        lumen = box.apply(lumen)
     t["preprocess"] = time.perf_counter() - t0
     nvenc = venc
     if venc is None and an.velocity_plateau(lumen.noise_mask).sum() < an.MIN_PLATEAU_VOXELS:
@@ -308,7 +315,8 @@ def reconstruct_slice(
 
     t0 = time.perf_counter()
     problem = geo.GeometryProblem(grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area, psf=psf)
-    g, alpha_choice = choose_alpha(problem, magnitude, norm, lumen, options, where)
+    start = None if box is None else box.start
+    g, alpha_choice = choose_alpha(problem, magnitude, norm, lumen, options, where, start)
     if psf is not None:  # the PSF's tails reach into the background the noise estimates use
         lumen = replace(lumen, signal=norm.m1 * geo.model_image(problem, options.geometry, g))
     t["geometry"] = time.perf_counter() - t0
@@ -426,6 +434,7 @@ def reconstruct_slice(
         sensitivity,
         notes,
         near_wall=near,
+        problem=vp,
     )
 
 
@@ -538,9 +547,11 @@ def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options
 
 
 class Results(list):
-    """The per-slice results of :func:`reconstruct`, with ``stack`` (a :class:`wss_nlp.stack.StackInfo` or None)."""
+    """The per-slice results of :func:`reconstruct`, with ``stack`` (a :class:`wss_nlp.stack.StackInfo` or None)
+    and ``psf`` (the acquisition model used, resolved: a :class:`wss_nlp.kspace.PSF`, or None for the box)."""
 
     stack = None
+    psf: kspace.PSF | None = None
 
 
 def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
@@ -557,7 +568,9 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     return supported
 
 
-def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, progress=None) -> Results:
+def reconstruct(
+    acq: Acquisition, options: ReconstructionOptions | None = None, progress=None, boxes: dict | None = None
+) -> Results:
     """Reconstruct every slice of an acquisition.
 
     A stack (``nz > 1``) is reconstructed with z-regularization
@@ -574,6 +587,9 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     ----------
     progress : callable or None
         Called as ``progress(done, total, slice_result)`` after each slice.
+    boxes : dict or None
+        Slice index -> :class:`wss_nlp.preprocess.LumenBox` replacing that
+        slice's own origin and radius box (cine frames; slice by slice only).
 
     Notes
     -----
@@ -582,7 +598,7 @@ def reconstruct(acq: Acquisition, options: ReconstructionOptions | None = None, 
     """
     options = options or ReconstructionOptions()
     with blas_threads(options.blas_threads):
-        return _reconstruct(acq, options, progress)
+        return _reconstruct(acq, options, progress, boxes or {})
 
 
 def blas_threads(n: int):
@@ -596,7 +612,7 @@ def blas_threads(n: int):
     return threadpool_limits(limits=n, user_api="blas")
 
 
-def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> Results:
+def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress, boxes: dict) -> Results:
     acq.validate()
     mu = acq.viscosity(options.viscosity_pa_s)
     density = acq.density(options.density_kg_m3)
@@ -605,6 +621,7 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
     if psf is not None and psf.filter == "auto":
         psf = kspace_filter(acq.magnitude, acq.grid, psf, options, f"{acq.source}: ")
     out = Results()
+    out.psf = psf
     if stack_applies(acq, options):
         results, info = stk.reconstruct_stack(acq, options, options.stack, progress, psf)
         out.extend(
@@ -646,6 +663,7 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress) -> 
                     density,
                     noise_venc=acq.noise_venc_m_s,
                     psf=psf,
+                    box=boxes.get(iz),
                 )
         except WssNlpError as exc:
             if acq.nz == 1:

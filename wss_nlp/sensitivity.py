@@ -194,7 +194,8 @@ def geometry_parameter_derivatives(
     model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
     px, py = meas.subvoxel_points(problem.grid, model.annulus, q)
     n_a = model.annulus.size
-    fun = voxel_model_function(n, q, options.heaviside).map(n_a)
+    # called with one column per voxel, CasADi maps the function itself (building a .map costs as much as the call)
+    fun = voxel_model_function(n, q, options.heaviside)
     z = np.concatenate([coefficients, [gamma], problem.center])
     f_v, grad, hess = (np.asarray(a) for a in fun(z, px.T, py.T))
     nz = z.size
@@ -333,8 +334,8 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
         r_in, dr_in = options.inner_fraction * float(design[j] @ c_r0), options.inner_fraction * design[j]
     inside = vox.inside
     px, py = vox.px[inside], vox.py[inside]
-    fun = point_map_function(n).map(px.size)
-    rho0, drho, th0, dth = (np.asarray(a) for a in fun(c_r0, r_in, center0[0], center0[1], px, py))
+    fun = point_map_function(n)  # row inputs: one evaluation per point (CasADi's implicit map)
+    rho0, drho, th0, dth = (np.asarray(a) for a in fun(c_r0, r_in, center0[0], center0[1], px[None, :], py[None, :]))
     rho0, th0 = rho0.ravel(), th0.ravel()
     # chain rule for r_in(c_R); columns [c_R, c_x, c_y]
     drho = np.vstack([drho[:n_r] + np.outer(dr_in, drho[n_r]), drho[n_r + 1 :]]).T
@@ -347,25 +348,29 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     polynomial = getattr(basis, "base", basis)
     pb = cpl.polar_basis(polynomial, th0)
     tk = np.polynomial.chebyshev.chebvander(2 * rho0 / cpl.RHO_MAX - 1, pb.cheb.shape[1] - 1).T
-    radial = pb.select_radial @ (pb.cheb @ tk)
-    dradial = pb.select_radial @ (pb.cheb_derivative @ tk)
+    row_of = np.argmax(pb.select_radial, axis=1)  # the one-hot selection as an index (a product costs more)
+    radial = (pb.cheb @ tk)[row_of]
+    dradial = (pb.cheb_derivative @ tk)[row_of]
     if polynomial is not basis:  # cell means, as in the fit: a point rule would differentiate the steep layer badly
         stretch = nw.stretch(vp.disk_map)
         cells = None if vp.cell_mm is None else tuple(h / stretch for h in nw.cell_half_widths(vp.cell_mm, th0))
         layer, dlayer = basis.layer_radial(rho0, cells)
         radial, dradial = np.vstack([radial, layer]), np.vstack([dradial, dlayer])
-    orders = np.array([m for m, _ in basis.angular_terms()], float)[:, None]
-    is_cos = np.array([kind == "cos" for _, kind in basis.angular_terms()])[:, None]
-    ang = np.where(is_cos, np.cos(orders * th0), np.sin(orders * th0))
-    dang = np.where(is_cos, -orders * np.sin(orders * th0), orders * np.cos(orders * th0))
+    # the angular factors repeat across radial degrees: the trigonometry once per distinct (order, kind)
+    terms = basis.angular_terms()
+    distinct = sorted(set(terms))
+    rows = np.array([distinct.index(term) for term in terms])
+    orders = np.array([m for m, _ in distinct], float)[:, None]
+    is_cos = np.array([kind == "cos" for _, kind in distinct])[:, None]
+    cos_t, sin_t = np.cos(orders * th0), np.sin(orders * th0)
+    ang = np.where(is_cos, cos_t, sin_t)[rows]
+    dang = np.where(is_cos, -orders * sin_t, orders * cos_t)[rows]
     avg = _averaging(vp)
     op = np.asarray(avg @ (ang * radial).T) @ basis.transform
     if polynomial is not basis:  # the layer's voxel means as the fit used them (exact across each cell)
         op[:, polynomial.size :] = vp.operator[:, polynomial.size :]
     return (
-        OperatorDerivative(
-            op, avg, (ang * dradial).T @ basis.transform, (dang * radial).T @ basis.transform, drho, dth
-        ),
+        OperatorDerivative(op, avg, (ang * dradial).T, (dang * radial).T, drho, dth, basis.transform),
         r_in,
         dr_in,
     )
@@ -381,24 +386,31 @@ def _averaging(vp: vel.VelocityProblem):
 
 @dataclass
 class OperatorDerivative:
-    """``T~_h`` and the pieces of its derivative: ``dT_k = avg diag(drho_k) A_rho + avg diag(dt_k) A_t``."""
+    """``T~_h`` and the pieces of its derivative: ``dT_k = avg (diag(drho_k) A_rho + diag(dt_k) A_t) B``.
+
+    ``A_rho``, ``A_t`` hold the raw functions' derivatives and ``B`` the basis's orthonormalizing
+    transform, applied on the small side of every product (never to the point-sized matrices).
+    """
 
     op: np.ndarray  # (n_vox, n_basis)
     avg: Any  # (n_vox, n_points): voxel means over the inside points (sparse), or kspace.AveragingOperator
-    a_rho: np.ndarray  # (n_points, n_basis): d basis / d rho at the points
-    a_theta: np.ndarray  # (n_points, n_basis): d basis / d t
+    a_rho: np.ndarray  # (n_points, n_raw): d raw basis / d rho at the points
+    a_theta: np.ndarray  # (n_points, n_raw): d raw basis / d t
     drho: np.ndarray  # (n_points, n_dir)
     dtheta: np.ndarray  # (n_points, n_dir)
+    transform: np.ndarray  # (n_raw, n_basis)
 
     def times(self, c: np.ndarray) -> np.ndarray:
         """``[dT_k c]_k``, shape (n_vox, n_dir)."""
-        moved = self.drho * (self.a_rho @ c)[:, None] + self.dtheta * (self.a_theta @ c)[:, None]
+        raw = self.transform @ c
+        moved = self.drho * (self.a_rho @ raw)[:, None] + self.dtheta * (self.a_theta @ raw)[:, None]
         return np.asarray(self.avg @ moved)
 
     def transpose_times(self, y: np.ndarray) -> np.ndarray:
         """``[dT_k^T y]_k``, shape (n_basis, n_dir)."""
         z = np.asarray(self.avg.T @ y).ravel()
-        return self.a_rho.T @ (self.drho * z[:, None]) + self.a_theta.T @ (self.dtheta * z[:, None])
+        raw = self.a_rho.T @ (self.drho * z[:, None]) + self.a_theta.T @ (self.dtheta * z[:, None])
+        return self.transform.T @ raw
 
 
 @functools.lru_cache(maxsize=16)
@@ -500,7 +512,10 @@ def decoupled(
     # anchor: re-solve from the solution to a tight tolerance (the reconstruction's tolerance leaves the
     # stationarity residual at ~1e-9, which would show in the derivatives)
     gopt_t = geo.with_options(gopt, alpha=geometry.alpha, tol=tol)
-    anchor = geo.IpoptGeometrySolver(problem, gopt_t).solve(geometry.alpha, geometry.coefficients)
+    solver = geo.solver_for(problem, gopt_t, warm=True)
+    lam = geometry.box_multipliers  # empty after the projected Gauss-Newton solver: start from none active
+    lam = lam if lam.size == solver.nlp.g.numel() else np.zeros(solver.nlp.g.numel())
+    anchor = solver.solve(geometry.alpha, geometry.coefficients, problem, lam)
     if not anchor.stats.converged:
         raise SolverError(
             f"geometry sensitivity re-solve did not converge ({anchor.stats.status}); "

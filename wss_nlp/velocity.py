@@ -301,6 +301,24 @@ def assemble(
     )
 
 
+def voxel_values(problem: VelocityProblem, point_values: np.ndarray) -> np.ndarray:
+    """Voxel values of functions given at the problem's inside sub-voxel points, as its operator forms them.
+
+    ``point_values`` has shape ``(n_inside_points, m)`` (the points ``voxels.px[voxels.inside]``); the
+    result ``(n_vox, m)`` holds the box means, or with a k-space acquisition ``(K chi f)_i / (K chi)_i``
+    on the voxels the fit keeps (0 elsewhere), exactly as :func:`assemble` forms ``T~_h``.
+    """
+    vox = problem.voxels
+    values = np.asarray(point_values, dtype=float)
+    if problem.averager is None:
+        return np.asarray(vox.mean_matrix() @ values)
+    full = np.zeros(vox.inside.shape + (values.shape[1],))
+    full[vox.inside] = values
+    signal = problem.averager(vox.inside.astype(float))
+    keep = problem.weights > 0
+    return np.where(keep[:, None], problem.averager(full) / np.where(keep, signal, 1.0)[:, None], 0.0)
+
+
 def build_tikhonov(problem: VelocityProblem, beta: float):
     """CasADi expression of the velocity functional; returns ``(c, f)``.
 

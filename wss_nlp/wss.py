@@ -10,6 +10,7 @@ which is what is implemented -- the two agree only when J is symmetric.)
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 from typing import Any
@@ -121,16 +122,24 @@ def _is_uniform(phi) -> bool:
 def from_reconstruction(velocity_result, n_phi: int, viscosity_pa_s: float) -> WssResult:
     """WSS of a :class:`wss_nlp.velocity.VelocityResult` at ``n_phi`` uniform angles."""
     dm = velocity_result.disk_map
-    return evaluate(
-        rad.uniform_angles(n_phi),
-        dm.coefficients,
-        dm.center,
-        _BasisVelocity(velocity_result.basis),
-        velocity_result.coefficients,
-        dm.r_in,
-        dm.eta,
-        viscosity_pa_s,
-    )
+    phi = rad.uniform_angles(n_phi)
+    c_r = np.asarray(dm.coefficients, dtype=float)
+    fun = _basis_wss_map(velocity_result.basis, rad.n_fourier_from_size(c_r.size), float(dm.eta), n_phi)
+    center = np.asarray(dm.center, float)
+    tau, xw = fun(phi[None, :], c_r, center, velocity_result.coefficients, viscosity_pa_s, dm.r_in)
+    tau, xw = np.asarray(tau).ravel(), np.asarray(xw)
+    mean = rad.arc_length_mean(tau, rad.evaluate(c_r, phi), rad.evaluate(c_r, phi, 1))
+    return WssResult(phi=phi, tau=tau, mean=mean, wall_x=xw[0], wall_y=xw[1], viscosity_pa_s=viscosity_pa_s)
+
+
+@functools.lru_cache(maxsize=16)  # bases are cached objects (velocity_basis.make_basis): one build per setting
+def _basis_wss_map(basis, n_fourier: int, eta: float, n_phi: int) -> ca.Function:
+    """:func:`wss_expression` of a basis expansion with ``r_in`` an input, mapped over ``n_phi`` angles.
+
+    Built once per basis and angle count and reused by every slice and frame (``r_in`` and the geometry are
+    inputs, not constants of the graph).
+    """
+    return wss_expression(_BasisVelocity(basis), n_fourier, None, eta).map(n_phi)
 
 
 def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tuple[np.ndarray, np.ndarray]:
@@ -141,17 +150,20 @@ def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tupl
     studies (one matrix serves every beta).
     """
     dm = disk_map
-    f = wss_expression(_BasisVelocity(basis), rad.n_fourier_from_size(dm.coefficients.size), dm.r_in, dm.eta)
-    ph, cc, ce, p = (
-        ca.SX.sym("ph"),
-        ca.SX.sym("cc", dm.coefficients.size),
-        ca.SX.sym("ce", 2),
-        ca.SX.sym("p", basis.size),
-    )
-    tau, xw = f(ph, cc, ce, p, viscosity_pa_s)
-    g = ca.Function("g", [ph, cc, ce], [ca.jacobian(tau, p), xw]).map(n_phi)
-    a, xw = g(rad.uniform_angles(n_phi)[None, :], dm.coefficients, np.array(dm.center))
+    c_r = np.asarray(dm.coefficients, dtype=float)
+    g = _basis_wss_jacobian_map(basis, rad.n_fourier_from_size(c_r.size), float(dm.eta), n_phi)
+    a, xw = g(rad.uniform_angles(n_phi)[None, :], c_r, np.array(dm.center, dtype=float), viscosity_pa_s, dm.r_in)
     return np.asarray(a).reshape(n_phi, basis.size), np.asarray(xw)
+
+
+@functools.lru_cache(maxsize=16)
+def _basis_wss_jacobian_map(basis, n_fourier: int, eta: float, n_phi: int) -> ca.Function:
+    """``(phi, c_R, center, mu, r_in) -> (d tau / d c, x_wall)`` over ``n_phi`` angles, built once per basis."""
+    f = wss_expression(_BasisVelocity(basis), n_fourier, None, eta)
+    ph, cc, ce = ca.SX.sym("ph"), ca.SX.sym("cc", rad.n_coefficients(n_fourier)), ca.SX.sym("ce", 2)
+    p, mu, r_in = ca.SX.sym("p", basis.size), ca.SX.sym("mu"), ca.SX.sym("r_in")
+    tau, xw = f(ph, cc, ce, p, mu, r_in)
+    return ca.Function("g", [ph, cc, ce, mu, r_in], [ca.jacobian(tau, p), xw]).map(n_phi)
 
 
 @dataclass
