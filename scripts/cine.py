@@ -6,6 +6,8 @@ Phantoms:
 * ``womersley`` (``wss_nlp.pulsatile.make_cine``): Womersley flow (carotid-like waveform with flow reversal,
   four harmonics, first harmonic's Womersley number about 15) in a rigid 10 mm pipe, 20 frames over a 1 s
   cycle, one venc for the series;
+* ``distending womersley``: the same flow in a pipe whose radius changes by 10 % over the cycle
+  (``make_cine(distension=0.1)``, the rigid profile stretched to the moving wall);
 * ``quasi-steady <case>`` (``wss_nlp.pulsatile.make_quasi_steady_cine``): a steady phantom's profile scaled
   by the same waveform; not a solution of the momentum balance, so the model choice should keep the
   frames' own fits (false choices of the momentum model show here).
@@ -93,6 +95,15 @@ def main() -> None:
             for name, results in rows.items():
                 lines.append(row("womersley", h, snr, name, results))
                 print(lines[-1], flush=True)
+    for h in (1.5, 1.0):  # the breathing pipe, 10 % radius change over the cycle
+        rows = {name: [] for name in METHODS}
+        for seed in range(args.seeds):
+            frames, truth = pulsatile.make_cine(h_mm=h, snr=25, seed=seed, frames=args.frames, distension=0.1)
+            for name, options in METHODS.items():
+                rows[name].append(run(frames, truth, options))
+        for name, results in rows.items():
+            lines.append(row("distending womersley (10 %)", h, 25, name, results))
+            print(lines[-1], flush=True)
     for case in filter(None, args.quasi.split(",")):
         rows = {name: [] for name in METHODS}
         for seed in range(args.seeds):

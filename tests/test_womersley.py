@@ -147,3 +147,19 @@ def test_forced_models_and_the_result_file(tmp_path):
         assert record["model"] == "momentum" and record["criterion"].endswith("forced")
         assert g["wss/tau_std_pa"].shape == g["wss/tau_pa"].shape and g["wss/mean_std_pa_t"].shape == (6,)
         assert np.allclose(g["wss/mean_pa_t"][()], s.mean)
+
+
+def test_frames_bands_are_computed_only_for_the_model_the_series_keeps():
+    """Default options (band on): where the momentum model wins, the frames' own bands are skipped (its band
+    replaces them, and each frame says so); where the frames' own fits are kept, each frame has its band."""
+    frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=66, frames=8)
+    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, ReconstructionOptions())
+    s = res.series(0)
+    assert s.model.model == "momentum" and np.all(np.isfinite(s.tau_std))
+    for f in res.frames:
+        assert f[0].pending_band is None and f[0].wss.tau_std is None and cine.MOMENTUM_BAND_NOTE in f[0].notes
+    frames, truth = pulsatile.make_quasi_steady_cine("circle", h_mm=1.5, snr=25, seed=66, frames=6)
+    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, ReconstructionOptions())
+    assert res.series(0).model.model == "independent"
+    for f in res.frames:
+        assert f[0].pending_band is None and f[0].wss.tau_std is not None and f[0].sensitivity is not None

@@ -33,7 +33,7 @@ from . import preprocess as pp
 from . import womersley
 from .errors import InputError, WssNlpError
 from .files import Acquisition, FailedSlice
-from .reconstruct import ReconstructionOptions, reconstruct
+from .reconstruct import ReconstructionOptions, blas_threads, reconstruct
 
 log = logging.getLogger(__name__)
 
@@ -247,6 +247,11 @@ def reconstruct_cine(
     gives every frame its own box and a cold start (for studies).
     """
     options = options or ReconstructionOptions()
+    with blas_threads(options.blas_threads):  # the model's small factorizations too, not only the frames'
+        return _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_frames, share_box)
+
+
+def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_frames, share_box) -> CineResult:
     notes = []
     if options.velocity.near_wall == "auto" and not layer_on_frames:
         options = replace(options, velocity=replace(options.velocity, near_wall="off"))
@@ -258,10 +263,14 @@ def reconstruct_cine(
     omega = 2 * np.pi / (float(period_ms) / 1000.0)
     k_max = womersley.max_harmonics(len(frames), options.cine.max_harmonics)
     terms: dict = {}  # slice -> the frames' contributions to its cycle model (wss_nlp.womersley.FrameTerms)
+    # a series of single slices leaves the frames' bands until the model is chosen: where the momentum model
+    # wins, its own band replaces them (stacks compute them at once: holding every slice's problem until the
+    # end would cost about a megabyte per slice and frame)
+    defer = options.uncertainty and options.cine.model != "independent" and frames[0].nz == 1
     for k, frame in enumerate(frames):
         results: list
         try:
-            done = reconstruct(frame, options, boxes=boxes)
+            done = reconstruct(frame, options, boxes=boxes, defer_band=defer)
             results = list(done)
             if options.cine.model != "independent":
                 time_s = float(times_ms[k]) / 1000.0
@@ -282,7 +291,24 @@ def reconstruct_cine(
         raise WssNlpError(f"every frame failed; the first: {out[0][0].reason}")
     result = CineResult(out, np.asarray(times_ms, dtype=float), float(period_ms), weights, notes)
     result.models = cycle_models(result, terms, frames[0], options, omega)
+    for iz, model in result.models.items():
+        for frame_results in out:
+            r = frame_results[iz]
+            if isinstance(r, FailedSlice) or r.pending_band is None:
+                continue
+            if model.tau is None:
+                r.finish_band()
+            else:
+                r.pending_band = None
+                r.notes.append(MOMENTUM_BAND_NOTE)
     return result
+
+
+#: What a frame's own record says when its slice's series comes from the momentum model.
+MOMENTUM_BAND_NOTE = (
+    "no band for this frame's own fit: the slice's WSS over the cycle comes from the momentum model, whose band "
+    "is in wss/tau_std_pa"
+)
 
 
 def _add_terms(

@@ -27,6 +27,7 @@ The harmonics are given as bulk-velocity harmonics :math:`V_n` (m/s); the flow r
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import scipy.special
@@ -170,8 +171,9 @@ class DistendingWomersley(Flow):
     def at(self, t_s: float) -> DistendingWomersley:
         assert self.base is not None
         base = self.base.at(t_s)
-        base.lumen = Circle(r=self.base.lumen.r, center=self.lumen.center)
-        lumen = Circle(r=float(self.base.lumen.r * self.stretch(t_s)), center=self.lumen.center)
+        r0 = self.base.radius_m * PER_MM
+        base.lumen = Circle(r=r0, center=self.lumen.center)
+        lumen = Circle(r=float(r0 * self.stretch(t_s)), center=self.lumen.center)
         return DistendingWomersley(lumen, self.viscosity_pa_s, base, self.distension, float(t_s))
 
 
@@ -182,7 +184,7 @@ class CineTruth:
     frames: list
     times_ms: np.ndarray
     period_ms: float
-    flow: Flow  # WomersleyPipe, DistendingWomersley or QuasiSteadyFlow: with wall_shear(t_s)
+    flow: Any  # WomersleyPipe, DistendingWomersley or QuasiSteadyFlow: each has wall_shear(t_s)
 
     def tau(self) -> np.ndarray:
         """Exact WSS of each frame (uniform around the pipe), Pa."""
@@ -342,27 +344,32 @@ def make_quasi_steady_cine(
 
 
 def write_truth(path: str, truth: CineTruth, n_phi: int = 1440) -> None:
-    """The exact cycle in the time-resolved result layout (atomic): radius, WSS(t, phi), TAWSS, OSI."""
+    """The exact cycle in the time-resolved result layout (atomic): radius, WSS(t, phi), TAWSS, OSI.
+
+    Radius and WSS per frame from each frame's flow about the lumen centre; ``geometry/coefficients`` holds
+    each frame's mean radius only (exact for the circular pipes of :func:`make_cine`).
+    """
     from .cine import cycle_weights, tawss_osi
     from .files import atomic_h5, provenance
 
     phi = 2 * np.pi * np.arange(n_phi) / n_phi
     nt = len(truth.frames)
-    tau = np.repeat(truth.tau()[:, None], n_phi, axis=1)
+    tau = np.array([frame.flow.wss(phi) for frame in truth.frames])
     weights = cycle_weights(truth.times_ms, truth.period_ms)
     tawss, osi = tawss_osi(tau, weights)
-    radius = truth.flow.radius_m * PER_MM
+    radius = np.array([frame.flow.lumen.radius(phi) for frame in truth.frames])
     with atomic_h5(path) as f:
-        for k, v in provenance({"truth": "womersley", "times_ms": truth.times_ms.tolist()}).items():
+        for k, v in provenance({"truth": truth.frames[0].name, "times_ms": truth.times_ms.tolist()}).items():
             f.attrs[k] = v
         f.attrs["trigger_times_ms"] = truth.times_ms
         f.attrs["cardiac_period_ms"] = truth.period_ms
-        f.attrs["womersley_number"] = truth.flow.womersley(1)
+        if hasattr(truth.flow, "womersley"):
+            f.attrs["womersley_number"] = truth.flow.womersley(1)
         g = f.create_group("slice_000")
         g["geometry/center_mm"] = np.tile(np.asarray(truth.flow.lumen.center, dtype=float), (nt, 1))
-        g["geometry/coefficients"] = np.tile(np.r_[radius, np.zeros(16)], (nt, 1))
+        g["geometry/coefficients"] = np.hstack([radius.mean(axis=1, keepdims=True), np.zeros((nt, 16))])
         g["geometry/phi"] = phi
-        g["geometry/radius_mm"] = np.full((nt, n_phi), radius)
+        g["geometry/radius_mm"] = radius
         g["wss/phi"] = phi
         g["wss/tau_pa"] = tau
         g["wss/time_ms"] = truth.times_ms

@@ -9,6 +9,7 @@ numbers, the solver statistics and what was assumed.
 from __future__ import annotations
 
 import contextlib
+import functools
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -283,6 +284,7 @@ def reconstruct_slice(
     noise_venc: float | None = None,
     psf: kspace.PSF | None = None,
     box: pp.LumenBox | None = None,
+    defer_band: bool = False,
 ) -> SliceResult:
     """Geometry (Sec. 2), velocity (Sec. 3) and WSS (Sec. 4) of one slice.
 
@@ -301,6 +303,8 @@ def reconstruct_slice(
     forward model by the point-spread function. ``box`` replaces the lumen's own
     polar origin, radius box and reference radius (cine frames share one, and
     with it the built geometry solver) and may carry a warm start.
+    ``defer_band`` leaves the uncertainty band to :meth:`SliceResult.finish_band`
+    (cine frames: only the model the series keeps needs one).
     """
     where = f"{source} slice {index}"
     t = {}
@@ -408,8 +412,11 @@ def reconstruct_slice(
     t["min_dephasing_factor"] = float(np.min(factors, initial=1.0)) if factors is not None else 1.0
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
-    notes, sensitivity = layer_notes + notes_deph, None
-    if options.uncertainty:
+    notes, sensitivity, pending = layer_notes + notes_deph, None, None
+    if options.uncertainty and defer_band:
+        band_inputs = (problem, g, vp, v, w, magnitude, norm, lumen, nvenc, viscosity_pa_s, options, cres, near)
+        pending = functools.partial(uncertainty, *band_inputs)
+    elif options.uncertainty:
         t0 = time.perf_counter()
         sensitivity, note = uncertainty(
             problem, g, vp, v, w, magnitude, norm, lumen, nvenc, viscosity_pa_s, options, cres, near
@@ -435,6 +442,7 @@ def reconstruct_slice(
         notes,
         near_wall=near,
         problem=vp,
+        pending_band=pending,
     )
 
 
@@ -569,7 +577,11 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
 
 
 def reconstruct(
-    acq: Acquisition, options: ReconstructionOptions | None = None, progress=None, boxes: dict | None = None
+    acq: Acquisition,
+    options: ReconstructionOptions | None = None,
+    progress=None,
+    boxes: dict | None = None,
+    defer_band: bool = False,
 ) -> Results:
     """Reconstruct every slice of an acquisition.
 
@@ -590,6 +602,9 @@ def reconstruct(
     boxes : dict or None
         Slice index -> :class:`wss_nlp.preprocess.LumenBox` replacing that
         slice's own origin and radius box (cine frames; slice by slice only).
+    defer_band : bool
+        Leave each slice's uncertainty band to :meth:`SliceResult.finish_band`
+        (slice by slice only; z-regularized stacks compute no band).
 
     Notes
     -----
@@ -598,7 +613,7 @@ def reconstruct(
     """
     options = options or ReconstructionOptions()
     with blas_threads(options.blas_threads):
-        return _reconstruct(acq, options, progress, boxes or {})
+        return _reconstruct(acq, options, progress, boxes or {}, defer_band)
 
 
 def blas_threads(n: int):
@@ -612,7 +627,7 @@ def blas_threads(n: int):
     return threadpool_limits(limits=n, user_api="blas")
 
 
-def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress, boxes: dict) -> Results:
+def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress, boxes: dict, defer_band: bool) -> Results:
     acq.validate()
     mu = acq.viscosity(options.viscosity_pa_s)
     density = acq.density(options.density_kg_m3)
@@ -664,6 +679,7 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress, box
                     noise_venc=acq.noise_venc_m_s,
                     psf=psf,
                     box=boxes.get(iz),
+                    defer_band=defer_band,
                 )
         except WssNlpError as exc:
             if acq.nz == 1:

@@ -8,6 +8,8 @@ and the warnings to show the user.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
@@ -62,6 +64,19 @@ class SliceResult:
     near_wall: nw.NearWallChoice | None = None  # the near-wall model and why (wss_nlp.choice.choose_layer)
     # the velocity problem of the final fit (None where not kept); cine frames summarize it, then drop it
     problem: vel.VelocityProblem | None = None
+    # the uncertainty band still to compute (reconstruct_slice(defer_band=True)): () -> (Sensitivity, note)
+    pending_band: Callable[[], tuple] | None = None
+
+    def finish_band(self) -> None:
+        """Compute a deferred uncertainty band (sets ``wss.tau_std``, ``wss.mean_std``, ``sensitivity``)."""
+        if self.pending_band is None:
+            return
+        t0 = time.perf_counter()
+        self.sensitivity, note = self.pending_band()
+        self.pending_band = None
+        if note:
+            self.notes.append(note)
+        self.seconds["uncertainty"] = time.perf_counter() - t0
 
     @property
     def converged(self) -> bool:
