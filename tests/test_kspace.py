@@ -23,6 +23,7 @@ from wss_nlp import velocity as vel
 from wss_nlp import analysis as an
 from wss_nlp import sensitivity as sens
 from wss_nlp import wss as wss_mod
+from wss_nlp.choice import choose_alpha
 from wss_nlp.errors import InputError
 
 from conftest import assert_coupled_jacobian_is_exact
@@ -170,6 +171,23 @@ def test_separable_jacobian_equals_casadi_ad_and_the_solvers_agree():
     b = geo.solve_projected_gauss_newton(problem, opts)
     assert a.stats.converged and b.stats.converged
     assert np.max(np.abs(a.coefficients - b.coefficients)) < 1e-6 * a.coefficients[0]
+
+
+def test_alpha_rules_of_the_two_geometry_solvers_agree_on_kspace_data():
+    """The discrepancy rule for alpha run with IPOPT and with the projected Gauss-Newton method on k-space
+    data: both estimate the noise on the voxels the k-space model fits (its window, not the box annulus) and
+    choose the same alpha (two independent solvers, seed 24)."""
+    psf = kspace.PSF("hamming", (2.0, 2.0))
+    acq, _ = ph.make_phantom("laminar", h_mm=1.5, snr=25, seed=24, psf=psf)
+    norm, m, lumen = pp.preprocess(acq.magnitude[0], acq.grid, clip_upper=False)
+    problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area, psf=psf)
+    choices = []
+    for solver in ("ipopt", "gauss-newton"):
+        options = rc.ReconstructionOptions(alpha_rule="discrepancy", geometry=geo.GeometryOptions(solver=solver))
+        _, choice = choose_alpha(problem, acq.magnitude[0], norm, lumen, options, "test")
+        choices.append(choice)
+    assert choices[0].noise == pytest.approx(choices[1].noise, rel=1e-12)
+    assert choices[0].chosen == choices[1].chosen
 
 
 def test_averaging_operator_dot_test():

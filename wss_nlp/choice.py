@@ -19,7 +19,6 @@ import numpy as np
 from . import analysis as an
 from . import geometry as geo
 from . import kspace
-from . import measurement as meas
 from . import near_wall as nw
 from . import radius as rad
 from . import sensitivity as sens
@@ -93,9 +92,7 @@ def choose_alpha(
         def run(alpha, prev):
             return solver.solve(alpha, None if prev is None else prev.coefficients, problem)
     else:
-        annulus = meas.annulus_model(
-            problem.grid, problem.center, problem.r0, problem.r1, geo.quad_order(problem, gopt)
-        ).annulus
+        annulus = geo.fitted_voxels(problem, gopt)  # the box annulus, or the k-space window the model fits
 
         def run(alpha, prev):
             return geo.solve_projected_gauss_newton(problem, gopt, None if prev is None else prev.coefficients, alpha)

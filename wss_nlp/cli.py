@@ -271,8 +271,10 @@ def _reconstruct_cine(args, options) -> int:
         print(
             f"slice {s.index}: time-averaged WSS {s.time_average_mean:.4g} Pa, TAWSS {np.mean(s.tawss):.4g} Pa "
             f"(wall mean), OSI {np.min(s.osi):.3f}-{np.max(s.osi):.3f}, peak mean WSS {np.max(s.mean):.4g} Pa at "
-            f"{times[int(np.nanargmax(s.mean))]:g} ms"
-        )
+            f"{times[int(np.nanargmax(s.mean))]:g} ms; velocity over the cycle: "
+            + (f"momentum model ({s.model.harmonics} harmonics)" if s.model and s.model.model == "momentum" else
+               "the frames' own fits")
+        )  # fmt: skip
     print(f"wrote {args.output}")
     if args.figures:
         print(f"figures in {args.figures}")
@@ -476,6 +478,10 @@ def _demo_cine(args, options, out: str) -> None:
         ("OSI reconstructed (wall mean)", f"{np.mean(series.osi):.3f}"),
         ("OSI true", f"{osi_true[0]:.3f}"),
         ("worst frame error / peak WSS", f"{100 * np.nanmax(np.abs(series.mean - tau)) / peak:.1f}%"),
+        (
+            "velocity over the cycle",
+            "momentum model" if series.model and series.model.model == "momentum" else "frames' own fits",
+        ),  # fmt: skip
         ("time [s]", f"{seconds:.2f}"),
     ]
     print()

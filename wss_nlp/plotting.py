@@ -415,7 +415,13 @@ def figure_cine(series, times_ms, truth_tau=None):
     fig.colorbar(im, ax=ax, label="WSS [Pa]")
     ax.set(xlabel="wall angle phi [deg]", ylabel="time after trigger [ms]", title="WSS(t, phi)")
     ax = axes[1]
-    ax.plot(times_ms, series.mean, "o-", label="reconstructed (wall mean)")
+    model = getattr(series, "model", None)
+    which = "momentum model" if model is not None and model.model == "momentum" else "frames' own fits"
+    ax.plot(times_ms, series.mean, "o-", label=f"reconstructed (wall mean; {which})")
+    std = getattr(series, "mean_std", None)
+    if std is not None and np.any(np.isfinite(std)):
+        lo, hi = series.mean - 2 * std, series.mean + 2 * std
+        ax.fill_between(times_ms, lo, hi, color="C0", alpha=0.25, lw=0, label="band (2 std, data noise)")
     if series.failed.any():
         ax.plot(np.asarray(times_ms)[series.failed], np.zeros(int(series.failed.sum())), "rx", label="failed frame")
     if truth_tau is not None:
