@@ -30,6 +30,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from . import preprocess as pp
+from . import radius as rad
 from . import womersley
 from .errors import InputError, WssNlpError
 from .files import Acquisition, FailedSlice
@@ -113,6 +114,7 @@ class CycleModel:
     tau_std: np.ndarray | None = None
     mean: np.ndarray | None = None  # (nt,)
     mean_std: np.ndarray | None = None
+    walls: np.ndarray | None = None  # (nt, 2N+3): the walls the model used, radius coefficients then centre (mm)
 
 
 @dataclass
@@ -161,6 +163,10 @@ class CineResult:
             # the momentum model's WSS on the frames it was fitted on; the others count as failed
             good = good & np.all(np.isfinite(model.tau), axis=1)
             tau, tau_std, mean, mean_std = model.tau, model.tau_std, model.mean, model.mean_std
+            if model.walls is not None:  # the walls its WSS lives on (regularized in time)
+                coefficients, center = model.walls[:, :n_coef], model.walls[:, n_coef:]
+                radius = np.array([rad.evaluate(c, phi) if np.all(np.isfinite(c)) else np.full(phi.size, np.nan)
+                                   for c in coefficients])  # fmt: skip
         if model is not None:
             notes.append(model_note(model.choice))
         if not good.all():
@@ -182,11 +188,12 @@ def model_note(choice: womersley.CineModelChoice) -> str:
     """One line on the cycle's velocity model for the result's warnings."""
     if choice.model == "momentum":
         how = "chosen by the BIC" if np.isfinite(choice.margin) else "forced (--cine-model momentum)"
+        walls = choice.walls.get("how", "each frame's own wall")
         return (
             f"velocity over the cycle: the momentum balance of fully developed pulsatile flow (Womersley) with "
             f"{choice.harmonics} harmonic(s), fitted to frames {choice.frames_used}, {how}"
             + (f" (BIC margin {choice.margin:.0f})" if np.isfinite(choice.margin) else "")
-            + "; each frame's own fit is in frames/frame_NNN"
+            + f"; walls: {walls}; each frame's own fit is in frames/frame_NNN"
         )
     if not choice.bic:
         return f"velocity over the cycle: each frame's own fit ({choice.criterion})"
@@ -261,26 +268,24 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
     out: list[list] = []
     t0 = time.perf_counter()
     omega = 2 * np.pi / (float(period_ms) / 1000.0)
-    k_max = womersley.max_harmonics(len(frames), options.cine.max_harmonics)
-    terms: dict = {}  # slice -> the frames' contributions to its cycle model (wss_nlp.womersley.FrameTerms)
     # a series of single slices leaves the frames' bands until the model is chosen: where the momentum model
     # wins, its own band replaces them (stacks compute them at once: holding every slice's problem until the
     # end would cost about a megabyte per slice and frame)
-    defer = options.uncertainty and options.cine.model != "independent" and frames[0].nz == 1
+    keep = options.cine.model != "independent" and frames[0].nz == 1
+    defer = options.uncertainty and keep
+    psfs = []  # the acquisition model each frame was reconstructed with (resolved k-space filter)
     for k, frame in enumerate(frames):
         results: list
         try:
             done = reconstruct(frame, options, boxes=boxes, defer_band=defer)
             results = list(done)
-            if options.cine.model != "independent":
-                time_s = float(times_ms[k]) / 1000.0
-                _add_terms(terms, results, frame, k, time_s, options, k_max, omega, done.psf, boxes)
+            psfs.append(done.psf)
         except WssNlpError as exc:  # this frame only: the others still describe the cycle
             log.warning("frame %d failed: %s", k, exc)
             results = [FailedSlice(iz, f"frame {k}: {exc}") for iz in range(frame.nz)]
         for r in results:
-            if not isinstance(r, FailedSlice):
-                r.problem = None  # summarized above; a long series would hold every frame's otherwise
+            if not isinstance(r, FailedSlice) and not keep:
+                r.problem = None  # rebuilt where needed: a long series of stacks would hold every one otherwise
         out.append(results)
         for r in results:  # the next frame's geometry starts from this one's
             if r.index in boxes and not isinstance(r, FailedSlice):
@@ -290,11 +295,15 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
     if all(isinstance(r, FailedSlice) for frame in out for r in frame):
         raise WssNlpError(f"every frame failed; the first: {out[0][0].reason}")
     result = CineResult(out, np.asarray(times_ms, dtype=float), float(period_ms), weights, notes)
-    result.models = cycle_models(result, terms, frames[0], options, omega)
+    psf = next((p for p in psfs if p is not None), None)
+    result.models = cycle_models(result, frames, options, omega, psf, boxes)
     for iz, model in result.models.items():
         for frame_results in out:
             r = frame_results[iz]
-            if isinstance(r, FailedSlice) or r.pending_band is None:
+            if isinstance(r, FailedSlice):
+                continue
+            r.problem = None
+            if r.pending_band is None:
                 continue
             if model.tau is None:
                 r.finish_band()
@@ -311,54 +320,55 @@ MOMENTUM_BAND_NOTE = (
 )
 
 
-def _add_terms(
-    terms: dict, results: list, frame: Acquisition, k: int, time_s: float, options, k_max, omega, psf, boxes
-):
-    """Summarize frame ``k``'s slices for their cycle models (:func:`wss_nlp.womersley.frame_terms`).
+def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: float, psf, boxes: dict) -> dict:
+    """Each slice's velocity model over the cycle (:func:`wss_nlp.womersley.choose`) and its WSS per frame.
 
-    The Womersley parameters take the slice's shared reference radius (without shared boxes: each frame's
-    own mean radius, quasi-statically).
+    The momentum model is fitted on the frames' walls regularized in time (:func:`wss_nlp.womersley.smooth_walls`),
+    with the Womersley parameters at the slice's shared reference radius (without shared boxes: the walls'
+    mean radius).
     """
-    nu = frame.viscosity(options.viscosity_pa_s) / frame.density(options.density_kg_m3)[0]
-    for r in results:
-        if isinstance(r, FailedSlice):
-            continue
-        problem = womersley.plain_problem(r, options, psf)
-        where = f"{frame.source} slice {r.index}"
-        sigma = womersley.velocity_sigma(r, problem, frame.magnitude[r.index], frame, options, where)
-        if sigma is not None:  # noise-free data give the models nothing to be weighed by
-            radius = boxes[r.index].r_area if r.index in boxes else float(r.geometry.coefficients[0])
-            terms.setdefault(r.index, []).append(
-                womersley.frame_terms(r, problem, sigma, k, time_s, k_max, omega, nu, radius)
-            )
-
-
-def cycle_models(result: CineResult, terms: dict, ref: Acquisition, options: ReconstructionOptions, omega) -> dict:
-    """Each slice's velocity model over the cycle (:func:`wss_nlp.womersley.choose`) and its WSS per frame."""
     if options.cine.model == "independent":
         choice = womersley.CineModelChoice("independent", criterion="independent frames (--cine-model independent)")
         return {iz: CycleModel(choice) for iz in range(result.n_slices)}
+    ref = frames[0]
     mu = ref.viscosity(options.viscosity_pa_s)
     nu = mu / ref.density(options.density_kg_m3)[0]
+    k_max = womersley.max_harmonics(len(frames), options.cine.max_harmonics)
     models = {}
     for iz in range(result.n_slices):
-        usable = terms.get(iz, [])
+        good = [(k, fr[iz]) for k, fr in enumerate(result.frames) if not isinstance(fr[iz], FailedSlice)]
+        times = np.array([result.times_ms[k] / 1000.0 for k, _ in good])
+        own = np.array([np.r_[r.geometry.coefficients, r.geometry.center] for _, r in good])
+        walls, wall_choice = womersley.smooth_walls(times, omega, own, options.cine.walls, k_max)
+        n_r = own.shape[1] - 2
+        radius = boxes[iz].r_area if iz in boxes else float(np.mean(walls[:, 0]))
+        usable = []
+        for (k, r), wall in zip(good, walls):
+            problem = womersley.plain_problem(r, options, psf, wall[:n_r], wall[n_r:])
+            acq = frames[k]
+            sigma = womersley.velocity_sigma(r, problem, acq.magnitude[iz], acq, options, f"{acq.source} slice {iz}")
+            if sigma is not None:  # noise-free data give the models nothing to be weighed by
+                time_s = float(result.times_ms[k]) / 1000.0
+                usable.append(womersley.frame_terms(problem, sigma, k, time_s, k_max, omega, nu, radius))
         if len(usable) < 2:
             why = "fewer than two frames with a velocity noise estimate (noise-free data?): independent frames"
             models[iz] = CycleModel(womersley.CineModelChoice("independent", criterion=why))
             continue
         choice, fitted = womersley.choose(usable, omega, nu, options.cine)
+        choice.walls = wall_choice.as_dict()
         model = CycleModel(choice)
         if fitted is not None:
             n_t, n_phi = len(result.frames), options.n_phi
-            phi = next(r[iz].wss.phi for r in result.frames if not isinstance(r[iz], FailedSlice))
+            phi = good[0][1].wss.phi
             model.tau, model.tau_std = np.full((n_t, n_phi), np.nan), np.full((n_t, n_phi), np.nan)
             model.mean, model.mean_std = np.full(n_t, np.nan), np.full(n_t, np.nan)
+            model.walls = np.full((n_t, own.shape[1]), np.nan)
             for t in usable:
                 k = t.index
                 model.tau[k], model.tau_std[k], model.mean[k], model.mean_std[k] = womersley.wall_shear(
                     fitted, t, phi, mu
                 )
+                model.walls[k] = np.r_[t.coefficients, t.center]
         log.info("slice %d: %s", iz, model_note(choice))
         models[iz] = model
     return models

@@ -65,6 +65,9 @@ from .schema import option
 #: What the cine velocity model may be: chosen by the BIC, the frames' own fits, or the momentum balance.
 MODELS = ("auto", "independent", "momentum")
 
+#: How the momentum model takes the frames' walls (:func:`smooth_walls`).
+WALLS = ("auto", "frames", "shared")
+
 #: BIC units the momentum model must beat the frames' own fits by (Kass & Raftery 1995: "very strong").
 EVIDENCE = 10.0
 
@@ -83,6 +86,8 @@ class CineModelOptions:
         each frame's own fit; "auto": the one the BIC prefers (the momentum model by :data:`EVIDENCE`).
     max_harmonics : int
         Most temporal harmonics of the momentum model (the BIC chooses how many).
+    walls : {"auto", "frames", "shared"}
+        The walls the momentum model is fitted on (:func:`smooth_walls`).
     """
 
     schema_group = "time-resolved (cine) data"
@@ -100,10 +105,20 @@ class CineModelOptions:
         "most temporal harmonics of the momentum model (the BIC chooses how many)",
         cli="--max-harmonics",
     )
+    walls: str = option(
+        "auto",
+        "the walls the momentum model uses: frames = each frame's own reconstruction, shared = their mean "
+        "(a rigid vessel), auto = the frames' radius coefficients as trigonometric polynomials in time, "
+        "degree by the BIC (degree 0 is the shared wall)",
+        cli="--cine-walls",
+        choices=WALLS,
+    )
 
     def __post_init__(self):
         if self.model not in MODELS:
             raise InputError(f"cine model must be one of {MODELS}, got {self.model!r}")
+        if self.walls not in WALLS:
+            raise InputError(f"cine walls must be one of {WALLS}, got {self.walls!r}")
         if not 0 <= self.max_harmonics <= 64:
             raise InputError(f"max_harmonics must lie in 0..64, got {self.max_harmonics}")
 
@@ -204,18 +219,18 @@ def columns_at(sigma: np.ndarray, lams: list[complex], phase: np.ndarray) -> np.
 
 
 def frame_terms(
-    result: SliceResult, problem: vel.VelocityProblem, sigma: np.ndarray, index: int, time_s: float,
+    problem: vel.VelocityProblem, sigma: np.ndarray, index: int, time_s: float,
     k_max: int, omega: float, nu_m2_s: float, radius_mm: float,
 ) -> FrameTerms:  # fmt: skip
-    """One frame's :class:`FrameTerms` from its reconstruction, its plain velocity problem and voxel noise.
+    """One frame's :class:`FrameTerms` from its plain velocity problem (on the wall the model uses) and noise.
 
     ``radius_mm`` sets the Womersley parameters: one radius for the cycle (harmonics belong to the cycle,
     not to an instant), e.g. the frames' shared reference radius (:class:`wss_nlp.preprocess.LumenBox`).
     """
-    g = result.geometry
-    coefficients = np.asarray(g.coefficients, dtype=float)
+    coefficients = np.asarray(problem.disk_map.coefficients, dtype=float)
+    center = (float(problem.disk_map.center[0]), float(problem.disk_map.center[1]))
     vox = problem.voxels
-    s = ray_coordinate(coefficients, g.center, vox.px[vox.inside], vox.py[vox.inside])
+    s = ray_coordinate(coefficients, center, vox.px[vox.inside], vox.py[vox.inside])
     lams = lambdas(k_max, radius_mm, omega, nu_m2_s)
     phi = vel.voxel_values(problem, columns_at(s, lams, time_factors(k_max, omega, time_s)))
     inv_var = 1.0 / np.asarray(sigma, float) ** 2
@@ -223,7 +238,7 @@ def frame_terms(
     chi2, dof, _ = PlainCriterion(problem, sigma).curve()
     nu = 1.0 if problem.noise_correlation is None else float(problem.noise_correlation.effective_fraction)
     return FrameTerms(
-        index, float(time_s), coefficients, (float(g.center[0]), float(g.center[1])),
+        index, float(time_s), coefficients, center,
         phi.T @ (inv_var[:, None] * phi), phi.T @ (inv_var * u), float(u @ (inv_var * u)), int(u.size),
         chi2, dof, nu, float(radius_mm),
     )  # fmt: skip
@@ -252,6 +267,7 @@ class CineModelChoice:
     margin: float = float("nan")  # the chosen model's lead over the runner-up, EVIDENCE included
     frames_used: list = field(default_factory=list)
     criterion: str = ""
+    walls: dict = field(default_factory=dict)  # how the walls were taken in time (WallChoice.as_dict)
 
     def as_json(self) -> str:
         return json.dumps(
@@ -263,6 +279,7 @@ class CineModelChoice:
                 "evidence_required": EVIDENCE,
                 "frames_used": self.frames_used,
                 "criterion": self.criterion,
+                "walls": self.walls,
             }
         )
 
@@ -348,6 +365,51 @@ def choose(terms: list[FrameTerms], omega: float, nu_m2_s: float, options: CineM
     return CineModelChoice("independent", 0, bic, float(-lead), used, criterion), None
 
 
+@dataclass
+class WallChoice:
+    """How the momentum model took the frames' walls: the temporal degree and the criterion values."""
+
+    degree: int | None  # trigonometric degree in time (0: one shared wall); None: each frame's own
+    how: str
+    bic: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {"degree": self.degree, "how": self.how, "bic": self.bic}
+
+
+def smooth_walls(times_s: np.ndarray, omega: float, walls: np.ndarray, mode: str, max_degree: int):
+    r"""The frames' walls regularized in time: ``(walls, WallChoice)``.
+
+    ``walls`` holds one row per frame, the radius coefficients followed by the centre (mm). Each column is
+    fitted by a trigonometric polynomial of degree ``d`` in time (least squares on the frames' times; for
+    ``d = 0`` the mean: one shared wall). ``mode`` "frames" keeps the rows, "shared" takes ``d = 0``,
+    "auto" the ``d <= max_degree`` minimizing the Gaussian BIC with the noise level profiled out,
+    :math:`N \ln(\mathrm{RSS}_d/N) + p(2d+1)\ln N` over all :math:`N` numbers (:math:`p` columns): a
+    rigid vessel gets one wall from all frames (its noise averaged), a distending one a smooth wall motion.
+    """
+    walls = np.asarray(walls, dtype=float)
+    if mode == "frames" or walls.shape[0] < 3:
+        return walls, WallChoice(None, "each frame's own wall")
+    m, p = walls.shape
+    top = 0 if mode == "shared" else int(max(0, min(max_degree, (m - 2) // 2)))  # keep residual degrees of freedom
+    n_all = m * p
+    fits, bic = [], {}
+    for d in range(top + 1):
+        cols = [np.ones(m)]
+        for n in range(1, d + 1):
+            cols += [np.cos(n * omega * times_s), np.sin(n * omega * times_s)]
+        basis = np.array(cols).T
+        fitted = basis @ np.linalg.lstsq(basis, walls, rcond=None)[0]
+        rss = float(np.sum((walls - fitted) ** 2))
+        bic[f"degree {d}"] = float(n_all * np.log(max(rss, 1e-300) / n_all) + p * (2 * d + 1) * np.log(n_all))
+        fits.append(fitted)
+    if mode == "shared":
+        return fits[0], WallChoice(0, "one shared wall: the frames' mean (--cine-walls shared)", bic)
+    best = int(np.argmin([bic[f"degree {d}"] for d in range(top + 1)]))
+    how = "one shared wall (no motion the BIC resolves)" if best == 0 else f"wall motion of degree {best} in time"
+    return fits[best], WallChoice(best, how + ", chosen by the BIC over the frames' radius coefficients", bic)
+
+
 def velocity_sigma(result: SliceResult, problem: vel.VelocityProblem, raw: np.ndarray, acq, options, where: str):
     """Per-voxel velocity noise of a frame as its own fit estimates it (None for noise-free data)."""
     if options.noise_velocity is not None:
@@ -362,12 +424,15 @@ def velocity_sigma(result: SliceResult, problem: vel.VelocityProblem, raw: np.nd
     return np.asarray(noise.details["per_voxel"], dtype=float) if noise.value > 0 else None
 
 
-def plain_problem(result: SliceResult, options, psf) -> vel.VelocityProblem:
-    """The frame's final plain velocity problem: the one its fit used, or assembled on its wall."""
+def plain_problem(result: SliceResult, options, psf, coefficients=None, center=None) -> vel.VelocityProblem:
+    """The frame's plain velocity problem on a wall (default: its own): the one its fit used, or assembled."""
     problem, g = result.problem, result.geometry
-    if problem is not None and np.array_equal(problem.disk_map.coefficients, g.coefficients):
+    coefficients = g.coefficients if coefficients is None else np.asarray(coefficients, dtype=float)
+    center = g.center if center is None else (float(center[0]), float(center[1]))
+    same = problem is not None and np.array_equal(problem.disk_map.coefficients, coefficients)
+    if same and problem is not None and tuple(problem.disk_map.center) == tuple(center):
         if getattr(problem.basis, "base", None) is None:  # not the coupled start, no layer columns
             return problem
 
     vopt = replace(options.velocity, near_wall="off")
-    return vel.assemble(result.grid, result.velocity_image, g.coefficients, g.center, vopt, psf=psf)
+    return vel.assemble(result.grid, result.velocity_image, coefficients, center, vopt, psf=psf)
