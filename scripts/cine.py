@@ -21,6 +21,8 @@ their linearized band; momentum model: its velocity-noise band). Report seeds 0.
 Writes ``scripts/results/cine.md``.
 
     python scripts/cine.py [--seeds 5] [--h 1.5,1.0,0.6] [--snr 15,25] [--frames 20] [--quasi laminar,...]
+    python scripts/cine.py --extra kspace --h 1.5,1.0 --snr 25     # -> cine_kspace.md
+    python scripts/cine.py --extra ellipse --h 1.5,1.0 --snr 25    # -> cine_ellipse.md
 """
 
 import sys
@@ -29,7 +31,7 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import cine, pulsatile, womersley
+from wss_nlp import cine, kspace, pulsatile, womersley
 from wss_nlp.reconstruct import ReconstructionOptions
 
 METHODS = {
@@ -68,13 +70,9 @@ def row(label: str, h: float, snr: float, name: str, results: list) -> str:
     )
 
 
-def main() -> None:
-    p = study_parser(__doc__, seeds=5, h="1.5,1.0,0.6", snr="15,25")
-    p.add_argument("--frames", type=int, default=20)
-    p.add_argument("--quasi", default="laminar,manufactured,turbulent", help="quasi-steady cases (h 1.0, SNR 25)")
-    args = p.parse_args()
-    lines = [
-        f"Seeds 0-{args.seeds - 1}, {args.frames} frames; mean (max) over seeds. Frame error: the largest "
+def header(args, what: str) -> list[str]:
+    return [
+        f"Seeds 0-{args.seeds - 1}, {args.frames} frames{what}; mean (max) over seeds. Frame error: the largest "
         "|mean WSS - truth| over the frames / peak |truth|. Goal (issue 15, h <= 1.5 mm, SNR 25): TAWSS <= 5 %, "
         "OSI within 0.03, every frame within 8 % of the peak. 'band covers': frames within 2 standard "
         "deviations (mean over seeds); 'momentum chosen': seeds on which the BIC took the momentum model.",
@@ -84,35 +82,63 @@ def main() -> None:
         "momentum chosen | s per frame |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
+
+
+def block(lines: list, label: str, seeds: int, make, h: float, snr: float) -> None:
+    """Rows of both methods on ``make(seed) -> (frames, truth)`` over the seeds."""
+    rows: dict = {name: [] for name in METHODS}
+    for seed in range(seeds):
+        frames, truth = make(seed)
+        for name, options in METHODS.items():
+            rows[name].append(run(frames, truth, options))
+    for name, results in rows.items():
+        lines.append(row(label, h, snr, name, results))
+        print(lines[-1], flush=True)
+
+
+def series_of(h: float, snr: float, frames: int, **kw):
+    """``seed -> (frames, truth)`` of the Womersley phantom (``kw``: psf, distension, shape)."""
+    return lambda seed: pulsatile.make_cine(h_mm=h, snr=snr, seed=seed, frames=frames, **kw)
+
+
+def quasi_steady_of(case: str, frames: int):
+    """``seed -> (frames, truth)`` of a steady case scaled by the waveform, h = 1 mm, SNR 25."""
+    return lambda seed: pulsatile.make_quasi_steady_cine(case, h_mm=1.0, snr=25, seed=seed, frames=frames)
+
+
+def main() -> None:
+    p = study_parser(__doc__, seeds=5, h="1.5,1.0,0.6", snr="15,25")
+    p.add_argument("--frames", type=int, default=20)
+    p.add_argument("--quasi", default="laminar,manufactured,turbulent", help="quasi-steady cases (h 1.0, SNR 25)")
+    p.add_argument(
+        "--extra",
+        choices=("kspace", "ellipse"),
+        default=None,
+        help="only Womersley flow acquired in k-space (Hamming filter, twofold zero-filling), or in the elliptic "
+        "pipe, at the --h and --snr values; writes cine_kspace.md or cine_ellipse.md",
+    )
+    args = p.parse_args()
+    hs, snrs, n = [float(v) for v in args.h.split(",")], [float(v) for v in args.snr.split(",")], args.frames
     t_all = time.perf_counter()
-    for h in (float(v) for v in args.h.split(",")):
-        for snr in (float(v) for v in args.snr.split(",")):
-            rows: dict = {name: [] for name in METHODS}
-            for seed in range(args.seeds):
-                frames, truth = pulsatile.make_cine(h_mm=h, snr=snr, seed=seed, frames=args.frames)
-                for name, options in METHODS.items():
-                    rows[name].append(run(frames, truth, options))
-            for name, results in rows.items():
-                lines.append(row("womersley", h, snr, name, results))
-                print(lines[-1], flush=True)
+    if args.extra is not None:
+        extra = {"psf": kspace.PSF("hamming", (2.0, 2.0))} if args.extra == "kspace" else {"shape": "ellipse"}
+        label = "womersley, hamming F = 2" if args.extra == "kspace" else "elliptic womersley (1.32)"
+        what = {"kspace": ", acquired with a Hamming filter and twofold zero-filling", "ellipse": ", elliptic pipe"}
+        lines = header(args, what[args.extra])
+        for h in hs:
+            for snr in snrs:
+                block(lines, label, args.seeds, series_of(h, snr, n, **extra), h, snr)
+        lines += ["", f"({time.perf_counter() - t_all:.0f} s)"]
+        write_report(args.out, f"cine_{args.extra}.md", lines)
+        return
+    lines = header(args, "")
+    for h in hs:
+        for snr in snrs:
+            block(lines, "womersley", args.seeds, series_of(h, snr, n), h, snr)
     for h in (1.5, 1.0):  # the breathing pipe, 10 % radius change over the cycle
-        rows = {name: [] for name in METHODS}
-        for seed in range(args.seeds):
-            frames, truth = pulsatile.make_cine(h_mm=h, snr=25, seed=seed, frames=args.frames, distension=0.1)
-            for name, options in METHODS.items():
-                rows[name].append(run(frames, truth, options))
-        for name, results in rows.items():
-            lines.append(row("distending womersley (10 %)", h, 25, name, results))
-            print(lines[-1], flush=True)
+        block(lines, "distending womersley (10 %)", args.seeds, series_of(h, 25, n, distension=0.1), h, 25)
     for case in filter(None, args.quasi.split(",")):
-        rows = {name: [] for name in METHODS}
-        for seed in range(args.seeds):
-            frames, truth = pulsatile.make_quasi_steady_cine(case, h_mm=1.0, snr=25, seed=seed, frames=args.frames)
-            for name, options in METHODS.items():
-                rows[name].append(run(frames, truth, options))
-        for name, results in rows.items():
-            lines.append(row(f"quasi-steady {case}", 1.0, 25, name, results))
-            print(lines[-1], flush=True)
+        block(lines, f"quasi-steady {case}", args.seeds, quasi_steady_of(case, n), 1.0, 25)
     lines += ["", f"({time.perf_counter() - t_all:.0f} s)"]
     write_report(args.out, "cine.md", lines)
 

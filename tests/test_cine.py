@@ -1,6 +1,7 @@
 """Time-resolved (cine) data: Womersley's exact solution, the cycle integrals (TAWSS, OSI), the time-resolved
 result layout of shared/spec/data-format.md, a failed frame bridged, and the CLI from phantom to result."""
 
+import functools
 import json
 
 import h5py
@@ -55,6 +56,66 @@ def test_slow_pulsation_is_quasi_steady_poiseuille():
     for t in (0.0, 2e4, 6e4):
         v = np.real(sum(h * np.exp(2j * np.pi * n * t / 1e5) for n, h in enumerate(pulsatile.CAROTID_HARMONICS)))
         assert slow.wall_shear(t) == pytest.approx(4 * 3.5e-3 * v / 1e-3, rel=1e-4)
+
+
+@pytest.fixture(scope="module")
+def elliptic():
+    from wss_nlp.phantoms import Ellipse
+
+    return pulsatile.EllipticWomersley(Ellipse(a=11.5, b=8.7, angle=0.3, center=(0.2, -0.1)), 3.5e-3)
+
+
+def _series_velocity(flow, x, y, t):
+    """The elliptic flow from its series (not the acquisition's table), at time t."""
+    from wss_nlp.phantoms import _local
+
+    xl, yl = _local(flow.lumen, x, y, flow.lumen.angle)
+    r, th = np.hypot(xl, yl), np.arctan2(yl, xl)
+    u_max, terms = flow._solution()
+    u = u_max * (1 - (xl / flow.lumen.a) ** 2 - (yl / flow.lumen.b) ** 2)
+    for n, k, amp, orders, coef in terms:
+        u = u + np.real(
+            amp * (1 - flow._h(k, orders, coef, np.atleast_1d(r), np.atleast_1d(th))) * np.exp(2j * np.pi * n * t)
+        )
+    return u
+
+
+def test_elliptic_womersley_solves_the_momentum_balance_with_the_given_waveform(elliptic):
+    """rho du/dt - mu Lap u is the same at four points (central differences dt = 1e-5 s, dx = 1e-3 mm; their
+    truncation about 1e-7 relative), u = 0 on the wall, the exact wall gradient equals a second-order
+    one-sided difference along the normal (step 1e-4 mm, error ~1e-8 relative), the acquisition's table is
+    within 1e-4 of the series and the bulk velocity is the waveform's (midpoint rule on 1601^2 points of the
+    table, within 1e-4 m/s)."""
+    f, t, dt, d = elliptic, 0.37, 1e-5, 1e-3
+    g = []
+    for x, y in [(0.2, -0.1), (3.0, 1.0), (-5.0, 2.0), (6.0, -3.5)]:
+        u = functools.partial(_series_velocity, f)
+        lap = (u(x + d, y, t) + u(x - d, y, t) + u(x, y + d, t) + u(x, y - d, t) - 4 * u(x, y, t)) / (d / 1000) ** 2
+        g.append(float((f.density_kg_m3 * (u(x, y, t + dt) - u(x, y, t - dt)) / (2 * dt) - f.viscosity_pa_s * lap)[0]))
+    assert np.ptp(g) <= 1e-6 * np.max(np.abs(g))
+    now = f.at(t)
+    for phi in (0.1, 1.0, 2.5):
+        r, c, th = f.lumen.radius(phi), f.lumen.center, phi - f.lumen.angle
+        xw, yw = c[0] + r * np.cos(phi), c[1] + r * np.sin(phi)
+        nl = np.array([r * np.cos(th) / f.lumen.a**2, r * np.sin(th) / f.lumen.b**2])
+        nl /= np.linalg.norm(nl)
+        ca, sa = np.cos(f.lumen.angle), np.sin(f.lumen.angle)
+        n = np.array([ca * nl[0] - sa * nl[1], sa * nl[0] + ca * nl[1]])
+        h = 1e-4
+        u1, u2 = (_series_velocity(f, xw - s * h * n[0], yw - s * h * n[1], t)[0] for s in (1, 2))
+        assert abs(_series_velocity(f, xw, yw, t)[0]) < 1e-12
+        assert now.wall_gradient(np.array([phi]))[0] == pytest.approx((4 * u1 - u2) / (2 * h), rel=1e-6)
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-11, 11, 3000), rng.uniform(-9, 9, 3000)
+    inside = f.lumen.inside(x, y)
+    exact = _series_velocity(f, x[inside], y[inside], t)
+    assert np.max(np.abs(now.velocity(x[inside], y[inside]) - exact)) <= 1e-4 * np.max(np.abs(exact))
+    xs = np.linspace(-11.5, 11.5, 1601)
+    gx, gy = np.meshgrid(xs + 0.2, xs - 0.1)
+    inside = f.lumen.inside(gx, gy)
+    bulk = np.mean(now.velocity(gx[inside], gy[inside]))  # the table: 1e-4 of the peak, as checked above
+    expected = np.real(sum(v * np.exp(2j * np.pi * k * t) for k, v in enumerate(pulsatile.CAROTID_HARMONICS)))
+    assert bulk == pytest.approx(expected, abs=1e-4)
 
 
 def test_cycle_integrals_are_exact_for_trigonometric_waveforms():

@@ -186,3 +186,32 @@ def test_wall_smoothing_in_time_finds_a_rigid_and_a_moving_wall():
     assert choice.degree == 1 and np.max(np.abs(walls - moving)) < 0.03
     assert np.array_equal(womersley.smooth_walls(t, omega, noisy, "frames", 9)[0], noisy)
     assert np.allclose(womersley.smooth_walls(t, omega, noisy, "shared", 9)[0], noisy.mean(axis=0))
+
+
+def test_kspace_acquired_cine_gets_the_momentum_model_through_the_psf():
+    """Frames acquired with a Hamming filter and twofold zero-filling (seed 68, h = 1.5 mm, 8 frames): the
+    model's columns go through the PSF as the frames' own operator does (velocity.voxel_values), so the
+    momentum model is chosen, every frame lands within 3 % of the peak (measured 1.4 %; at h = 1 mm 1.1 %
+    where the frames' own fits miss by about 45 %) and the TAWSS within the issue's 5 % (measured 2.3 %: 3 mm
+    acquired voxels)."""
+    from wss_nlp import kspace
+
+    psf = kspace.PSF("hamming", (2.0, 2.0))
+    frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=68, frames=8, psf=psf)
+    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options())
+    s = res.series(0)
+    assert s.model.model == "momentum"
+    worst, tawss, _ = _errors(s, truth)
+    assert worst < 0.03 and tawss < 0.05
+
+
+def test_elliptic_pipe_the_circle_profile_along_rays_stays_within_the_goals():
+    """An elliptic pipe (aspect 1.32) with its exact pulsatile flow (pulsatile.EllipticWomersley), h = 1.5 mm,
+    SNR 25, 8 frames (seed 69): the model's circle profile along each ray is an approximation here, yet the
+    BIC takes it and every frame stays within the issue's 8 % of the peak and TAWSS within 5 % (report:
+    scripts/results/cine_ellipse.md, about 2 % and 3 %)."""
+    frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=69, frames=8, shape="ellipse")
+    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options())
+    s = res.series(0)
+    worst, tawss, osi = _errors(s, truth)
+    assert s.model.model == "momentum" and worst < 0.08 and tawss < 0.05 and osi < 0.03

@@ -350,6 +350,8 @@ def choose(terms: list[FrameTerms], omega: float, nu_m2_s: float, options: CineM
     nu = min(t.nu for t in terms)
     log_n = float(np.log(nu * n_total))
     fits = fit(terms, omega, nu_m2_s)
+    for f in fits:  # correlated (k-space) noise: N voxels carry about nu N independent values
+        f.covariance = f.covariance / nu
     bics = [nu * f.chi2 + log_n * (2 * f.harmonics + 1) for f in fits]
     best = int(np.argmin(bics))
     used = [t.index for t in terms]
