@@ -12,9 +12,11 @@ Phantoms:
   by the same waveform; not a solution of the momentum balance, so the model choice should keep the
   frames' own fits (false choices of the momentum model show here).
 
-Methods: "independent" (``--cine-model independent``: each frame by the single-frame pipeline, plain basis)
-and "default" (``--cine-model auto``: the BIC chooses between those fits and the momentum model of
-``wss_nlp.womersley``). Errors: the largest per-frame mean-WSS error relative to the peak |WSS| of the
+Methods: "independent" (``--cine-model independent``: each frame by the single-frame pipeline, plain basis),
+"temporal prior" (``--cine-model temporal``: the frames' plain fits tied by a periodic temporal prior on one
+shared wall, ``wss_nlp.temporal``, parameters by the BIC) and "default" (``--cine-model auto``: the momentum
+model of ``wss_nlp.womersley`` where the BIC prefers it to both, else the frames' own fits). Errors: the
+largest per-frame mean-WSS error relative to the peak |WSS| of the
 cycle, the TAWSS error (wall mean, relative), the OSI error (wall mean, absolute); "band covers": the share
 of frames whose mean-WSS error is within 2 standard deviations of the result's band (independent frames:
 their linearized band; momentum model: its velocity-noise band). Report seeds 0.. (the tests use 50-69).
@@ -36,6 +38,7 @@ from wss_nlp.reconstruct import ReconstructionOptions
 
 METHODS = {
     "independent": ReconstructionOptions(cine=womersley.CineModelOptions(model="independent")),
+    "temporal prior": ReconstructionOptions(cine=womersley.CineModelOptions(model="temporal")),
     "default (auto)": ReconstructionOptions(),
 }
 

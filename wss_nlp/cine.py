@@ -31,7 +31,8 @@ import numpy as np
 
 from . import preprocess as pp
 from . import radius as rad
-from . import womersley
+from . import temporal, womersley
+from . import wss as wss_mod
 from .errors import InputError, WssNlpError
 from .files import Acquisition, FailedSlice
 from .reconstruct import ReconstructionOptions, blas_threads, reconstruct
@@ -195,6 +196,13 @@ def model_note(choice: womersley.CineModelChoice) -> str:
             + (f" (BIC margin {choice.margin:.0f})" if np.isfinite(choice.margin) else "")
             + f"; walls: {walls}; each frame's own fit is in frames/frame_NNN"
         )
+    if choice.model == "temporal":
+        prior = choice.walls.get("temporal_prior", {})
+        return (
+            "velocity over the cycle: the frames' fits tied by a periodic temporal prior on one shared wall "
+            f"(beta {prior.get('beta', float('nan')):.3g}, gamma {prior.get('gamma', float('nan')):.3g}), "
+            f"chosen by the BIC; no band for it; each frame's own fit is in frames/frame_NNN"
+        )
     if not choice.bic:
         return f"velocity over the cycle: each frame's own fit ({choice.criterion})"
     return (
@@ -309,9 +317,15 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
                 r.finish_band()
             else:
                 r.pending_band = None
-                r.notes.append(MOMENTUM_BAND_NOTE)
+                r.notes.append(MOMENTUM_BAND_NOTE if model.choice.model == "momentum" else TEMPORAL_BAND_NOTE)
     return result
 
+
+#: What a frame's own record says when its slice's series comes from the temporal prior.
+TEMPORAL_BAND_NOTE = (
+    "no band for this frame's own fit: the slice's WSS over the cycle comes from the temporal prior "
+    "(wss_nlp.temporal), for which no band is computed"
+)
 
 #: What a frame's own record says when its slice's series comes from the momentum model.
 MOMENTUM_BAND_NOTE = (
@@ -339,10 +353,11 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
         good = [(k, fr[iz]) for k, fr in enumerate(result.frames) if not isinstance(fr[iz], FailedSlice)]
         times = np.array([result.times_ms[k] / 1000.0 for k, _ in good])
         own = np.array([np.r_[r.geometry.coefficients, r.geometry.center] for _, r in good])
-        walls, wall_choice = womersley.smooth_walls(times, omega, own, options.cine.walls, k_max)
+        mode = "shared" if options.cine.model == "temporal" else options.cine.walls  # the prior needs one wall
+        walls, wall_choice = womersley.smooth_walls(times, omega, own, mode, k_max)
         n_r = own.shape[1] - 2
         radius = boxes[iz].r_area if iz in boxes else float(np.mean(walls[:, 0]))
-        usable = []
+        usable, problems, sigmas = [], [], []
         for (k, r), wall in zip(good, walls):
             problem = womersley.plain_problem(r, options, psf, wall[:n_r], wall[n_r:])
             acq = frames[k]
@@ -350,13 +365,24 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
             if sigma is not None:  # noise-free data give the models nothing to be weighed by
                 time_s = float(result.times_ms[k]) / 1000.0
                 usable.append(womersley.frame_terms(problem, sigma, k, time_s, k_max, omega, nu, radius))
+                problems.append(problem)
+                sigmas.append(sigma)
         if len(usable) < 2:
             why = "fewer than two frames with a velocity noise estimate (noise-free data?): independent frames"
             models[iz] = CycleModel(womersley.CineModelChoice("independent", criterion=why))
             continue
-        choice, fitted = womersley.choose(usable, omega, nu, options.cine)
+        prior = None
+        if wall_choice.degree == 0 and len(usable) == len(result.frames) and _equally_spaced(result):
+            scale, log_n = womersley.criterion_scale(usable)
+            data = np.array([p.data for p in problems])
+            prior = temporal.fit(problems[0], data, np.array(sigmas), scale, log_n)
+        choice, fitted = womersley.choose(usable, omega, nu, options.cine, None if prior is None else prior.bic)
         choice.walls = wall_choice.as_dict()
+        if prior is not None:
+            choice.walls["temporal_prior"] = {"beta": prior.beta, "gamma": prior.gamma, "dof": prior.dof}
         model = CycleModel(choice)
+        if choice.model == "temporal" and prior is not None:
+            _prior_wall_shear(model, prior, problems[0], len(result.frames), options.n_phi, mu, own.shape[1])
         if fitted is not None:
             n_t, n_phi = len(result.frames), options.n_phi
             phi = good[0][1].wss.phi
@@ -372,6 +398,25 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
         log.info("slice %d: %s", iz, model_note(choice))
         models[iz] = model
     return models
+
+
+def _equally_spaced(result: CineResult) -> bool:
+    """Frames evenly over the whole cycle (the temporal prior's periodic differences assume it)."""
+    t = result.times_ms
+    step = result.period_ms / t.size
+    return bool(np.allclose(np.diff(np.r_[t, t[0] + result.period_ms]), step, rtol=0.01))
+
+
+def _prior_wall_shear(model: CycleModel, prior, problem, n_t: int, n_phi: int, mu: float, n_wall: int) -> None:
+    """The temporal prior's WSS per frame on the shared wall (no band: not computed for the prior)."""
+    smat, _ = wss_mod.wss_matrix(problem.basis, problem.disk_map, mu, n_phi)
+    phi = rad.uniform_angles(n_phi)
+    c = problem.disk_map.coefficients
+    model.tau = prior.coefficients @ smat.T
+    model.tau_std = np.full((n_t, n_phi), np.nan)
+    model.mean = np.array([rad.arc_length_mean(t, rad.evaluate(c, phi), rad.evaluate(c, phi, 1)) for t in model.tau])
+    model.mean_std = np.full(n_t, np.nan)
+    model.walls = np.tile(np.r_[c, problem.disk_map.center], (n_t, 1))
 
 
 def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[CineSeries]:

@@ -62,8 +62,9 @@ from .errors import InputError
 from .results import SliceResult
 from .schema import option
 
-#: What the cine velocity model may be: chosen by the BIC, the frames' own fits, or the momentum balance.
-MODELS = ("auto", "independent", "momentum")
+#: What the cine velocity model may be: chosen by the BIC, the frames' own fits, the frames tied by a periodic
+#: temporal prior (:mod:`wss_nlp.temporal`), or the momentum balance.
+MODELS = ("auto", "independent", "temporal", "momentum")
 
 #: How the momentum model takes the frames' walls (:func:`smooth_walls`).
 WALLS = ("auto", "frames", "shared")
@@ -81,9 +82,11 @@ class CineModelOptions:
 
     Attributes
     ----------
-    model : {"auto", "independent", "momentum"}
-        "momentum": the velocity of all frames from the momentum balance (module notes); "independent":
-        each frame's own fit; "auto": the one the BIC prefers (the momentum model by :data:`EVIDENCE`).
+    model : {"auto", "independent", "temporal", "momentum"}
+        "momentum": the velocity of all frames from the momentum balance (module notes); "temporal": the
+        frames' plain fits tied by a periodic temporal prior (:mod:`wss_nlp.temporal`); "independent":
+        each frame's own fit; "auto": the momentum model where the BIC prefers it by :data:`EVIDENCE` over
+        both plain candidates, else each frame's own fit.
     max_harmonics : int
         Most temporal harmonics of the momentum model (the BIC chooses how many).
     walls : {"auto", "frames", "shared"}
@@ -95,8 +98,9 @@ class CineModelOptions:
     model: str = option(
         "auto",
         "velocity over the cycle: momentum = the momentum balance of fully developed pulsatile flow "
-        "(Womersley) fitted to all frames at once, independent = each frame on its own, auto = the "
-        "one the BIC prefers",
+        "(Womersley) fitted to all frames at once, temporal = the frames' own fits tied by a periodic "
+        "temporal prior (one shared wall, equally spaced frames), independent = each frame on its own, "
+        "auto = momentum where the BIC prefers it to both others, else independent",
         cli="--cine-model",
         choices=MODELS,
     )
@@ -344,11 +348,21 @@ def max_harmonics(n_frames: int, limit: int) -> int:
     return int(max(0, min(limit, n_frames // 2)))
 
 
-def choose(terms: list[FrameTerms], omega: float, nu_m2_s: float, options: CineModelOptions):
-    """The slice's velocity model over the cycle by the BIC (module notes); ``(CineModelChoice, fit or None)``."""
-    n_total = sum(t.n_data for t in terms)
+def criterion_scale(terms: list[FrameTerms]) -> tuple[float, float]:
+    """``(nu, ln(nu N))`` of the criterion over all the frames' voxel values."""
     nu = min(t.nu for t in terms)
-    log_n = float(np.log(nu * n_total))
+    return nu, float(np.log(nu * sum(t.n_data for t in terms)))
+
+
+def choose(terms: list[FrameTerms], omega: float, nu_m2_s: float, options: CineModelOptions, prior_bic=None):
+    """The slice's velocity model over the cycle by the BIC (module notes); ``(CineModelChoice, fit or None)``.
+
+    ``prior_bic``: the criterion of the temporal prior (:mod:`wss_nlp.temporal`) where it applies. The
+    momentum model must beat the better plain candidate (the frames' own fits, the prior) by
+    :data:`EVIDENCE`; otherwise the frames keep their own fits (the prior only where forced).
+    """
+    n_total = sum(t.n_data for t in terms)
+    nu, log_n = criterion_scale(terms)
     fits = fit(terms, omega, nu_m2_s)
     for f in fits:  # correlated (k-space) noise: N voxels carry about nu N independent values
         f.covariance = f.covariance / nu
@@ -359,9 +373,19 @@ def choose(terms: list[FrameTerms], omega: float, nu_m2_s: float, options: CineM
     bic = {f"momentum K={f.harmonics}": float(b) for f, b in zip(fits, bics)}
     # the frames' own fits: each at its best beta, weighed with the series' ln N
     bic["independent"] = float(sum(np.min(t.nu * t.plain_chi2 + log_n * t.plain_dof) for t in terms))
+    if prior_bic is not None:
+        bic["temporal"] = float(prior_bic)
     if options.model == "momentum":
         return CineModelChoice("momentum", best, bic, float("nan"), used, criterion + "; forced"), fits[best]
-    lead = bic["independent"] - bics[best] - EVIDENCE
+    if options.model == "temporal":
+        if prior_bic is None:
+            why = "; the temporal prior needs every frame on one shared wall at equal spacing: independent frames"
+            return CineModelChoice("independent", 0, bic, float("nan"), used, criterion + why), None
+        return CineModelChoice("temporal", 0, bic, float("nan"), used, criterion + "; forced"), None
+    # the momentum model must beat every plain candidate; where it does not, the frames keep their own fits
+    # (the prior's BIC-best beta served the WSS no better than the frames' own rules: scripts/results/cine.md)
+    plain = min(bic.get("independent", np.inf), bic.get("temporal", np.inf))
+    lead = plain - bics[best] - EVIDENCE
     if lead > 0:
         return CineModelChoice("momentum", best, bic, float(lead), used, criterion), fits[best]
     return CineModelChoice("independent", 0, bic, float(-lead), used, criterion), None
