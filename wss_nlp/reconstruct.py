@@ -686,6 +686,8 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress, box
                 raise
             res = FailedSlice(iz, str(exc), options.n_phi, options.geometry.n_fourier)
         _with_screens([res], screens, acq, psf)
+        if isinstance(res, SliceResult) and not defer_band:
+            res.problem = None  # about a megabyte a slice; kept only where a deferred band holds it anyway
         out.append(res)
         if progress is not None:
             progress(iz + 1, acq.nz, res)

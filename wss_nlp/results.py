@@ -62,7 +62,7 @@ class SliceResult:
     notes: list = field(default_factory=list)  # things the user should know that are not failures
     screen: dict = field(default_factory=dict)  # what wss_nlp.plausibility found (vessels, aliasing)
     near_wall: nw.NearWallChoice | None = None  # the near-wall model and why (wss_nlp.choice.choose_layer)
-    # the velocity problem of the final fit (None where not kept); cine frames summarize it, then drop it
+    # the velocity problem of the final fit, kept only with a deferred band (cine frames), then dropped
     problem: vel.VelocityProblem | None = None
     # the uncertainty band still to compute (reconstruct_slice(defer_band=True)): () -> (Sensitivity, note)
     pending_band: Callable[[], tuple] | None = None
