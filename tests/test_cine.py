@@ -223,3 +223,22 @@ def test_demo_cine_prints_the_cycle_against_the_truth(tmp_path, capsys):
     assert (tmp_path / "demo" / "cine_slice_000.png").exists()
     frames, times, _ = files.read_frames(str(tmp_path / "demo" / "input.h5"))
     assert len(frames) == times.size == 20
+
+
+def test_phantom_cli_writes_breathing_elliptic_and_small_pipes_and_refuses_what_does_not_apply(tmp_path, capsys):
+    """`phantom --case womersley` with --pipe-radius / --distension / --shape: the truth file's Womersley number
+    is R sqrt(omega rho / mu) of the radius asked for (3 mm: 4.14), the breathing pipe's per-frame radius
+    changes by the distension, the ellipse is written; misplaced or contradictory options exit 2, no file."""
+    small, truth = tmp_path / "small.h5", tmp_path / "small_truth.h5"
+    argv = ["phantom", "--case", "womersley", "--frames", "4", "--h", "1.0", "--seed", "54"]
+    assert main([*argv, "--pipe-radius", "3", "--distension", "0.1", "-o", str(small), "--truth", str(truth)]) == 0
+    with h5py.File(truth, "r") as f:
+        assert f.attrs["womersley_number"] == pytest.approx(3e-3 * np.sqrt(2 * np.pi * 1060 / 3.5e-3), rel=1e-6)
+        radius = np.asarray(f["slice_000/geometry/radius_mm"])
+        assert np.ptp(radius.mean(axis=-1)) == pytest.approx(2 * 0.1 * 3.0 * np.sin(np.pi / 2), rel=0.05)
+    assert main([*argv, "--shape", "ellipse", "-o", str(tmp_path / "e.h5")]) == 0
+    assert "elliptic womersley" in capsys.readouterr().out
+    for bad in (["--shape", "ellipse", "--distension", "0.1"], ["--pipe-radius", "0"]):
+        assert main([*argv, *bad, "-o", str(tmp_path / "bad.h5")]) == 2
+    assert main(["phantom", "--case", "laminar", "--distension", "0.1", "-o", str(tmp_path / "bad.h5")]) == 2
+    assert not (tmp_path / "bad.h5").exists()

@@ -4,10 +4,12 @@ Womersley flow, the BIC choice on flows it does and does not describe, forced ch
 Seeds 60-69 (the report, scripts/cine.py, uses 0-4; nothing was tuned on these)."""
 
 import json
+from dataclasses import replace
 
 import h5py
 import numpy as np
 import pytest
+import scipy.linalg
 import scipy.special
 
 from wss_nlp import cine, pulsatile, womersley
@@ -103,6 +105,19 @@ def test_the_bic_takes_the_momentum_model_for_womersley_flow(seed):
     assert np.sum(outside) <= 3 and np.all(s.mean_std > 0)
 
 
+@pytest.mark.parametrize("radius, h", [(3.0, 0.6), (14.0, 1.5)])
+def test_small_and_large_womersley_numbers_meet_the_goals(radius, h):
+    """Pipes of radius 3 and 14 mm (first harmonic's Womersley number 4.1 and 19.3: the issue's range 3-20),
+    SNR 25, 8 frames, seed 65: the BIC takes the momentum model and every frame is within the issue's 8 % of
+    the peak, TAWSS within 5 % (measured 1.9 % / 0.5 % and 1.0 % / 1.7 %; report: scripts/results/cine_alpha.md)."""
+    frames, truth = pulsatile.make_cine(h_mm=h, snr=25, seed=65, frames=8, radius_mm=radius)
+    assert 3 < truth.flow.womersley(1) < 20
+    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options())
+    s = res.series(0)
+    worst, tawss, osi = _errors(s, truth)
+    assert s.model.model == "momentum" and worst < 0.08 and tawss < 0.05 and osi < 0.03
+
+
 def test_a_distending_pipe_is_followed_frame_by_frame():
     """10 % distension (pulsatile.DistendingWomersley), h = 1.5 mm, SNR 25, 12 frames: every frame's radius
     within 1 % of R(t) (the shared lumen box covers the whole cycle) and the momentum model, with the cycle's
@@ -123,13 +138,19 @@ def test_a_distending_pipe_is_followed_frame_by_frame():
 @pytest.mark.parametrize("case", ["laminar", "manufactured", "turbulent"])
 def test_flows_that_do_not_obey_the_momentum_balance_keep_their_own_fits(case):
     """Steady profiles scaled by the waveform (pulsatile.make_quasi_steady_cine): not Womersley flow, so the BIC
-    keeps each frame's own fit, and the series is exactly those fits."""
+    refuses the momentum model by far (> 100 units beyond the better plain candidate); with the frames' own
+    fits the series is exactly those fits, with the temporal prior its notes say so."""
     frames, truth = pulsatile.make_quasi_steady_cine(case, h_mm=1.5, snr=25, seed=63, frames=8)
     res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options())
     s = res.series(0)
-    assert s.model.model == "independent" and s.model.margin > 100
-    assert np.array_equal(s.mean, [f[0].wss.mean for f in res.frames])
-    assert "did not fit" in " ".join(s.notes)
+    momentum = min(v for k, v in s.model.bic.items() if k.startswith("momentum"))
+    plain = min(s.model.bic["independent"], s.model.bic.get("temporal", np.inf))
+    assert s.model.model in ("independent", "temporal") and momentum - plain > 100
+    if s.model.model == "independent":
+        assert np.array_equal(s.mean, [f[0].wss.mean for f in res.frames])
+        assert "did not fit" in " ".join(s.notes)
+    else:
+        assert "temporal prior" in " ".join(s.notes)
 
 
 def test_forced_models_and_the_result_file(tmp_path):
@@ -160,8 +181,9 @@ def test_frames_bands_are_computed_only_for_the_model_the_series_keeps():
     res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, ReconstructionOptions())
     s = res.series(0)
     assert s.model.model == "momentum" and np.all(np.isfinite(s.tau_std))
+    note = cine.MODEL_BAND_NOTE.format(model=cine.MODEL_NAMES["momentum"])
     for f in res.frames:
-        assert f[0].pending_band is None and f[0].wss.tau_std is None and cine.MOMENTUM_BAND_NOTE in f[0].notes
+        assert f[0].pending_band is None and f[0].wss.tau_std is None and note in f[0].notes
     frames, truth = pulsatile.make_quasi_steady_cine("circle", h_mm=1.5, snr=25, seed=66, frames=6)
     res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, ReconstructionOptions())
     assert res.series(0).model.model == "independent"
@@ -217,44 +239,118 @@ def test_elliptic_pipe_the_circle_profile_along_rays_stays_within_the_goals():
     assert s.model.model == "momentum" and worst < 0.08 and tawss < 0.05 and osi < 0.03
 
 
-def test_temporal_prior_pencils_cholesky_and_the_coupled_block_system_agree():
-    """wss_nlp.temporal: the BIC search's pencils, a Cholesky solve per frequency and the whole coupled system
-    (all frames' normal equations plus gamma D2^T D2 x G0, assembled as one block matrix) give the same
-    coefficients (to 1e-7 relative: three independent solvers of one linear problem)."""
-    from wss_nlp import phantoms, temporal
+def _prior_problems(n: int, seed: int):
+    """n frames of the circle phantom's voxel data on one wall, scaled in time plus noise (sigma 0.01 m/s)."""
+    from wss_nlp import phantoms
     from wss_nlp import velocity as vel
     from wss_nlp.reconstruct import reconstruct
 
-    acq, _ = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=69)
+    acq, _ = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=seed)
     r = reconstruct(acq, _options())[0]
     problem = vel.assemble(r.grid, r.velocity_image, r.geometry.coefficients, r.geometry.center,
                            ReconstructionOptions().velocity.__class__(near_wall="off"))  # fmt: skip
-    rng = np.random.default_rng(69)
-    n = 6
-    data = problem.data[None, :] * (1 + 0.3 * np.sin(np.arange(n) * 2 * np.pi / n))[:, None]
-    data = data + 0.01 * rng.standard_normal(data.shape)
-    sigma = np.full(data.shape, 0.01)
-    best = temporal.fit(problem, data, sigma, 1.0, float(np.log(data.size)))
-    direct = temporal.solve(problem, data, best.beta, best.gamma)
-    assert np.max(np.abs(best.coefficients - direct)) <= 1e-7 * np.max(np.abs(direct))
-    beta, gamma = 1e-6, 10.0
-    t, w = problem.operator, problem.weights / problem.area
+    rng = np.random.default_rng(seed)
+    scale = 1 + 0.3 * np.sin(np.arange(n) * 2 * np.pi / n)
+    return [replace(problem, data=problem.data * a + 0.01 * rng.standard_normal(problem.data.size)) for a in scale]
+
+
+def test_temporal_prior_block_cholesky_equals_a_solve_per_temporal_frequency():
+    """wss_nlp.temporal on one wall with one beta for every frame: the block system's Cholesky solve equals an
+    independent solver, a discrete Fourier transform over the frames and one system per frequency
+    (K + beta/pi G + gamma/pi lambda_j G0, lambda_j = (2 - 2 cos(2 pi j / n))^2): to 1e-9 relative, two
+    factorizations of well-conditioned (cond < 1e7) systems of one linear problem."""
+    from wss_nlp import temporal
+
+    problems = _prior_problems(6, 69)
+    beta, gamma, n = 1e-6, 10.0, len(problems)
+    p = problems[0]
+    t, w = p.operator, p.weights / p.area
     k = t.T @ (w[:, None] * t)
-    d2 = np.roll(np.eye(n), 1, axis=1) - 2 * np.eye(n) + np.roll(np.eye(n), -1, axis=1)
-    big = np.kron(np.eye(n), k + beta * problem.gram / np.pi) + gamma * np.kron(
-        d2.T @ d2, problem.basis.laplacian_gram(0) / np.pi
-    )
-    coupled = np.linalg.solve(big, ((w[None, :] * data) @ t).ravel()).reshape(n, -1)
-    got = temporal.solve(problem, data, beta, gamma)
-    assert np.max(np.abs(got - coupled)) <= 1e-7 * np.max(np.abs(coupled))
+    rhs_hat = np.fft.fft(np.array([(w * q.data) @ t for q in problems]), axis=0)
+    lam = (2 - 2 * np.cos(2 * np.pi * np.arange(n) / n)) ** 2
+    g, g0 = p.gram / np.pi, p.basis.laplacian_gram(0) / np.pi
+    v_hat = np.array([np.linalg.solve(k + beta * g + gamma * lam[j] * g0, rhs_hat[j]) for j in range(n)])
+    per_frequency = np.fft.ifft(v_hat, axis=0).real
+    got = temporal.solve(problems, [beta] * n, gamma)
+    assert np.max(np.abs(got - per_frequency)) <= 1e-9 * np.max(np.abs(per_frequency))
+
+
+def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
+    """wss_nlp.temporal.fit with per-frame betas: the chosen gamma is the smallest criterion it evaluated; at that
+    gamma the coefficients, the smoother's trace tr(H^-1 blockdiag K_k) (from a triangular inverse) and each
+    frame's covariance block (H^-1 blockdiag(T^T W S W T) H^-1) equal dense numpy formulas to 1e-8 relative;
+    gamma -> 0 gives each frame's own Tikhonov solution back (1e-6: gamma 1e-9 perturbs it by about that)."""
+    from wss_nlp import temporal
+
+    problems = _prior_problems(5, 68)
+    n, m = len(problems), problems[0].operator.shape[1]
+    betas = 10.0 ** np.array([-8.0, -6.0, -7.0, -5.0, -6.5])
+    sigmas = [np.full(q.data.size, 0.01) for q in problems]
+    best = temporal.fit(problems, betas, sigmas, 1.0, float(np.log(sum(q.data.size for q in problems))))
+    assert best.bic == min(best.curve.values()) and best.curve[best.gamma] == best.bic
+    assert len(best.curve) >= 4  # a bracket and its refinement, not one point
+    tw = [q.operator * (q.weights / q.area)[:, None] for q in problems]
+    kk = [a.T @ q.operator for a, q in zip(tw, problems)]
+    d2 = temporal.second_difference(n)
+    big = scipy.linalg.block_diag(*[k + b / np.pi * q.gram for k, b, q in zip(kk, betas, problems)])
+    big = big + best.gamma * np.kron(d2.T @ d2, problems[0].basis.laplacian_gram(0) / np.pi)
+    inv = np.linalg.inv(big)
+    rhs = np.concatenate([a.T @ q.data for a, q in zip(tw, problems)])
+    coef = (inv @ rhs).reshape(n, m)
+    assert np.max(np.abs(best.coefficients - coef)) <= 1e-8 * np.max(np.abs(coef))
+    dof = float(np.trace(inv @ scipy.linalg.block_diag(*kk)))
+    assert best.dof == pytest.approx(dof, rel=1e-8)
+    middle = scipy.linalg.block_diag(*[a.T @ (s[:, None] ** 2 * a) for a, s in zip(tw, sigmas)])
+    cov = inv @ middle @ inv
+    for k in range(n):
+        block = cov[k * m : (k + 1) * m, k * m : (k + 1) * m]
+        assert np.max(np.abs(best.covariance[k] - block)) <= 1e-8 * np.max(np.abs(block))
+    loose = temporal.solve(problems, betas, 1e-9)
+    for q, b, v in zip(problems, betas, loose):
+        own = q.tikhonov.solve(b)
+        assert np.max(np.abs(v - own)) <= 1e-6 * np.max(np.abs(own))
 
 
 def test_forced_temporal_prior_on_a_steady_profile_scaled_in_time():
     """--cine-model temporal on the quasi-steady circle (h = 1.5 mm, SNR 25, 8 frames, seed 69): one shared
-    wall, the prior's WSS within 5 % of the peak at every frame (the frames' own fits: about 2 %), no band."""
+    wall, the prior's WSS within 5 % of the peak at every frame (the frames' own fits: about 2 %), and a band
+    (the velocity noise's) on every frame."""
     frames, truth = pulsatile.make_quasi_steady_cine("circle", h_mm=1.5, snr=25, seed=69, frames=8)
     res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options("temporal"))
     s = res.series(0)
     assert s.model.model == "temporal" and s.model.walls["degree"] == 0 and "temporal_prior" in s.model.walls
     worst, tawss, _ = _errors(s, truth)
-    assert worst < 0.05 and tawss < 0.05 and np.all(np.isnan(s.tau_std))
+    assert worst < 0.05 and tawss < 0.05
+    assert np.all(np.isfinite(s.tau_std)) and np.all(s.mean_std > 0)
+
+
+def test_forced_temporal_prior_follows_a_distending_wall():
+    """--cine-model temporal on the distending pipe (10 %, h = 1.5 mm, SNR 25, 8 frames, seed 67): the prior
+    ties the frames on their own (smoothed, moving) walls, so its worst frame is no worse than 1.2 x the
+    independent frames' (a first version forced one shared wall and missed by 130-170 % of the peak)."""
+    frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=67, frames=8, distension=0.1)
+    prior = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options("temporal")).series(0)
+    own = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options("independent")).series(0)
+    assert prior.model.model == "temporal" and prior.model.walls["degree"] >= 1
+    assert _errors(prior, truth)[0] <= 1.2 * _errors(own, truth)[0]
+
+
+def test_auto_takes_the_temporal_prior_only_with_the_evidence():
+    """womersley.choose on frames whose criteria are set by hand (momentum chi^2 = u^T S^-1 u = 3000 for every
+    harmonic count, the frames' own fits 1000 + ln N 40): the prior is taken exactly when its criterion beats
+    the frames' own fits by womersley.EVIDENCE, and a momentum model that beats both wins over it."""
+
+    def terms(usu):
+        return [womersley.FrameTerms(k, k / 4, np.array([5.0, 0, 0]), (0.0, 0.0), np.eye(3), np.zeros(3), usu, 100,
+                                     np.array([250.0]), np.array([10.0]), 1.0, 5.0) for k in range(4)]  # fmt: skip
+
+    opts, omega, nu = womersley.CineModelOptions(), 2 * np.pi, 3.3e-6
+    frames = terms(750.0)
+    log_n = womersley.criterion_scale(frames)[1]
+    independent = 4 * (250.0 + 10.0 * log_n)
+    choose = womersley.choose
+    assert choose(frames, omega, nu, opts, None)[0].model == "independent"  # momentum: 3000 + ln N > independent
+    assert choose(frames, omega, nu, opts, independent - 1.5 * womersley.EVIDENCE)[0].model == "temporal"
+    assert choose(frames, omega, nu, opts, independent - 0.5 * womersley.EVIDENCE)[0].model == "independent"
+    good = terms(1.0)  # the momentum model explains the data: chi^2 = 4
+    assert choose(good, omega, nu, opts, independent - 1.5 * womersley.EVIDENCE)[0].model == "momentum"

@@ -1,8 +1,10 @@
 r"""Time-resolved (cine) reconstruction: every frame of the cycle, then TAWSS and OSI.
 
 Each frame is reconstructed by the single-frame pipeline (:func:`wss_nlp.reconstruct.reconstruct`), with
-its own parameter choices; the frames are not yet coupled in time (issue 15: a temporal prior and the
-momentum balance across frames are the next steps). What the cycle adds is computed here.
+its own parameter choices (the frames of a slice share its lumen box, built solvers and warm starts). Then
+each slice's velocity over the cycle is chosen by the BIC (:func:`cycle_models`) among the frames' own
+fits, a periodic temporal prior (:mod:`wss_nlp.temporal`) and the momentum balance of pulsatile flow
+(:mod:`wss_nlp.womersley`), on the frames' walls regularized in time. What the cycle adds is computed here.
 
 Notes
 -----
@@ -198,10 +200,13 @@ def model_note(choice: womersley.CineModelChoice) -> str:
         )
     if choice.model == "temporal":
         prior = choice.walls.get("temporal_prior", {})
+        how = "chosen by the BIC" if np.isfinite(choice.margin) else "forced (--cine-model temporal)"
+        walls = choice.walls.get("how", "each frame's own wall")
         return (
-            "velocity over the cycle: the frames' fits tied by a periodic temporal prior on one shared wall "
-            f"(beta {prior.get('beta', float('nan')):.3g}, gamma {prior.get('gamma', float('nan')):.3g}), "
-            f"chosen by the BIC; no band for it; each frame's own fit is in frames/frame_NNN"
+            "velocity over the cycle: the frames' fits tied by a periodic temporal prior (each frame's own beta, "
+            f"gamma {prior.get('gamma', float('nan')):.3g}), {how}"
+            + (f" (BIC margin {choice.margin:.0f})" if np.isfinite(choice.margin) else "")
+            + f"; walls: {walls}; each frame's own fit is in frames/frame_NNN"
         )
     if not choice.bic:
         return f"velocity over the cycle: each frame's own fit ({choice.criterion})"
@@ -317,21 +322,18 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
                 r.finish_band()
             else:
                 r.pending_band = None
-                r.notes.append(MOMENTUM_BAND_NOTE if model.choice.model == "momentum" else TEMPORAL_BAND_NOTE)
+                r.notes.append(MODEL_BAND_NOTE.format(model=MODEL_NAMES[model.choice.model]))
     return result
 
 
-#: What a frame's own record says when its slice's series comes from the temporal prior.
-TEMPORAL_BAND_NOTE = (
-    "no band for this frame's own fit: the slice's WSS over the cycle comes from the temporal prior "
-    "(wss_nlp.temporal), for which no band is computed"
+#: What a frame's own record says when its slice's series comes from a model over the cycle.
+MODEL_BAND_NOTE = (
+    "no band for this frame's own fit: the slice's WSS over the cycle comes from the {model}, whose band is in "
+    "wss/tau_std_pa"
 )
 
-#: What a frame's own record says when its slice's series comes from the momentum model.
-MOMENTUM_BAND_NOTE = (
-    "no band for this frame's own fit: the slice's WSS over the cycle comes from the momentum model, whose band "
-    "is in wss/tau_std_pa"
-)
+#: The models over the cycle by their option names.
+MODEL_NAMES = {"momentum": "momentum model (wss_nlp.womersley)", "temporal": "temporal prior (wss_nlp.temporal)"}
 
 
 def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: float, psf, boxes: dict) -> dict:
@@ -353,36 +355,39 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
         good = [(k, fr[iz]) for k, fr in enumerate(result.frames) if not isinstance(fr[iz], FailedSlice)]
         times = np.array([result.times_ms[k] / 1000.0 for k, _ in good])
         own = np.array([np.r_[r.geometry.coefficients, r.geometry.center] for _, r in good])
-        mode = "shared" if options.cine.model == "temporal" else options.cine.walls  # the prior needs one wall
-        walls, wall_choice = womersley.smooth_walls(times, omega, own, mode, k_max)
+        walls, wall_choice = womersley.smooth_walls(times, omega, own, options.cine.walls, k_max)
         n_r = own.shape[1] - 2
         radius = boxes[iz].r_area if iz in boxes else float(np.mean(walls[:, 0]))
-        usable, problems, sigmas = [], [], []
+        usable, problems, sigmas, betas = [], [], [], []
+        previous, shapes = None, None  # frames on one wall (a rigid vessel) share its operator and model shapes
         for (k, r), wall in zip(good, walls):
-            problem = womersley.plain_problem(r, options, psf, wall[:n_r], wall[n_r:])
+            problem = womersley.plain_problem(r, options, psf, wall[:n_r], wall[n_r:], like=previous)
+            if previous is None or problem.operator is not previous.operator:
+                shapes = womersley.wall_shapes(problem, k_max, omega, nu, radius)
+            previous = problem
             acq = frames[k]
             sigma = womersley.velocity_sigma(r, problem, acq.magnitude[iz], acq, options, f"{acq.source} slice {iz}")
             if sigma is not None:  # noise-free data give the models nothing to be weighed by
                 time_s = float(result.times_ms[k]) / 1000.0
-                usable.append(womersley.frame_terms(problem, sigma, k, time_s, k_max, omega, nu, radius))
+                usable.append(womersley.frame_terms(problem, sigma, k, time_s, k_max, omega, nu, radius, shapes))
                 problems.append(problem)
                 sigmas.append(sigma)
+                betas.append(r.velocity.beta)
         if len(usable) < 2:
             why = "fewer than two frames with a velocity noise estimate (noise-free data?): independent frames"
             models[iz] = CycleModel(womersley.CineModelChoice("independent", criterion=why))
             continue
         prior = None
-        if wall_choice.degree == 0 and len(usable) == len(result.frames) and _equally_spaced(result):
+        if len(usable) == len(result.frames) >= 3 and _equally_spaced(result):
             scale, log_n = womersley.criterion_scale(usable)
-            data = np.array([p.data for p in problems])
-            prior = temporal.fit(problems[0], data, np.array(sigmas), scale, log_n)
+            prior = temporal.fit(problems, betas, sigmas, scale, log_n)
         choice, fitted = womersley.choose(usable, omega, nu, options.cine, None if prior is None else prior.bic)
         choice.walls = wall_choice.as_dict()
         if prior is not None:
-            choice.walls["temporal_prior"] = {"beta": prior.beta, "gamma": prior.gamma, "dof": prior.dof}
+            choice.walls["temporal_prior"] = prior.as_dict()
         model = CycleModel(choice)
         if choice.model == "temporal" and prior is not None:
-            _prior_wall_shear(model, prior, problems[0], len(result.frames), options.n_phi, mu, own.shape[1])
+            _prior_wall_shear(model, prior, problems, options.n_phi, mu)
         if fitted is not None:
             n_t, n_phi = len(result.frames), options.n_phi
             phi = good[0][1].wss.phi
@@ -407,16 +412,20 @@ def _equally_spaced(result: CineResult) -> bool:
     return bool(np.allclose(np.diff(np.r_[t, t[0] + result.period_ms]), step, rtol=0.01))
 
 
-def _prior_wall_shear(model: CycleModel, prior, problem, n_t: int, n_phi: int, mu: float, n_wall: int) -> None:
-    """The temporal prior's WSS per frame on the shared wall (no band: not computed for the prior)."""
-    smat, _ = wss_mod.wss_matrix(problem.basis, problem.disk_map, mu, n_phi)
+def _prior_wall_shear(model: CycleModel, prior, problems: list, n_phi: int, mu: float) -> None:
+    """The temporal prior's WSS per frame on the frames' walls, with its velocity-noise band."""
     phi = rad.uniform_angles(n_phi)
-    c = problem.disk_map.coefficients
-    model.tau = prior.coefficients @ smat.T
-    model.tau_std = np.full((n_t, n_phi), np.nan)
-    model.mean = np.array([rad.arc_length_mean(t, rad.evaluate(c, phi), rad.evaluate(c, phi, 1)) for t in model.tau])
-    model.mean_std = np.full(n_t, np.nan)
-    model.walls = np.tile(np.r_[c, problem.disk_map.center], (n_t, 1))
+    n_t = len(problems)
+    model.tau, model.tau_std = np.empty((n_t, n_phi)), np.empty((n_t, n_phi))
+    model.mean, model.mean_std = np.empty(n_t), np.empty(n_t)
+    model.walls = np.empty((n_t, problems[0].disk_map.coefficients.size + 2))
+    for k, (problem, v, cov) in enumerate(zip(problems, prior.coefficients, prior.covariance)):
+        smat, _ = wss_mod.wss_matrix(problem.basis, problem.disk_map, mu, n_phi)
+        c = problem.disk_map.coefficients
+        model.tau[k], model.tau_std[k], model.mean[k], model.mean_std[k] = womersley.linear_wall_shear(
+            smat, v, cov, c, phi
+        )
+        model.walls[k] = np.r_[c, problem.disk_map.center]
 
 
 def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[CineSeries]:

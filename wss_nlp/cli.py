@@ -109,10 +109,14 @@ def _phantom_cine(args) -> int:
 
     if args.dicom or args.nifti or args.stack:
         raise InputError("--case womersley writes a time-resolved HDF5 input only (no --dicom, --nifti, --stack)")
+    if args.pipe_radius is not None and not args.pipe_radius > 0:
+        raise InputError(f"--pipe-radius must be > 0 mm, got {args.pipe_radius}")
     snr = None if args.snr <= 0 else args.snr
+    shape = {} if args.pipe_radius is None else {"radius_mm": args.pipe_radius}
     frames, truth = pulsatile.make_cine(
-        h_mm=args.h, snr=snr, seed=args.seed, frames=args.frames, venc=args.venc, psf=_phantom_psf(args)
-    )
+        h_mm=args.h, snr=snr, seed=args.seed, frames=args.frames, venc=args.venc, psf=_phantom_psf(args),
+        distension=args.distension or 0.0, shape=args.shape or "circle", **shape,
+    )  # fmt: skip
     wio.write_frames(args.output, frames, truth.times_ms, truth.period_ms)
     if args.truth:
         try:
@@ -122,8 +126,8 @@ def _phantom_cine(args) -> int:
             raise
     acq = frames[0]
     print(
-        f"wrote {args.output}: womersley (Womersley number {truth.flow.womersley(1):.1f}), {args.frames} frames "
-        f"over {truth.period_ms:g} ms, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
+        f"wrote {args.output}: {truth.frames[0].name} (Womersley number {truth.flow.womersley(1):.1f}), "
+        f"{args.frames} frames over {truth.period_ms:g} ms, h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}, "
         f"{acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels"
     )
     if args.truth:
@@ -154,6 +158,10 @@ def cmd_phantom(args) -> int:
     )
     if args.case == "womersley":
         return _phantom_cine(args)
+    cine_only = [f for f, v in (("--distension", args.distension), ("--shape", args.shape),
+                                ("--pipe-radius", args.pipe_radius)) if v is not None]  # fmt: skip
+    if cine_only:
+        raise InputError(f"{', '.join(cine_only)}: only for --case womersley (the cine phantom)")
     snr = None if args.snr <= 0 else args.snr
     psf = _phantom_psf(args)
     truth: phantoms.Truth | phantoms.StackTruth
@@ -480,7 +488,9 @@ def _demo_cine(args, options, out: str) -> None:
         ("worst frame error / peak WSS", f"{100 * np.nanmax(np.abs(series.mean - tau)) / peak:.1f}%"),
         (
             "velocity over the cycle",
-            "momentum model" if series.model and series.model.model == "momentum" else "frames' own fits",
+            {"momentum": "momentum model", "temporal": "temporal prior"}.get(
+                series.model.model if series.model else "", "frames' own fits"
+            ),
         ),  # fmt: skip
         ("time [s]", f"{seconds:.2f}"),
     ]
@@ -701,6 +711,26 @@ def build_parser() -> argparse.ArgumentParser:
         help="womersley: a time-resolved (cine) phantom, Womersley flow over one cycle (--frames)",
     )
     ph.add_argument("--frames", type=int, default=20, help="womersley: frames over the cycle (default %(default)s)")
+    ph.add_argument(
+        "--distension",
+        type=float,
+        default=None,
+        metavar="EPS",
+        help="womersley: the pipe breathes, radius R0 (1 + EPS sin(omega t)), EPS in [0, 0.3) (default 0: rigid)",
+    )
+    ph.add_argument(
+        "--shape",
+        choices=("circle", "ellipse"),
+        default=None,
+        help="womersley: circular pipe, or elliptic (aspect 1.32, same area, its exact pulsatile flow; rigid)",
+    )
+    ph.add_argument(
+        "--pipe-radius",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="womersley: pipe radius in mm (default 10: first harmonic's Womersley number about 14)",
+    )
     ph.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
     ph.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none")
     ph.add_argument("--seed", type=int, default=0)

@@ -398,7 +398,8 @@ def make_cine(
     cycle: Flow = flow
     if distension > 0:
         cycle = DistendingWomersley(Circle(r=radius_mm), flow.viscosity_pa_s, flow, distension)
-    half_fov = 1.5 * radius_mm * (1 + distension)
+    # a background ring of at least three voxels for the noise estimates (small vessels at coarse voxels)
+    half_fov = max(1.5 * radius_mm * (1 + distension), radius_mm * (1 + distension) + 3 * h_mm)
     name = "womersley" if distension == 0 else f"distending womersley ({100 * distension:g} %)"
     return _acquire_cycle(cycle, half_fov, h_mm, snr, rng, frames, period_ms, venc, psf, name, peak)
 

@@ -67,9 +67,9 @@ class LinearTikhonov:
         self.data = np.asarray(data, dtype=float)
         self.gram = np.asarray(gram, dtype=float)
         self._pencils: dict = {}
-        self._tw = self.operator * self.w[:, None]
-        self.normal = self._tw.T @ self.operator  # K = T^T W T
-        self.rhs = self._tw.T @ self.data  # g = T^T W u
+        self.weighted_operator = self.operator * self.w[:, None]
+        self.normal = self.weighted_operator.T @ self.operator  # K = T^T W T
+        self.rhs = self.weighted_operator.T @ self.data  # g = T^T W u
 
     def hessian(self, beta: float) -> np.ndarray:
         """``H_beta = K + (beta / pi) G``."""
@@ -193,7 +193,7 @@ class LinearTikhonov:
             noise_root.append((idx, vec, sv, 1.0 / d))
         # E<e_j, e_k> = tr(S H_j^-1 N H_k^-1 S^T), N = T^T W Sigma W T; within a band the pencil diagonalizes both
         # inverses; across bands P = V_a^T N V_b couples them: tr(D_j^-1 P D_k^-1 (S V_b)^T (S V_a))
-        twsig = self._tw * sigma[:, None]
+        twsig = self.weighted_operator * sigma[:, None]
         n_mat = twsig.T @ (twsig if correlate is None else correlate(twsig))
         noise = np.empty((n_beta, n_beta))
         for ia, va, sva, inv_a in noise_root:
@@ -231,7 +231,7 @@ class BorderedTikhonov:
         self.base = base
         self.extra = np.asarray(extra, dtype=float)
         te = self.extra * base.w[:, None]
-        self.border = base._tw.T @ self.extra  # B
+        self.border = base.weighted_operator.T @ self.extra  # B
         self.corner = te.T @ self.extra  # C
         self.extra_rhs = te.T @ base.data  # e
 

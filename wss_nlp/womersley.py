@@ -39,7 +39,9 @@ Model choice (:func:`choose`): Schwarz's criterion :math:`\mathrm{BIC} = \nu\chi
 over all :math:`N` voxel values of the cycle, for the frames' own plain fits (each at its best beta,
 dof the smoother's trace; :class:`wss_nlp.choice.PlainCriterion`) and for this model with
 :math:`K = 0, \dots, K_{\max}` harmonics (dof :math:`2K + 1`); :math:`\nu = 1` for white noise.
-The frames' own fits stay the null hypothesis: the model must win by :data:`EVIDENCE`.
+The frames' own fits stay the null hypothesis: the model must win by :data:`EVIDENCE` over them and over
+the temporal prior (:mod:`wss_nlp.temporal`), which in turn must win by :data:`EVIDENCE` over the frames' own
+fits to be taken.
 """
 
 from __future__ import annotations
@@ -86,11 +88,12 @@ class CineModelOptions:
         "momentum": the velocity of all frames from the momentum balance (module notes); "temporal": the
         frames' plain fits tied by a periodic temporal prior (:mod:`wss_nlp.temporal`); "independent":
         each frame's own fit; "auto": the momentum model where the BIC prefers it by :data:`EVIDENCE` over
-        both plain candidates, else each frame's own fit.
+        both plain candidates, else the prior where it beats the frames' own fits by :data:`EVIDENCE`,
+        else each frame's own fit.
     max_harmonics : int
         Most temporal harmonics of the momentum model (the BIC chooses how many).
     walls : {"auto", "frames", "shared"}
-        The walls the momentum model is fitted on (:func:`smooth_walls`).
+        The walls the momentum model and the temporal prior are fitted on (:func:`smooth_walls`).
     """
 
     schema_group = "time-resolved (cine) data"
@@ -99,8 +102,8 @@ class CineModelOptions:
         "auto",
         "velocity over the cycle: momentum = the momentum balance of fully developed pulsatile flow "
         "(Womersley) fitted to all frames at once, temporal = the frames' own fits tied by a periodic "
-        "temporal prior (one shared wall, equally spaced frames), independent = each frame on its own, "
-        "auto = momentum where the BIC prefers it to both others, else independent",
+        "temporal prior (equally spaced frames), independent = each frame on its own, auto = the BIC's "
+        "choice (momentum must beat both others, temporal the frames' own fits)",
         cli="--cine-model",
         choices=MODELS,
     )
@@ -111,9 +114,9 @@ class CineModelOptions:
     )
     walls: str = option(
         "auto",
-        "the walls the momentum model uses: frames = each frame's own reconstruction, shared = their mean "
-        "(a rigid vessel), auto = the frames' radius coefficients as trigonometric polynomials in time, "
-        "degree by the BIC (degree 0 is the shared wall)",
+        "the walls the momentum model and the temporal prior use: frames = each frame's own reconstruction, "
+        "shared = their mean (a rigid vessel), auto = the frames' radius coefficients as trigonometric "
+        "polynomials in time, degree by the BIC (degree 0 is the shared wall)",
         cli="--cine-walls",
         choices=WALLS,
     )
@@ -207,36 +210,61 @@ def lambdas(harmonics: int, radius_mm: float, omega: float, nu_m2_s: float) -> l
 
 
 def columns_at(sigma: np.ndarray, lams: list[complex], phase: np.ndarray) -> np.ndarray:
-    """The ``2K + 1`` real columns ``S_0, Re(S_n e_n), -Im(S_n e_n)`` at ``sigma``, shape ``(n, 2K + 1)``.
+    """The ``2K + 1`` real columns ``S_0, Re(S_n e_n), -Im(S_n e_n)`` at ``sigma``, shape ``(n, 2K + 1)``."""
+    return _columns(shapes_at(sigma, lams), phase)
+
+
+def shapes_at(sigma: np.ndarray, lams: list[complex]) -> np.ndarray:
+    """``S_0, S_1, ..., S_K`` at ``sigma`` (complex, shape ``(n, K + 1)``).
 
     Each complex shape is tabulated on :data:`TABLE_POINTS` values of sigma and interpolated by a cubic
-    spline: the Bessel functions of complex argument cost about a microsecond each and a frame has ten
-    thousand sub-voxel points.
+    spline (built once per ``Lambda``): the Bessel functions of complex argument cost about a microsecond
+    each and a frame has ten thousand sub-voxel points.
     """
     sigma = np.clip(np.asarray(sigma, dtype=float), 0.0, 1.0)
+    return np.column_stack([shape(sigma, 0).astype(complex)] + [_spline(complex(lam))(sigma) for lam in lams])
+
+
+@functools.lru_cache(maxsize=64)
+def _spline(lam: complex):
     table = np.linspace(0.0, 1.0, TABLE_POINTS)
-    cols = [shape(sigma, 0)]
-    for lam, e in zip(lams, phase):
-        value = scipy.interpolate.CubicSpline(table, shape(table, lam) * e)(sigma)
-        cols += [value.real, -value.imag]
-    return np.array(cols).T
+    return scipy.interpolate.CubicSpline(table, shape(table, lam))
+
+
+def _columns(shapes: np.ndarray, phase: np.ndarray) -> np.ndarray:
+    """The real columns ``S_0, Re(S_n e_n), -Im(S_n e_n)`` of complex ``shapes`` (any linear image of them)."""
+    value = shapes[:, 1:] * np.asarray(phase)[None, :]
+    cols = np.empty((shapes.shape[0], 2 * value.shape[1] + 1))
+    cols[:, 0] = shapes[:, 0].real
+    cols[:, 1::2], cols[:, 2::2] = value.real, -value.imag
+    return cols
+
+
+def wall_shapes(problem: vel.VelocityProblem, k_max: int, omega: float, nu_m2_s: float, radius_mm: float):
+    """The voxel values of ``S_0 .. S_K`` on ``problem``'s wall (complex ``(n_vox, K + 1)``): frames on one wall
+    share them, each frame's columns are these times its phases (the voxel values are linear)."""
+    vox = problem.voxels
+    coefficients, center = problem.disk_map.coefficients, problem.disk_map.center
+    s = ray_coordinate(coefficients, center, vox.px[vox.inside], vox.py[vox.inside])
+    shapes = shapes_at(s, lambdas(k_max, radius_mm, omega, nu_m2_s))
+    return vel.voxel_values(problem, shapes.real) + 1j * vel.voxel_values(problem, shapes.imag)
 
 
 def frame_terms(
     problem: vel.VelocityProblem, sigma: np.ndarray, index: int, time_s: float,
-    k_max: int, omega: float, nu_m2_s: float, radius_mm: float,
+    k_max: int, omega: float, nu_m2_s: float, radius_mm: float, shapes: np.ndarray | None = None,
 ) -> FrameTerms:  # fmt: skip
     """One frame's :class:`FrameTerms` from its plain velocity problem (on the wall the model uses) and noise.
 
     ``radius_mm`` sets the Womersley parameters: one radius for the cycle (harmonics belong to the cycle,
     not to an instant), e.g. the frames' shared reference radius (:class:`wss_nlp.preprocess.LumenBox`).
+    ``shapes``: :func:`wall_shapes` of the problem's wall if already at hand (frames sharing a wall).
     """
     coefficients = np.asarray(problem.disk_map.coefficients, dtype=float)
     center = (float(problem.disk_map.center[0]), float(problem.disk_map.center[1]))
-    vox = problem.voxels
-    s = ray_coordinate(coefficients, center, vox.px[vox.inside], vox.py[vox.inside])
-    lams = lambdas(k_max, radius_mm, omega, nu_m2_s)
-    phi = vel.voxel_values(problem, columns_at(s, lams, time_factors(k_max, omega, time_s)))
+    if shapes is None:
+        shapes = wall_shapes(problem, k_max, omega, nu_m2_s, radius_mm)
+    phi = _columns(shapes, time_factors(k_max, omega, time_s))
     inv_var = 1.0 / np.asarray(sigma, float) ** 2
     u = problem.data
     chi2, dof, _ = PlainCriterion(problem, sigma).curve()
@@ -265,7 +293,7 @@ class MomentumFit:
 class CineModelChoice:
     """Which velocity model a cine slice got, and why (stored in the result file)."""
 
-    model: str  # "independent" or "momentum"
+    model: str  # "independent", "temporal" or "momentum"
     harmonics: int = 0
     bic: dict = field(default_factory=dict)  # model name -> BIC
     margin: float = float("nan")  # the chosen model's lead over the runner-up, EVIDENCE included
@@ -329,14 +357,19 @@ def wall_shear(
     fitted: MomentumFit, frame: FrameTerms, phi: np.ndarray, viscosity_pa_s: float
 ) -> tuple[np.ndarray, np.ndarray, float, float]:
     """``(tau, tau_std, mean, mean_std)`` of the fitted model on a frame's wall (Pa; std: the velocity noise's)."""
-    coefficients = frame.coefficients
     rows = wall_rows(fitted, frame, phi, viscosity_pa_s)
-    tau = rows @ fitted.coefficients
-    tau_std = np.sqrt(np.einsum("ij,jk,ik->i", rows, fitted.covariance, rows))
-    ds = np.hypot(rad.evaluate(coefficients, phi), rad.evaluate(coefficients, phi, 1))
-    mean_row = (ds / np.sum(ds)) @ rows  # the arc-length mean of uniform angles (wss_nlp.radius.arc_length_mean)
-    mean_std = float(np.sqrt(mean_row @ fitted.covariance @ mean_row))
-    return tau, tau_std, float(mean_row @ fitted.coefficients), mean_std
+    return linear_wall_shear(rows, fitted.coefficients, fitted.covariance, frame.coefficients, phi)
+
+
+def linear_wall_shear(rows: np.ndarray, coefficients, covariance, wall, phi: np.ndarray):
+    """``(tau, tau_std, mean, mean_std)`` of a WSS linear in the model's coefficients, ``tau = rows @ c``, with
+    ``c``'s covariance; the mean is the arc-length mean over uniform angles ``phi`` of the wall ``R(phi)``
+    (radius coefficients ``wall``; :func:`wss_nlp.radius.arc_length_mean`)."""
+    tau = rows @ coefficients
+    tau_std = np.sqrt(np.einsum("ij,jk,ik->i", rows, covariance, rows))
+    ds = np.hypot(rad.evaluate(wall, phi), rad.evaluate(wall, phi, 1))
+    mean_row = (ds / np.sum(ds)) @ rows
+    return tau, tau_std, float(mean_row @ coefficients), float(np.sqrt(mean_row @ covariance @ mean_row))
 
 
 def max_harmonics(n_frames: int, limit: int) -> int:
@@ -359,7 +392,7 @@ def choose(terms: list[FrameTerms], omega: float, nu_m2_s: float, options: CineM
 
     ``prior_bic``: the criterion of the temporal prior (:mod:`wss_nlp.temporal`) where it applies. The
     momentum model must beat the better plain candidate (the frames' own fits, the prior) by
-    :data:`EVIDENCE`; otherwise the frames keep their own fits (the prior only where forced).
+    :data:`EVIDENCE`, the prior the frames' own fits; otherwise the frames keep their own fits.
     """
     n_total = sum(t.n_data for t in terms)
     nu, log_n = criterion_scale(terms)
@@ -379,21 +412,25 @@ def choose(terms: list[FrameTerms], omega: float, nu_m2_s: float, options: CineM
         return CineModelChoice("momentum", best, bic, float("nan"), used, criterion + "; forced"), fits[best]
     if options.model == "temporal":
         if prior_bic is None:
-            why = "; the temporal prior needs every frame on one shared wall at equal spacing: independent frames"
+            why = "; the temporal prior needs every frame (at least 3, equally spaced): independent frames"
             return CineModelChoice("independent", 0, bic, float("nan"), used, criterion + why), None
         return CineModelChoice("temporal", 0, bic, float("nan"), used, criterion + "; forced"), None
-    # the momentum model must beat every plain candidate; where it does not, the frames keep their own fits
-    # (the prior's BIC-best beta served the WSS no better than the frames' own rules: scripts/results/cine.md)
-    plain = min(bic.get("independent", np.inf), bic.get("temporal", np.inf))
-    lead = plain - bics[best] - EVIDENCE
+    # a richer model must beat every simpler one by the evidence: the momentum model both plain candidates,
+    # the temporal prior the frames' own fits; otherwise the frames keep their own fits
+    independent = bic["independent"]
+    prior = bic.get("temporal", np.inf)
+    lead = min(independent, prior) - bics[best] - EVIDENCE
     if lead > 0:
         return CineModelChoice("momentum", best, bic, float(lead), used, criterion), fits[best]
-    return CineModelChoice("independent", 0, bic, float(-lead), used, criterion), None
+    prior_lead = independent - prior - EVIDENCE
+    if prior_lead > 0:
+        return CineModelChoice("temporal", 0, bic, float(min(prior_lead, -lead)), used, criterion), None
+    return CineModelChoice("independent", 0, bic, float(min(-lead, -prior_lead)), used, criterion), None
 
 
 @dataclass
 class WallChoice:
-    """How the momentum model took the frames' walls: the temporal degree and the criterion values."""
+    """How the cycle's models took the frames' walls: the temporal degree and the criterion values."""
 
     degree: int | None  # trigonometric degree in time (0: one shared wall); None: each frame's own
     how: str
@@ -450,8 +487,13 @@ def velocity_sigma(result: SliceResult, problem: vel.VelocityProblem, raw: np.nd
     return np.asarray(noise.details["per_voxel"], dtype=float) if noise.value > 0 else None
 
 
-def plain_problem(result: SliceResult, options, psf, coefficients=None, center=None) -> vel.VelocityProblem:
-    """The frame's plain velocity problem on a wall (default: its own): the one its fit used, or assembled."""
+def plain_problem(
+    result: SliceResult, options, psf, coefficients=None, center=None, like: vel.VelocityProblem | None = None
+) -> vel.VelocityProblem:
+    """The frame's plain velocity problem on a wall (default: its own): the one its fit used, or assembled.
+
+    ``like``: another frame's plain problem; on the same wall and grid its operator serves this frame's data.
+    """
     problem, g = result.problem, result.geometry
     coefficients = g.coefficients if coefficients is None else np.asarray(coefficients, dtype=float)
     center = g.center if center is None else (float(center[0]), float(center[1]))
@@ -460,5 +502,13 @@ def plain_problem(result: SliceResult, options, psf, coefficients=None, center=N
         if getattr(problem.basis, "base", None) is None:  # not the coupled start, no layer columns
             return problem
 
+    if (
+        like is not None
+        and np.array_equal(like.disk_map.coefficients, coefficients)
+        and tuple(like.disk_map.center) == tuple(center)
+        and like.data_image.shape == result.velocity_image.shape
+    ):
+        image = np.asarray(result.velocity_image, dtype=float)
+        return replace(like, data=image.ravel()[like.voxels.index], data_image=image)
     vopt = replace(options.velocity, near_wall="off")
     return vel.assemble(result.grid, result.velocity_image, coefficients, center, vopt, psf=psf)
