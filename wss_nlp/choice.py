@@ -167,6 +167,18 @@ def balance_alpha(
     )
 
 
+def velocity_beta(vp, near, raw, lumen, venc, options: ReconstructionOptions, where: str, viscosity_pa_s: float):
+    """beta of the velocity fit: the rule's (:func:`choose_beta`), or the BIC's for a chosen near-wall layer.
+
+    Balancing weighs the noise the penalty removes; layer columns are not
+    penalized, so with them it drifts to the largest beta. The beta at
+    which the chosen model's BIC is smallest is used instead.
+    """
+    if near is not None and near.model != "plain" and options.beta_rule == "balance" and np.isfinite(near.beta):
+        return an.ParameterChoice("beta", "bic", near.beta, noise_method="BIC of the chosen near-wall model")
+    return choose_beta(vp, raw, lumen, venc, options, where, viscosity_pa_s)
+
+
 def choose_beta(
     vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str, viscosity_pa_s: float
 ):

@@ -741,11 +741,20 @@ class SwirlComponent(Flow):
         return -u_t * np.sin(t) if self.which == 0 else u_t * np.cos(t)
 
 
+def _straight(z):
+    """The paper's 25.885 mm pipe, straight (a developed flow: every slice the same)."""
+    return Circle(r=25.885 / 2), (0.0, 0.0)
+
+
 #: 3D phantom cases: name -> (lumen at height z, description).
 STACK_CASES = {
     "tapered": (_tapered, "circular tube narrowing smoothly 10 -> 8 -> 10 mm over 80 mm; Poiseuille-type flow"),
     "curved": (_curved, "elliptic tube (11 x 9 mm) whose centre line curves sideways; Poiseuille-type flow"),
+    "turbulent": (_straight, "straight 25.885 mm pipe, DNS mean turbulent flow at Re_tau 549 (water) in every slice"),
 }
+
+#: Stack cases whose flow is not the Poiseuille-type default: name -> flow of a slice's lumen.
+STACK_FLOWS = {"turbulent": lambda lumen: TurbulentPipe(lumen=lumen, viscosity_pa_s=0.955e-3, dns="re550")}
 
 
 def make_stack(
@@ -789,10 +798,13 @@ def make_stack(
     make = STACK_CASES[case][0]
     z = np.arange(nz) * spacing_mm
     shift = rng.uniform(-0.5, 0.5, size=2) * h_mm
-    flows = []
+    flows: list[Flow] = []
     for zk in z:
         lumen, offset = make(zk)
         lumen.center = (float(offset[0] + shift[0]), float(offset[1] + shift[1]))
+        if case in STACK_FLOWS:
+            flows.append(STACK_FLOWS[case](lumen))
+            continue
         area = 0.5 * float(np.sum(lumen.radius(rad.uniform_angles(1024)) ** 2)) * 2 * np.pi / 1024  # mm^2
         u_max = 2 * flow_rate_ml_s * 1e3 / area / 1e3  # Q = U A / 2; ml/s -> mm^3/s, mm/s -> m/s
         flows.append(StarPoiseuille(lumen=lumen, viscosity_pa_s=viscosity_pa_s, u_max=u_max))
@@ -800,8 +812,10 @@ def make_stack(
     n = int(np.ceil(2 * half / h_mm))
     origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
-    if venc is None:
-        venc = 1.25 * max(f.u_max for f in flows)
+    if venc is None:  # the peak sits at the centre of each slice's lumen
+        venc = 1.25 * max(
+            float(f.velocity(np.array([f.lumen.center[0]]), np.array([f.lumen.center[1]]))[0]) for f in flows
+        )
     mags, phases, truths, inplane = [], [], [], []
     for k, flow in enumerate(flows):
         mag, phase, u_mean, _ = acquire(flow, grid, snr, rng, venc=venc, psf=psf)
@@ -822,7 +836,8 @@ def make_stack(
         origin_mm=origin,
         slice_spacing_mm=float(spacing_mm),
         venc_m_s=venc,
-        viscosity_pa_s=viscosity_pa_s,
+        viscosity_pa_s=flows[0].viscosity_pa_s,
+        density_kg_m3=getattr(flows[0], "density_kg_m3", None),
         source=f"phantom:{case}-stack",
         velocity_inplane=np.transpose(np.array(inplane), (1, 0, 2, 3)) if inplane else None,
         acquired_voxel_size_mm=None if psf is None else (h_mm * psf.zero_fill[0], h_mm * psf.zero_fill[1]),

@@ -44,6 +44,7 @@ from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are
     gcv_beta,
     layer_model,
     parse_rule,
+    velocity_beta,
 )
 from .errors import InputError, WssNlpError
 from .files import DEFAULT_DENSITY, Acquisition, FailedSlice, check_density
@@ -332,7 +333,7 @@ def reconstruct_slice(
         layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
     elif options.velocity.near_wall != "off":
         vp, near = layer_model(vp, magnitude, lumen, nvenc, options, where, viscosity_pa_s, density)
-    beta_choice = _beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
+    beta_choice = velocity_beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
 
@@ -389,7 +390,7 @@ def reconstruct_slice(
         if near is not None and near.model != "plain":
             # the first pass's geometry was biased by the dephasing just corrected, and the layer scale with it
             vp, near = layer_model(vp, magnitude, lumen, nvenc, options, where, viscosity_pa_s, density, around=near)
-            beta_choice = _beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
+            beta_choice = velocity_beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = t.get("dephasing_pass", 0.0) + time.perf_counter() - t0
         t["dephasing_passes"] = k + 1
@@ -448,18 +449,6 @@ def reconstruct_slice(
 
 #: Largest number of dephasing passes with the k-space model, and the wall movement (in voxels) that ends them.
 KSPACE_PASSES, KSPACE_PASS_TOL = 3, 1e-3
-
-
-def _beta(vp, near, raw, lumen, venc, options: ReconstructionOptions, where: str, viscosity_pa_s: float):
-    """beta of the velocity fit: the rule's (:func:`choose_beta`), or the BIC's for a chosen near-wall layer.
-
-    Balancing weighs the noise the penalty removes; layer columns are not
-    penalized, so with them it drifts to the largest beta. The beta at
-    which the chosen model's BIC is smallest is used instead.
-    """
-    if near is not None and near.model != "plain" and options.beta_rule == "balance" and np.isfinite(near.beta):
-        return an.ParameterChoice("beta", "bic", near.beta, noise_method="BIC of the chosen near-wall model")
-    return choose_beta(vp, raw, lumen, venc, options, where, viscosity_pa_s)
 
 
 def _add_scale_spread(s, vp, v, w, near, viscosity_pa_s: float, sigma_m: float, sigma_u) -> None:
@@ -571,7 +560,7 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     if ell is not None and not supported:
         raise InputError(
             f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled method "
-            "with fixed alpha and beta and no forced near-wall layer; pass --z-smoothing 0 for independent slices"
+            "with a fixed alpha; pass --z-smoothing 0 for independent slices"
         )
     return supported
 

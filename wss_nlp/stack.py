@@ -31,6 +31,11 @@ Two solvers of the same problem:
   final neighbours; velocity: block Gauss-Seidel on the normal equations,
   factorized once, residual = relative residual of the coupled equations).
 
+The velocity basis of each slice is the one a single slice would get: the
+near-wall model (``--near-wall``, :func:`wss_nlp.choice.layer_model`) is chosen
+per slice, and the z-penalty ties the plain basis coefficients only (a layer's
+columns, with their own scale, stay the slice's own).
+
 A slice whose data are unusable (NaN or Inf, no vessel found) is reported by
 index, left out, and splits the stack into independent segments.
 """
@@ -55,7 +60,7 @@ from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
 from .errors import InputError, SolverError, WssNlpError
-from .choice import choose_beta, gcv_beta
+from .choice import gcv_beta, layer_model, velocity_beta
 from .coupled import sparse_dm
 from .files import Acquisition
 from .results import SliceResult
@@ -347,52 +352,77 @@ def kaczmarz_geometry(
 
 
 # ------------------------------------------------------------------ velocity
+def _padded(gram0: np.ndarray, size: int) -> np.ndarray:
+    """``G0`` on the first coefficients of a slice with ``size`` (near-wall layer columns are not z-coupled)."""
+    out = np.zeros((size, size))
+    m = gram0.shape[0]
+    out[:m, :m] = gram0
+    return out
+
+
 def _velocity_system(vps, betas, kappa_v, gram0, zop):
     """Per-slice normal matrices ``H_k + kappa_v L_kk G0 / pi`` and right-hand sides (``betas[k]`` in ``H_k``)."""
     out = []
     for k, vp in enumerate(vps):
         hmat, g = vp.normal_equations(betas[k])
-        out.append((hmat + kappa_v * zop[k, k] * gram0 / np.pi, g))
+        out.append((hmat + kappa_v * zop[k, k] * _padded(gram0, g.size) / np.pi, g))
     return out
 
 
 def coupled_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, order: int):
-    """All slices' velocity as one CasADi QP (IPOPT), beta ``betas[k]`` in slice k; ``(coefficients, stats)``."""
-    ns, nb = len(vps), vps[0].operator.shape[1]
-    big = ca.MX.sym("V", nb * ns)
+    """All slices' velocity as one CasADi QP (IPOPT), beta ``betas[k]`` in slice k; ``(coefficients, stats)``.
+
+    The z-penalty ties the plain basis coefficients (the first ``len(gram0)`` of each slice); a slice's
+    near-wall layer columns, where it has them, are its own.
+    """
+    sizes = [vp.operator.shape[1] for vp in vps]
+    offsets = np.r_[0, np.cumsum(sizes)]
+    m = gram0.shape[0]
+    big = ca.MX.sym("V", int(offsets[-1]))
     f: Any = 0  # a CasADi expression once the first term is added
     for k, vp in enumerate(vps):
-        ck = big[k * nb : (k + 1) * nb]
+        ck = big[int(offsets[k]) : int(offsets[k + 1])]
         hmat, g = vp.normal_equations(betas[k])
         f += ca.dot(ck, ca.mtimes(ca.DM(hmat), ck)) - 2 * ca.dot(ca.DM(g), ck)
-    zlap = np.kron(z_operator(ns, order), gram0 / np.pi)
-    f += kappa_v * ca.dot(big, ca.mtimes(sparse_dm(zlap), big))
+    base = ca.vertcat(*[big[int(o) : int(o) + m] for o in offsets[:-1]])
+    zlap = np.kron(z_operator(len(vps), order), gram0 / np.pi)
+    f += kappa_v * ca.dot(base, ca.mtimes(sparse_dm(zlap), base))
     solver = ca.nlpsol(
         "stack_velocity", "ipopt", {"x": big, "f": f}, ipopt_options(1e-12, 50, {"ipopt.hessian_constant": "yes"})
     )
-    sol, stats = run_nlpsol(solver, "stack velocity (coupled IPOPT)", x0=np.zeros(nb * ns))
-    return np.asarray(sol["x"]).reshape(ns, nb), stats
+    sol, stats = run_nlpsol(solver, "stack velocity (coupled IPOPT)", x0=np.zeros(int(offsets[-1])))
+    x = np.asarray(sol["x"]).ravel()
+    return [x[int(offsets[k]) : int(offsets[k + 1])] for k in range(len(vps))], stats
 
 
 def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float, max_sweeps: int, order: int):
-    """Block Gauss-Seidel sweeps (forward, backward) on the coupled normal equations (``betas`` per slice)."""
+    """Block Gauss-Seidel sweeps (forward, backward) on the coupled normal equations (``betas`` per slice).
+
+    The z-coupling acts on the plain basis coefficients (the first ``len(gram0)`` of each slice).
+    """
     zop = z_operator(len(vps), order)
     system = _velocity_system(vps, betas, kappa_v, gram0, zop)
     factors = [scipy.linalg.cho_factor(h) for h, _ in system]
-    ns = len(vps)
-    c = np.array([scipy.linalg.cho_solve(fc, g) for fc, (_, g) in zip(factors, system)])
+    ns, m = len(vps), gram0.shape[0]
+    c = [scipy.linalg.cho_solve(fc, g) for fc, (_, g) in zip(factors, system)]
     if ns == 1:
         return c, 0, [0.0]
     coupling = kappa_v * gram0 / np.pi
+
+    def pull(k: int) -> np.ndarray:
+        """``[G0 s_k; 0]``: what slice k's neighbours add to its right-hand side."""
+        out = np.zeros(c[k].size)
+        out[:m] = coupling @ neighbour_terms(zop, np.array([ck[:m] for ck in c]), k)[0]
+        return out
+
     history = []
     for sweep in range(1, max_sweeps + 1):
         for k in sweep_order(ns):
-            new = scipy.linalg.cho_solve(factors[k], system[k][1] + coupling @ neighbour_terms(zop, c, k)[0])
+            new = scipy.linalg.cho_solve(factors[k], system[k][1] + pull(k))
             c[k] = c[k] + RELAX * (new - c[k])
         # relative residual of the coupled normal equations
         r = max(
-            np.linalg.norm(system[k][0] @ c[k] - system[k][1] - coupling @ neighbour_terms(zop, c, k)[0])
-            / max(np.linalg.norm(system[k][1]), 1e-300)
+            np.linalg.norm(system[k][0] @ c[k] - system[k][1] - pull(k)) / max(np.linalg.norm(system[k][1]), 1e-300)
             for k in range(ns)
         )
         history.append(float(r))
@@ -430,13 +460,12 @@ def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray)
 
 
 def supports(options) -> bool:
-    """Whether z-regularization applies to these reconstruction options (decoupled, fixed alpha, no forced layer).
+    """Whether z-regularization applies to these reconstruction options (decoupled method, fixed alpha).
 
     beta may come from any rule: a segment is fitted with one beta, the
     median (on a log scale) of its slices' own choices (:func:`segment_beta`).
     """
-    forced_layer = options.velocity.near_wall not in ("off", "auto")
-    return options.method == "decoupled" and options.alpha_rule == "fixed" and not forced_layer
+    return options.method == "decoupled" and options.alpha_rule == "fixed"
 
 
 def segment_beta(choices) -> float:
@@ -488,6 +517,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             "pass --z-smoothing 0 for independent slices with other settings"
         )
     mu = acq.viscosity(options.viscosity_pa_s)
+    density = acq.density(options.density_kg_m3)
     dz = float(acq.slice_spacing_mm or 1.0) if acq.nz > 1 else 1.0  # validate() requires it for nz > 1
     ell = dz if stack.z_smoothing_mm is None else float(stack.z_smoothing_mm)
     velocity = acq.velocity_images()
@@ -515,12 +545,34 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     gram0 = basis.laplacian_gram(0)
     done = 0
 
-    def choose_betas(seg, vps):
-        """Each slice's own beta choice (the rule of ``options``) and the betas used: one per segment if coupled."""
+    def choose_velocity_models(seg, vps, around=None):
+        """Each slice's near-wall model (as a single slice chooses it; ``around``: the first pass's choices,
+        refined on the corrected geometry where they took a layer) and the velocity problems it gives."""
+        nears: list = [None] * len(seg)
+        if vopt.near_wall == "off":
+            return vps, nears
+        out = []
+        for i, (k, vp) in enumerate(zip(seg, vps)):
+            before = None if around is None else around[i]
+            if before is not None and before.model == "plain":  # as reconstruct_slice: a plain slice stays plain
+                out.append(vp)
+                nears[i] = before
+                continue
+            where = f"{acq.source} slice {k}"
+            problem, nears[i] = layer_model(
+                vp, acq.magnitude[k], prepared[k].lumen, acq.venc_m_s, options, where, mu, density, around=before
+            )
+            out.append(problem)
+        return out, nears
+
+    def choose_betas(seg, vps, nears):
+        """Each slice's own beta choice (the rule of ``options``, or its layer's BIC beta) and the betas used:
+        one per segment if coupled."""
         choices = [
-            choose_beta(vp, acq.magnitude[k], prepared[k].lumen, acq.venc_m_s, options, f"{acq.source} slice {k}", mu)
-            for k, vp in zip(seg, vps)
-        ]
+            velocity_beta(vp, near, acq.magnitude[k], prepared[k].lumen, acq.venc_m_s, options,
+                          f"{acq.source} slice {k}", mu)
+            for k, vp, near in zip(seg, vps, nears)
+        ]  # fmt: skip
         if kappa_v == 0 or len({c.chosen for c in choices}) == 1:
             return choices, [c.chosen for c in choices]
         return choices, [segment_beta(choices)] * len(seg)
@@ -561,8 +613,9 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             )  # fmt: skip
         return out
 
-    def solve_segment(seg, problems, x0, strategy, velocity_images=None):
-        """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats, beta choices, betas)``."""
+    def solve_segment(seg, problems, x0, strategy, velocity_images=None, around=None):
+        """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats, beta choices, betas,
+        near-wall choices)``."""
         t0 = time.perf_counter()
         sg = [SliceGeometry(pb, gopt, kappa) for pb in problems]
         t["geometry_build"] = t.get("geometry_build", 0.0) + time.perf_counter() - t0
@@ -587,10 +640,11 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             vel.assemble(acq.grid, u, g.coefficients, g.center, vopt, basis=basis, psf=psf)
             for u, g in zip(images, geoms)
         ]
-        choices, betas = choose_betas(seg, vps)
+        vps, nears = choose_velocity_models(seg, vps, around)
+        choices, betas = choose_betas(seg, vps, nears)
         vcoef, vstats = fit_velocity(vps, strategy, betas)
         t["velocity"] = t.get("velocity", 0.0) + time.perf_counter() - t0
-        return coef, geoms, vps, vcoef, vstats, choices, betas
+        return coef, geoms, vps, vcoef, vstats, choices, betas, nears
 
     unexplained: list[int] = []  # slices whose k-space dephasing prediction was rejected
     for seg in segs:
@@ -601,7 +655,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
         logger.info(f"slices {seg[0]}-{seg[-1]}: {strategy} solve of {len(seg)} slice(s)")
         problems = [prepared[k].problem for k in seg]
         x0 = np.array([geo.initial_guess(pb, gopt.n_fourier) for pb in problems])
-        coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(seg, problems, x0, strategy)
+        coef, geoms, vps, vcoef, vstats, choices, betas, nears = solve_segment(seg, problems, x0, strategy)
         factors: list[Any] = [None] * len(seg)
         if options.dephasing_correction and acq.venc_m_s is not None:
             # as reconstruct_slice (one pass): predict the signal loss from a GCV-beta velocity, then solve again
@@ -611,16 +665,16 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
             if any(c.worth_a_pass for c in corrections):
                 logger.info(f"slices {seg[0]}-{seg[-1]}: second pass on dephasing-corrected magnitudes")
-                before = (coef, geoms, vps, vcoef, vstats, choices, betas)
+                before = (coef, geoms, vps, vcoef, vstats, choices, betas, nears)
                 corrected = [replace(pb, magnitude=c.magnitude) for pb, c in zip(problems, corrections)]
-                coef, geoms, vps, vcoef, vstats, choices, betas = solve_segment(
-                    seg, corrected, coef, strategy, [c.velocity for c in corrections]
+                coef, geoms, vps, vcoef, vstats, choices, betas, nears = solve_segment(
+                    seg, corrected, coef, strategy, [c.velocity for c in corrections], around=nears
                 )
                 info.dephasing_pass = True
                 if psf is not None:  # judged as in reconstruct_slice: undone if it explains the magnitude worse
                     after = predict_dephasing(seg, vps, geoms, [c.window for c in corrections])
                     if any(a.misfit_moving >= c.misfit_still for a, c in zip(after, corrections)):
-                        coef, geoms, vps, vcoef, vstats, choices, betas = before
+                        coef, geoms, vps, vcoef, vstats, choices, betas, nears = before
                         unexplained.extend(seg)
                         info.dephasing_pass = False
         planar = None
@@ -681,6 +735,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                 {},
                 None,
                 notes,
+                near_wall=nears[i],
             )
             done += 1
             if progress is not None:
@@ -688,11 +743,6 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     first = next(r for r in results if r is not None)
     if options.uncertainty:
         first.notes.append("stack: the uncertainty band is not computed for z-regularized stacks (yet)")
-    if options.velocity.near_wall == "auto":
-        first.notes.append(
-            "stack: z-regularized stacks use the plain velocity basis (no near-wall layer yet); "
-            "--z-smoothing 0 fits the slices independently with the layer"
-        )
     if not info.converged:
         for r in results:
             if r is not None:
