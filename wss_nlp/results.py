@@ -40,6 +40,10 @@ class SliceOutcome(Protocol):
     def warnings(self) -> list[str]: ...
 
 
+#: A velocity fit with more effective parameters than this fraction of its voxels interpolates the noise.
+DOF_LIMIT = 0.75
+
+
 @dataclass
 class SliceResult:
     """Result of one slice, with everything needed to write, plot and judge it."""
@@ -104,6 +108,13 @@ class SliceResult:
                 f"balance: the WSS kept changing by more than {ch.tau:g} noise deviations as beta fell, which "
                 "noise cannot do; the data hold something the voxel model does not describe (resampled or "
                 "misregistered images, another acquisition model); this slice's WSS is not trustworthy"
+            )
+        n_vox = int(np.count_nonzero(self.velocity.voxel_fraction))
+        if self.velocity.dof > DOF_LIMIT * n_vox:
+            out.append(
+                f"slice {self.index}: SUSPECT: the velocity fit spends {self.velocity.dof:.0f} effective parameters "
+                f"on {n_vox} voxels (beta {self.velocity.beta:.2g}): it follows the noise, and its WSS with it "
+                "(a lumen few voxels across: use smaller voxels, or a fixed larger --beta)"
             )
         out.extend(f"slice {self.index}: {n}" for n in self.notes)
         nwc = self.near_wall

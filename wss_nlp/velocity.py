@@ -225,6 +225,7 @@ class VelocityResult:
     voxel_index: np.ndarray
     voxel_fraction: np.ndarray
     options: dict = field(default_factory=dict)
+    dof: float = float("nan")  # the fit's effective parameters tr(H_beta^-1 K) (the smoother's trace)
 
     def evaluate_physical(self, x, y) -> np.ndarray:
         """Reconstructed velocity ``u = v o phi_R^{-1}`` at physical points (0 outside)."""
@@ -375,4 +376,17 @@ def result(problem: VelocityProblem, options: VelocityOptions, coef, beta: float
         voxel_index=problem.voxels.index,
         voxel_fraction=problem.voxels.fraction,
         options=dict(vars(options)),
+        dof=effective_parameters(problem, beta),
     )
+
+
+def effective_parameters(problem: VelocityProblem, beta: float) -> float:
+    """``tr(H_beta^-1 K)``: how many parameters the fit at ``beta`` spends on the data (NaN if H is singular).
+
+    Near the number of voxels the fit interpolates the noise (:attr:`wss_nlp.results.SliceResult.warnings`).
+    """
+    tk = problem.tikhonov
+    try:
+        return float(np.trace(np.linalg.solve(tk.hessian(beta), tk.normal)))
+    except np.linalg.LinAlgError:
+        return float("nan")
