@@ -275,3 +275,28 @@ def test_table_marks_cells_with_non_converged_cases():
     md, tex = sweep.table(rows, "h", "method", "wss_err")
     assert md.splitlines()[2] == "| 1 | **1.0000†** | 2.0050 | 3.0050 |"
     assert "1 case(s) whose solver did not converge" in md and r"$^\dagger$" in tex
+
+
+def test_progress_draws_a_bar_on_a_terminal_and_a_line_per_case_elsewhere():
+    """sweep.Progress: on a terminal a tqdm bar that ends at total/total with the count of failed cases; in a
+    log one line per case with its id and status (cases done before count as done)."""
+    import io
+
+    from wss_nlp.sweep import Progress
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    tty = Terminal()
+    bar = Progress(3, tty, skipped=1)
+    bar.update({"id": "a", "status": "ok"})
+    bar.update({"id": "b", "status": "error"})
+    assert "3/3" in tty.getvalue() and "1 not ok" in tty.getvalue() and tty.getvalue().endswith("\n")
+    log = io.StringIO()
+    lines = Progress(2, log)
+    lines.update({"id": "a", "status": "ok"})
+    lines.update({"id": "b", "status": "error"})
+    rows = log.getvalue().splitlines()
+    assert rows[0].startswith("1/2 cases, 0 not ok") and rows[0].endswith("(a: ok)")
+    assert rows[1].startswith("2/2 cases, 1 not ok") and rows[1].endswith("(b: error)")

@@ -336,7 +336,7 @@ def _done(cases_dir: str, cid: str, retry_failed: bool) -> dict | None:
 
 
 class Progress:
-    """A one-line progress bar on a terminal, a line per case otherwise."""
+    """Progress over a study's cases: a tqdm bar on a terminal, a line per case otherwise (logs, CI)."""
 
     def __init__(self, total: int, stream=None, skipped: int = 0):
         self.total, self.done, self.failed = total, skipped, 0
@@ -344,23 +344,28 @@ class Progress:
         self.t0 = time.perf_counter()
         self.ran = 0
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.bar = None
+        if self.tty:
+            from tqdm import tqdm  # only where a bar is drawn: the line form needs nothing
+
+            self.bar = tqdm(total=total, initial=skipped, file=self.stream, unit="case", dynamic_ncols=True)
 
     def update(self, record: dict) -> None:
         self.done += 1
         self.ran += 1
         self.failed += record["status"] != "ok"
+        if self.bar is not None:
+            self.bar.set_postfix_str(f"{self.failed} not ok, last {record['id']}: {record['status']}", refresh=False)
+            self.bar.update(1)
+            if self.done >= self.total:
+                self.bar.close()
+            return
         el = time.perf_counter() - self.t0
-        left = self.total - self.done
-        eta = el / self.ran * left
-        bar = "#" * int(30 * self.done / max(self.total, 1))
-        msg = (
-            f"[{bar:<30}] {self.done}/{self.total} cases, {self.failed} not ok, {el:.0f} s elapsed, "
-            f"about {eta:.0f} s left"
+        eta = el / self.ran * (self.total - self.done)
+        self.stream.write(
+            f"{self.done}/{self.total} cases, {self.failed} not ok, {el:.0f} s elapsed, about {eta:.0f} s left  "
+            f"({record['id']}: {record['status']})\n"
         )
-        if self.tty:
-            self.stream.write("\r" + msg + ("\n" if left == 0 else ""))
-        else:
-            self.stream.write(f"{msg}  ({record['id']}: {record['status']})\n")
         self.stream.flush()
 
 
