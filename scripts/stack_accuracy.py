@@ -6,11 +6,14 @@
 (dephasing pass on, no band); ``turbulent`` (a straight pipe with the Re_tau 549 DNS profile in every slice)
 with the default beta rule, as the near-wall layer needs its BIC beta. "independent": ``--z-smoothing 0``;
 "z-regularized": the default (second differences, l = one slice spacing);
-"z-reg., first order": ``z_order = 1``. Errors are means over all slices and
+"z-reg., first order": ``z_order = 1``; for ``turbulent`` also "z-reg., plain basis" (``--near-wall off``:
+what z-regularized stacks did before they took the near-wall layer). Errors are means over all slices and
 seeds (max over slices in parentheses). Writes ``scripts/results/stack_accuracy.md``.
 
     python scripts/stack_accuracy.py [--seeds 3]
 """
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -38,14 +41,20 @@ def main(argv=None):
     ]
     for case in args.cases.split(","):
         for snr in (float(s) for s in args.snr.split(",")):
-            for name, st in VARIANTS.items():
+            variants = dict(VARIANTS)
+            if case == "turbulent":
+                variants["z-reg., plain basis"] = stack.StackOptions()
+            for name, st in variants.items():
                 rad_e, wss_e, bias = [], [], []
                 for seed in range(args.seeds):
                     acq, truth = phantoms.make_stack(
                         case, nz=12, h_mm=float(args.h), spacing_mm=2.0, snr=snr, seed=seed
                     )
                     rule = "balance" if case == "turbulent" else "fixed"
-                    res = reconstruct(acq, ReconstructionOptions(uncertainty=False, stack=st, beta_rule=rule))
+                    options = ReconstructionOptions(uncertainty=False, stack=st, beta_rule=rule)
+                    if name == "z-reg., plain basis":
+                        options = replace(options, velocity=replace(options.velocity, near_wall="off"))
+                    res = reconstruct(acq, options)
                     for r, t in zip(res, truth.slices):
                         e = metrics.compare_slice(r, t)
                         rad_e.append(e.radius_rel_l2)

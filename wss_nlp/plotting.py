@@ -432,6 +432,9 @@ def figure_cine(series, times_ms, truth_tau=None):
     ax = axes[2]
     ax.plot(deg, series.tawss, label="TAWSS [Pa]")
     ax.set(xlabel="wall angle phi [deg]", ylabel="TAWSS [Pa]", title="TAWSS and OSI around the wall")
+    finite = series.tawss[np.isfinite(series.tawss)]
+    if finite.size:  # from zero: a per-mille ripple must not fill the axis as if it were a pattern
+        ax.set_ylim(0.0, 1.1 * max(float(finite.max()), 1e-12))
     twin = ax.twinx()
     twin.plot(deg, series.osi, color="C3", label="OSI")
     twin.set_ylim(0, 0.5)
