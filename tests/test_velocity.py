@@ -52,3 +52,18 @@ def test_partial_volumes_sum_to_lumen_area():
     vp = vel.assemble(grid, np.zeros(grid.shape), np.array([9.0]), (0.1, 0.05), opt)
     # midpoint rule with 8x8 points per 0.4 mm voxel: area error ~ perimeter * h/8 / 4 ~ 0.5 mm^2
     assert vp.area == pytest.approx(np.pi * 81, abs=1.0)
+
+
+def test_one_built_ipopt_solver_serves_every_beta(problem):
+    """beta is a parameter of the velocity NLP (as alpha of the geometry's): the solver is built once per
+    problem and, called at three betas six decades apart, equals the Cholesky solution at each (1e-7 relative:
+    IPOPT's tolerance 1e-12 on a convex quadratic)."""
+    acq, g = problem
+    opt = vel.VelocityOptions(solver="ipopt")
+    vp = vel.assemble(acq.grid, acq.velocity_images()[0], g.coefficients, g.center, opt)
+    built = vp.ipopt
+    for beta in (1e-9, 1e-6, 1e-3):
+        a = vel.solve(vp, opt, beta=beta)
+        b = vel.solve_cholesky(vp, beta)
+        assert vp.ipopt is built and a.stats.converged
+        assert np.linalg.norm(a.coefficients - b) <= 1e-7 * np.linalg.norm(b)

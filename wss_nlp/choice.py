@@ -364,11 +364,17 @@ def choose_layer(
         tried.append(("plain", float("nan"), plain))
     stretch = nw.stretch(vp.disk_map)
 
+    scored: dict = {}  # the searches revisit their final scale; the cell means are the expensive part
+
     def score(family, log_ratio):
-        basis = nw.EnrichedBasis(vp.basis, family, 2.0**log_ratio * big_r / stretch)
-        crit, beta, coef = criterion(quad.columns(basis))
-        tried.append((family, 2.0**log_ratio, crit))
-        return crit, basis, beta, coef
+        key = (family, float(log_ratio))
+        if key not in scored:
+            basis = nw.EnrichedBasis(vp.basis, family, 2.0**log_ratio * big_r / stretch)
+            columns = quad.columns(basis)
+            crit, beta, coef = criterion(columns)
+            tried.append((family, 2.0**log_ratio, crit))
+            scored[key] = (crit, basis, beta, coef, columns)
+        return scored[key][:4]
 
     if around is not None and around.model in nw.FAMILIES:
         families: tuple = (around.model,)
@@ -392,7 +398,7 @@ def choose_layer(
         if family in notes and notes[family].startswith("the BIC's"):
             # a scale fitted to the data is one more parameter, which tr(H^-1 K) does not count
             crit += criterion.log_n
-        problem = vp.with_layer(basis, quad.columns(basis), vopt.laplacian_power)
+        problem = vp.with_layer(basis, scored[family, float(x)][4], vopt.laplacian_power)
         best[family] = (crit, 2.0**x * big_r, problem, beta)
     # the paper's model is the null hypothesis: a layer must be preferred by "very strong" evidence
     penalty = {m: (nw.LAYER_EVIDENCE if m != "plain" else 0.0) for m in best}

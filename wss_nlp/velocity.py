@@ -201,6 +201,11 @@ class VelocityProblem:
         """The problem's normal equations and parameter grids (:class:`wss_nlp.tikhonov.LinearTikhonov`)."""
         return LinearTikhonov(self.operator, self.weights, self.data, self.gram)
 
+    @cached_property
+    def ipopt(self) -> ca.Function:
+        """The functional's IPOPT solver, beta its parameter (:func:`ipopt_solver`; built on first use)."""
+        return ipopt_solver(self)
+
     def with_layer(self, basis, columns: np.ndarray, laplacian_power: int) -> VelocityProblem:
         """The problem in an enriched basis (:class:`wss_nlp.near_wall.EnrichedBasis`) whose extra voxel means are
         ``columns``: the same voxels, data and map, no re-assembly."""
@@ -320,22 +325,33 @@ def voxel_values(problem: VelocityProblem, point_values: np.ndarray) -> np.ndarr
     return np.where(keep[:, None], problem.averager(full) / np.where(keep, signal, 1.0)[:, None], 0.0)
 
 
-def build_tikhonov(problem: VelocityProblem, beta: float):
-    """CasADi expression of the velocity functional; returns ``(c, f)``.
+def build_tikhonov(problem: VelocityProblem):
+    """CasADi expression of the velocity functional; returns ``(c, beta, f)``, beta a symbol.
 
     Notes
     -----
     The misfit ``|W^{1/2}(T c - u)|^2 / A`` is expanded exactly as
     ``c^T (T^T W T) c / A - 2 c^T T^T W u / A + u^T W u / A`` so the graph
     holds ``n_basis^2`` numbers instead of the ``n_voxels x n_basis``
-    operator; the value is the same functional.
+    operator; the value is the same functional, eq. (tik2):
+    ``f = c^T K c - 2 g^T c + u^T W u / A + (beta / pi) c^T G c``.
+    beta is a parameter of the graph, as alpha is of the geometry's, so one
+    built solver serves every beta (:attr:`VelocityProblem.ipopt`).
     """
     c = ca.MX.sym("c", problem.operator.shape[1])  # MX: matrix products stay single nodes
-    hmat, g = problem.normal_equations(beta)
-    quad, lin = ca.DM(hmat), ca.DM(g)
+    beta = ca.MX.sym("beta")
+    tk = problem.tikhonov
     const = float(problem.data @ (problem.weights * problem.data) / problem.area)
-    f = ca.dot(c, ca.mtimes(quad, c)) - 2 * ca.dot(lin, c) + const
-    return c, f
+    f = ca.dot(c, ca.mtimes(ca.DM(tk.normal), c)) - 2 * ca.dot(ca.DM(tk.rhs), c) + const
+    f = f + beta / np.pi * ca.dot(c, ca.mtimes(ca.DM(problem.gram), c))
+    return c, beta, f
+
+
+def ipopt_solver(problem: VelocityProblem) -> ca.Function:
+    """The IPOPT solver of :func:`build_tikhonov` with beta as its parameter ``p`` (built once per problem)."""
+    c, beta, f = build_tikhonov(problem)
+    opts = ipopt_options(1e-12, 50, {"ipopt.hessian_constant": "yes"})
+    return ca.nlpsol("velocity", "ipopt", {"x": c, "p": beta, "f": f}, opts)
 
 
 def solve_cholesky(problem: VelocityProblem, beta: float) -> np.ndarray:
@@ -349,10 +365,8 @@ def solve(problem: VelocityProblem, options: VelocityOptions, beta: float | None
 
     beta = options.beta if beta is None else beta
     if options.solver == "ipopt":
-        c, f = build_tikhonov(problem, beta)
-        opts = ipopt_options(1e-12, 50, {"ipopt.hessian_constant": "yes"})
-        solver = ca.nlpsol("velocity", "ipopt", {"x": c, "f": f}, opts)
-        sol, stats = run_nlpsol(solver, "velocity (IPOPT)", x0=np.zeros(problem.operator.shape[1]))
+        x0 = np.zeros(problem.operator.shape[1])
+        sol, stats = run_nlpsol(problem.ipopt, "velocity (IPOPT)", x0=x0, p=float(beta))
         coef = np.asarray(sol["x"]).ravel()
     else:
         t0 = time.perf_counter()
