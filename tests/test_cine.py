@@ -242,3 +242,19 @@ def test_phantom_cli_writes_breathing_elliptic_and_small_pipes_and_refuses_what_
         assert main([*argv, *bad, "-o", str(tmp_path / "bad.h5")]) == 2
     assert main(["phantom", "--case", "laminar", "--distension", "0.1", "-o", str(tmp_path / "bad.h5")]) == 2
     assert not (tmp_path / "bad.h5").exists()
+
+
+def test_equal_area_radius_of_the_walls():
+    """cine.equal_area_radius: sqrt(mean R(phi)^2) per wall, averaged over the walls: a circle's radius, and for
+    an ellipse (a, b) = (11.5, 10/1.15) in its polar Fourier form (degree 20) the equal-area radius sqrt(a b) to
+    1e-6 relative (the truncation of the Fourier series)."""
+    from wss_nlp import radius as rad
+
+    circle = np.zeros(rad.n_coefficients(4))
+    circle[0] = 3.0
+    assert cine.equal_area_radius(np.array([circle, 2 * circle])) == pytest.approx(4.5, rel=1e-12)
+    a, b = 11.5, 10 / 1.15
+    phi = rad.uniform_angles(512)
+    r = a * b / np.sqrt((b * np.cos(phi)) ** 2 + (a * np.sin(phi)) ** 2)
+    coefficients = np.linalg.lstsq(rad.design_matrix(phi, 20), r, rcond=None)[0]
+    assert cine.equal_area_radius(coefficients[None]) == pytest.approx(np.sqrt(a * b), rel=1e-6)

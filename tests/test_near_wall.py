@@ -284,16 +284,17 @@ def test_band_with_the_chosen_scale_includes_the_scales_spread():
     assert 0.6 < np.std(means, ddof=1) / first.wss.mean_std < 1.6
 
 
-def test_stacks_keep_z_regularization_with_auto_and_say_the_layer_is_not_used():
+def test_z_regularized_stacks_choose_the_near_wall_model_per_slice():
+    """A laminar tapered stack with --near-wall auto stays z-regularized and every slice records its choice
+    (plain, as single laminar slices); a forced family is taken on every slice of a z-regularized stack (it
+    was refused before stacks took layers; the turbulent case is tests/test_stack.py)."""
     acq, _ = phantoms.make_stack("tapered", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=1)
     opts = ReconstructionOptions(uncertainty=False, velocity=vel.VelocityOptions(near_wall="auto"))
     results = reconstruct(acq, opts)
     assert results.stack is not None  # still z-regularized
-    assert any("plain velocity basis" in n for r in results for n in r.notes)
-    with pytest.raises(InputError, match="near-wall"):
-        reconstruct(
-            acq,
-            replace(
-                opts, velocity=vel.VelocityOptions(near_wall="wall_law"), stack=replace(opts.stack, z_smoothing_mm=2.0)
-            ),
-        )
+    assert all(r.near_wall is not None and r.near_wall.model == "plain" for r in results)
+    forced = replace(
+        opts, velocity=vel.VelocityOptions(near_wall="exponential"), stack=replace(opts.stack, z_smoothing_mm=2.0)
+    )
+    results = reconstruct(acq, forced)
+    assert results.stack is not None and all(r.near_wall.model == "exponential" for r in results)

