@@ -408,11 +408,12 @@ def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float,
     if ns == 1:
         return c, 0, [0.0]
     coupling = kappa_v * gram0 / np.pi
+    base = np.array([ck[:m] for ck in c])  # the z-coupled coefficients of every slice, kept current
 
     def pull(k: int) -> np.ndarray:
         """``[G0 s_k; 0]``: what slice k's neighbours add to its right-hand side."""
         out = np.zeros(c[k].size)
-        out[:m] = coupling @ neighbour_terms(zop, np.array([ck[:m] for ck in c]), k)[0]
+        out[:m] = coupling @ neighbour_terms(zop, base, k)[0]
         return out
 
     history = []
@@ -420,6 +421,7 @@ def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float,
         for k in sweep_order(ns):
             new = scipy.linalg.cho_solve(factors[k], system[k][1] + pull(k))
             c[k] = c[k] + RELAX * (new - c[k])
+            base[k] = c[k][:m]
         # relative residual of the coupled normal equations
         r = max(
             np.linalg.norm(system[k][0] @ c[k] - system[k][1] - pull(k)) / max(np.linalg.norm(system[k][1]), 1e-300)
