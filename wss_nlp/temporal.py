@@ -26,8 +26,9 @@ unknowns took 0.3 s). :math:`\gamma \to 0` gives the frames' own fits back.
 
 Notes
 -----
-Choice of :math:`\gamma` (:func:`fit`): Schwarz's criterion :math:`\nu\chi^2 + \ln(\nu N)\,\mathrm{dof}` over
-:data:`GAMMAS`, :math:`\chi^2 = \sum_k \|T_k v_k - u_k\|^2_{\Sigma_k^{-1}}` with the per-voxel noise and
+Choice of :math:`\gamma` (:func:`fit`, decades downhill from :data:`LOG_GAMMA_START`, then half decades):
+Schwarz's criterion :math:`\nu\chi^2 + \ln(\nu N)\,\mathrm{dof}`,
+:math:`\chi^2 = \sum_k \|T_k v_k - u_k\|^2_{\Sigma_k^{-1}}` with the per-voxel noise and
 :math:`\mathrm{dof} = \operatorname{tr}(H^{-1}\operatorname{blockdiag}_k K_k)` (the smoother's trace): the
 criterion of the frames' own fits and of the momentum model (:mod:`wss_nlp.womersley`) it competes with.
 Per-frame :math:`\beta_k` matter: one :math:`\beta` for all frames (which would let a temporal DFT decouple
