@@ -108,10 +108,6 @@ class _System:
         self.d = d2.T @ d2  # couples frames at most two apart (periodically)
         self.g0 = problems[0].basis.laplacian_gram(0) / np.pi
 
-    def dense(self, gamma: float) -> np.ndarray:
-        """The whole normal matrix (the band's covariance needs whole rows of its inverse)."""
-        return scipy.linalg.block_diag(*self.own) + gamma * np.kron(self.d, self.g0)
-
     def blocks(self, x: np.ndarray) -> np.ndarray:
         return x.reshape(len(self.problems), self.m)
 
@@ -154,9 +150,9 @@ class _BandedFactor:
             raise SolverError(f"temporal prior: the normal matrix is not positive definite at gamma {gamma:g}") from exc
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
-        """``H^-1 rhs`` (frame order in, frame order out)."""
+        """``H^-1 rhs`` for a vector or the columns of a matrix (frame order in, frame order out)."""
         n, m, b, o = self.n, self.m, self.BAND, self.order
-        x = [np.asarray(rhs[k * m : (k + 1) * m], dtype=float).copy() for k in o]
+        x = [np.array(rhs[k * m : (k + 1) * m], dtype=float) for k in o]
         for i in range(n):  # L y = x
             for j in range(max(0, i - b), i):
                 x[i] -= self.lower[i, j] @ x[j]
@@ -165,7 +161,7 @@ class _BandedFactor:
             for r in range(i + 1, min(n, i + b + 1)):
                 x[i] -= self.lower[r, i].T @ x[r]
             x[i] = scipy.linalg.solve_triangular(self.lower[i, i], x[i], lower=True, trans="T")
-        out = np.empty(n * m)
+        out = np.empty(np.shape(rhs))
         for i, k in enumerate(o):
             out[k * m : (k + 1) * m] = x[i]
         return out
@@ -210,13 +206,14 @@ def fit(problems: list[VelocityProblem], betas, sigmas, nu: float, log_n: float)
     ``betas`` are the frames' own Tikhonov weights, ``sigmas`` their per-voxel noise (one array per frame),
     ``nu`` the effective fraction of independent voxels, ``log_n`` the criterion's ``ln(nu N)`` (shared with
     the models it competes with). gamma: decades from :data:`LOG_GAMMA_START` downhill until the criterion
-    rises, then the half decades beside the best (each value one Cholesky factorization and one triangular
-    inverse for the trace).
+    rises, then the half decades beside the best (each value one banded block factorization, and the trace
+    from the inverse's diagonal blocks, :class:`_BandedFactor`).
     """
     system = _System(problems, betas)
     inv_var = [1.0 / np.asarray(s, dtype=float) ** 2 for s in sigmas]
     curve: dict = {}
     solutions: dict = {}  # log gamma -> (coefficients, chi2, dof)
+    factors: dict = {}  # the best factor so far, which the band reuses
 
     def criterion(log_gamma: float) -> float:
         if log_gamma not in curve:
@@ -226,6 +223,9 @@ def fit(problems: list[VelocityProblem], betas, sigmas, nu: float, log_n: float)
             dof = sum(float(np.sum(z * kk)) for z, kk in zip(factor.inverse_diagonal(), system.normal))
             curve[log_gamma] = nu * chi2 + log_n * dof
             solutions[log_gamma] = (v, chi2, dof)
+            if not factors or curve[log_gamma] < min(curve[x] for x in factors):
+                factors.clear()
+                factors[log_gamma] = factor
         return curve[log_gamma]
 
     coarse, fine = LOG_GAMMA_STEPS
@@ -242,18 +242,21 @@ def fit(problems: list[VelocityProblem], betas, sigmas, nu: float, log_n: float)
     v, chi2, dof = solutions[best]
     table = {10.0**x: float(curve[x]) for x in sorted(curve)}
     gamma = 10.0**best
-    return PriorFit(gamma, system.betas, v, lambda: _covariance(system, gamma, sigmas) / nu, float(curve[best]),
+    factor = factors[best]
+    return PriorFit(gamma, system.betas, v, lambda: _covariance(system, factor, sigmas) / nu, float(curve[best]),
                     chi2, dof, table)  # fmt: skip
 
 
-def _covariance(system: _System, gamma: float, sigmas) -> np.ndarray:
-    """Each frame's block of ``H^-1 blockdiag(T_k^T W_k Sigma_k W_k T_k) H^-1`` (module notes)."""
+def _covariance(system: _System, factor: _BandedFactor, sigmas) -> np.ndarray:
+    """Each frame's block of ``H^-1 blockdiag(T_k^T W_k Sigma_k W_k T_k) H^-1`` (module notes), from the
+    factor: frame k's block column of ``H^-1`` (= its block row transposed) by one solve with ``m`` columns."""
     n, m = len(system.problems), system.m
-    inverse = scipy.linalg.cho_solve(scipy.linalg.cho_factor(system.dense(gamma)), np.eye(n * m))
     middle = [tw.T @ (np.asarray(s, dtype=float)[:, None] ** 2 * tw) for tw, s in zip(system.tw, sigmas)]
     out = np.empty((n, m, m))
+    unit = np.zeros((n * m, m))
     for k in range(n):
-        rows = inverse[k * m : (k + 1) * m]  # (m, n m)
-        left = np.concatenate([rows[:, j * m : (j + 1) * m] @ middle[j] for j in range(n)], axis=1)
-        out[k] = left @ rows.T
+        unit[k * m : (k + 1) * m] = np.eye(m)
+        columns = factor.solve(unit)  # (n m, m): H^-1 E_k
+        unit[k * m : (k + 1) * m] = 0.0
+        out[k] = sum(columns[j * m : (j + 1) * m].T @ middle[j] @ columns[j * m : (j + 1) * m] for j in range(n))
     return out

@@ -27,7 +27,7 @@ from . import kspace
 from . import measurement as meas
 from . import near_wall as nw
 from . import radius as rad
-from .errors import InputError
+from .errors import InputError, SolverError
 from .mapping import DiskMap
 from .schema import option
 from .solver import SolverStats, ipopt_options, run_nlpsol
@@ -399,8 +399,9 @@ def effective_parameters(problem: VelocityProblem, beta: float) -> float:
 
     Near the number of voxels the fit interpolates the noise (:attr:`wss_nlp.results.SliceResult.warnings`).
     """
-    tk = problem.tikhonov
-    try:
-        return float(np.trace(np.linalg.solve(tk.hessian(beta), tk.normal)))
-    except np.linalg.LinAlgError:
+    if not beta > 0:
+        return float("nan")
+    try:  # the beta rules have usually built the pencil this needs already
+        return float(problem.tikhonov.traces([beta])[0])
+    except SolverError:
         return float("nan")
