@@ -112,10 +112,10 @@ def _phantom_cine(args) -> int:
     if args.pipe_radius is not None and not args.pipe_radius > 0:
         raise InputError(f"--pipe-radius must be > 0 mm, got {args.pipe_radius}")
     snr = None if args.snr <= 0 else args.snr
-    shape = {} if args.pipe_radius is None else {"radius_mm": args.pipe_radius}
+    radius = {} if args.pipe_radius is None else {"radius_mm": args.pipe_radius}
     frames, truth = pulsatile.make_cine(
         h_mm=args.h, snr=snr, seed=args.seed, frames=args.frames, venc=args.venc, psf=_phantom_psf(args),
-        distension=args.distension or 0.0, shape=args.shape or "circle", **shape,
+        distension=args.distension or 0.0, shape=args.shape or "circle", **radius,
     )  # fmt: skip
     wio.write_frames(args.output, frames, truth.times_ms, truth.period_ms)
     if args.truth:
