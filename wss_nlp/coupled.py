@@ -504,7 +504,9 @@ def build(
             f"(got {vopt.eta}); use --eta 2 or --method decoupled"
         )
     gamma = ca.MX.sym("gamma")  # an NLP parameter (value: the geometry's gamma) so sensitivities can reach it
-    gnlp = geo.build_tikhonov(geometry_problem, gopt, gamma_symbol=gamma)
+    # the box model's Jacobian by the chain rule (BLAS); the k-space one keeps CasADi's AD in the symbolic gamma
+    box_model = geometry_problem.psf is None
+    gnlp = geo.build_tikhonov(geometry_problem, gopt, gamma_symbol=gamma, separable_jacobian=box_model)
     n_r = gnlp.c.numel()
     c_v = ca.MX.sym("c_v", basis.size)
     x = ca.vertcat(gnlp.c, c_v)
@@ -528,7 +530,7 @@ def build(
     alpha_pen = alpha * gnlp.penalty
     f = ca.sumsqr(gnlp.residual) + alpha_pen + weight * (ca.sumsqr(res_v) + beta * pen_v)
     residual = ca.vertcat(gnlp.residual, np.sqrt(weight) * res_v)
-    jac_m = ca.jacobian(gnlp.residual, gnlp.c)
+    jac_m = ca.jacobian(gnlp.residual, gnlp.c) if gnlp.jacobian is None else gnlp.jacobian
     jacobian = ca.vertcat(
         ca.horzcat(jac_m, ca.MX(jac_m.shape[0], basis.size)), np.sqrt(weight) * ca.horzcat(jac_vr, jac_vv)
     )

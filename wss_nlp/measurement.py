@@ -12,7 +12,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse
@@ -20,6 +20,7 @@ import scipy.special
 
 import casadi as ca
 
+from . import operators
 from . import radius as rad
 
 
@@ -150,6 +151,18 @@ class AnnulusModel:
     rho: np.ndarray  # (n_annulus, q^2) distances of quadrature points to the centre
     phi: np.ndarray  # (n_annulus, q^2) polar angles of quadrature points
     order: int
+    # the radius basis at the points as BLAS-evaluated CasADi maps (built on first symbolic use, per size of c)
+    operators: dict = field(default_factory=dict)
+
+    def basis_maps(self, n_fourier: int) -> tuple[operators.MatrixProduct, operators.GroupedWeightedSum]:
+        """``c -> R(phi_j)`` at the points and ``s -> (1/q^2) sum_j s_j b(phi_j)`` per voxel (kept here)."""
+        if n_fourier not in self.operators:
+            basis = rad.design_matrix(self.phi.ravel(), n_fourier)
+            self.operators[n_fourier] = (
+                operators.MatrixProduct(basis),
+                operators.GroupedWeightedSum(basis, self.rho.shape[1]),
+            )
+        return self.operators[n_fourier]
 
 
 def annulus_model(grid: VoxelGrid, center, r0: float, r1: float, order: int) -> AnnulusModel:
@@ -169,7 +182,18 @@ def annulus_model(grid: VoxelGrid, center, r0: float, r1: float, order: int) -> 
     )
 
 
-def magnitude_model(model: AnnulusModel, coefficients, gamma: float, heaviside: str = "erf"):
+def heaviside_slope(x, gamma, kind: str = "erf"):
+    """``H_gamma'(x)``, the derivative of :func:`smoothed_heaviside` in ``x`` (NumPy or CasADi)."""
+    sym = isinstance(x, (ca.SX, ca.MX, ca.DM))
+    t = x / gamma
+    if kind == "arctan":
+        return 1 / (np.pi * gamma * (1 + t * t))
+    if kind == "erf":
+        return (ca.exp(-t * t) if sym else np.exp(-t * t)) / (np.sqrt(np.pi) * gamma)
+    raise ValueError(f"unknown smoothed Heaviside {kind!r}; choose from {HEAVISIDES}")
+
+
+def magnitude_model(model: AnnulusModel, coefficients, gamma: float, heaviside: str = "erf", jacobian: bool = False):
     """Voxel averages ``F_{gamma,h}(R)`` on the annulus voxels, eq. (discForw).
 
     Notes
@@ -177,8 +201,9 @@ def magnitude_model(model: AnnulusModel, coefficients, gamma: float, heaviside: 
     ``F_i = (1/q^2) sum_j H_gamma(R(phi(xi_j)) - |xi_j|)`` over the ``q x q``
     midpoint points ``xi_j`` of voxel ``V_i`` (relative to the centre).
     The radius is linear in the coefficients, ``R(phi_j) = B_j c``, so the
-    expression is one dense matrix product, a pointwise arctan and a block
-    sum: cheap to build and to differentiate as a CasADi ``MX`` graph.
+    expression is one dense matrix product (BLAS,
+    :class:`wss_nlp.operators.MatrixProduct`), a pointwise ``H_gamma`` and
+    a block sum: cheap to build and to differentiate as a CasADi ``MX`` graph.
 
     Parameters
     ----------
@@ -188,12 +213,25 @@ def magnitude_model(model: AnnulusModel, coefficients, gamma: float, heaviside: 
         Smoothing width of the Heaviside function in mm.
     heaviside : {"erf", "arctan"}
         Shape of ``H_gamma`` (see :func:`smoothed_heaviside`).
+    jacobian : bool
+        Symbolic ``MX`` only: also return ``dF/dc`` by the chain rule,
+        ``dF_i/dc = q^{-2} sum_j H_gamma'(R(phi_j) - |xi_j|) b(phi_j)^T``
+        (:class:`wss_nlp.operators.GroupedWeightedSum`): the Gauss-Newton
+        solver's form, one pass over the points instead of CasADi's forward
+        sweeps, one per coefficient.
     """
     n_vox, nq = model.rho.shape
     symbolic = isinstance(coefficients, (ca.MX, ca.SX))
     n = rad.n_fourier_from_size(coefficients.numel() if symbolic else np.size(coefficients))
+    if isinstance(coefficients, ca.MX):
+        radius_at, chain = model.basis_maps(n)
+        gap = radius_at(coefficients) - ca.DM(model.rho.ravel())
+        predicted = (ca.sum1(ca.reshape(smoothed_heaviside(gap, gamma, heaviside), nq, n_vox)) / nq).T
+        if not jacobian:
+            return predicted
+        return predicted, ca.reshape(chain(heaviside_slope(gap, gamma, heaviside)), n_vox, 2 * n + 1)
     basis = rad.design_matrix(model.phi.ravel(), n)
-    if symbolic:
+    if symbolic:  # SX: no callbacks
         r_at = ca.mtimes(ca.DM(basis), coefficients)
         vals = smoothed_heaviside(r_at - ca.DM(model.rho.ravel()), gamma, heaviside)
         return (ca.sum1(ca.reshape(vals, nq, n_vox)) / nq).T

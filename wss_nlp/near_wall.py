@@ -332,6 +332,7 @@ class LayerQuadrature:
         inside = cell_mean("inside", self.depth, self.half_x, self.half_y)
         self.area = np.sum(inside, axis=1)
         self.averager = problem.averager
+        self._angular_cache: dict = {}
         if self.averager is not None:
             self.keep = problem.weights > 0
             self.psf_area = np.where(self.keep, self.averager(inside), 1.0)
@@ -349,20 +350,23 @@ class LayerQuadrature:
         """``d/d(log l)`` of :meth:`columns` (the scale of the column factor included)."""
         return basis.dlog_column_scale * self._means(basis, moment=False) - self._means(basis, moment=True)
 
+    def _angular(self, terms: tuple) -> np.ndarray:
+        """``rho^m cos(m t)`` / ``rho^m sin(m t)`` at every cell, ``(n_voxels, n_cells, n_terms)`` (kept: no scale)."""
+        if terms not in self._angular_cache:
+            rho = np.minimum(self.rho, 1.0)
+            self._angular_cache[terms] = np.stack(
+                [rho**m * (np.cos(m * self.t) if kind == "cos" else np.sin(m * self.t)) for m, kind in terms], axis=-1
+            )
+        return self._angular_cache[terms]
+
     def _means(self, basis: EnrichedBasis, moment: bool) -> np.ndarray:
         ell = basis.scale * self.stretch  # mm
         f = cell_mean(basis.family, self.depth / ell, self.half_x / ell, self.half_y / ell, moment=moment)
         f = f * basis.column_scale
-        rho = np.minimum(self.rho, 1.0)
-        cells = np.stack(
-            [
-                f * rho**m * (np.cos(m * self.t) if kind == "cos" else np.sin(m * self.t))
-                for m, kind in basis.layer_terms
-            ],
-            axis=-1,
-        )
+        angular = self._angular(tuple(basis.layer_terms))
         if self.averager is None:
-            return cells.sum(axis=1) / self.area[:, None]
+            return np.einsum("vc,vct->vt", f, angular) / self.area[:, None]
+        cells = f[..., None] * angular
         # k-space: the PSF image of the cell integrals over the image of the cells' lumen parts (as T_i)
         return np.where(self.keep[:, None], self.averager(cells) / self.psf_area[:, None], 0.0)
 

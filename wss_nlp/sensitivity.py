@@ -7,7 +7,8 @@ CasADi:
 1. geometry: ``c_R(p_g)`` minimizes the Tikhonov functional of Sec. 2 with
    parameters ``p_g = (m, alpha, gamma, centre)``; its derivative comes from
    the implicit function theorem on the KKT system, with the exact Hessian
-   from CasADi per-voxel derivatives and the active set read from IPOPT's
+   assembled by the chain rule from CasADi's pointwise derivatives (of
+   ``H_gamma`` and of the polar coordinates) and the active set read from IPOPT's
    multipliers (run with ``clip_inactive_lam``, so that the tiny multipliers
    IPOPT returns for inactive box constraints are not mistaken for active ones);
 2. velocity: ``c_v = H(c_R, beta)^{-1} T(c_R)^T W u / A``; its normal
@@ -120,47 +121,51 @@ class Sensitivity:
 
 
 # --------------------------------------------------------------------------- symbolic pieces
-@functools.lru_cache(maxsize=16)  # the balancing alpha rule evaluates it at ~20 alphas; building it is the cost
-def voxel_model_function(n_fourier: int, order: int, heaviside: str) -> ca.Function:
-    """Per-voxel ``F_i(z)`` with ``z = [c_R; gamma; c_x; c_y]``, its gradient and Hessian in z (SX).
+@functools.lru_cache(maxsize=4)
+def heaviside_pieces(heaviside: str) -> ca.Function:
+    r"""Per point: ``H_gamma(g)`` and its derivatives ``H'``, ``H''``, ``dH/dgamma``, ``dH'/dgamma`` (SX).
 
-    Inputs ``(z, x_pts, y_pts)`` with the ``order^2`` sub-voxel points; the
-    same model as eq. (discForw) in :func:`wss_nlp.measurement.magnitude_model`
-    with the polar coordinates about a variable centre.
+    Inputs ``(g, gamma)``, rows of points (CasADi maps the scalar function
+    over them); the derivatives are CasADi's exact ones of
+    :func:`wss_nlp.measurement.smoothed_heaviside`.
     """
-    n_r = rad.n_coefficients(n_fourier)
-    z = ca.SX.sym("z", n_r + 3)
-    xs, ys = ca.SX.sym("x", order * order), ca.SX.sym("y", order * order)
-    c_r, gam, cx, cy = z[:n_r], z[n_r], z[n_r + 1], z[n_r + 2]
-    total = 0
-    for j in range(order * order):
-        dx, dy = xs[j] - cx, ys[j] - cy
-        big_r = rad.symbolic(c_r, ca.atan2(dy, dx))
-        total += meas.smoothed_heaviside(big_r - ca.sqrt(dx * dx + dy * dy), gam, heaviside)
-    f = total / (order * order)
-    hess, grad = ca.hessian(f, z)
-    return ca.Function("voxel", [z, xs, ys], [f, grad, ca.vec(hess)])
+    g, w = ca.SX.sym("g"), ca.SX.sym("gamma")
+    h = meas.smoothed_heaviside(g, w, heaviside)
+    d1 = ca.jacobian(h, g)
+    return ca.Function("heaviside", [g, w], [h, d1, ca.jacobian(d1, g), ca.jacobian(h, w), ca.jacobian(d1, w)])
 
 
-@functools.lru_cache(maxsize=16)  # the same for every slice of a radius space: build once
-def point_map_function(n_fourier: int) -> ca.Function:
-    """Per sub-voxel point: ``rho`` of the inverse map (eta = 2) and ``t``, with gradients (SX).
+@functools.lru_cache(maxsize=1)
+def polar_pieces() -> ca.Function:
+    """Per point ``(x, y)`` about the centre ``(c_x, c_y)``: ``r``, ``t`` and their derivatives in the centre (SX).
 
-    Inputs ``(c_R, r_in, c_x, c_y, x, y)``; ``d rho / d [c_R; r_in; c_x; c_y]``
-    and ``d t / d [c_x; c_y]``.
+    Outputs ``(r, t, dr/dc_x, dr/dc_y, dt/dc_x, dt/dc_y)`` with ``t = atan2(y - c_y, x - c_x)``.
     """
-    n_r = rad.n_coefficients(n_fourier)
-    c_r, r_in = ca.SX.sym("c_R", n_r), ca.SX.sym("r_in")
-    cx, cy, x, y = ca.SX.sym("cx"), ca.SX.sym("cy"), ca.SX.sym("x"), ca.SX.sym("y")
+    x, y, cx, cy = (ca.SX.sym(v) for v in ("x", "y", "cx", "cy"))
     dx, dy = x - cx, y - cy
-    r = ca.sqrt(dx * dx + dy * dy)
-    t = ca.atan2(dy, dx)
-    big_r = rad.symbolic(c_r, t)
+    r, t = ca.sqrt(dx * dx + dy * dy), ca.atan2(dy, dx)
+    parts = [ca.jacobian(v, u) for v in (r, t) for u in (cx, cy)]
+    return ca.Function("polar", [x, y, cx, cy], [r, t, *parts])
+
+
+@functools.lru_cache(maxsize=1)
+def inverse_map_pieces() -> ca.Function:
+    """Per point: ``rho`` of the inverse map (eta = 2) from ``(r, R, r_in)`` and its three partial derivatives (SX)."""
+    r, big_r, r_in = ca.SX.sym("r"), ca.SX.sym("R"), ca.SX.sym("r_in")
     rho = 2 * r / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * r))
-    args = ca.vertcat(c_r, r_in, cx, cy)
     return ca.Function(
-        "point", [c_r, r_in, cx, cy, x, y], [rho, ca.gradient(rho, args), t, ca.gradient(t, ca.vertcat(cx, cy))]
+        "rho", [r, big_r, r_in], [rho, ca.jacobian(rho, r), ca.jacobian(rho, big_r), ca.jacobian(rho, r_in)]
     )
+
+
+def _rows(fun: ca.Function, *args) -> list[np.ndarray]:
+    """``fun`` on every point (array arguments: one value per point; scalars shared), outputs as flat arrays.
+
+    An explicit ``map`` (about 15x faster than calling ``fun`` on rows, which maps implicitly per call).
+    """
+    n = max(np.size(a) for a in args)
+    rows = [a if np.isscalar(a) else np.ravel(a)[None, :] for a in args]
+    return [np.asarray(v).ravel() for v in fun.map(n)(*rows)]
 
 
 @functools.lru_cache(maxsize=16)  # bases are cached objects (velocity_basis.make_basis): one build per setting
@@ -185,34 +190,51 @@ def geometry_parameter_derivatives(
     ``H = 2 |V| sum (grad_c F_i grad_c F_i^T + r_i hess_cc F_i) + 2 alpha W``,
     ``dgrad/dm_i = -2 |V| grad_c F_i``, ``dgrad/dalpha = 2 W (c - c_ref)``,
     ``dgrad/dq = 2 |V| sum (d_q F_i grad_c F_i + r_i d_q grad_c F_i)`` for
-    ``q`` in ``(gamma, c_x, c_y)``; all derivatives of ``F_i`` are CasADi's
-    exact ones (:func:`voxel_model_function`). Returns ``(H, dgrad, annulus)``.
+    ``q`` in ``(gamma, c_x, c_y)``. ``F_i`` is the mean over the voxel's
+    points of ``H_gamma(g_j)``, ``g_j = b(t_j)^T c - r_j`` with the polar
+    coordinates ``(r_j, t_j)`` about the centre ``u``, so by the chain rule
+    ``grad_c F_i = mean H' b``, ``d_gamma F_i = mean dH/dgamma``,
+    ``d_u F_i = mean H' dg/du`` with ``dg/du = (b'^T c) dt/du - dr/du``, and
+    ``sum_i r_i hess_cc F_i = B^T diag(w H'') B``,
+    ``sum_i r_i d_gamma grad_c F_i = B^T (w dH'/dgamma)``,
+    ``sum_i r_i d_u grad_c F_i = B^T diag(w H'') dg/du + B'^T diag(w H') dt/du``
+    (``w_j = r_i / q^2`` for the points of voxel ``i``). The pointwise
+    derivatives (of ``H_gamma`` and of the polar coordinates) are CasADi's
+    exact ones (:func:`heaviside_pieces`, :func:`polar_pieces`); the
+    products are BLAS. Returns ``(H, dgrad, annulus)``.
     """
     n = options.n_fourier
     n_r = rad.n_coefficients(n)
     q = geo.quad_order(problem, options)
     model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
     px, py = meas.subvoxel_points(problem.grid, model.annulus, q)
-    n_a = model.annulus.size
-    # called with one column per voxel, CasADi maps the function itself (building a .map costs as much as the call)
-    fun = voxel_model_function(n, q, options.heaviside)
-    z = np.concatenate([coefficients, [gamma], problem.center])
-    f_v, grad, hess = (np.asarray(a) for a in fun(z, px.T, py.T))
-    nz = z.size
-    hess = hess.reshape(nz, nz, n_a)
-    resid = f_v.ravel() - problem.magnitude.ravel()[model.annulus]
+    n_a, nq = model.annulus.size, q * q
+    # pointwise pieces from CasADi, assembled by the chain rule with BLAS (R is linear in c_R): see the notes
+    _, th, dr_dx, dr_dy, dt_dx, dt_dy = _rows(polar_pieces(), px, py, *problem.center)
+    b, b1 = rad.design_matrix(th, n), rad.design_matrix(th, n, 1)
+    gap = b @ coefficients - model.rho.ravel()
+    h0, h1, h2, hg, h1g = _rows(heaviside_pieces(options.heaviside), gap, gamma)
+    dgap_du = np.stack([(b1 @ coefficients) * dt_dx - dr_dx, (b1 @ coefficients) * dt_dy - dr_dy], axis=1)
+
+    def mean(v):  # voxel means of point values (points are stored voxel-major)
+        return v.reshape(n_a, nq, *v.shape[1:]).mean(axis=1)
+
+    resid = mean(h0) - problem.magnitude.ravel()[model.annulus]
+    g_c = mean(h1[:, None] * b).T  # (n_r, n_a): grad_c F_i
+    grad_g, grad_u = mean(hg), mean(h1[:, None] * dgap_du)  # d F_i / d gamma, d F_i / d centre
+    wr = np.repeat(resid, nq) / nq  # sum_i r_i (second derivatives of F_i) = sum_j w_j (... at point j)
     area = problem.grid.voxel_area
     w = rad.sobolev_weights(n, options.sobolev_s)
     ref = np.zeros(n_r)
     if options.prior == "area":
         ref[0] = problem.r_ref
-    g_c = grad[:n_r]  # (n_r, n_a)
-    hmat = 2 * area * (g_c @ g_c.T + np.einsum("ijk,k->ij", hess[:n_r, :n_r], resid)) + 2 * alpha * np.diag(w)
+    hmat = 2 * area * (g_c @ g_c.T + b.T @ ((wr * h2)[:, None] * b)) + 2 * alpha * np.diag(w)
     dgrad = np.zeros((n_r, n_a + 4))
     dgrad[:, :n_a] = -2 * area * g_c
     dgrad[:, n_a] = 2 * w * (coefficients - ref)
-    for col, k in ((n_a + 1, n_r), (n_a + 2, n_r + 1), (n_a + 3, n_r + 2)):
-        dgrad[:, col] = 2 * area * (g_c @ grad[k] + hess[:n_r, k] @ resid)
+    dgrad[:, n_a + 1] = 2 * area * (g_c @ grad_g + b.T @ (wr * h1g))
+    mixed_u = b.T @ ((wr * h2)[:, None] * dgap_du) + b1.T @ ((wr * h1)[:, None] * np.stack([dt_dx, dt_dy], axis=1))
+    dgrad[:, n_a + 2 :] = 2 * area * (g_c @ grad_u + mixed_u)
     return hmat, dgrad, model.annulus
 
 
@@ -334,12 +356,21 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
         r_in, dr_in = options.inner_fraction * float(design[j] @ c_r0), options.inner_fraction * design[j]
     inside = vox.inside
     px, py = vox.px[inside], vox.py[inside]
-    fun = point_map_function(n)  # row inputs: one evaluation per point (CasADi's implicit map)
-    rho0, drho, th0, dth = (np.asarray(a) for a in fun(c_r0, r_in, center0[0], center0[1], px[None, :], py[None, :]))
-    rho0, th0 = rho0.ravel(), th0.ravel()
-    # chain rule for r_in(c_R); columns [c_R, c_x, c_y]
-    drho = np.vstack([drho[:n_r] + np.outer(dr_in, drho[n_r]), drho[n_r + 1 :]]).T
-    dth = np.vstack([np.zeros((n_r, px.size)), dth]).T
+    # rho(r, R(t), r_in) of the inverse map and the polar coordinates (r, t) about the centre: pointwise
+    # derivatives from CasADi, the chain rule through R = b(t)^T c_R and r_in(c_R) with BLAS
+    r0, th0, dr_dx, dr_dy, dt_dx, dt_dy = _rows(polar_pieces(), px, py, center0[0], center0[1])
+    b = rad.design_matrix(th0, n)
+    slope_t = rad.design_matrix(th0, n, 1) @ c_r0  # dR/dt
+    rho0, rho_r, rho_big_r, rho_in = _rows(inverse_map_pieces(), r0, b @ c_r0, r_in)
+    # columns [c_R, c_x, c_y]
+    drho = np.hstack(
+        [
+            rho_big_r[:, None] * b + np.outer(rho_in, dr_in),
+            (rho_big_r * slope_t * dt_dx + rho_r * dr_dx)[:, None],
+            (rho_big_r * slope_t * dt_dy + rho_r * dr_dy)[:, None],
+        ]
+    )
+    dth = np.hstack([np.zeros((px.size, n_r)), dt_dx[:, None], dt_dy[:, None]])
     clipped = rho0 > 1.0  # velocity.assemble clips rho to 1 (points on the wall within rounding)
     rho0 = np.minimum(rho0, 1.0)
     drho[clipped] = 0.0
@@ -348,32 +379,27 @@ def operator_derivatives(vp: vel.VelocityProblem, options: vel.VelocityOptions, 
     polynomial = getattr(basis, "base", basis)
     pb = cpl.polar_basis(polynomial, th0)
     tk = np.polynomial.chebyshev.chebvander(2 * rho0 / cpl.RHO_MAX - 1, pb.cheb.shape[1] - 1).T
-    row_of = np.argmax(pb.select_radial, axis=1)  # the one-hot selection as an index (a product costs more)
-    radial = (pb.cheb @ tk)[row_of]
-    dradial = (pb.cheb_derivative @ tk)[row_of]
+    # distinct radial factors only (Zernike functions with +-m share one); raw function j uses row r_of[j]
+    r_of = np.argmax(pb.select_radial, axis=1)
+    radial, dradial = pb.cheb @ tk, pb.cheb_derivative @ tk
     if polynomial is not basis:  # cell means, as in the fit: a point rule would differentiate the steep layer badly
         stretch = nw.stretch(vp.disk_map)
         cells = None if vp.cell_mm is None else tuple(h / stretch for h in nw.cell_half_widths(vp.cell_mm, th0))
         layer, dlayer = basis.layer_radial(rho0, cells)
+        r_of = np.concatenate([r_of, radial.shape[0] + np.arange(layer.shape[0])])
         radial, dradial = np.vstack([radial, layer]), np.vstack([dradial, dlayer])
     # the angular factors repeat across radial degrees: the trigonometry once per distinct (order, kind)
     terms = basis.angular_terms()
     distinct = sorted(set(terms))
-    rows = np.array([distinct.index(term) for term in terms])
+    a_of = np.array([distinct.index(term) for term in terms])
     orders = np.array([m for m, _ in distinct], float)[:, None]
     is_cos = np.array([kind == "cos" for _, kind in distinct])[:, None]
     cos_t, sin_t = np.cos(orders * th0), np.sin(orders * th0)
-    ang = np.where(is_cos, cos_t, sin_t)[rows]
-    dang = np.where(is_cos, -orders * sin_t, orders * cos_t)[rows]
-    avg = _averaging(vp)
-    op = np.asarray(avg @ (ang * radial).T) @ basis.transform
-    if polynomial is not basis:  # the layer's voxel means as the fit used them (exact across each cell)
-        op[:, polynomial.size :] = vp.operator[:, polynomial.size :]
-    return (
-        OperatorDerivative(op, avg, (ang * dradial).T, (dang * radial).T, drho, dth, basis.transform),
-        r_in,
-        dr_in,
-    )
+    ang = np.where(is_cos, cos_t, sin_t)
+    dang = np.where(is_cos, -orders * sin_t, orders * cos_t)
+    # the operator itself is the fit's (the same points, map and averaging; a layer's columns exact across cells)
+    factors = (radial, dradial, ang, dang, r_of, a_of)
+    return OperatorDerivative(vp.operator, _averaging(vp), factors, drho, dth, basis.transform), r_in, dr_in
 
 
 def _averaging(vp: vel.VelocityProblem):
@@ -386,31 +412,52 @@ def _averaging(vp: vel.VelocityProblem):
 
 @dataclass
 class OperatorDerivative:
-    """``T~_h`` and the pieces of its derivative: ``dT_k = avg (diag(drho_k) A_rho + diag(dt_k) A_t) B``.
+    r"""``T~_h`` and the pieces of its derivative: ``dT_k = avg (diag(drho_k) A_rho + diag(dt_k) A_t) B``.
 
-    ``A_rho``, ``A_t`` hold the raw functions' derivatives and ``B`` the basis's orthonormalizing
-    transform, applied on the small side of every product (never to the point-sized matrices).
+    Raw basis function ``j`` is ``radial_{r(j)}(rho) angular_{a(j)}(t)``, so
+    ``A_rho[:, j] = angular_{a(j)} radial'_{r(j)}`` and
+    ``A_t[:, j] = angular'_{a(j)} radial_{r(j)}``; they are kept as their
+    distinct factors (``factors``: ``radial``, ``radial'`` (n_R, n_points),
+    ``angular``, ``angular'`` (n_A, n_points), ``r(j)``, ``a(j)``) and never
+    formed: ``A_rho x = sum_a angular_a (Q_x radial')_a`` with
+    ``Q_x[a(j), r(j)] += x_j``, and ``A_rho^T Y`` one product per angular
+    factor. ``B`` is the basis's orthonormalizing transform, applied on the
+    small side of every product.
     """
 
     op: np.ndarray  # (n_vox, n_basis)
     avg: Any  # (n_vox, n_points): voxel means over the inside points (sparse), or kspace.AveragingOperator
-    a_rho: np.ndarray  # (n_points, n_raw): d raw basis / d rho at the points
-    a_theta: np.ndarray  # (n_points, n_raw): d raw basis / d t
+    factors: tuple  # (radial, dradial, ang, dang, r_of, a_of), see the class notes
     drho: np.ndarray  # (n_points, n_dir)
     dtheta: np.ndarray  # (n_points, n_dir)
     transform: np.ndarray  # (n_raw, n_basis)
 
+    def _raw_times(self, raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(A_rho raw, A_t raw)`` at the points."""
+        radial, dradial, ang, dang, r_of, a_of = self.factors
+        q = np.zeros((ang.shape[0], radial.shape[0]))
+        np.add.at(q, (a_of, r_of), raw)
+        return np.sum(ang * (q @ dradial), axis=0), np.sum(dang * (q @ radial), axis=0)
+
+    def _raw_transpose_times(self, y_rho: np.ndarray, y_t: np.ndarray) -> np.ndarray:
+        """``A_rho^T y_rho + A_t^T y_t`` (point arrays of shape (n_points, k)), shape (n_raw, k)."""
+        radial, dradial, ang, dang, r_of, a_of = self.factors
+        out = np.empty((r_of.size, y_rho.shape[1]))
+        for a in range(ang.shape[0]):
+            j = np.flatnonzero(a_of == a)
+            rows = r_of[j]
+            out[j] = dradial[rows] @ (ang[a][:, None] * y_rho) + radial[rows] @ (dang[a][:, None] * y_t)
+        return out
+
     def times(self, c: np.ndarray) -> np.ndarray:
         """``[dT_k c]_k``, shape (n_vox, n_dir)."""
-        raw = self.transform @ c
-        moved = self.drho * (self.a_rho @ raw)[:, None] + self.dtheta * (self.a_theta @ raw)[:, None]
-        return np.asarray(self.avg @ moved)
+        s_rho, s_t = self._raw_times(self.transform @ c)
+        return np.asarray(self.avg @ (self.drho * s_rho[:, None] + self.dtheta * s_t[:, None]))
 
     def transpose_times(self, y: np.ndarray) -> np.ndarray:
         """``[dT_k^T y]_k``, shape (n_basis, n_dir)."""
         z = np.asarray(self.avg.T @ y).ravel()
-        raw = self.a_rho.T @ (self.drho * z[:, None]) + self.a_theta.T @ (self.dtheta * z[:, None])
-        return self.transform.T @ raw
+        return self.transform.T @ self._raw_transpose_times(self.drho * z[:, None], self.dtheta * z[:, None])
 
 
 @functools.lru_cache(maxsize=16)

@@ -56,6 +56,7 @@ from . import analysis as an
 from . import dephasing as deph
 from . import geometry as geo
 from . import preprocess as pp
+from . import operators
 from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
@@ -182,13 +183,15 @@ class SliceGeometry:
 
     def __init__(self, problem: geo.GeometryProblem, options: geo.GeometryOptions, kappa: float):
         self.problem, self.options, self.kappa = problem, options, kappa
-        nlp = self.nlp = geo.build_tikhonov(problem, options)
+        nlp = self.nlp = geo.build_tikhonov(problem, options, separable_jacobian=True)
         c, alpha = nlp.c, nlp.alpha
         n = c.numel()
         self.w0 = rad.sobolev_weights(options.n_fourier, 0)
-        jac = ca.jacobian(nlp.residual, c)
-        gn = 2 * ca.mtimes(jac.T, jac) + 2 * alpha * ca.diag(ca.DM(nlp.weights))
-        self.parts = ca.Function("slice", [c, alpha], [nlp.f, nlp.g, gn])
+        assert nlp.jacobian is not None  # separable_jacobian=True
+        self._gram = operators.Gram(*nlp.jacobian.shape)  # a callback: kept as long as the functions using it
+        gn = 2 * self._gram(nlp.jacobian) + 2 * alpha * ca.diag(ca.DM(nlp.weights))
+        # separate functions: derivatives of f must not run through the Gauss-Newton matrix's graph
+        self.parts = (ca.Function("slice", [c, alpha], [nlp.f, nlp.g]), ca.Function("slice_gn", [c, alpha], [gn]))
         s, cnt = ca.MX.sym("s", n), ca.MX.sym("l_kk")
         w0 = ca.DM(self.w0)
         self._f = nlp.f + kappa * (cnt * ca.dot(w0 * c, c) - 2 * ca.dot(w0 * s, c))
@@ -285,7 +288,10 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
     """All slices' geometry as one IPOPT NLP; returns ``(coefficients (n_slices, n), stats)``."""
     n, ns = slices[0].w0.size, len(slices)
     big = ca.MX.sym("C", n * ns)
-    parts = [sl.parts(big[k * n : (k + 1) * n], alpha) for k, sl in enumerate(slices)]
+    parts = [
+        (*sl.parts[0](big[k * n : (k + 1) * n], alpha), sl.parts[1](big[k * n : (k + 1) * n], alpha))
+        for k, sl in enumerate(slices)
+    ]
     kappa = slices[0].kappa
     zlap = np.kron(z_operator(ns, order), np.diag(slices[0].w0))  # sum_k ||(D C)_k||^2_{W0} = C^T zlap C
     zl = sparse_dm(zlap)

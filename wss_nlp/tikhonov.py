@@ -235,28 +235,27 @@ class BorderedTikhonov:
         self.corner = te.T @ self.extra  # C
         self.extra_rhs = te.T @ base.data  # e
 
-    def _per_beta(self, betas):
-        k = self.extra.shape[1]
-        for vec, lam, _, idx, d in self.base._groups(betas):
-            vb, vg = vec.T @ self.border, vec.T @ self.base.rhs  # V^T B, V^T g
-            for j, i in enumerate(idx):
-                dinv = 1.0 / d[j]
-                schur = self.corner - vb.T @ (dinv[:, None] * vb)
-                try:
-                    amp = np.linalg.solve(schur, self.extra_rhs - vb.T @ (dinv * vg))
-                except np.linalg.LinAlgError as exc:
-                    raise SolverError(f"velocity: the extra columns are linearly dependent ({exc})") from exc
-                y = dinv * (vg - vb @ amp)  # V^T c
-                # tr(G [H^-1]_cc) in pencil coordinates: V^T G V = Lambda, V^T A^-1 V = D^-1
-                dlv = (dinv * lam * dinv)[:, None] * vb
-                tr = float(np.sum(lam * dinv)) + float(np.trace(np.linalg.solve(schur, vb.T @ dlv)))
-                yield i, vec @ y, amp, self.base.normal.shape[0] + k - betas[i] / np.pi * tr
-
     def coefficients_and_traces(self, betas) -> tuple[np.ndarray, np.ndarray]:
-        """``[c_beta, a_beta]`` for every beta, shape ``(n_beta, m + k)``, and the effective parameter counts."""
+        """``[c_beta, a_beta]`` for every beta, shape ``(n_beta, m + k)``, and the effective parameter counts.
+
+        All betas of a pencil band at once: the ``k x k`` Schur complements
+        are formed and solved as one batch.
+        """
         betas = np.asarray(betas, dtype=float)
         m, k = self.base.normal.shape[0], self.extra.shape[1]
         coef, traces = np.empty((betas.size, m + k)), np.empty(betas.size)
-        for i, c, a, tr in self._per_beta(betas):
-            coef[i, :m], coef[i, m:], traces[i] = c, a, tr
+        for vec, lam, _, idx, d in self.base._groups(betas):
+            vb, vg = vec.T @ self.border, vec.T @ self.base.rhs  # V^T B, V^T g
+            dinv = 1.0 / d  # (n_beta, m)
+            schur = self.corner[None] - np.einsum("ak,ba,al->bkl", vb, dinv, vb)
+            try:
+                amp = np.linalg.solve(schur, (self.extra_rhs[None] - (dinv * vg) @ vb)[..., None])[..., 0]
+                # tr(G [H^-1]_cc) in pencil coordinates: V^T G V = Lambda, V^T A^-1 V = D^-1
+                inner = np.linalg.solve(schur, np.einsum("ak,ba,al->bkl", vb, dinv * lam * dinv, vb))
+            except np.linalg.LinAlgError as exc:
+                raise SolverError(f"velocity: the extra columns are linearly dependent ({exc})") from exc
+            y = dinv * (vg[None] - amp @ vb.T)  # V^T c
+            tr = np.sum(lam * dinv, axis=1) + np.trace(inner, axis1=1, axis2=2)
+            coef[idx, :m], coef[idx, m:] = y @ vec.T, amp
+            traces[idx] = m + k - betas[idx] / np.pi * tr
         return coef, traces

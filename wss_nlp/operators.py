@@ -1,0 +1,206 @@
+"""Dense linear maps evaluated by BLAS inside CasADi graphs, with exact derivatives of every order.
+
+CasADi's own products with constant dense matrices are plain loops (about
+5-10x slower than BLAS at the sizes of the magnitude models) and converting
+a large NumPy array to a ``casadi.DM`` constant costs about as much as
+building the rest of a solver. The maps here keep their matrix in NumPy:
+
+* :class:`MatrixProduct` -- ``X -> A X`` (the radius basis at the
+  quadrature points, eq. (discForw): ``R(phi_j) = b(phi_j)^T c``);
+* :class:`GroupedWeightedSum` -- ``s -> M diag(s) B`` with ``M`` the mean
+  over consecutive groups of rows: the chain rule of a voxel average,
+  ``dF_i/dc = |G_i|^{-1} sum_{j in G_i} s_j b_j^T``, used for the
+  Gauss-Newton Jacobian of the geometry functional.
+
+Both are linear, so the forward derivative is the map applied to the seeds
+and the reverse derivative its adjoint (``tests/test_operators.py`` checks
+each pair with a dot test and against CasADi's own products). Keep a
+reference to an instance while functions built from it live (CasADi's rule
+for callbacks); derived maps are kept by their parent.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import casadi as ca
+
+
+class _LinearCallback(ca.Callback):
+    """A linear map ``X -> L(X)`` on ``cols`` side-by-side columns; subclasses give ``apply`` and shapes."""
+
+    def __init__(self, name: str, n_in: int, n_out: int, cols: int):
+        ca.Callback.__init__(self)
+        self.n_in_, self.n_out_, self.cols = int(n_in), int(n_out), int(cols)
+        self._derived: dict = {}
+        self.construct(name, {})
+
+    def get_n_in(self):
+        return 1
+
+    def get_n_out(self):
+        return 1
+
+    def get_sparsity_in(self, i):
+        return ca.Sparsity.dense(self.n_in_, self.cols)
+
+    def get_sparsity_out(self, i):
+        return ca.Sparsity.dense(self.n_out_, self.cols)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def derived(self, cols: int, flip: bool) -> _LinearCallback:  # pragma: no cover - abstract
+        """The same map (or, with ``flip``, its adjoint) on ``cols`` columns, built once."""
+        raise NotImplementedError
+
+    def has_eval_buffer(self):
+        return True
+
+    def eval_buffer(self, arg, res):
+        # CasADi's memory is column-major: read and write it in place, no copies of the inputs
+        x = np.frombuffer(arg[0], dtype=np.float64).reshape(self.cols, self.n_in_).T
+        out = np.frombuffer(res[0], dtype=np.float64).reshape(self.cols, self.n_out_).T
+        out[...] = self.apply(x)
+        return 0
+
+    def _kept(self, key, make):
+        if key not in self._derived:
+            self._derived[key] = make()
+        return self._derived[key]
+
+    def has_forward(self, nfwd):
+        return True
+
+    def get_forward(self, nfwd, name, inames, onames, opts):
+        x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
+        seed = ca.MX.sym("seed", self.n_in_, self.cols * nfwd)
+        out = self.derived(self.cols * nfwd, False)(seed)
+        return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
+
+    def has_reverse(self, nadj):
+        return True
+
+    def get_reverse(self, nadj, name, inames, onames, opts):
+        x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
+        seed = ca.MX.sym("seed", self.n_out_, self.cols * nadj)
+        out = self.derived(self.cols * nadj, True)(seed)
+        return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
+
+
+class MatrixProduct(_LinearCallback):
+    """``X -> A X`` (or ``A^T X`` with ``adjoint``) for a dense NumPy matrix ``A`` of shape ``(m, n)``.
+
+    Notes
+    -----
+    One BLAS product per evaluation, ``2 m n cols`` flops.
+    """
+
+    def __init__(self, a: np.ndarray, cols: int = 1, adjoint: bool = False, _parent: MatrixProduct | None = None):
+        self.a = np.ascontiguousarray(a, dtype=float) if _parent is None else _parent.a
+        self.at = np.ascontiguousarray(self.a.T) if _parent is None else _parent.at
+        self.adjoint, self._root = adjoint, self if _parent is None else _parent._root
+        m, n = self.a.shape
+        super().__init__(f"matprod_{'adj' if adjoint else 'fwd'}_{cols}", *((m, n) if adjoint else (n, m)), cols)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        return (self.at if self.adjoint else self.a) @ x
+
+    def derived(self, cols: int, flip: bool) -> MatrixProduct:
+        root, adjoint = self._root, self.adjoint != flip
+        return root._kept((cols, adjoint), lambda: MatrixProduct(root.a, cols, adjoint, root))
+
+
+class GroupedWeightedSum(_LinearCallback):
+    r"""``s -> M diag(s) B``: ``B`` (shape ``(m, n)``) weighted row-wise by ``s``, averaged over groups of rows.
+
+    Notes
+    -----
+    Rows ``g k .. g k + g - 1`` form group ``k`` (``m = g K``), so
+    ``(M diag(s) B)_{k,:} = g^{-1} \sum_{j<g} s_{gk+j} B_{gk+j,:}`` with
+    ``K n`` outputs (column-major, as CasADi stores a ``(K, n)`` matrix).
+    The adjoint takes ``Y`` of shape ``(K, n)`` to
+    ``s_i = g^{-1} \sum_l B_{il} Y_{k(i),l}``. About ``2 m n`` flops either way.
+    Several columns of ``s`` give the maps side by side.
+    """
+
+    def __init__(self, b: np.ndarray, group: int, cols: int = 1, adjoint: bool = False, _parent=None):
+        self.b = np.ascontiguousarray(b, dtype=float) if _parent is None else _parent.b
+        self.group, self.adjoint = int(group), adjoint
+        self._root = self if _parent is None else _parent._root
+        m, n = self.b.shape
+        if m % self.group:
+            raise ValueError(f"GroupedWeightedSum: {m} rows do not split into groups of {self.group}")
+        self.k = m // self.group
+        dims = (self.k * n, m) if adjoint else (m, self.k * n)
+        super().__init__(f"gws_{'adj' if adjoint else 'fwd'}_{cols}", *dims, cols)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        m, n = self.b.shape
+        g, k, cols = self.group, self.k, x.shape[1]
+        if not self.adjoint:  # x: (m, cols) weights -> (k n, cols), each column a (k, n) block in column order
+            out = np.einsum("kgc,kgn->nkc", x.reshape(k, g, cols), self.b.reshape(k, g, n)) / g
+            return out.reshape(n * k, cols)
+        y = x.reshape(n, k, cols)  # column-major (k, n) blocks
+        return (np.einsum("kgn,nkc->kgc", self.b.reshape(k, g, n), y) / g).reshape(m, cols)
+
+    def derived(self, cols: int, flip: bool) -> GroupedWeightedSum:
+        root, adjoint = self._root, self.adjoint != flip
+        return root._kept((cols, adjoint), lambda: GroupedWeightedSum(root.b, root.group, cols, adjoint, root))
+
+
+class Gram(ca.Callback):
+    r"""``J -> J^T J`` for a dense ``(m, n)`` matrix ``J``, one BLAS product (the Gauss-Newton Hessian).
+
+    Notes
+    -----
+    About ``m n^2`` flops (CasADi's own product is a loop, about 10x
+    slower for ``m`` in the thousands). Derivatives: forward
+    ``dJ^T J + J^T dJ``, reverse ``J (Y + Y^T)``, written with CasADi's
+    products (they are rarely needed: the solvers only evaluate the
+    Hessian).
+    """
+
+    def __init__(self, m: int, n: int):
+        ca.Callback.__init__(self)
+        self.m, self.n = int(m), int(n)
+        self.construct(f"gram_{m}x{n}", {})
+
+    def get_n_in(self):
+        return 1
+
+    def get_n_out(self):
+        return 1
+
+    def get_sparsity_in(self, i):
+        return ca.Sparsity.dense(self.m, self.n)
+
+    def get_sparsity_out(self, i):
+        return ca.Sparsity.dense(self.n, self.n)
+
+    def has_eval_buffer(self):
+        return True
+
+    def eval_buffer(self, arg, res):
+        j = np.frombuffer(arg[0], dtype=np.float64).reshape(self.n, self.m)  # J^T, row-major view of column-major J
+        out = np.frombuffer(res[0], dtype=np.float64).reshape(self.n, self.n)
+        out[...] = j @ j.T
+        return 0
+
+    def has_forward(self, nfwd):
+        return True
+
+    def get_forward(self, nfwd, name, inames, onames, opts):
+        j, y = ca.MX.sym("j", self.m, self.n), ca.MX.sym("y", self.n, self.n)
+        seed = ca.MX.sym("seed", self.m, self.n * nfwd)
+        out = [ca.mtimes(d.T, j) + ca.mtimes(j.T, d) for d in ca.horzsplit(seed, self.n)]
+        return ca.Function(name, [j, y, seed], [ca.horzcat(*out)], inames, onames, opts)
+
+    def has_reverse(self, nadj):
+        return True
+
+    def get_reverse(self, nadj, name, inames, onames, opts):
+        j, y = ca.MX.sym("j", self.m, self.n), ca.MX.sym("y", self.n, self.n)
+        seed = ca.MX.sym("seed", self.n, self.n * nadj)
+        out = [ca.mtimes(j, s + s.T) for s in ca.horzsplit(seed, self.n)]
+        return ca.Function(name, [j, y, seed], [ca.horzcat(*out)], inames, onames, opts)
