@@ -77,6 +77,25 @@ def test_layer_column_wss_is_mu_times_its_wall_slope():
     np.testing.assert_allclose(smat[:, BASE.size], expected, rtol=1e-12)
 
 
+def test_wss_graph_with_the_scale_as_parameter_equals_the_basis_own_graph():
+    """One WSS graph per layer family serves every scale (the scale a parameter, wss.velocity_template): tau and
+    d tau / d c equal those of a graph built on the basis itself (its scale and column scale as constants), on an
+    off-centre elliptic wall, for two scales and both families; the second scale reuses the cached graph."""
+    coef = np.array([10.0, 0.8, -0.3, 0, 0, 0.5, 0.2, 0, 0])
+    dm = DiskMap(coef, (0.4, -0.2), 5.0, 2.0)
+    rng = np.random.default_rng(21)
+    for family in nw.FAMILIES:
+        for scale in (0.004, 0.03):
+            basis = nw.EnrichedBasis(BASE, family, scale)
+            c = rng.normal(size=basis.size)
+            direct = wss_mod.wss_expression(wss_mod._BasisVelocity(basis), 4, dm.r_in, 2.0).map(36)
+            phi = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+            tau_direct = np.asarray(direct(phi[None, :], coef, np.array(dm.center), c, 3.5e-3)[0]).ravel()
+            smat, _ = wss_mod.wss_matrix(basis, dm, 3.5e-3, 36)
+            assert np.max(np.abs(smat @ c - tau_direct)) <= 1e-10 * np.max(np.abs(tau_direct))
+    assert wss_mod._basis_wss_jacobian_map.cache_info().hits >= 2
+
+
 @pytest.fixture(scope="module")
 def turbulent550():
     acq, truth = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=None, seed=11)

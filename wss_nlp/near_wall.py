@@ -109,6 +109,48 @@ def stretch(disk_map) -> float:
     return float(disk_map.r_in + disk_map.eta * (disk_map.coefficients[0] - disk_map.r_in))
 
 
+def layer_columns(family: str, layer_terms, scale, x, y) -> list:
+    """Unscaled layer columns ``f((1 - rho)/scale) Re/Im (x + i y)^m`` (NumPy or CasADi; ``scale`` may be a symbol)."""
+    is_sym = isinstance(x, (ca.SX, ca.MX))
+    rho = ca.sqrt(x * x + y * y) if is_sym else np.hypot(x, y)
+    f = profile(family, (1 - rho) / scale)
+    re, im = [1.0 + 0 * x], [0 * x]
+    for _ in range(max(m for m, _ in layer_terms)):  # (x + i y)^(k+1) = (x + i y) (x + i y)^k
+        re_k, im_k = re[-1], im[-1]
+        re.append(x * re_k - y * im_k)
+        im.append(x * im_k + y * re_k)
+    return [f * (re[m] if kind == "cos" else im[m]) for m, kind in layer_terms]
+
+
+@dataclass(frozen=True)
+class LayerTemplate:
+    """An enriched basis with its scale left open: the key on which WSS graphs are built once and cached.
+
+    ``symbolic_with(xi, p)`` is the velocity for ``p = [c_base; s c_layer; l/S]``
+    (:meth:`EnrichedBasis.wss_parameters`, ``s`` the column scale): linear
+    in the first :attr:`size` entries, the scale the last (:attr:`n_shape` = 1).
+    """
+
+    base: object
+    family: str
+    max_order: int
+
+    @property
+    def layer_terms(self) -> list:
+        return [(0, "cos")] + [(m, k) for m in range(1, self.max_order + 1) for k in ("cos", "sin")]
+
+    @property
+    def size(self) -> int:
+        return self.base.size + len(self.layer_terms)  # type: ignore[attr-defined]
+
+    n_shape = 1
+
+    def symbolic_with(self, xi, p):
+        nb = self.base.size  # type: ignore[attr-defined]
+        layer = layer_columns(self.family, self.layer_terms, p[p.numel() - 1], xi[0], xi[1])
+        return ca.dot(self.base.symbolic(xi), p[:nb]) + ca.dot(ca.vertcat(*layer), p[nb : self.size])  # type: ignore[attr-defined]
+
+
 class EnrichedBasis:
     """A velocity basis with ``2 M + 1`` wall-layer columns appended (see the module notes).
 
@@ -157,16 +199,17 @@ class EnrichedBasis:
         return {**self.base.describe(), "near_wall": self.family, "layer_scale": self.scale, "size": self.size}
 
     def _layer_raw(self, x, y):
-        """Unscaled layer columns ``f((1 - rho)/scale) Re/Im (x + i y)^m`` (NumPy or CasADi)."""
-        is_sym = isinstance(x, (ca.SX, ca.MX))
-        rho = ca.sqrt(x * x + y * y) if is_sym else np.hypot(x, y)
-        f = profile(self.family, (1 - rho) / self.scale)
-        re, im = [1.0 + 0 * x], [0 * x]
-        for _ in range(self.max_order):  # (x + i y)^(k+1) = (x + i y) (x + i y)^k
-            re_k, im_k = re[-1], im[-1]
-            re.append(x * re_k - y * im_k)
-            im.append(x * im_k + y * re_k)
-        return [f * (re[m] if kind == "cos" else im[m]) for m, kind in self.layer_terms]
+        return layer_columns(self.family, self.layer_terms, self.scale, x, y)
+
+    def wss_template(self) -> LayerTemplate:
+        """What a WSS graph of this basis depends on besides its coefficients (the scale is a parameter)."""
+        return LayerTemplate(self.base, self.family, self.max_order)
+
+    def wss_parameters(self, coefficients) -> np.ndarray:
+        """The parameters of :meth:`LayerTemplate.symbolic_with` for velocity coefficients ``coefficients``."""
+        c = np.asarray(coefficients, dtype=float)
+        nb = self.base.size
+        return np.concatenate([c[:nb], self.column_scale * c[nb:], [self.scale]])
 
     def evaluate(self, x, y, average=None) -> np.ndarray:
         """Values at reference points, shape ``(npts, size)`` (or ``average @ values``)."""

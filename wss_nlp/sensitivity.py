@@ -169,14 +169,21 @@ def _rows(fun: ca.Function, *args) -> list[np.ndarray]:
 
 
 @functools.lru_cache(maxsize=16)  # bases are cached objects (velocity_basis.make_basis): one build per setting
-def wss_derivative_function(basis, n_fourier: int, eta: float, viscosity_pa_s: float) -> ca.Function:
-    """Per angle: ``tau`` of eq. (wss) and its gradient in ``[c_R; c_v; r_in]`` (SX)."""
-    tau_f = wss_mod.wss_expression(wss_mod._BasisVelocity(basis), n_fourier, None, eta)
+def wss_derivative_function(template, n_fourier: int, eta: float, viscosity_pa_s: float) -> ca.Function:
+    """Per angle: ``tau`` of eq. (wss) and its gradient in ``[c_R; p_linear; r_in]`` (SX).
+
+    ``template`` and ``p = [p_linear; shape]`` as :func:`wss_nlp.wss.velocity_template` gives them (a
+    layer's scale is an input, held fixed: no derivative in it).
+    """
+    tau_f = wss_mod.wss_expression(wss_mod._BasisVelocity(template), n_fourier, None, eta)
     n_r = rad.n_coefficients(n_fourier)
     phi, c_r, center = ca.SX.sym("phi"), ca.SX.sym("c_R", n_r), ca.SX.sym("center", 2)
-    c_v, r_in = ca.SX.sym("c_v", basis.size), ca.SX.sym("r_in")
-    tau = tau_f(phi, c_r, center, c_v, viscosity_pa_s, r_in)[0]
-    return ca.Function("dtau", [phi, c_r, center, c_v, r_in], [tau, ca.gradient(tau, ca.vertcat(c_r, c_v, r_in))])
+    p_lin, shape = ca.SX.sym("p", template.size), ca.SX.sym("shape", getattr(template, "n_shape", 0))
+    r_in = ca.SX.sym("r_in")
+    tau = tau_f(phi, c_r, center, ca.vertcat(p_lin, shape), viscosity_pa_s, r_in)[0]
+    return ca.Function(
+        "dtau", [phi, c_r, center, p_lin, shape, r_in], [tau, ca.gradient(tau, ca.vertcat(c_r, p_lin, r_in))]
+    )
 
 
 def geometry_parameter_derivatives(
@@ -461,8 +468,8 @@ class OperatorDerivative:
 
 
 @functools.lru_cache(maxsize=16)
-def _wss_derivative_map(basis, n_fourier: int, eta: float, viscosity_pa_s: float, n_phi: int) -> ca.Function:
-    return wss_derivative_function(basis, n_fourier, eta, viscosity_pa_s).map(n_phi)
+def _wss_derivative_map(template, n_fourier: int, eta: float, viscosity_pa_s: float, n_phi: int) -> ca.Function:
+    return wss_derivative_function(template, n_fourier, eta, viscosity_pa_s).map(n_phi)
 
 
 def _mean_weight_jacobian(c_r: np.ndarray, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -507,12 +514,14 @@ def _wss_sensitivity(
     """
     n_r, n_m, n_u = c_r0.size, m_index.size, u_index.size
     phi = rad.uniform_angles(n_phi)
-    fun = _wss_derivative_map(basis, rad.n_fourier_from_size(n_r), eta, viscosity_pa_s, n_phi)
-    tau0, grad = (np.asarray(a) for a in fun(phi[None, :], c_r0, np.asarray(center, float), c_v0, r_in))
-    tau0 = tau0.ravel()
+    template, parameters = wss_mod.velocity_template(basis)
+    fun = _wss_derivative_map(template, rad.n_fourier_from_size(n_r), eta, viscosity_pa_s, n_phi)
+    p = parameters(c_v0)
     nb = c_v0.size
+    tau0, grad = (np.asarray(a) for a in fun(phi[None, :], c_r0, np.asarray(center, float), p[:nb], p[nb:], r_in))
+    tau0 = tau0.ravel()
     dt_dr = grad[:n_r].T + np.outer(grad[n_r + nb], dr_in)
-    dt_dv = grad[n_r : n_r + nb].T
+    dt_dv = grad[n_r : n_r + nb].T * wss_mod.linear_scale(basis)[None, :]
     w_mean, dw = _mean_weight_jacobian(c_r0, phi)
     dtau = dt_dr @ dcr + dt_dv @ dcv
     dmean = w_mean @ dtau + tau0 @ (dw @ dcr)

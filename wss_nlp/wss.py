@@ -89,15 +89,34 @@ def wss_expression(velocity_of_xi, n_fourier: int, r_in: float | None, eta: floa
     )
 
 
-class _BasisVelocity:
-    """``v(xi) = sum_j p_j v_j(xi)`` for a velocity basis, as a callable for :func:`wss_expression`."""
+def velocity_template(basis) -> tuple[Any, Any]:
+    """``(template, parameters)``: what a WSS graph of ``basis`` depends on, and ``c -> p_v`` for it.
 
-    def __init__(self, basis):
-        self.basis = basis
-        self.n_params = basis.size
+    A basis with a near-wall layer (:class:`wss_nlp.near_wall.EnrichedBasis`)
+    leaves its scale as a parameter, so one graph serves every scale and
+    slice (graphs are cached on the template); any other basis is its own
+    template with ``p_v = c``.
+    """
+    if hasattr(basis, "wss_template"):
+        return basis.wss_template(), basis.wss_parameters
+    return basis, lambda c: np.asarray(c, dtype=float)
+
+
+class _BasisVelocity:
+    """``v(xi) = sum_j p_j v_j(xi)`` for a velocity basis (or template), as a callable for :func:`wss_expression`.
+
+    ``p`` holds :attr:`n_params` numbers: the template's ``size`` linear coefficients, then its shape
+    parameters (``n_shape``, none for a plain basis).
+    """
+
+    def __init__(self, template):
+        self.template = template
+        self.n_params = template.size + getattr(template, "n_shape", 0)
 
     def __call__(self, xi, p):
-        return ca.dot(self.basis.symbolic(xi), p)
+        if hasattr(self.template, "symbolic_with"):
+            return self.template.symbolic_with(xi, p)
+        return ca.dot(self.template.symbolic(xi), p)
 
 
 def evaluate(phi, c_r, center, velocity_of_xi, params, r_in, eta, viscosity_pa_s) -> WssResult:
@@ -124,22 +143,23 @@ def from_reconstruction(velocity_result, n_phi: int, viscosity_pa_s: float) -> W
     dm = velocity_result.disk_map
     phi = rad.uniform_angles(n_phi)
     c_r = np.asarray(dm.coefficients, dtype=float)
-    fun = _basis_wss_map(velocity_result.basis, rad.n_fourier_from_size(c_r.size), float(dm.eta), n_phi)
+    template, parameters = velocity_template(velocity_result.basis)
+    fun = _basis_wss_map(template, rad.n_fourier_from_size(c_r.size), float(dm.eta), n_phi)
     center = np.asarray(dm.center, float)
-    tau, xw = fun(phi[None, :], c_r, center, velocity_result.coefficients, viscosity_pa_s, dm.r_in)
+    tau, xw = fun(phi[None, :], c_r, center, parameters(velocity_result.coefficients), viscosity_pa_s, dm.r_in)
     tau, xw = np.asarray(tau).ravel(), np.asarray(xw)
     mean = rad.arc_length_mean(tau, rad.evaluate(c_r, phi), rad.evaluate(c_r, phi, 1))
     return WssResult(phi=phi, tau=tau, mean=mean, wall_x=xw[0], wall_y=xw[1], viscosity_pa_s=viscosity_pa_s)
 
 
 @functools.lru_cache(maxsize=16)  # bases are cached objects (velocity_basis.make_basis): one build per setting
-def _basis_wss_map(basis, n_fourier: int, eta: float, n_phi: int) -> ca.Function:
+def _basis_wss_map(template, n_fourier: int, eta: float, n_phi: int) -> ca.Function:
     """:func:`wss_expression` of a basis expansion with ``r_in`` an input, mapped over ``n_phi`` angles.
 
-    Built once per basis and angle count and reused by every slice and frame (``r_in`` and the geometry are
-    inputs, not constants of the graph).
+    Built once per basis template (:func:`velocity_template`) and angle count and reused by every slice and
+    frame (``r_in``, the geometry and a layer's scale are inputs, not constants of the graph).
     """
-    return wss_expression(_BasisVelocity(basis), n_fourier, None, eta).map(n_phi)
+    return wss_expression(_BasisVelocity(template), n_fourier, None, eta).map(n_phi)
 
 
 def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tuple[np.ndarray, np.ndarray]:
@@ -151,19 +171,29 @@ def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tupl
     """
     dm = disk_map
     c_r = np.asarray(dm.coefficients, dtype=float)
-    g = _basis_wss_jacobian_map(basis, rad.n_fourier_from_size(c_r.size), float(dm.eta), n_phi)
-    a, xw = g(rad.uniform_angles(n_phi)[None, :], c_r, np.array(dm.center, dtype=float), viscosity_pa_s, dm.r_in)
-    return np.asarray(a).reshape(n_phi, basis.size), np.asarray(xw)
+    template, parameters = velocity_template(basis)
+    g = _basis_wss_jacobian_map(template, rad.n_fourier_from_size(c_r.size), float(dm.eta), n_phi)
+    shape = parameters(np.zeros(basis.size))[template.size :]
+    a, xw = g(rad.uniform_angles(n_phi)[None, :], c_r, np.array(dm.center, dtype=float), viscosity_pa_s, dm.r_in, shape)
+    # d tau / d c = d tau / d p_linear times d p_linear / d c (diagonal: the layer's column scale)
+    return np.asarray(a).reshape(n_phi, template.size) * linear_scale(basis)[None, :], np.asarray(xw)
+
+
+def linear_scale(basis) -> np.ndarray:
+    """``d p_v / d c`` of :func:`velocity_template`'s parameters (diagonal, the linear entries only)."""
+    template, parameters = velocity_template(basis)
+    return parameters(np.ones(basis.size))[: template.size] - parameters(np.zeros(basis.size))[: template.size]
 
 
 @functools.lru_cache(maxsize=16)
-def _basis_wss_jacobian_map(basis, n_fourier: int, eta: float, n_phi: int) -> ca.Function:
-    """``(phi, c_R, center, mu, r_in) -> (d tau / d c, x_wall)`` over ``n_phi`` angles, built once per basis."""
-    f = wss_expression(_BasisVelocity(basis), n_fourier, None, eta)
+def _basis_wss_jacobian_map(template, n_fourier: int, eta: float, n_phi: int) -> ca.Function:
+    """``(phi, c_R, center, mu, r_in, shape) -> (d tau / d p, x_wall)`` over ``n_phi`` angles, once per template."""
+    f = wss_expression(_BasisVelocity(template), n_fourier, None, eta)
     ph, cc, ce = ca.SX.sym("ph"), ca.SX.sym("cc", rad.n_coefficients(n_fourier)), ca.SX.sym("ce", 2)
-    p, mu, r_in = ca.SX.sym("p", basis.size), ca.SX.sym("mu"), ca.SX.sym("r_in")
-    tau, xw = f(ph, cc, ce, p, mu, r_in)
-    return ca.Function("g", [ph, cc, ce, mu, r_in], [ca.jacobian(tau, p), xw]).map(n_phi)
+    p, mu, r_in = ca.SX.sym("p", template.size), ca.SX.sym("mu"), ca.SX.sym("r_in")
+    shape = ca.SX.sym("shape", getattr(template, "n_shape", 0))
+    tau, xw = f(ph, cc, ce, ca.vertcat(p, shape), mu, r_in)
+    return ca.Function("g", [ph, cc, ce, mu, r_in, shape], [ca.jacobian(tau, p), xw]).map(n_phi)
 
 
 @dataclass
