@@ -1,0 +1,18 @@
+"""A stack of slices through a tapered tube
+
+Six slices 2 mm apart through a tube whose radius shrinks along its axis, reconstructed together: the
+z-regularization ties neighbouring slices' radius and velocity coefficients. The unrolled wall shows the
+radius and the WSS over angle and slice position.
+"""
+
+import numpy as np
+
+from wss_nlp import phantoms, plotting
+from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+
+acq, truth = phantoms.make_stack("tapered", nz=6, h_mm=1.5, spacing_mm=2.0, snr=25, seed=2026)
+results = reconstruct(acq, ReconstructionOptions(uncertainty=False))
+means = np.array([r.wss.mean for r in results])
+print("mean WSS per slice [Pa]:", np.round(means, 3))
+
+stack = plotting.figure_stack(results, 2.0)
