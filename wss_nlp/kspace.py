@@ -43,6 +43,7 @@ import numpy as np
 
 import casadi as ca
 
+from . import operators
 from . import radius as rad
 from .errors import InputError
 from .schema import option
@@ -541,6 +542,18 @@ class KSpaceMagnitudeModel:
     select: np.ndarray  # flat (column-major) positions of the annulus voxels in the (rows, cols) block
     order: int
     operator: SeparablePSF | None = None  # K_y . K_x^T as a CasADi operation (built on first symbolic use)
+    # the radius basis at the free points as BLAS maps (radius values; scattered Jacobian columns), per size of c
+    basis_ops: dict = field(default_factory=dict)
+
+    def basis_maps(self, n_fourier: int):
+        """``c -> R(phi_j)`` at the free points and the scattered columns ``s -> [P diag(s) b_j]_j`` (kept here)."""
+        if n_fourier not in self.basis_ops:
+            design = rad.design_matrix(self.phi, n_fourier)
+            self.basis_ops[n_fourier] = (
+                operators.MatrixProduct(design),
+                operators.ScatteredBlocks(design, self.free, self.constant.shape),
+            )
+        return self.basis_ops[n_fourier]
 
 
 def magnitude_setup(grid, center, r0: float, r1: float, order: int, gamma: float, psf: PSF) -> KSpaceMagnitudeModel:
@@ -604,13 +617,15 @@ def magnitude_model(
     every other derivative (Hessians, parameter derivatives) goes through;
     both are the same function (``tests/test_kspace.py``).
     """
-    from .measurement import smoothed_heaviside
+    from .measurement import heaviside_slope, smoothed_heaviside
 
     symbolic = isinstance(coefficients, (ca.MX, ca.SX))
     n = rad.n_fourier_from_size(coefficients.numel() if symbolic else np.size(coefficients))
     fy, fx = model.constant.shape
     if symbolic:
-        if shift is None:
+        if shift is None and isinstance(coefficients, ca.MX):
+            radius, rho = model.basis_maps(n)[0](coefficients), ca.DM(model.rho)
+        elif shift is None:
             radius, rho = ca.mtimes(ca.DM(rad.design_matrix(model.phi, n)), coefficients), ca.DM(model.rho)
         else:
             dx, dy = ca.DM(model.x) - shift[0], ca.DM(model.y) - shift[1]
@@ -635,12 +650,15 @@ def magnitude_model(
         signal = ca.vec(model.operator(fine))[model.select.tolist()]
         magnitude = ca.sqrt(signal * signal + ABS_SMOOTHING**2)
         n_c = coefficients.numel()
-        # d vals / d c_j = H'(R - rho) b_j(phi): every column scattered into the fine box, side by side
-        g, w = ca.SX.sym("gap"), ca.SX.sym("gamma")
-        dh = ca.Function("dh", [g, w], [ca.jacobian(smoothed_heaviside(g, w, heaviside), g)]).map(model.free.size)
-        slope = dh((radius - rho).T, gamma).T  # H' at each free point
-        columns = ca.mtimes(scatter, ca.repmat(slope, 1, n_c) * ca.DM(rad.design_matrix(model.phi, n)))
-        blocks = model.operator.batched(n_c)(ca.reshape(columns, fy, fx * n_c))
+        # d vals / d c_j = H'(R - rho) b_j(phi): every column scattered into the fine box, side by side (BLAS)
+        slope = heaviside_slope(radius - rho, gamma, heaviside)  # H' at each free point
+        if isinstance(coefficients, ca.MX):
+            columns = model.basis_maps(n)[1](slope)  # (fy, fx n_c)
+        else:
+            columns = ca.reshape(
+                ca.mtimes(scatter, ca.repmat(slope, 1, n_c) * ca.DM(rad.design_matrix(model.phi, n))), fy, fx * n_c
+            )
+        blocks = model.operator.batched(n_c)(columns)
         d_signal = ca.reshape(blocks, model.ky.shape[0] * model.kx.shape[0], n_c)[model.select.tolist(), :]
         return magnitude, ca.repmat(signal / magnitude, 1, n_c) * d_signal
     basis = rad.design_matrix(model.phi, n)

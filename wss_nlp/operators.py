@@ -204,3 +204,73 @@ class Gram(ca.Callback):
         seed = ca.MX.sym("seed", self.n, self.n * nadj)
         out = [ca.mtimes(j, s + s.T) for s in ca.horzsplit(seed, self.n)]
         return ca.Function(name, [j, y, seed], [ca.horzcat(*out)], inames, onames, opts)
+
+
+class ScatteredBlocks(_LinearCallback):
+    r"""``s -> [P diag(s) b_1, ..., P diag(s) b_n]``: row-weighted columns of ``B`` scattered into images.
+
+    Notes
+    -----
+    ``P`` puts the ``m`` rows at the flat (column-major) positions ``index``
+    of an image of ``shape = (fy, fx)`` (zero elsewhere); the ``n`` images
+    lie side by side, one ``(fy, n fx)`` matrix (CasADi's column-major
+    layout), ready for a batched separable map
+    (:class:`wss_nlp.kspace.SeparablePSF`). The adjoint takes such images
+    ``Y_j`` to ``sum_j b_j * Y_j[index]``. About ``m n`` operations either way.
+    Used for the k-space Gauss-Newton Jacobian, ``dF/dc_j = K (H' b_j) K^T``.
+    """
+
+    def __init__(
+        self, b: np.ndarray, index: np.ndarray, shape: tuple, cols: int = 1, adjoint: bool = False, _parent=None
+    ):
+        self.b = np.ascontiguousarray(b, dtype=float) if _parent is None else _parent.b
+        self.index = np.asarray(index, dtype=np.int64) if _parent is None else _parent.index
+        self.shape, self.adjoint = (int(shape[0]), int(shape[1])), adjoint
+        self._root = self if _parent is None else _parent._root
+        self.bt = np.ascontiguousarray(self.b.T) if _parent is None else _parent.bt  # rows written contiguously
+        m, n = self.b.shape
+        size = self.shape[0] * self.shape[1] * n
+        super().__init__(f"scatter_{'adj' if adjoint else 'fwd'}_{cols}", *((size, m) if adjoint else (m, size)), cols)
+
+    def get_sparsity_in(self, i):
+        if self.adjoint:
+            return ca.Sparsity.dense(self.shape[0], self.shape[1] * self.b.shape[1] * self.cols)
+        return super().get_sparsity_in(i)
+
+    def get_sparsity_out(self, i):
+        if not self.adjoint:
+            return ca.Sparsity.dense(self.shape[0], self.shape[1] * self.b.shape[1] * self.cols)
+        return super().get_sparsity_out(i)
+
+    def eval_buffer(self, arg, res):
+        # column-major images: flat blocks of fy * fx values, image j of column k at (k n + j) fy fx
+        m, n = self.b.shape
+        pixels = self.shape[0] * self.shape[1]
+        x = np.frombuffer(arg[0], dtype=np.float64)
+        out = np.frombuffer(res[0], dtype=np.float64)
+        if not self.adjoint:
+            out[:] = 0.0
+            images = out.reshape(self.cols * n, pixels)
+            for k, s in enumerate(x.reshape(self.cols, m)):
+                images[k * n : (k + 1) * n, self.index] = self.bt * s[None, :]
+        else:
+            images = x.reshape(self.cols * n, pixels)
+            for k in range(self.cols):
+                out[k * m : (k + 1) * m] = np.einsum("jm,mj->m", images[k * n : (k + 1) * n][:, self.index], self.b)
+        return 0
+
+    def get_forward(self, nfwd, name, inames, onames, opts):
+        x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
+        seed = ca.MX.sym("seed", ca.repmat(self.sparsity_in(0), 1, nfwd))
+        out = self.derived(self.cols * nfwd, False)(seed)
+        return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
+
+    def get_reverse(self, nadj, name, inames, onames, opts):
+        x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
+        seed = ca.MX.sym("seed", ca.repmat(self.sparsity_out(0), 1, nadj))
+        out = self.derived(self.cols * nadj, True)(seed)
+        return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
+
+    def derived(self, cols: int, flip: bool) -> ScatteredBlocks:
+        root, adjoint = self._root, self.adjoint != flip
+        return root._kept((cols, adjoint), lambda: ScatteredBlocks(root.b, root.index, root.shape, cols, adjoint, root))
