@@ -29,7 +29,7 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import analysis as an
+from wss_nlp.parameters import rules as pr
 from wss_nlp import geometry as geo
 from wss_nlp import metrics, phantoms
 from wss_nlp import velocity as vel
@@ -44,7 +44,7 @@ TARGET_ORACLE_RATIO = 1.25  # issue 3: auto WSS error within 1.25x of the oracle
 def oracle_wss_error(acq, truth) -> float:
     """Smallest WSS error over the alpha-beta grid (default pipeline otherwise, dephasing pass included)."""
     best = np.inf
-    betas = an.geometric_grid(1e-2, 1e-14)
+    betas = pr.geometric_grid(1e-2, 1e-14)
     for k in range(-4, 5):
         opts = ReconstructionOptions(
             geometry=geo.GeometryOptions(alpha=1e-3 * 4.0**k), uncertainty=False, beta_rule="fixed"

@@ -26,7 +26,8 @@ kappa_beta = 2.5 was chosen; about 20 minutes on 2 cores).
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import analysis as an
+from wss_nlp.parameters import noise as nl
+from wss_nlp.parameters import rules as pr
 from wss_nlp import geometry as geo
 from wss_nlp import measurement as meas
 from wss_nlp import phantoms
@@ -35,6 +36,7 @@ from wss_nlp import radius as rad
 from wss_nlp import velocity as vel
 from wss_nlp import wss
 from wss_nlp.reconstruct import ReconstructionOptions
+from wss_nlp.tikhonov import LinearTikhonov
 
 RULES = ("fixed", "DP tau=1.1", "DP tau=2", "GCV", "L-curve", "balance")
 KAPPA = ReconstructionOptions().kappa_beta
@@ -55,7 +57,7 @@ class Slice:
         self.vp = vp = vel.assemble(self.acq.grid, u, g.coefficients, g.center, vel.VelocityOptions())
         self.wss_matrix, xw = wss.wss_matrix(vp.basis, vp.disk_map, self.acq.viscosity_pa_s)
         self.tau_true = self.truth.wss_at_points(xw[0], xw[1])
-        self.noise = an.velocity_noise(u, mag, lum.mask, vp.voxels.index, vp.weights, self.acq.venc_m_s)
+        self.noise = nl.velocity_noise(u, mag, lum.mask, vp.voxels.index, vp.weights, self.acq.venc_m_s)
 
     def error(self, beta: float) -> float:
         tau = self.wss_matrix @ vel.solve_cholesky(self.vp, beta)
@@ -69,7 +71,7 @@ def main(argv=None):
     if args.kappa:
         write_report(args.out, "parameter_kappa.md", kappa_table(args))
         return
-    grid = an.geometric_grid(1e-2, 1e-14)
+    grid = pr.geometric_grid(1e-2, 1e-14)
     rows = []
     for case in args.cases.split(","):
         for h in (float(x) for x in args.h.split(",")):
@@ -79,7 +81,7 @@ def main(argv=None):
                     sl = Slice(case, h, snr, seed)
                     acq, truth, vp, a, err, noise = sl.acq, sl.truth, sl.vp, sl.wss_matrix, sl.error, sl.noise
                     delta_ratio.append(magnitude_noise_ratio(acq, sl.problem, sl.norm, sl.lumen, snr, seed, case, h))
-                    _, e_or = an.oracle(grid, [err(b) for b in grid])
+                    _, e_or = pr.oracle(grid, [err(b) for b in grid])
                     eps = noise.value
                     clean = truth.velocity_image.ravel()[vp.voxels.index]
                     noise_ratio.append(eps / np.sqrt(np.sum(vp.weights * (vp.data - clean) ** 2) / vp.area))
@@ -88,18 +90,14 @@ def main(argv=None):
                         c = vel.solve_cholesky(vp, b)
                         return c, vp.residual_norm(c)
 
-                    gcv, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, grid)
+                    gcv, res, pen = pr.gcv_curve(vp.tikhonov, grid)
                     chosen = {
                         "fixed": vel.VelocityOptions().beta,
-                        "DP tau=1.1": an.discrepancy_search(solve, 1e-2, eps, 1.1)[1].chosen,
-                        "DP tau=2": an.discrepancy_search(solve, 1e-2, eps, 2.0)[1].chosen,
+                        "DP tau=1.1": pr.discrepancy_search(solve, 1e-2, eps, 1.1)[1].chosen,
+                        "DP tau=2": pr.discrepancy_search(solve, 1e-2, eps, 2.0)[1].chosen,
                         "GCV": grid[int(np.argmin(gcv))],
-                        "L-curve": grid[an.lcurve_corner(res, pen)[0]],
-                        "balance": grid[
-                            an.wss_balance(
-                                vp.operator, vp.weights, vp.data, vp.gram, grid, a, noise.details["per_voxel"], KAPPA
-                            )[0]
-                        ],
+                        "L-curve": grid[pr.lcurve_corner(res, pen)[0]],
+                        "balance": grid[pr.wss_balance(vp.tikhonov, grid, a, noise.details["per_voxel"], KAPPA)[0]],
                     }
                     for r in RULES:
                         ratios[r].append(err(chosen[r]) / e_or)
@@ -145,7 +143,7 @@ KAPPA_SEEDS = (0, 1, 2, 21, 22)  # 21, 22: the end-to-end tests' seeds, which no
 def kappa_table(args) -> list[str]:
     """Worst-seed WSS error of the balancing beta over the oracle's, for several kappa, and how often noise alone
     exceeds kappa (noise-only data through the same fit)."""
-    grid = an.geometric_grid(1e-2, 1e-14)
+    grid = pr.geometric_grid(1e-2, 1e-14)
     lines = [
         f"Balancing beta: WSS error over the oracle's, worst of seeds {', '.join(map(str, KAPPA_SEEDS))}; "
         "alpha fixed at its default.",
@@ -161,11 +159,8 @@ def kappa_table(args) -> list[str]:
                 for seed in KAPPA_SEEDS:
                     sl = Slice(case, h, snr, seed)
                     errs = np.array([sl.error(b) for b in grid])
-                    _, crit, _ = an.wss_balance(
-                        sl.vp.operator,
-                        sl.vp.weights,
-                        sl.vp.data,
-                        sl.vp.gram,
+                    _, crit, _ = pr.wss_balance(
+                        sl.vp.tikhonov,
                         grid,
                         sl.wss_matrix,
                         sl.noise.details["per_voxel"],
@@ -193,7 +188,7 @@ def kappa_table(args) -> list[str]:
 def noise_only_exceedance(draws: int = 400) -> list[str]:
     """How often the balancing criterion exceeds kappa when the data are noise alone (no bias at all)."""
     rng = np.random.default_rng(0)
-    grid = an.geometric_grid(1e-2, 1e-14)
+    grid = pr.geometric_grid(1e-2, 1e-14)
     lines = [
         f"Noise-only data ({draws} draws of the estimated per-voxel phase noise through the same fit, "
         "SNR 25, seed 0): share of draws whose criterion exceeds kappa at beta.",
@@ -207,11 +202,8 @@ def noise_only_exceedance(draws: int = 400) -> list[str]:
         # the rule itself (analysis.wss_balance), fed data that are noise alone
         crit = np.array(
             [
-                an.wss_balance(
-                    vp.operator,
-                    vp.weights,
-                    sigma * rng.normal(size=sigma.size),
-                    vp.gram,
+                pr.wss_balance(
+                    LinearTikhonov(vp.operator, vp.weights, sigma * rng.normal(size=sigma.size), vp.gram),
                     grid,
                     sl.wss_matrix,
                     sigma,
@@ -239,7 +231,7 @@ def magnitude_noise_ratio(acq, problem, norm, lum, snr, seed, case, h) -> float:
     annulus = meas.annulus_model(
         acq.grid, problem.center, problem.r0, problem.r1, geo.quad_order(problem, geo.GeometryOptions())
     ).annulus
-    est = an.magnitude_noise(
+    est = nl.magnitude_noise(
         problem.magnitude, acq.magnitude[0], lum.mask, norm.m0, norm.m1, acq.grid.voxel_area, annulus
     ).value
     clean, _ = phantoms.make_phantom(case, h_mm=h, snr=None, seed=seed)
@@ -257,7 +249,7 @@ def floor_table(args) -> list[str]:
         "| phantom | h [mm] | " + " | ".join(f"beta = {b:g}" for b in FLOOR_BETAS) + " | best on grid (beta) |",
         "|---|---|" + "---|" * (len(FLOOR_BETAS) + 1),
     ]
-    grid = an.geometric_grid(1e-2, 1e-14)
+    grid = pr.geometric_grid(1e-2, 1e-14)
     for case in args.cases.split(","):
         for h in (float(x) for x in args.h.split(",")):
             acq, truth = phantoms.make_phantom(case, h_mm=h, snr=None, seed=0)
@@ -278,7 +270,7 @@ def floor_table(args) -> list[str]:
             def err(b):
                 return np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt)
 
-            b_or, e_or = an.oracle(grid, [err(b) for b in grid])
+            b_or, e_or = pr.oracle(grid, [err(b) for b in grid])
             lines.append(
                 f"| {case} | {h:g} | "
                 + " | ".join(f"{err(b):.1%}" for b in FLOOR_BETAS)

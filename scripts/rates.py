@@ -23,7 +23,7 @@ import sys
 import numpy as np
 
 from _report import write_report
-from wss_nlp import analysis as an
+from wss_nlp.parameters import rules as pr
 from wss_nlp import geometry as geo
 from wss_nlp import measurement as meas
 from wss_nlp import radius as rad
@@ -82,7 +82,7 @@ def main(argv=None):
                     else:
                         # the discrepancy is measured on the annulus (the rest is noise no R can change)
                         noise_a = delta * np.linalg.norm(noise[model.annulus]) * np.sqrt(grid.voxel_area)
-                        g, _ = an.discrepancy_search(
+                        g, _ = pr.discrepancy_search(
                             lambda a, prev: (lambda r: (r, r.annulus_residual_norm))(
                                 solver.solve(a, None if prev is None else prev.coefficients)
                             ),

@@ -20,10 +20,10 @@ from wss_nlp import preprocess as pp
 from wss_nlp import radius as rad
 from wss_nlp import reconstruct as rc
 from wss_nlp import velocity as vel
-from wss_nlp import analysis as an
+from wss_nlp.parameters import noise as nl
 from wss_nlp import sensitivity as sens
 from wss_nlp import wss as wss_mod
-from wss_nlp.choice import choose_alpha
+from wss_nlp.parameters.choice import choose_alpha
 from wss_nlp.errors import InputError
 
 from conftest import assert_coupled_jacobian_is_exact
@@ -445,8 +445,8 @@ def test_noise_estimate_subtracts_the_psf_tails():
         how = kspace.AcquisitionOptions("kspace", "hamming")
         r = rc.reconstruct(acq, rc.ReconstructionOptions(uncertainty=False, acquisition=how))[0]
         raw = acq.magnitude[0]
-        plain.append(an.complex_noise_sigma(raw, r.lumen.noise_mask))
-        corrected.append(an.complex_noise_sigma(raw, r.lumen.noise_mask, r.lumen.signal))
+        plain.append(nl.complex_noise_sigma(raw, r.lumen.noise_mask))
+        corrected.append(nl.complex_noise_sigma(raw, r.lumen.noise_mask, r.lumen.signal))
     sigma = _image_sigma(acq.grid, KSPACE, 25.0)
     assert np.mean(corrected) == pytest.approx(sigma, rel=0.1)
     assert np.mean(plain) > 1.1 * sigma

@@ -205,7 +205,7 @@ def test_bulk_reynolds_number_and_regime():
     assert nw.bulk_reynolds(vp, nu) == pytest.approx(0.2 * 0.02 / nu, rel=0.02)
     assert nw.regime_family(1211) == "exponential" and nw.regime_family(5300) == "wall_law"
     # the scan's starting point: Blasius's law at the DNS's bulk Reynolds number 5300 gives its Re_tau 180.9 (1 %)
-    from wss_nlp.choice import blasius_scale
+    from wss_nlp.parameters.choice import blasius_scale
 
     assert 2.0 ** -blasius_scale(5300.0) == pytest.approx(180.9, rel=0.01)
 

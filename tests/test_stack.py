@@ -155,10 +155,10 @@ def test_stack_segments_and_options():
 
 
 def test_segment_beta_is_the_geometric_median():
-    from wss_nlp import analysis as an
+    from wss_nlp.parameters import rules as pr
 
     def ch(*values):
-        return [an.ParameterChoice("beta", "balance", v) for v in values]
+        return [pr.ParameterChoice("beta", "balance", v) for v in values]
 
     assert stack.segment_beta(ch(1e-8, 1e-6, 1e-7)) == pytest.approx(1e-7)
     assert stack.segment_beta(ch(1e-8, 1e-6)) == pytest.approx(1e-7)  # midpoint on the log scale

@@ -8,12 +8,29 @@ import sys
 import pytest
 
 PACKAGE = pathlib.Path(__file__).resolve().parent.parent / "wss_nlp"
-MODULES = sorted(p.stem for p in PACKAGE.glob("*.py") if p.stem != "__init__")
+#: Every module as its dotted name below the package ("geometry", "parameters.choice"), subpackages included.
+MODULES = sorted(
+    ".".join(p.relative_to(PACKAGE).with_suffix("").parts) for p in PACKAGE.rglob("*.py") if p.stem != "__init__"
+)
+
+
+def _resolve(module: str, node: ast.ImportFrom) -> list:
+    """Dotted package names an ``ImportFrom`` in ``module`` refers to (modules, or packages' members)."""
+    if node.level == 0:
+        if not (node.module or "").startswith("wss_nlp."):
+            return []
+        base = node.module.split(".")[1:]
+    else:
+        package = module.split(".")[:-1]
+        base = package[: len(package) - (node.level - 1)] + (node.module.split(".") if node.module else [])
+    stem = ".".join(base)
+    # "from .parameters import noise" names the module parameters.noise; "from .geometry import x" the module
+    return [f"{stem}.{a.name}" if stem else a.name for a in node.names] + ([stem] if stem else [])
 
 
 def _imports(module: str) -> set:
     """Package modules that ``module`` imports anywhere in its code, except under ``if TYPE_CHECKING:``."""
-    tree = ast.parse((PACKAGE / f"{module}.py").read_text())
+    tree = ast.parse((PACKAGE / (module.replace(".", "/") + ".py")).read_text())
     skip = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
@@ -22,13 +39,10 @@ def _imports(module: str) -> set:
     for node in ast.walk(tree):
         if id(node) in skip:
             continue
-        if isinstance(node, ast.ImportFrom) and node.level == 1:
-            names = [node.module] if node.module else [a.name for a in node.names]
-            out.update(n.split(".")[0] for n in names)
-        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith("wss_nlp."):
-            out.add(node.module.split(".")[1])
+        if isinstance(node, ast.ImportFrom):
+            out.update(_resolve(module, node))
         elif isinstance(node, ast.Import):
-            out.update(a.name.split(".")[1] for a in node.names if a.name.startswith("wss_nlp."))
+            out.update(".".join(a.name.split(".")[1:]) for a in node.names if a.name.startswith("wss_nlp."))
     return {m for m in out if m in MODULES and m != module}
 
 
@@ -59,6 +73,7 @@ def _cycle(graph: dict):
 def test_no_import_cycles():
     graph = {m: _imports(m) for m in MODULES}
     assert graph["stack"] and graph["reconstruct"]  # the parser sees imports at all
+    assert "parameters.choice" in graph["reconstruct"] and "geometry" in graph["parameters.choice"]  # subpackages too
     assert _cycle(graph) is None, " -> ".join(_cycle(graph))
 
 
@@ -72,7 +87,7 @@ def test_module_imports_in_a_fresh_interpreter(module):
 
 
 def test_no_module_shadows_the_standard_library():
-    assert not set(MODULES) & set(sys.stdlib_module_names)
+    assert not {m.split(".")[-1] for m in MODULES} & set(sys.stdlib_module_names)
 
 
 def test_blas_threads_limit_is_applied_and_restored():

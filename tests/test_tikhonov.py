@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from wss_nlp import analysis as an
+from wss_nlp.parameters import rules as pr
 from wss_nlp import phantoms
 from wss_nlp import velocity as vel
 from wss_nlp import wss as wss_mod
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
 from wss_nlp.tikhonov import LinearTikhonov
 
-BETAS = an.geometric_grid(1e-2, 1e-14)
+BETAS = pr.geometric_grid(1e-2, 1e-14)
 
 
 def _reference(op, weights, data, gram, betas, functional, sigma):
@@ -69,8 +69,8 @@ def test_pencil_equals_per_beta_cholesky(problem):
 def test_fast_balancing_choice_equals_the_former_one(problem):
     vp, smat, sigma = problem
     g_est, g_noise, _, _, _ = _reference(vp.operator, vp.weights, vp.data, vp.gram, BETAS, smat, sigma)
-    j_ref, ratio_ref = an.balancing_principle(g_est, g_noise, 2.5)
-    j, ratio, _ = an.wss_balance(vp.operator, vp.weights, vp.data, vp.gram, BETAS, smat, sigma, 2.5)
+    j_ref, ratio_ref = pr.balancing_principle(g_est, g_noise, 2.5)
+    j, ratio, _ = pr.wss_balance(vp.tikhonov, BETAS, smat, sigma, 2.5)
     assert j == j_ref
     # the ratio is |x_j - x_k| / s_jk from Gram entries, |x_j - x_k|^2 = G_jj + G_kk - 2 G_jk: it inherits a
     # cancellation error of about eps |x|^2 / |x_j - x_k|^2 (~1e-8 between neighbouring large betas) from either

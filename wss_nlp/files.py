@@ -801,7 +801,7 @@ def read_choices(path) -> dict:
     """``{slice name: {"alpha": ParameterChoice, "beta": ParameterChoice}}`` from a result file."""
     import h5py
 
-    from .analysis import ParameterChoice
+    from .parameters.rules import ParameterChoice
 
     read_result(path)  # validates the file and its slices
     out: dict = {}

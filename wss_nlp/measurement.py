@@ -152,17 +152,17 @@ class AnnulusModel:
     phi: np.ndarray  # (n_annulus, q^2) polar angles of quadrature points
     order: int
     # the radius basis at the points as BLAS-evaluated CasADi maps (built on first symbolic use, per size of c)
-    operators: dict = field(default_factory=dict)
+    maps: dict = field(default_factory=dict)
 
     def basis_maps(self, n_fourier: int) -> tuple[operators.MatrixProduct, operators.GroupedWeightedSum]:
         """``c -> R(phi_j)`` at the points and ``s -> (1/q^2) sum_j s_j b(phi_j)`` per voxel (kept here)."""
-        if n_fourier not in self.operators:
+        if n_fourier not in self.maps:
             basis = rad.design_matrix(self.phi.ravel(), n_fourier)
-            self.operators[n_fourier] = (
+            self.maps[n_fourier] = (
                 operators.MatrixProduct(basis),
                 operators.GroupedWeightedSum(basis, self.rho.shape[1]),
             )
-        return self.operators[n_fourier]
+        return self.maps[n_fourier]
 
 
 def annulus_model(grid: VoxelGrid, center, r0: float, r1: float, order: int) -> AnnulusModel:

@@ -30,7 +30,7 @@ is :math:`\mu S/\ell` times its angular factor, independent of the family):
   displacement-type thickness.
 
 Which model (plain, or a family and a scale on a grid) is chosen from the
-data by :mod:`wss_nlp.choice` (:func:`wss_nlp.choice.choose_near_wall`).
+data by :mod:`wss_nlp.parameters.choice` (:func:`wss_nlp.parameters.choice.choose_near_wall`).
 
 The columns are separable in :math:`(\rho, \theta)`, so the polar form
 used by the coupled method and the sensitivities (:func:`wss_nlp.coupled.polar_basis`)
@@ -40,6 +40,7 @@ applies to them unchanged.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -131,7 +132,7 @@ class LayerTemplate:
     in the first :attr:`size` entries, the scale the last (:attr:`n_shape` = 1).
     """
 
-    base: object
+    base: Any  # a basis of wss_nlp.velocity_basis
     family: str
     max_order: int
 
@@ -141,14 +142,14 @@ class LayerTemplate:
 
     @property
     def size(self) -> int:
-        return self.base.size + len(self.layer_terms)  # type: ignore[attr-defined]
+        return self.base.size + len(self.layer_terms)
 
     n_shape = 1
 
     def symbolic_with(self, xi, p):
-        nb = self.base.size  # type: ignore[attr-defined]
+        nb = self.base.size
         layer = layer_columns(self.family, self.layer_terms, p[p.numel() - 1], xi[0], xi[1])
-        return ca.dot(self.base.symbolic(xi), p[:nb]) + ca.dot(ca.vertcat(*layer), p[nb : self.size])  # type: ignore[attr-defined]
+        return ca.dot(self.base.symbolic(xi), p[:nb]) + ca.dot(ca.vertcat(*layer), p[nb : self.size])
 
 
 class EnrichedBasis:
@@ -532,7 +533,7 @@ def scale_sensitivity(problem, coefficients, beta: float, wss_matrix, nu_m2_s: f
 
     Returns ``(dg_da0, dg_dlog, dtau_dlog)``: the derivatives of
     :math:`g = a_0\, c_s(\ell)\, \ell / \nu - 1` (whose root is the scale,
-    :func:`wss_nlp.choice._wall_law_scale`) with respect to the m = 0 layer
+    :func:`wss_nlp.parameters.choice._wall_law_scale`) with respect to the m = 0 layer
     coefficient :math:`a_0` and to :math:`\log\ell`, and
     :math:`d\tau/d\log\ell` at fixed data. By the implicit-function
     theorem any data perturbation that moves :math:`a_0` by

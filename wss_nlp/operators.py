@@ -97,9 +97,10 @@ class MatrixProduct(_LinearCallback):
     """
 
     def __init__(self, a: np.ndarray, cols: int = 1, adjoint: bool = False, _parent: MatrixProduct | None = None):
-        self.a = np.ascontiguousarray(a, dtype=float) if _parent is None else _parent.a
-        self.at = np.ascontiguousarray(self.a.T) if _parent is None else _parent.at
-        self.adjoint, self._root = adjoint, self if _parent is None else _parent._root
+        self.a: np.ndarray = np.ascontiguousarray(a, dtype=float) if _parent is None else _parent.a
+        self.at: np.ndarray = np.ascontiguousarray(self.a.T) if _parent is None else _parent.at
+        self.adjoint = adjoint
+        self._root: MatrixProduct = self if _parent is None else _parent._root
         m, n = self.a.shape
         super().__init__(f"matprod_{'adj' if adjoint else 'fwd'}_{cols}", *((m, n) if adjoint else (n, m)), cols)
 

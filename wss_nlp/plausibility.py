@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 import scipy.ndimage
 
-from . import analysis as an
+from .parameters import noise as nl
 from . import preprocess as pp
 from .errors import InputError, WssNlpError
 from .schema import option
@@ -293,13 +293,13 @@ def check_fit(result, raw_magnitude: np.ndarray, venc: float | None) -> tuple[st
     """``(warning or "", residual / noise)`` of a reconstructed slice's velocity fit (see module notes).
 
     The noise level is the one the parameter rule estimated, or (fixed beta)
-    the same estimate made here (:func:`wss_nlp.analysis.velocity_noise`).
+    the same estimate made here (:func:`wss_nlp.parameters.noise.velocity_noise`).
     """
     v = result.velocity
     noise = result.beta_choice.noise if result.beta_choice is not None else float("nan")
     if not (np.isfinite(noise) and noise > 0):
         try:
-            noise = an.velocity_noise(
+            noise = nl.velocity_noise(
                 result.velocity_image,
                 raw_magnitude,
                 result.lumen.noise_mask,

@@ -126,7 +126,7 @@ class Lumen:
     chosen_by: str = "the largest lumen"
     others_mask: np.ndarray | None = None  # (ny, nx) bool, the regions of the other vessels
     # predicted noise-free magnitude (raw units) where a k-space PSF carries the vessel's signal into the
-    # background; the noise estimates subtract it (wss_nlp.analysis.complex_noise_sigma). None: box model
+    # background; the noise estimates subtract it (wss_nlp.parameters.noise.complex_noise_sigma). None: box model
     signal: np.ndarray | None = None
 
     @property

@@ -20,7 +20,7 @@ from . import coupled as cpl
 from . import dephasing as deph
 from . import geometry as geo
 from . import kspace
-from . import analysis as an
+from .parameters import noise as nl
 from . import near_wall as nw
 from . import plausibility as plaus
 from . import preprocess as pp
@@ -30,7 +30,7 @@ from . import stack as stk
 from . import velocity as vel
 from . import womersley
 from . import wss as wss_mod
-from .choice import (  # noqa: F401 (re-exported: the rules' names and grids are part of this module's API)
+from .parameters.choice import (  # noqa: F401 (re-exported: the rules' names and grids are part of this module's API)
     ALPHA_RULES,
     ALPHA_STOP,
     AUTO_RULE,
@@ -81,7 +81,7 @@ class ReconstructionOptions:
     ``tau`` times the estimated (or given) noise level, eqs. (disc),
     (disc2); "balance" is Lepskii's balancing principle (on the radius for
     alpha, on the WSS for beta; ``kappa_alpha``, ``kappa_beta``); for beta
-    also "gcv" and "lcurve" (see :mod:`wss_nlp.analysis`).
+    also "gcv" and "lcurve" (see :mod:`wss_nlp.parameters`).
     The defaults, beta by balancing and alpha fixed, and tau = 1.1 come from
     ``scripts/parameter_rules.py`` and ``scripts/accuracy.py --auto`` (docs,
     "Choosing alpha and beta"): the balancing beta's worst case is far
@@ -315,7 +315,7 @@ def reconstruct_slice(
         lumen = box.apply(lumen)
     t["preprocess"] = time.perf_counter() - t0
     nvenc = venc
-    if venc is None and an.velocity_plateau(lumen.noise_mask).sum() < an.MIN_PLATEAU_VOXELS:
+    if venc is None and nl.velocity_plateau(lumen.noise_mask).sum() < nl.MIN_PLATEAU_VOXELS:
         nvenc = noise_venc
 
     t0 = time.perf_counter()

@@ -18,7 +18,7 @@ import numpy as np
 from . import near_wall as nw
 
 if TYPE_CHECKING:
-    from . import analysis as an
+    from .parameters import rules as pr
     from . import geometry as geo
     from . import preprocess as pp
     from . import sensitivity as sens
@@ -58,14 +58,14 @@ class SliceResult:
     magnitude: np.ndarray  # normalized, (ny, nx)
     velocity_image: np.ndarray  # measured velocity, (ny, nx)
     seconds: dict = field(default_factory=dict)
-    alpha_choice: an.ParameterChoice | None = None
-    beta_choice: an.ParameterChoice | None = None
+    alpha_choice: pr.ParameterChoice | None = None
+    beta_choice: pr.ParameterChoice | None = None
     method: str = "decoupled"
     coupled_info: dict = field(default_factory=dict)  # weight, how it was chosen, the decoupled start's numbers
     sensitivity: sens.Sensitivity | None = None
     notes: list = field(default_factory=list)  # things the user should know that are not failures
     screen: dict = field(default_factory=dict)  # what wss_nlp.plausibility found (vessels, aliasing)
-    near_wall: nw.NearWallChoice | None = None  # the near-wall model and why (wss_nlp.choice.choose_layer)
+    near_wall: nw.NearWallChoice | None = None  # the near-wall model and why (wss_nlp.parameters.choice.choose_layer)
     # the velocity problem of the final fit, kept only with a deferred band (cine frames), then dropped
     problem: vel.VelocityProblem | None = None
     # the uncertainty band still to compute (reconstruct_slice(defer_band=True)): () -> (Sensitivity, note)

@@ -52,7 +52,8 @@ from . import near_wall as nw
 from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
-from .analysis import NoiseEstimationError, complex_noise_sigma, phase_noise_std
+from .errors import NoiseEstimationError
+from .parameters.noise import complex_noise_sigma, phase_noise_std
 from .tikhonov import LinearTikhonov
 from .errors import InputError, SolverError
 

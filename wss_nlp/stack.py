@@ -32,7 +32,7 @@ Two solvers of the same problem:
   factorized once, residual = relative residual of the coupled equations).
 
 The velocity basis of each slice is the one a single slice would get: the
-near-wall model (``--near-wall``, :func:`wss_nlp.choice.layer_model`) is chosen
+near-wall model (``--near-wall``, :func:`wss_nlp.parameters.choice.layer_model`) is chosen
 per slice, and the z-penalty ties the plain basis coefficients only (a layer's
 columns, with their own scale, stay the slice's own).
 
@@ -52,7 +52,7 @@ import scipy.linalg
 
 import casadi as ca
 
-from . import analysis as an
+from .parameters import rules as pr
 from . import dephasing as deph
 from . import geometry as geo
 from . import preprocess as pp
@@ -61,7 +61,7 @@ from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
 from .errors import InputError, SolverError, WssNlpError
-from .choice import gcv_beta, layer_model, velocity_beta
+from .parameters.choice import gcv_beta, layer_model, velocity_beta
 from .coupled import sparse_dm
 from .files import Acquisition
 from .results import SliceResult
@@ -737,7 +737,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                 p.magnitude,
                 p.velocity_image,
                 sec,
-                an.ParameterChoice("alpha", "fixed", gopt.alpha),
+                pr.ParameterChoice("alpha", "fixed", gopt.alpha),
                 replace(choices[i], chosen=betas[i]),
                 "decoupled",
                 {},

@@ -1,7 +1,7 @@
 r"""A periodic temporal prior on the velocity of a cine slice's frames.
 
 Every frame :math:`k` keeps its own wall, voxel operator :math:`T_k`, data :math:`u_k` and Tikhonov weight
-:math:`\beta_k` (the one its own fit chose, :mod:`wss_nlp.choice`); the prior ties the frames' coefficients
+:math:`\beta_k` (the one its own fit chose, :mod:`wss_nlp.parameters.choice`); the prior ties the frames' coefficients
 by their periodic second difference over equally spaced frames:
 
 .. math::

@@ -37,7 +37,7 @@ derivative of :math:`\sigma(x)` at the wall (1/mm; :math:`1/R` on a circle). Pa,
 
 Model choice (:func:`choose`): Schwarz's criterion :math:`\mathrm{BIC} = \nu\chi^2 + \ln(\nu N)\,\mathrm{dof}`
 over all :math:`N` voxel values of the cycle, for the frames' own plain fits (each at its best beta,
-dof the smoother's trace; :class:`wss_nlp.choice.PlainCriterion`) and for this model with
+dof the smoother's trace; :class:`wss_nlp.parameters.choice.PlainCriterion`) and for this model with
 :math:`K = 0, \dots, K_{\max}` harmonics (dof :math:`2K + 1`); :math:`\nu = 1` for white noise.
 The frames' own fits stay the null hypothesis: the model must win by :data:`EVIDENCE` over them and over
 the temporal prior (:mod:`wss_nlp.temporal`), which in turn must win by :data:`EVIDENCE` over the frames' own
@@ -56,10 +56,10 @@ import scipy.special
 
 import casadi as ca
 
-from . import analysis as an
+from .parameters import noise as nl
 from . import radius as rad
 from . import velocity as vel
-from .choice import PlainCriterion
+from .parameters.choice import PlainCriterion
 from .errors import InputError
 from .results import SliceResult
 from .schema import option
@@ -193,7 +193,7 @@ class FrameTerms:
     rhs: np.ndarray  # Phi^T Sigma^-1 u
     usu: float  # u^T Sigma^-1 u
     n_data: int
-    plain_chi2: np.ndarray  # chi^2 of the frame's own plain fit on wss_nlp.choice.CRITERION_BETAS
+    plain_chi2: np.ndarray  # chi^2 of the frame's own plain fit on wss_nlp.parameters.choice.CRITERION_BETAS
     plain_dof: np.ndarray  # and its effective parameter count
     nu: float  # effective fraction of independent voxels (1 for white noise)
     radius_mm: float  # the radius in Lambda_n (the cycle's, shared by the frames)
@@ -478,9 +478,9 @@ def velocity_sigma(result: SliceResult, problem: vel.VelocityProblem, raw: np.nd
     if options.noise_velocity is not None:
         return np.full(problem.data.size, float(options.noise_velocity))
     venc = acq.venc_m_s  # as wss_nlp.reconstruct.reconstruct_slice chooses it
-    if venc is None and an.velocity_plateau(result.lumen.noise_mask).sum() < an.MIN_PLATEAU_VOXELS:
+    if venc is None and nl.velocity_plateau(result.lumen.noise_mask).sum() < nl.MIN_PLATEAU_VOXELS:
         venc = acq.noise_venc_m_s
-    noise = an.velocity_noise(
+    noise = nl.velocity_noise(
         problem.data_image, raw, result.lumen.noise_mask, problem.voxels.index, problem.weights, venc, where,
         result.lumen.signal,
     )  # fmt: skip

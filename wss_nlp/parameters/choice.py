@@ -1,4 +1,4 @@
-"""Choosing alpha and beta from the data: the rules of :mod:`wss_nlp.analysis` applied to the problems.
+"""Choosing alpha and beta from the data: the rules of :mod:`wss_nlp.parameters` applied to the problems.
 
 :func:`choose_alpha` solves the geometry problem with alpha fixed, from the
 discrepancy principle (eq. (disc)) or from balancing on the radius;
@@ -16,19 +16,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from . import analysis as an
-from . import geometry as geo
-from . import kspace
-from . import near_wall as nw
-from . import radius as rad
-from . import sensitivity as sens
-from . import velocity as vel
-from . import wss as wss_mod
-from .errors import InputError
-from .tikhonov import BETA_MIN, BorderedTikhonov
+from .. import geometry as geo
+from .. import kspace
+from .. import near_wall as nw
+from .. import radius as rad
+from .. import sensitivity as sens
+from .. import velocity as vel
+from .. import wss as wss_mod
+from ..errors import InputError
+from ..tikhonov import BETA_MIN, BorderedTikhonov
+from . import noise as nl
+from . import rules as pr
 
 if TYPE_CHECKING:
-    from .reconstruct import ReconstructionOptions
+    from ..reconstruct import ReconstructionOptions
 
 #: Smallest beta of the GCV, L-curve, balancing and discrepancy grids (:data:`wss_nlp.tikhonov.BETA_MIN`).
 BETA_STOP = BETA_MIN
@@ -52,13 +53,13 @@ def parse_rule(word: str, rules: tuple, name: str) -> str:
     raise InputError(f"{name} must be a number or one of {', '.join(words)}; got {word!r}")
 
 
-def _noise_free_choice(name: str, rule: str, fixed: float, noise: an.NoiseEstimate) -> an.ParameterChoice:
+def _noise_free_choice(name: str, rule: str, fixed: float, noise: nl.NoiseEstimate) -> pr.ParameterChoice:
     """The fixed value, recorded as such, when the estimated noise is zero (noise-free synthetic data).
 
     There is no noise to balance against or to match a residual to; the
     choice says so (``SliceResult.warnings`` reports it) instead of guessing.
     """
-    return an.ParameterChoice(
+    return pr.ParameterChoice(
         name,
         "fixed",
         fixed,
@@ -73,7 +74,7 @@ def choose_alpha(
     """Geometry solve with alpha fixed, from the discrepancy principle (eq. (disc)) or from balancing.
 
     The residual and the noise level are both taken on the annulus voxels
-    (see :mod:`wss_nlp.analysis`); each solve starts from the previous one.
+    (see :mod:`wss_nlp.parameters`); each solve starts from the previous one.
     ``start``: radius coefficients near the solution (a neighbouring frame's); a fixed alpha with IPOPT
     then starts there with a small barrier (:data:`wss_nlp.geometry.WARM_START`).
     """
@@ -84,7 +85,7 @@ def choose_alpha(
             g = solver.solve(gopt.alpha, np.asarray(start, float), problem, np.zeros(solver.nlp.g.numel()))
         else:
             g = geo.solve(problem, gopt)
-        return g, an.ParameterChoice("alpha", "fixed", g.alpha)
+        return g, pr.ParameterChoice("alpha", "fixed", g.alpha)
     if gopt.solver == "ipopt":
         solver = geo.solver_for(problem, gopt)
         annulus = solver.nlp.model.annulus
@@ -98,9 +99,9 @@ def choose_alpha(
             return geo.solve_projected_gauss_newton(problem, gopt, None if prev is None else prev.coefficients, alpha)
 
     if options.noise_magnitude is not None:
-        noise = an.NoiseEstimate(options.noise_magnitude, "given (--noise-magnitude)")
+        noise = nl.NoiseEstimate(options.noise_magnitude, "given (--noise-magnitude)")
     else:
-        noise = an.magnitude_noise(
+        noise = nl.magnitude_noise(
             problem.magnitude, raw, lumen.noise_mask, norm.m0, norm.m1, problem.grid.voxel_area, annulus, where.rstrip()
         )
     if not noise.value > 0:
@@ -113,7 +114,7 @@ def choose_alpha(
         r = run(alpha, prev)
         return r, r.annulus_residual_norm
 
-    g, choice = an.discrepancy_search(solve, options.alpha_start, noise.value, options.tau_alpha)
+    g, choice = pr.discrepancy_search(solve, options.alpha_start, noise.value, options.tau_alpha)
     choice.name, choice.noise_method = "alpha", noise.method
     return g, choice
 
@@ -122,11 +123,11 @@ def balance_alpha(
     problem: geo.GeometryProblem,
     gopt: geo.GeometryOptions,
     run,
-    noise: an.NoiseEstimate,
+    noise: nl.NoiseEstimate,
     n_annulus: int,
     options: ReconstructionOptions,
 ):
-    """alpha by the balancing principle on the radius ``R(phi_j)`` (:func:`wss_nlp.analysis.balancing_principle`).
+    """alpha by the balancing principle on the radius ``R(phi_j)`` (:func:`.rules.balancing_principle`).
 
     Notes
     -----
@@ -138,7 +139,7 @@ def balance_alpha(
     of standard deviation ``sigma_m = delta / sqrt(|V| n_annulus)`` (the
     per-voxel level behind ``delta``, eq. (disc)). Units: R in mm.
     """
-    alphas = an.geometric_grid(options.alpha_start, ALPHA_STOP)
+    alphas = pr.geometric_grid(options.alpha_start, ALPHA_STOP)
     sigma_m = noise.value / np.sqrt(problem.grid.voxel_area * n_annulus)
     design = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
     n_box = design.shape[0]
@@ -153,8 +154,8 @@ def balance_alpha(
         maps.append((design @ dc[:, : annulus.size] * sigma_m).ravel())
         res.append(prev.annulus_residual_norm)
     r_mat, m_mat = np.array(radii), np.array(maps)
-    j, ratio = an.balancing_principle(r_mat @ r_mat.T, m_mat @ m_mat.T, options.kappa_alpha)
-    return results[j], an.ParameterChoice(
+    j, ratio = pr.balancing_principle(r_mat @ r_mat.T, m_mat @ m_mat.T, options.kappa_alpha)
+    return results[j], pr.ParameterChoice(
         "alpha",
         "balance",
         float(alphas[j]),
@@ -175,7 +176,7 @@ def velocity_beta(vp, near, raw, lumen, venc, options: ReconstructionOptions, wh
     which the chosen model's BIC is smallest is used instead.
     """
     if near is not None and near.model != "plain" and options.beta_rule == "balance" and np.isfinite(near.beta):
-        return an.ParameterChoice("beta", "bic", near.beta, noise_method="BIC of the chosen near-wall model")
+        return pr.ParameterChoice("beta", "bic", near.beta, noise_method="BIC of the chosen near-wall model")
     return choose_beta(vp, raw, lumen, venc, options, where, viscosity_pa_s)
 
 
@@ -189,32 +190,29 @@ def choose_beta(
     """
     rule = options.beta_rule
     if rule == "fixed":
-        return an.ParameterChoice("beta", "fixed", options.velocity.beta)
+        return pr.ParameterChoice("beta", "fixed", options.velocity.beta)
     if rule == "gcv":
         return gcv_beta(vp, options)
-    betas = an.geometric_grid(options.beta_start, BETA_STOP)
+    betas = pr.geometric_grid(options.beta_start, BETA_STOP)
     if rule == "lcurve":
-        _, res, pen = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
-        i, k = an.lcurve_corner(res, pen)
-        return an.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
+        _, res, pen = pr.gcv_curve(vp.tikhonov, betas)
+        i, k = pr.lcurve_corner(res, pen)
+        return pr.ParameterChoice("beta", "lcurve", float(betas[i]), betas, res, criterion=k)
     noise = _velocity_noise(vp, raw, lumen, venc, options, where)
     if not noise.value > 0:
         return _noise_free_choice("beta", rule, options.velocity.beta, noise)
     if rule == "balance":
         smat, _ = wss_mod.wss_matrix(vp.basis, vp.disk_map, viscosity_pa_s, options.n_phi)
         correlate = None if vp.noise_correlation is None else vp.noise_correlation.apply
-        i, ratio, res = an.wss_balance(
-            vp.operator,
-            vp.weights,
-            vp.data,
-            vp.gram,
+        i, ratio, res = pr.wss_balance(
+            vp.tikhonov,
             betas,
             smat,
             noise.details["per_voxel"],
             options.kappa_beta,
             correlate,
         )
-        return an.ParameterChoice(
+        return pr.ParameterChoice(
             "beta",
             "balance",
             float(betas[i]),
@@ -233,17 +231,17 @@ def choose_beta(
         c = vel.solve_cholesky(vp, beta)
         return c, vp.residual_norm(c)
 
-    _, choice = an.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta, smallest=BETA_STOP)
+    _, choice = pr.discrepancy_search(solve, options.beta_start, noise.value, options.tau_beta, smallest=BETA_STOP)
     choice.name, choice.noise_method = "beta", noise.method
     return choice
 
 
-def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> an.ParameterChoice:
+def gcv_beta(vp: vel.VelocityProblem, options: ReconstructionOptions) -> pr.ParameterChoice:
     """beta minimizing GCV on the grid ``beta_start 2^-n`` down to ``BETA_STOP``."""
-    betas = an.geometric_grid(options.beta_start, BETA_STOP)
-    gcv, res, _ = an.gcv_curve(vp.operator, vp.weights, vp.data, vp.gram, betas)
+    betas = pr.geometric_grid(options.beta_start, BETA_STOP)
+    gcv, res, _ = pr.gcv_curve(vp.tikhonov, betas)
     i = int(np.argmin(gcv))
-    return an.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
+    return pr.ParameterChoice("beta", "gcv", float(betas[i]), betas, res, criterion=gcv)
 
 
 #: Layer scales l / R of the coarse search (octaves); the best is refined by golden-section search.
@@ -537,7 +535,7 @@ def kspace_filter(magnitudes, grid, template: kspace.PSF, options: Reconstructio
     :data:`FILTER_MARGIN` is reported as ambiguous ("none" and "fermi",
     which differ only above 0.9 k_max, are often that close).
     """
-    from . import preprocess as pp  # here: the parameter rules otherwise work on assembled problems
+    from .. import preprocess as pp  # here: the parameter rules otherwise work on assembled problems
 
     last: Exception | None = None
     for iz, image in enumerate(magnitudes):
@@ -607,13 +605,13 @@ def layer_model(
 
 
 def _velocity_noise(vp: vel.VelocityProblem, raw, lumen, venc, options: ReconstructionOptions, where: str):
-    """Per-voxel velocity noise: given (``--noise-velocity``) or estimated (:func:`wss_nlp.analysis.velocity_noise`)."""
+    """Per-voxel velocity noise: given (``--noise-velocity``) or estimated (:func:`.noise.velocity_noise`)."""
     if options.noise_velocity is not None:
-        return an.NoiseEstimate(
+        return nl.NoiseEstimate(
             options.noise_velocity,
             "given (--noise-velocity)",
             {"per_voxel": np.full(vp.data.size, options.noise_velocity)},
         )
-    return an.velocity_noise(
+    return nl.velocity_noise(
         vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc, where.rstrip(), lumen.signal
     )

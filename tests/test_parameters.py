@@ -1,9 +1,12 @@
 import numpy as np
 import pytest
 
-from wss_nlp import analysis as an
+from wss_nlp.parameters import noise as nl
+
+from wss_nlp.parameters import rules as pr
 from wss_nlp.cli import main
-from wss_nlp.errors import InputError
+from wss_nlp.errors import InputError, NoiseEstimationError
+from wss_nlp.tikhonov import LinearTikhonov
 
 
 def test_discrepancy_returns_largest_admissible_parameter():
@@ -14,7 +17,7 @@ def test_discrepancy_returns_largest_admissible_parameter():
         calls.append((p, prev))
         return p, 1 + 10 * p
 
-    res, ch = an.discrepancy_search(solve, 1.0, noise=1.0, tau=2.0)
+    res, ch = pr.discrepancy_search(solve, 1.0, noise=1.0, tau=2.0)
     assert ch.satisfied and ch.chosen == pytest.approx(2.0**-4)  # 0.0625 is the first power of 1/2 below 0.1
     assert ch.chosen == max(p for p in ch.parameters if 1 + 10 * p <= 2.0)
     assert calls[0][1] is None and all(prev == p * 2 for p, prev in calls[1:])  # warm start from the previous
@@ -22,7 +25,7 @@ def test_discrepancy_returns_largest_admissible_parameter():
 
 def test_discrepancy_model_error_floor_falls_back_to_the_stagnation_point():
     """r(p) = 3 + p never reaches 1.1: take the largest p within 2 % of the floor, flagged."""
-    _, ch = an.discrepancy_search(lambda p, prev: (p, 3 + 50 * p), 1.0, noise=1.0, tau=1.1, max_steps=40)
+    _, ch = pr.discrepancy_search(lambda p, prev: (p, 3 + 50 * p), 1.0, noise=1.0, tau=1.1, max_steps=40)
     assert not ch.satisfied
     assert ch.residuals[list(ch.parameters).index(ch.chosen)] <= 1.02 * ch.residuals.min()
     assert ch.chosen == max(p for p, r in zip(ch.parameters, ch.residuals) if r <= 1.02 * ch.residuals.min())
@@ -36,10 +39,10 @@ def test_discrepancy_never_goes_below_its_smallest_parameter():
         tried.append(p)
         return p, 3 + 1e-3 * np.log10(p)  # falls by ~0.01 % per halving and never by 2 %: no stagnation stop
 
-    _, ch = an.discrepancy_search(solve, 1e-2, noise=1.0, tau=1.1, smallest=1e-8)
+    _, ch = pr.discrepancy_search(solve, 1e-2, noise=1.0, tau=1.1, smallest=1e-8)
     assert min(tried) >= 1e-8 and not ch.satisfied and ch.chosen >= 1e-8
     with pytest.raises(InputError):
-        an.discrepancy_search(solve, 1e-9, noise=1.0, tau=1.1, smallest=1e-8)
+        pr.discrepancy_search(solve, 1e-9, noise=1.0, tau=1.1, smallest=1e-8)
 
 
 def test_gcv_matches_dense_hat_matrix(rng):
@@ -50,7 +53,7 @@ def test_gcv_matches_dense_hat_matrix(rng):
     u = t @ rng.normal(size=k) + 0.1 * rng.normal(size=n)
     g = np.diag(np.arange(1, k + 1.0) ** 4)
     betas = np.array([1e-1, 1e-3, 1e-5])
-    gcv, res, _ = an.gcv_curve(t, w, u, g, betas)
+    gcv, res, _ = pr.gcv_curve(LinearTikhonov(t, w, u, g), betas)
     ww = np.diag(w / w.sum())
     s = np.sqrt(ww)
     for b, val, r in zip(betas, gcv, res):
@@ -69,7 +72,7 @@ def test_gcv_minimum_on_a_diagonal_problem_with_known_optimum():
     sigma = 1e-2
     u = s * x + sigma * rng.normal(size=n)
     betas = np.logspace(0, -9, 91)
-    gcv, _, _ = an.gcv_curve(np.diag(s), np.ones(n), u, np.pi * np.eye(n), betas)
+    gcv, _, _ = pr.gcv_curve(LinearTikhonov(np.diag(s), np.ones(n), u, np.pi * np.eye(n)), betas)
     # weights are normalized to sum 1, so the filter is s^2 / (s^2 + n beta); expected predictive risk
     # sum (nb/(s^2+nb))^2 s^2 x^2 + sigma^2 sum (s^2/(s^2+nb))^2, minimized on the same grid
     risk = [
@@ -88,13 +91,13 @@ def test_balancing_principle_known_answer():
     """
     b = np.array([8, 4, 2, 1, 0.5, 0.25])
     sd = np.array([0.5, 0.6, 0.7, 0.8, 0.9, 1.0])
-    j, ratio = an.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=2.0)
+    j, ratio = pr.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=2.0)
     assert j == 2
     assert ratio[2] == pytest.approx(max(abs(2 - b[k]) / np.sqrt(0.49 + sd[k] ** 2) for k in (3, 4, 5)), rel=1e-12)
     assert ratio[-1] == 0 and np.all(ratio[:2] > 2)
-    assert an.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=100.0)[0] == 0  # everything admissible
+    assert pr.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=100.0)[0] == 0  # everything admissible
     with pytest.raises(InputError):
-        an.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=0.0)
+        pr.balancing_principle(np.outer(b, b), np.diag(sd**2), kappa=0.0)
 
 
 def test_balance_noise_gram_matches_monte_carlo(rng):
@@ -112,7 +115,7 @@ def test_balance_noise_gram_matches_monte_carlo(rng):
     sig = rng.uniform(0.05, 0.3, n)
     betas = np.array([1e-1, 1e-2, 1e-3])
     clean = t @ rng.normal(size=k)
-    g_est, g_noise, res = an.balance_grams(t, w, clean, g, betas, s_mat, sig)
+    g_est, g_noise, res = pr.balance_grams(LinearTikhonov(t, w, clean, g), betas, s_mat, sig)
     ww = w / w.sum()
     ests = [s_mat @ np.linalg.solve(t.T @ (ww[:, None] * t) + b / np.pi * g, t.T @ (ww * clean)) for b in betas]
     assert np.allclose(g_est, np.array(ests) @ np.array(ests).T, rtol=1e-10)
@@ -147,7 +150,7 @@ def test_balance_beta_on_laminar_phantom_is_close_to_the_oracle():
     tt = truth.wss_at_points(xw[0], xw[1])
     errs = {
         b: np.linalg.norm(a @ vel.solve_cholesky(vp, b) - tt) / np.linalg.norm(tt)
-        for b in an.geometric_grid(1e-2, BETA_STOP)
+        for b in pr.geometric_grid(1e-2, BETA_STOP)
     }
     chosen = errs[min(errs, key=lambda b: abs(np.log(b / ch.chosen)))]
     assert chosen <= 2 * min(errs.values())
@@ -182,14 +185,14 @@ def test_balance_alpha_radius_close_to_the_best_alpha(laminar_snr25):
         tr = truth.radius_about(centre, phi)
         return np.linalg.norm(rad.evaluate(c, phi) - tr) / np.linalg.norm(tr)
 
-    best = min(err(r.coefficients, r.center) for r in (solver.solve(a) for a in an.geometric_grid(1.0, ALPHA_STOP)))
+    best = min(err(r.coefficients, r.center) for r in (solver.solve(a) for a in pr.geometric_grid(1.0, ALPHA_STOP)))
     assert err(res.geometry.coefficients, res.geometry.center) <= 1.5 * best
 
 
 def test_lcurve_corner_of_a_known_curve():
     """Points on y = x^2 (t in [-1, 1]): the largest curvature is at the vertex t = 0."""
     t = np.linspace(-1, 1, 41)
-    i, k = an.lcurve_corner(np.exp(t), np.exp(t**2))  # the corner finder works in log-log coordinates
+    i, k = pr.lcurve_corner(np.exp(t), np.exp(t**2))  # the corner finder works in log-log coordinates
     assert t[i] == pytest.approx(0.0, abs=1e-12)
 
 
@@ -202,18 +205,18 @@ def test_noise_estimators_on_synthetic_noise():
     clean = mask.astype(float)
     d = clean + sigma * (rng.normal(size=(n, n)) + 1j * rng.normal(size=(n, n)))
     raw = np.abs(d)
-    assert an.complex_noise_sigma(raw, mask) == pytest.approx(sigma, rel=0.05)  # 3000+ background voxels
+    assert nl.complex_noise_sigma(raw, mask) == pytest.approx(sigma, rel=0.05)  # 3000+ background voxels
     vel = venc * np.angle(d) / np.pi
     idx = np.flatnonzero(mask)
     w = np.ones(idx.size)
-    est = an.velocity_noise(vel, raw, mask, idx, w, venc)
+    est = nl.velocity_noise(vel, raw, mask, idx, w, venc)
     true = np.sqrt(np.mean(vel.ravel()[idx] ** 2))  # the clean velocity is zero
     assert est.value == pytest.approx(true, rel=0.1)
-    hp = an.velocity_noise(vel, raw, mask, idx, w, None)
+    hp = nl.velocity_noise(vel, raw, mask, idx, w, None)
     assert hp.value == pytest.approx(true, rel=0.1)
     m = np.clip((raw - 0.05) / 0.95, 0, 1)
     region = np.arange(n * n)
-    delta = an.magnitude_noise(m, raw, mask, 0.05, 1.0, 1.0, region)
+    delta = nl.magnitude_noise(m, raw, mask, 0.05, 1.0, 1.0, region)
     true_delta = np.sqrt(np.sum((m - clean) ** 2))
     assert delta.value == pytest.approx(true_delta, rel=0.2)
 
@@ -225,8 +228,8 @@ def test_truncated_error_msq_matches_monte_carlo(rng):
     for f in (0.0, 0.03, 0.4, 0.95, 1.0):
         mc = np.mean((np.clip(f + s * z, 0, 1) - f) ** 2)
         # relative MC error of a mean of squares ~ sqrt(2 / N) = 0.2 %; 1 % leaves room without hiding a wrong term
-        assert an.truncated_error_msq(np.array([f]), s)[0] == pytest.approx(mc, rel=0.01)
-    assert an.truncated_error_msq(np.array([0.0, 0.5]), s) == pytest.approx([s**2 / 2, s**2], rel=1e-6)
+        assert nl.truncated_error_msq(np.array([f]), s)[0] == pytest.approx(mc, rel=0.01)
+    assert nl.truncated_error_msq(np.array([0.0, 0.5]), s) == pytest.approx([s**2 / 2, s**2], rel=1e-6)
 
 
 @pytest.mark.parametrize("case,h,snr,seed", [("laminar", 1.5, 25, 2), ("turbulent", 1.0, 10, 1)])
@@ -248,7 +251,7 @@ def test_magnitude_noise_within_20_percent_on_phantoms(case, h, snr, seed):
     norm = pp.histogram_peaks(mag)
     lum = pp.find_lumen(problem.magnitude, acq.grid)
     annulus = meas.annulus_model(acq.grid, problem.center, problem.r0, problem.r1, 4).annulus
-    est = an.magnitude_noise(problem.magnitude, mag, lum.mask, norm.m0, norm.m1, acq.grid.voxel_area, annulus)
+    est = nl.magnitude_noise(problem.magnitude, mag, lum.mask, norm.m0, norm.m1, acq.grid.voxel_area, annulus)
     c = np.clip((clean.magnitude[0] - norm.m0) / (norm.m1 - norm.m0), 0, 1).ravel()[annulus]
     true = np.sqrt(acq.grid.voxel_area * np.sum((problem.magnitude.ravel()[annulus] - c) ** 2))
     assert est.value == pytest.approx(true, rel=0.2)  # the issue's target
@@ -263,8 +266,8 @@ def test_noise_free_data_fall_back_to_the_fixed_values_and_say_so(fourier_noise_
     ch = res.beta_choice
     assert ch.rule == "fixed" and ch.chosen == pytest.approx(5e-8) and ch.noise == 0
     assert sum("balance needs noise" in w for w in res.warnings) == 1
-    with pytest.raises(an.NoiseEstimationError, match="--noise-velocity"):
-        an.balance_grams(np.eye(3), np.ones(3), np.ones(3), np.eye(3), [1.0], np.eye(3), np.zeros(3))
+    with pytest.raises(NoiseEstimationError, match="--noise-velocity"):
+        pr.balance_grams(LinearTikhonov(np.eye(3), np.ones(3), np.ones(3), np.eye(3)), [1.0], np.eye(3), np.zeros(3))
 
 
 def test_a_value_next_to_a_rule_that_ignores_it_is_an_error():
@@ -279,10 +282,10 @@ def test_a_value_next_to_a_rule_that_ignores_it_is_an_error():
 def test_no_background_names_the_option():
     mask = np.ones((30, 30), dtype=bool)
     mask[0] = mask[-1] = mask[:, 0] = mask[:, -1] = False
-    with pytest.raises(an.NoiseEstimationError, match="--noise-magnitude"):
-        an.magnitude_noise(np.ones((30, 30)), np.ones((30, 30)), mask, 0.0, 1.0, 1.0, np.arange(900))
-    with pytest.raises(an.NoiseEstimationError, match="--noise-velocity"):
-        an.velocity_noise(
+    with pytest.raises(NoiseEstimationError, match="--noise-magnitude"):
+        nl.magnitude_noise(np.ones((30, 30)), np.ones((30, 30)), mask, 0.0, 1.0, 1.0, np.arange(900))
+    with pytest.raises(NoiseEstimationError, match="--noise-velocity"):
+        nl.velocity_noise(
             np.zeros((30, 30)), np.ones((30, 30)), np.zeros((30, 30), bool), np.arange(3), np.ones(3), None
         )
 
