@@ -26,13 +26,12 @@ import numpy as np
 import casadi as ca
 
 
-class _LinearCallback(ca.Callback):
-    """A linear map ``X -> L(X)`` on ``cols`` side-by-side columns; subclasses give ``apply`` and shapes."""
+class _DenseCallback(ca.Callback):
+    """One dense input of shape ``shape_in`` to one dense output of shape ``shape_out``, evaluated in place."""
 
-    def __init__(self, name: str, n_in: int, n_out: int, cols: int):
+    def __init__(self, name: str, shape_in: tuple, shape_out: tuple):
         ca.Callback.__init__(self)
-        self.n_in_, self.n_out_, self.cols = int(n_in), int(n_out), int(cols)
-        self._derived: dict = {}
+        self.shape_in, self.shape_out = shape_in, shape_out
         self.construct(name, {})
 
     def get_n_in(self):
@@ -42,10 +41,22 @@ class _LinearCallback(ca.Callback):
         return 1
 
     def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(self.n_in_, self.cols)
+        return ca.Sparsity.dense(*self.shape_in)
 
     def get_sparsity_out(self, i):
-        return ca.Sparsity.dense(self.n_out_, self.cols)
+        return ca.Sparsity.dense(*self.shape_out)
+
+    def has_eval_buffer(self):
+        return True
+
+
+class _LinearCallback(_DenseCallback):
+    """A linear map ``X -> L(X)`` on ``cols`` side-by-side columns; subclasses give ``apply`` and shapes."""
+
+    def __init__(self, name: str, n_in: int, n_out: int, cols: int):
+        self.n_in_, self.n_out_, self.cols = int(n_in), int(n_out), int(cols)
+        self._derived: dict = {}
+        super().__init__(name, (self.n_in_, self.cols), (self.n_out_, self.cols))
 
     def apply(self, x: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -53,9 +64,6 @@ class _LinearCallback(ca.Callback):
     def derived(self, cols: int, flip: bool) -> _LinearCallback:  # pragma: no cover - abstract
         """The same map (or, with ``flip``, its adjoint) on ``cols`` columns, built once."""
         raise NotImplementedError
-
-    def has_eval_buffer(self):
-        return True
 
     def eval_buffer(self, arg, res):
         # CasADi's memory is column-major: read and write it in place, no copies of the inputs
@@ -150,7 +158,7 @@ class GroupedWeightedSum(_LinearCallback):
         return root._kept((cols, adjoint), lambda: GroupedWeightedSum(root.b, root.group, cols, adjoint, root))
 
 
-class Gram(ca.Callback):
+class Gram(_DenseCallback):
     r"""``J -> J^T J`` for a dense ``(m, n)`` matrix ``J``, one BLAS product (the Gauss-Newton Hessian).
 
     Notes
@@ -163,24 +171,8 @@ class Gram(ca.Callback):
     """
 
     def __init__(self, m: int, n: int):
-        ca.Callback.__init__(self)
         self.m, self.n = int(m), int(n)
-        self.construct(f"gram_{m}x{n}", {})
-
-    def get_n_in(self):
-        return 1
-
-    def get_n_out(self):
-        return 1
-
-    def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(self.m, self.n)
-
-    def get_sparsity_out(self, i):
-        return ca.Sparsity.dense(self.n, self.n)
-
-    def has_eval_buffer(self):
-        return True
+        super().__init__(f"gram_{m}x{n}", (self.m, self.n), (self.n, self.n))
 
     def eval_buffer(self, arg, res):
         j = np.frombuffer(arg[0], dtype=np.float64).reshape(self.n, self.m)  # J^T, row-major view of column-major J
