@@ -91,7 +91,7 @@ def main(argv=None):
             f"| {h:g} | {nx} x {ny} | "
             + " | ".join(f"{t:.3f}" for t in med)
             + f" | {total:.2f}{mark(total <= TARGET_S)} | {o:.2f} | {total / o:.2f}{mark(total / o <= TARGET_OFF)} | "
-            f"{b:.2f} | {total + b:.2f}{mark(total + b <= TARGET_WITH_BAND)} | {b / total:.1f}"
+            f"{b:.2f} | {total + b:.2f}{mark(total + b <= TARGET_WITH_BAND)} | {b / total:.2f}"
             f"{mark(b / total <= TARGET_BAND)} | {c:.2f} | {c / total:.1f}{coup_ok} |"
         )
     write_report(args.out, args.name, lines)
