@@ -179,7 +179,7 @@ def _rows(fun: ca.Function, *args) -> list[np.ndarray]:
     chunks = []
     for start in range(0, n, ROW_CHUNK):
         stop = min(start + ROW_CHUNK, n)
-        rows = []
+        rows: list = []
         for a in args:
             if np.isscalar(a):
                 rows.append(a)
