@@ -30,7 +30,7 @@ is :math:`\mu S/\ell` times its angular factor, independent of the family):
   displacement-type thickness.
 
 Which model (plain, or a family and a scale on a grid) is chosen from the
-data by :mod:`wss_nlp.parameters.choice` (:func:`wss_nlp.parameters.choice.choose_near_wall`).
+data by :mod:`wss_nlp.parameters.choice` (:func:`wss_nlp.parameters.choice.choose_layer`).
 
 The columns are separable in :math:`(\rho, \theta)`, so the polar form
 used by the coupled method and the sensitivities (:func:`wss_nlp.coupled.polar_basis`)
@@ -110,6 +110,11 @@ def stretch(disk_map) -> float:
     return float(disk_map.r_in + disk_map.eta * (disk_map.coefficients[0] - disk_map.r_in))
 
 
+def layer_terms(max_order: int) -> list[tuple[int, str]]:
+    """The layer's angular terms ``(m, "cos" | "sin")``, ``m = 0 .. max_order`` (``m = 0``: cosine only)."""
+    return [(0, "cos")] + [(m, k) for m in range(1, max_order + 1) for k in ("cos", "sin")]
+
+
 def layer_columns(family: str, layer_terms, scale, x, y) -> list:
     """Unscaled layer columns ``f((1 - rho)/scale) Re/Im (x + i y)^m`` (NumPy or CasADi; ``scale`` may be a symbol)."""
     is_sym = isinstance(x, (ca.SX, ca.MX))
@@ -138,7 +143,7 @@ class LayerTemplate:
 
     @property
     def layer_terms(self) -> list:
-        return [(0, "cos")] + [(m, k) for m in range(1, self.max_order + 1) for k in ("cos", "sin")]
+        return layer_terms(self.max_order)
 
     @property
     def size(self) -> int:
@@ -181,7 +186,7 @@ class EnrichedBasis:
             raise InputError(f"near-wall scale l/S must lie in (0, 1), got {scale}")
         self.base, self.family, self.scale, self.max_order = base, family, float(scale), int(max_order)
         self.kind = f"{base.kind}+{family}"
-        self.layer_terms = [(0, "cos")] + [(m, k) for m in range(1, self.max_order + 1) for k in ("cos", "sin")]
+        self.layer_terms = layer_terms(self.max_order)
         self.n_layer = len(self.layer_terms)
         self.column_scale = 1.0 / float(profile(family, 1.0 / self.scale))
         core = 1.0 / self.scale

@@ -82,7 +82,8 @@ class _LinearCallback(_DenseCallback):
 
     def get_forward(self, nfwd, name, inames, onames, opts):
         x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
-        seed = ca.MX.sym("seed", self.n_in_, self.cols * nfwd)
+        # nfwd seeds side by side: the same map on nfwd times as many columns
+        seed = ca.MX.sym("seed", ca.repmat(self.sparsity_in(0), 1, nfwd))
         out = self.derived(self.cols * nfwd, False)(seed)
         return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
 
@@ -91,7 +92,7 @@ class _LinearCallback(_DenseCallback):
 
     def get_reverse(self, nadj, name, inames, onames, opts):
         x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
-        seed = ca.MX.sym("seed", self.n_out_, self.cols * nadj)
+        seed = ca.MX.sym("seed", ca.repmat(self.sparsity_out(0), 1, nadj))
         out = self.derived(self.cols * nadj, True)(seed)
         return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
 
@@ -251,18 +252,6 @@ class ScatteredBlocks(_LinearCallback):
             for k in range(self.cols):
                 out[k * m : (k + 1) * m] = np.einsum("jm,mj->m", images[k * n : (k + 1) * n][:, self.index], self.b)
         return 0
-
-    def get_forward(self, nfwd, name, inames, onames, opts):
-        x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
-        seed = ca.MX.sym("seed", ca.repmat(self.sparsity_in(0), 1, nfwd))
-        out = self.derived(self.cols * nfwd, False)(seed)
-        return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
-
-    def get_reverse(self, nadj, name, inames, onames, opts):
-        x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
-        seed = ca.MX.sym("seed", ca.repmat(self.sparsity_out(0), 1, nadj))
-        out = self.derived(self.cols * nadj, True)(seed)
-        return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
 
     def derived(self, cols: int, flip: bool) -> ScatteredBlocks:
         root, adjoint = self._root, self.adjoint != flip
