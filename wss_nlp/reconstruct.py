@@ -559,7 +559,7 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     supported = stk.supports(options)
     if ell is not None and not supported:
         raise InputError(
-            f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled method "
+            f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled and coupled methods "
             "with a fixed alpha; pass --z-smoothing 0 for independent slices"
         )
     return supported
@@ -575,7 +575,7 @@ def reconstruct(
     """Reconstruct every slice of an acquisition.
 
     A stack (``nz > 1``) is reconstructed with z-regularization
-    (:mod:`wss_nlp.stack`) when the options allow it (decoupled method, fixed
+    (:mod:`wss_nlp.stack`) when the options allow it (decoupled or coupled method, fixed
     alpha and beta, ``options.stack.z_smoothing_mm != 0``), else slice by
     slice. In a stack, a slice that cannot be reconstructed (NaN or Inf, no
     vessel, solver failure) becomes a :class:`wss_nlp.files.FailedSlice` and
@@ -593,7 +593,8 @@ def reconstruct(
         slice's own origin and radius box (cine frames; slice by slice only).
     defer_band : bool
         Leave each slice's uncertainty band to :meth:`SliceResult.finish_band`
-        (slice by slice only; z-regularized stacks compute no band).
+        (slice by slice only; a z-regularized stack computes its band with the segment's solve,
+        :mod:`wss_nlp.stack_band`).
 
     Notes
     -----

@@ -514,6 +514,27 @@ def _mean_weight_function(n_coefficients: int, phi_bytes: bytes) -> ca.Function:
     return ca.Function("w", [c], [w, ca.jacobian(w, c)])
 
 
+def wss_jacobians(basis, eta: float, viscosity_pa_s: float, n_phi: int, c_r0, center, c_v0, r_in: float, dr_in):
+    """tau at ``n_phi`` angles and the derivatives of tau and of its mean with respect to ``c_R`` and ``c_v``.
+
+    Returns ``(phi, tau, mean tau, d tau/d c_R, d tau/d c_v, d mean/d c_R, d mean/d c_v)``; ``r_in`` depends on
+    ``c_R`` through ``dr_in`` (zero where it is fixed). tau does not depend on the centre directly
+    (translation invariance).
+    """
+    n_r = np.size(c_r0)
+    phi = rad.uniform_angles(n_phi)
+    template, parameters = wss_mod.velocity_template(basis)
+    fun = _wss_derivative_map(template, rad.n_fourier_from_size(n_r), eta, viscosity_pa_s, n_phi)
+    p = parameters(c_v0)
+    nb = np.size(c_v0)
+    tau0, grad = (np.asarray(a) for a in fun(phi[None, :], c_r0, np.asarray(center, float), p[:nb], p[nb:], r_in))
+    tau0 = tau0.ravel()
+    dt_dr = grad[:n_r].T + np.outer(grad[n_r + nb], dr_in)
+    dt_dv = grad[n_r : n_r + nb].T * wss_mod.linear_scale(basis)[None, :]
+    w_mean, dw = _mean_weight_jacobian(c_r0, phi)
+    return phi, tau0, float(w_mean @ tau0), dt_dr, dt_dv, w_mean @ dt_dr + tau0 @ dw, w_mean @ dt_dv
+
+
 def _wss_sensitivity(
     basis,
     eta: float,
@@ -531,23 +552,14 @@ def _wss_sensitivity(
 ) -> Sensitivity:
     """tau and its mean at ``n_phi`` angles and their derivatives, given ``d c_R / dp`` and ``d c_v / dp``.
 
-    ``p = [magnitude voxels (m_index); velocity voxels (u_index); SCALARS]``;
-    ``r_in`` depends on ``c_R`` through ``dr_in`` (zero where it is fixed).
-    tau does not depend on the centre directly (translation invariance).
+    ``p = [magnitude voxels (m_index); velocity voxels (u_index); SCALARS]`` (:func:`wss_jacobians`).
     """
-    n_r, n_m, n_u = c_r0.size, m_index.size, u_index.size
-    phi = rad.uniform_angles(n_phi)
-    template, parameters = wss_mod.velocity_template(basis)
-    fun = _wss_derivative_map(template, rad.n_fourier_from_size(n_r), eta, viscosity_pa_s, n_phi)
-    p = parameters(c_v0)
-    nb = c_v0.size
-    tau0, grad = (np.asarray(a) for a in fun(phi[None, :], c_r0, np.asarray(center, float), p[:nb], p[nb:], r_in))
-    tau0 = tau0.ravel()
-    dt_dr = grad[:n_r].T + np.outer(grad[n_r + nb], dr_in)
-    dt_dv = grad[n_r : n_r + nb].T * wss_mod.linear_scale(basis)[None, :]
-    w_mean, dw = _mean_weight_jacobian(c_r0, phi)
+    n_m, n_u = m_index.size, u_index.size
+    phi, tau0, mean0, dt_dr, dt_dv, dm_dr, dm_dv = wss_jacobians(
+        basis, eta, viscosity_pa_s, n_phi, c_r0, center, c_v0, r_in, dr_in
+    )
     dtau = dt_dr @ dcr + dt_dv @ dcv
-    dmean = w_mean @ dtau + tau0 @ (dw @ dcr)
+    dmean = dm_dr @ dcr + dm_dv @ dcv
     out = Sensitivity(
         phi=phi,
         d_tau=dtau[:, n_m + n_u :],
@@ -561,7 +573,7 @@ def _wss_sensitivity(
         d_coef_r=dcr,
         d_coef_v=dcv,
     )
-    out.noise.update({"tau_reference": tau0, "mean_reference": float(w_mean @ tau0)})
+    out.noise.update({"tau_reference": tau0, "mean_reference": mean0})
     return out
 
 
@@ -653,34 +665,27 @@ def _attach_correlation(out: Sensitivity, problem: geo.GeometryProblem) -> None:
     out.noise["correlation"] = f"k-space noise: {psf.filter} filter, zero-filling {list(psf.zero_fill)}"
 
 
-def coupled(
-    cres,
-    problem: geo.GeometryProblem,
-    gopt: geo.GeometryOptions,
-    vopt: vel.VelocityOptions,
-    viscosity_pa_s: float,
-    n_phi: int = 360,
-    polish_steps: int = 2,
-) -> Sensitivity:
-    """Sensitivities of the coupled reconstruction (:mod:`wss_nlp.coupled`) at its solution.
+@dataclass
+class CoupledKKT:
+    """The coupled NLP's KKT pieces at a solution (:func:`coupled_kkt`): ``x = [c_R; c_v]``, the exact Hessian of
+    the objective, the active box rows (in ``x``), ``d grad f / d p`` for ``p = [magnitude voxels (m_index);
+    velocity voxels (u_index); SCALARS]`` and the stationarity residual after polishing."""
 
-    Notes
-    -----
-    Implicit function theorem on the KKT system of the coupled NLP with the
-    exact Hessian ``2 J^T J + 2 sum_i r_i hess r_i + penalty Hessian``: ``J``
-    is the chain-rule Jacobian of the residuals, and the second-order term
-    comes from CasADi (forward-over-reverse along the ``c_R`` directions;
-    the residuals are linear in ``c_v``). Parameters: the normalized
-    magnitude (annulus voxels through the geometry misfit and the velocity
-    voxels through the precision weights ``|V| m_i^2``), the velocity image,
-    alpha, beta, gamma and the centre (geometry part from the per-voxel
-    derivatives of :func:`geometry_parameter_derivatives`, velocity part by
-    forward AD of the gradient through the polar coordinates of the
-    sub-voxel points). The IPOPT solution (tolerance limited by rounding in the
-    objective) is first polished by Newton steps on the KKT system, which
-    need only gradients.
-    """
-    t_start = time.perf_counter()
+    x: np.ndarray
+    hessian: np.ndarray
+    active: np.ndarray
+    dgrad: np.ndarray
+    m_index: np.ndarray
+    u_index: np.ndarray
+    polished: float
+
+    @property
+    def kkt(self) -> np.ndarray:
+        return bordered(self.hessian, self.active)
+
+
+def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, polish_steps: int = 2) -> CoupledKKT:
+    """The KKT system of the coupled NLP at ``cres`` (see :func:`coupled`); ``polish_steps`` Newton steps first."""
     nlp = cres.nlp
     if nlp is None:
         raise InputError("coupled sensitivities need the solved NLP (CoupledResult.nlp)")
@@ -706,18 +711,19 @@ def coupled(
     active = np.flatnonzero(cres.geometry.box_multipliers != 0)
     g_act = np.hstack([box[active], np.zeros((active.size, n_x - n_r))])
 
-    def kkt_matrix(jac, sec):
+    def hessian(jac, sec):
         h2 = np.zeros((n_x, n_x))  # hess(res^T r): only the c_R columns and rows are nonzero
         h2[:, :n_r] = sec
         h2[:n_r, n_r:] = sec[n_r:].T
-        return bordered(2 * jac.T @ jac + 2 * h2 + reg, g_act)
+        return 2 * jac.T @ jac + 2 * h2 + reg
 
     lam = np.zeros(active.size)
     for it in range(polish_steps + 1):
         res0 = np.asarray(fun_res(x, gam)).ravel()
         jac, sec, grad, dgrad_dgam, err_v = (np.asarray(a) for a in fun(x, gam, res0))
         grad, err_v = grad.ravel(), err_v.ravel()
-        kkt = kkt_matrix(jac, sec)
+        hess = hessian(jac, sec)
+        kkt = bordered(hess, g_act)
         stationarity = grad + g_act.T @ lam
         if it == polish_steps or np.linalg.norm(stationarity) <= 1e-13 * max(1.0, float(np.linalg.norm(grad))):
             break
@@ -754,7 +760,41 @@ def coupled(
     dgrad[n_r:, n_m + n_u + 1] = 2 * nlp.weight * nlp.gram @ x[n_r:] / np.pi
     dgrad[:, n_m + n_u + 2] = dgrad_dgam.ravel()
     dgrad[:, n_m + n_u + 3 :] = _coupled_centre_derivative(nlp, problem, gopt, x, gam, cres.velocity)
-    dx = solve_kkt(kkt, dgrad, "coupled sensitivity")
+    return CoupledKKT(x, hess, g_act, dgrad, m_index, u_index, polished)
+
+
+def coupled(
+    cres,
+    problem: geo.GeometryProblem,
+    gopt: geo.GeometryOptions,
+    vopt: vel.VelocityOptions,
+    viscosity_pa_s: float,
+    n_phi: int = 360,
+    polish_steps: int = 2,
+) -> Sensitivity:
+    """Sensitivities of the coupled reconstruction (:mod:`wss_nlp.coupled`) at its solution.
+
+    Notes
+    -----
+    Implicit function theorem on the KKT system of the coupled NLP with the
+    exact Hessian ``2 J^T J + 2 sum_i r_i hess r_i + penalty Hessian``: ``J``
+    is the chain-rule Jacobian of the residuals, and the second-order term
+    comes from CasADi (forward-over-reverse along the ``c_R`` directions;
+    the residuals are linear in ``c_v``). Parameters: the normalized
+    magnitude (annulus voxels through the geometry misfit and the velocity
+    voxels through the precision weights ``|V| m_i^2``), the velocity image,
+    alpha, beta, gamma and the centre (geometry part from the per-voxel
+    derivatives of :func:`geometry_parameter_derivatives`, velocity part by
+    forward AD of the gradient through the polar coordinates of the
+    sub-voxel points). The IPOPT solution (tolerance limited by rounding in the
+    objective) is first polished by Newton steps on the KKT system, which
+    need only gradients.
+    """
+    t_start = time.perf_counter()
+    k = coupled_kkt(cres, problem, gopt, polish_steps)
+    x, dgrad, m_index, u_index, polished = k.x, k.dgrad, k.m_index, k.u_index, k.polished
+    n_r = cres.nlp.n_r
+    dx = solve_kkt(k.kkt, dgrad, "coupled sensitivity")
 
     # r_in is fixed in the coupled model
     out = _wss_sensitivity(
@@ -774,7 +814,7 @@ def coupled(
     )
     _attach_correlation(out, problem)
     out.seconds = time.perf_counter() - t_start
-    out.noise.update({"active_box_constraints": int(active.size), "kkt_residual_after_polish": polished})
+    out.noise.update({"active_box_constraints": int(k.active.shape[0]), "kkt_residual_after_polish": polished})
     return out
 
 

@@ -52,16 +52,20 @@ import scipy.linalg
 
 import casadi as ca
 
+from .parameters import noise as nl
 from .parameters import rules as pr
 from . import dephasing as deph
 from . import geometry as geo
 from . import preprocess as pp
 from . import operators
 from . import radius as rad
+from . import sensitivity as sens
+from . import stack_band
 from . import velocity as vel
 from . import wss as wss_mod
 from .errors import InputError, SolverError, WssNlpError
 from .parameters.choice import gcv_beta, layer_model, velocity_beta
+from . import coupled as cpl
 from .coupled import sparse_dm
 from .files import Acquisition
 from .results import SliceResult
@@ -313,6 +317,9 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
     lbg = np.concatenate([np.full(m, sl.problem.r0) for m, sl in zip(nb, slices)])
     ubg = np.concatenate([np.full(m, sl.problem.r1) for m, sl in zip(nb, slices)])
     sol, stats = run_nlpsol(solver, "stack geometry (coupled IPOPT)", x0=np.ravel(x0), lbg=lbg, ubg=ubg)
+    lam = np.asarray(sol["lam_g"]).ravel()
+    for sl, part in zip(slices, np.split(lam, np.cumsum(nb)[:-1])):
+        sl.lam_g = part  # the box multipliers (clip_inactive_lam: exactly zero where inactive), for the band
     return np.asarray(sol["x"]).reshape(ns, n), stats
 
 
@@ -439,6 +446,114 @@ def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float,
     return c, max_sweeps, history
 
 
+# ------------------------------------------------------------------ coupled geometry + velocity
+def coupled_segment(
+    problems: list,
+    images: list,
+    starts: list,
+    gopt: geo.GeometryOptions,
+    vopt: vel.VelocityOptions,
+    weight: float,
+    betas: list,
+    kappa: float,
+    kappa_v: float,
+    order: int,
+    copt=None,
+):
+    r"""The coupled geometry+velocity NLP of a segment (paper Sec. 4's coupled functional per slice, z-tied).
+
+    Minimizes :math:`\sum_k F_k(c_k, v_k) + \kappa\, C^\top (L \otimes W_0) C
+    + \lambda \kappa_v V_0^\top (L \otimes G_0/\pi) V_0` with :math:`F_k` the coupled functional of slice k
+    (:func:`wss_nlp.coupled.build`, velocity weight :math:`\lambda` common to the segment, so the z-penalty of
+    the velocity keeps its weight relative to the velocity misfit as in the decoupled stack), IPOPT with the
+    Gauss-Newton Hessian (per-slice blocks plus the z-operators), the box per slice, warm-started from the
+    decoupled segment ``starts`` (``(GeometryResult, VelocityResult)`` per slice; their maps' inner radii
+    are kept, as for one slice).
+
+    Returns ``(results, stats)``: a :class:`wss_nlp.coupled.CoupledResult` per slice.
+    """
+    copt = copt or cpl.CoupledOptions()
+    alpha = gopt.alpha
+    nlps = [
+        cpl.build(pb, gopt, u, vopt, v.basis, v.disk_map.r_in, weight, alpha, b, copt.quad_order, start=g.coefficients)
+        for pb, u, (g, v), b in zip(problems, images, starts, betas)
+    ]
+    sizes = [nlp.x.numel() for nlp in nlps]
+    offsets = np.r_[0, np.cumsum(sizes)]
+    big = ca.MX.sym("X", int(offsets[-1]))
+    # separate functions: derivatives of f must not run through the Gauss-Newton matrix's graph
+    parts = [
+        (ca.Function("F", [nlp.x, nlp.gamma], [nlp.f, nlp.g]), ca.Function("J", [nlp.x, nlp.gamma], [nlp.jacobian]))
+        for nlp in nlps
+    ]
+    gammas = ca.MX.sym("gamma", len(nlps))
+    grams = [operators.Gram(*nlp.jacobian.shape) for nlp in nlps]  # kept alive with the solver below
+    f: Any = 0  # a CasADi expression once the first term is added
+    g_all, hess_blocks = [], []
+    for k, (nlp, (fun, jac)) in enumerate(zip(nlps, parts)):
+        xk = big[int(offsets[k]) : int(offsets[k + 1])]
+        fk, gk = fun(xk, gammas[k])
+        jk = jac(xk, gammas[k])
+        f += fk
+        g_all.append(gk)
+        reg = np.zeros((sizes[k], sizes[k]))
+        reg[: nlp.n_r, : nlp.n_r] = alpha * np.diag(nlp.geometry.weights)
+        reg[nlp.n_r :, nlp.n_r :] = weight * nlp.beta / np.pi * nlp.gram
+        hess_blocks.append(2 * grams[k](jk) + 2 * ca.DM(reg))
+    zop = z_operator(len(nlps), order)
+    w0 = rad.sobolev_weights(gopt.n_fourier, 0)
+    gram0 = getattr(starts[0][1].basis, "base", starts[0][1].basis).laplacian_gram(0)
+    n_r, m = nlps[0].n_r, gram0.shape[0]
+    select_c = np.zeros((len(nlps) * n_r, int(offsets[-1])))
+    select_v = np.zeros((len(nlps) * m, int(offsets[-1])))
+    for k in range(len(nlps)):
+        select_c[k * n_r : (k + 1) * n_r, offsets[k] : offsets[k] + n_r] = np.eye(n_r)
+        select_v[k * m : (k + 1) * m, offsets[k] + n_r : offsets[k] + n_r + m] = np.eye(m)
+    zpen = kappa * select_c.T @ np.kron(zop, np.diag(w0)) @ select_c
+    zpen += weight * kappa_v * select_v.T @ np.kron(zop, gram0 / np.pi) @ select_v
+    zl = sparse_dm(zpen)
+    f += ca.dot(big, ca.mtimes(zl, big))
+    hess = ca.diagcat(*hess_blocks) + 2 * zl
+    extra = {
+        "clip_inactive_lam": True,
+        "ipopt.mu_init": 1e-6,
+        "ipopt.warm_start_init_point": "yes",
+        "ipopt.warm_start_bound_push": 1e-9,
+        "ipopt.warm_start_mult_bound_push": 1e-9,
+    }
+    solver = gauss_newton_ipopt(
+        "stack_coupled", big, f, ca.vertcat(*g_all), hess, gammas, copt.tol, copt.max_iter, extra
+    )
+    x0 = np.concatenate([np.concatenate([g.coefficients, v.coefficients]) for g, v in starts])
+    lbg = np.concatenate(
+        [
+            np.full(nlp.g.numel(), max(pb.r0, 1.000001 * v.disk_map.r_in))
+            for nlp, pb, (_, v) in zip(nlps, problems, starts)
+        ]
+    )
+    ubg = np.concatenate([np.full(nlp.g.numel(), pb.r1) for nlp, pb in zip(nlps, problems)])
+    p = np.array([float(nlp.geometry.gamma) for nlp in nlps])
+    t0 = time.perf_counter()
+    sol, stats = run_nlpsol(solver, "stack coupled geometry+velocity (IPOPT)", x0=x0, p=p, lbg=lbg, ubg=ubg)
+    stats.seconds = time.perf_counter() - t0
+    stats.extra["velocity_weight"] = weight
+    x = np.asarray(sol["x"]).ravel()
+    lam = np.split(np.asarray(sol["lam_g"]).ravel(), np.cumsum([nlp.g.numel() for nlp in nlps])[:-1])
+    out = []
+    for k, (nlp, pb, u, (g0, v0), b) in enumerate(zip(nlps, problems, images, starts, betas)):
+        x_k = x[int(offsets[k]) : int(offsets[k + 1])]
+        c_r, c_v = x_k[:n_r], x_k[n_r:]
+        gnlp = nlp.geometry  # its residual holds the gamma parameter: substitute the value for the report
+        numeric = replace(gnlp, residual=ca.substitute(gnlp.residual, nlp.gamma, ca.MX(gnlp.gamma)))
+        g = geo.finish(pb, gopt, numeric, c_r, stats, alpha)
+        g.box_multipliers = lam[k]
+        vopt_fixed = replace(vopt, inner_radius=v0.disk_map.r_in)
+        vp = vel.assemble(pb.grid, u, c_r, g.center, vopt_fixed, basis=v0.basis, psf=pb.psf)
+        v = vel.result(vp, vopt_fixed, c_v, b, stats)
+        out.append(cpl.CoupledResult(g, v, stats, weight, (g0.coefficients, v0.coefficients), nlp))
+    return out, stats
+
+
 # ------------------------------------------------------------------ driver
 def _prepare(acq: Acquisition, iz: int, magnitude, velocity, finite: bool, vessel=None, psf=None) -> _Slice:
     where = f"{acq.source} slice {iz}"
@@ -467,13 +582,96 @@ def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray)
     return out[0], out[1]
 
 
+def _segment_band(acq, options, seg, slices, problems, geoms, sgs, vps, vcoef, betas, nears, kappa, kappa_v, zop, mu):
+    """The band of a solved segment (:func:`wss_nlp.stack_band.segment_band`) and a note: ``(bands, "")``, or
+    ``(None, why)`` when it cannot be computed (the reconstruction itself stands)."""
+    from . import stack_band
+
+    band_slices = []
+    try:
+        for k, p, pb, g, sl, vp, cv, b, near in zip(seg, slices, problems, geoms, sgs, vps, vcoef, betas, nears):
+            sigma_m, sigma_u = _noise_levels(acq, options, k, p, vp.voxels.index)
+            band_slices.append(stack_band.BandSlice(pb, g, sl.lam_g, vp, cv, b, near, sigma_m, sigma_u))
+        bands = stack_band.segment_band(
+            band_slices, options.geometry, options.velocity, kappa, kappa_v, zop, mu, options.n_phi
+        )
+    except WssNlpError as exc:
+        return None, f"no uncertainty band: {exc}"
+    return bands, ""
+
+
+def _noise_levels(acq, options, k: int, p: _Slice, u_index: np.ndarray):
+    """Slice k's ``(sigma_m, sigma_u on u_index)`` as the single-slice band takes them (venc, or the noise
+    venc when the lumen has no plateau)."""
+    venc = acq.venc_m_s
+    if venc is None and nl.velocity_plateau(p.lumen.noise_mask).sum() < nl.MIN_PLATEAU_VOXELS:
+        venc = acq.noise_venc_m_s
+    sigma_m, sigma_u, _ = sens.noise_levels(
+        acq.magnitude[k], p.lumen.noise_mask, p.norm.m0, p.norm.m1, u_index, venc, options.noise_sigma, p.lumen.signal
+    )
+    return sigma_m, sigma_u
+
+
+def _coupled_segment_band(acq, options, seg, slices, problems, cres, kappa, kappa_v, zop, mu):
+    """:func:`wss_nlp.stack_band.coupled_segment_band` of a coupled segment: ``(bands, "")`` or ``(None, why)``."""
+    try:
+        bands = stack_band.coupled_segment_band(
+            cres, problems, lambda i, _, u_index: _noise_levels(acq, options, seg[i], slices[i], u_index),
+            options.geometry, options.velocity, kappa, kappa_v, zop, mu, options.n_phi,
+        )  # fmt: skip
+    except WssNlpError as exc:
+        return None, f"no uncertainty band: {exc}"
+    return bands, ""
+
+
+def _coupled_pass(acq, options, seg, slices, problems, images, starts, betas, kappa, kappa_v, order):
+    """The segment's coupled NLP (:func:`coupled_segment`) from its decoupled solution, with one velocity weight:
+    ``--velocity-weight``, or the geometric median of the slices' likelihood weights
+    (:func:`wss_nlp.coupled.weight_from_data`). Returns the results and each slice's record of the weight."""
+    copt = options.coupled
+    own = []
+    for k, p, pb in zip(seg, slices, problems):
+        if copt.velocity_weight is not None:
+            own.append((copt.velocity_weight, {"weight_method": "given (--velocity-weight)"}))
+            continue
+        venc = acq.venc_m_s
+        if venc is None and nl.velocity_plateau(p.lumen.noise_mask).sum() < nl.MIN_PLATEAU_VOXELS:
+            venc = acq.noise_venc_m_s
+        weight, how = cpl.weight_from_data(
+            pb, options.geometry, acq.magnitude[k], p.norm, p.lumen.noise_mask, p.velocity_image, venc,
+            f"{acq.source} slice {k}", p.lumen.signal,
+        )  # fmt: skip
+        how["weight_method"] = "likelihood: W sigma_m^2 / sigma_u^2 from the estimated noise levels"
+        own.append((weight, how))
+    weight = float(np.exp(np.median(np.log([w for w, _ in own]))))
+    vopt = replace(options.velocity, near_wall="off")
+    res, _ = coupled_segment(
+        problems, images, starts, options.geometry, vopt, weight, betas, kappa, kappa_v, order, copt
+    )
+    info = [
+        {
+            "velocity_weight": weight,
+            **how,
+            "velocity_weight_slice_alone": w,
+            "decoupled_mean_radius_mm": float(g.coefficients[0]),
+            "decoupled_converged": bool(g.stats.converged and v.stats.converged),
+        }
+        for (w, how), (g, v) in zip(own, starts)
+    ]
+    if len(seg) > 1 and copt.velocity_weight is None:
+        for d in info:
+            d["weight_method"] += f"; the geometric median over slices {seg[0]}-{seg[-1]}"
+    return res, info
+
+
 def supports(options) -> bool:
-    """Whether z-regularization applies to these reconstruction options (decoupled method, fixed alpha).
+    """Whether z-regularization applies to these reconstruction options (decoupled or coupled method, fixed
+    alpha).
 
     beta may come from any rule: a segment is fitted with one beta, the
     median (on a log scale) of its slices' own choices (:func:`segment_beta`).
     """
-    return options.method == "decoupled" and options.alpha_rule == "fixed"
+    return options.method in ("decoupled", "coupled") and options.alpha_rule == "fixed"
 
 
 def segment_beta(choices) -> float:
@@ -521,7 +719,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     stack = stack or StackOptions()
     if not supports(options):
         raise InputError(
-            "stacks with z-regularization support the decoupled method with a fixed alpha; "
+            "stacks with z-regularization support the decoupled and coupled methods with a fixed alpha; "
             "pass --z-smoothing 0 for independent slices with other settings"
         )
     mu = acq.viscosity(options.viscosity_pa_s)
@@ -549,6 +747,10 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
     info = StackInfo("", ell, kappa, kappa_v, segs, failed)
     results: list = [None] * acq.nz
     gopt, vopt = options.geometry, options.velocity
+    layer_notes = []
+    if options.method == "coupled" and vopt.near_wall != "off":  # as reconstruct_slice
+        layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
+        vopt = replace(vopt, near_wall="off")
     basis = vopt.make_basis()
     gram0 = basis.laplacian_gram(0)
     done = 0
@@ -623,7 +825,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
 
     def solve_segment(seg, problems, x0, strategy, velocity_images=None, around=None):
         """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats, beta choices, betas,
-        near-wall choices)``."""
+        near-wall choices, the slices' SliceGeometry, the geometry problems)``."""
         t0 = time.perf_counter()
         sg = [SliceGeometry(pb, gopt, kappa) for pb in problems]
         t["geometry_build"] = t.get("geometry_build", 0.0) + time.perf_counter() - t0
@@ -652,7 +854,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
         choices, betas = choose_betas(seg, vps, nears)
         vcoef, vstats = fit_velocity(vps, strategy, betas)
         t["velocity"] = t.get("velocity", 0.0) + time.perf_counter() - t0
-        return coef, geoms, vps, vcoef, vstats, choices, betas, nears
+        return coef, geoms, vps, vcoef, vstats, choices, betas, nears, sg, problems
 
     unexplained: list[int] = []  # slices whose k-space dephasing prediction was rejected
     for seg in segs:
@@ -663,7 +865,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
         logger.info(f"slices {seg[0]}-{seg[-1]}: {strategy} solve of {len(seg)} slice(s)")
         problems = [prepared[k].problem for k in seg]
         x0 = np.array([geo.initial_guess(pb, gopt.n_fourier) for pb in problems])
-        coef, geoms, vps, vcoef, vstats, choices, betas, nears = solve_segment(seg, problems, x0, strategy)
+        coef, geoms, vps, vcoef, vstats, choices, betas, nears, sgs, used = solve_segment(seg, problems, x0, strategy)
         factors: list[Any] = [None] * len(seg)
         if options.dephasing_correction and acq.venc_m_s is not None:
             # as reconstruct_slice (one pass): predict the signal loss from a GCV-beta velocity, then solve again
@@ -673,18 +875,28 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
             if any(c.worth_a_pass for c in corrections):
                 logger.info(f"slices {seg[0]}-{seg[-1]}: second pass on dephasing-corrected magnitudes")
-                before = (coef, geoms, vps, vcoef, vstats, choices, betas, nears)
+                before = (coef, geoms, vps, vcoef, vstats, choices, betas, nears, sgs, used)
                 corrected = [replace(pb, magnitude=c.magnitude) for pb, c in zip(problems, corrections)]
-                coef, geoms, vps, vcoef, vstats, choices, betas, nears = solve_segment(
+                coef, geoms, vps, vcoef, vstats, choices, betas, nears, sgs, used = solve_segment(
                     seg, corrected, coef, strategy, [c.velocity for c in corrections], around=nears
                 )
                 info.dephasing_pass = True
                 if psf is not None:  # judged as in reconstruct_slice: undone if it explains the magnitude worse
                     after = predict_dephasing(seg, vps, geoms, [c.window for c in corrections])
                     if any(a.misfit_moving >= c.misfit_still for a, c in zip(after, corrections)):
-                        coef, geoms, vps, vcoef, vstats, choices, betas, nears = before
+                        coef, geoms, vps, vcoef, vstats, choices, betas, nears, sgs, used = before
                         unexplained.extend(seg)
                         info.dephasing_pass = False
+        cres, cinfo = None, [{} for _ in seg]  # type: list | None, list[dict]
+        if options.method == "coupled":
+            t0 = time.perf_counter()
+            starts = [(g, vel.result(vp, vopt, c, b, st)) for g, vp, c, b, st in zip(geoms, vps, vcoef, betas, vstats)]
+            cres, cinfo = _coupled_pass(
+                acq, options, seg, [prepared[k] for k in seg], used, [vp.data_image for vp in vps], starts, betas,
+                kappa, kappa_v, m,
+            )  # fmt: skip
+            geoms = [c.geometry for c in cres]
+            t["coupled"] = t.get("coupled", 0.0) + time.perf_counter() - t0
         planar = None
         if acq.velocity_inplane is not None:
             t0 = time.perf_counter()
@@ -704,9 +916,27 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                 np.array([g.coefficients for g in geoms]), np.array([g.center for g in geoms]), np.array(seg) * dz
             )
             t["velocity_inplane"] = t.get("velocity_inplane", 0.0) + time.perf_counter() - t0
+        bands, band_note = None, ""
+        if options.uncertainty and cres is not None:
+            t0 = time.perf_counter()
+            bands, band_note = _coupled_segment_band(
+                acq, options, seg, [prepared[k] for k in seg], used, cres, kappa, kappa_v, z_operator(len(seg), m), mu
+            )
+            t["uncertainty"] = t.get("uncertainty", 0.0) + time.perf_counter() - t0
+        elif options.uncertainty:
+            t0 = time.perf_counter()
+            bands, band_note = _segment_band(
+                acq, options, seg, [prepared[k] for k in seg], used, geoms, sgs, vps, vcoef, betas, nears, kappa,
+                kappa_v, z_operator(len(seg), m), mu,
+            )  # fmt: skip
+            t["uncertainty"] = t.get("uncertainty", 0.0) + time.perf_counter() - t0
         for i, k in enumerate(seg):
-            v = vel.result(vps[i], vopt, vcoef[i], betas[i], vstats[i])
+            v = vel.result(vps[i], vopt, vcoef[i], betas[i], vstats[i]) if cres is None else cres[i].velocity
             w = wss_mod.from_reconstruction(v, options.n_phi, mu)
+            if bands is not None:
+                w.tau_std, w.mean_std = bands[i].tau_std, bands[i].mean_std
+                if nears[i] is not None and np.isfinite(bands[i].scale_std_log):
+                    nears[i].scale_std_log = bands[i].scale_std_log
             if planar is not None:
                 w.vector = wss_mod.wss_vector(
                     w.phi,
@@ -721,6 +951,7 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
             p = prepared[k]
             sec = {"min_dephasing_factor": float(np.min(factors[i], initial=1.0)) if factors[i] is not None else 1.0}
             notes = [deph.UNEXPLAINED_NOTE] if k in unexplained else []
+            notes += [band_note] if band_note else []
             if betas[i] != choices[i].chosen:
                 notes.append(
                     f"stack: beta = {betas[i]:.3g}, the geometric median of the {choices[i].rule} choices "
@@ -739,18 +970,15 @@ def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = No
                 sec,
                 pr.ParameterChoice("alpha", "fixed", gopt.alpha),
                 replace(choices[i], chosen=betas[i]),
-                "decoupled",
-                {},
+                options.method,
+                cinfo[i],
                 None,
-                notes,
+                notes + layer_notes,
                 near_wall=nears[i],
             )
             done += 1
             if progress is not None:
                 progress(done, len(prepared), results[k])
-    first = next(r for r in results if r is not None)
-    if options.uncertainty:
-        first.notes.append("stack: the uncertainty band is not computed for z-regularized stacks (yet)")
     if not info.converged:
         for r in results:
             if r is not None:
