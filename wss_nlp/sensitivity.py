@@ -210,7 +210,12 @@ def wss_derivative_function(template, n_fourier: int, eta: float, viscosity_pa_s
 
 
 def geometry_parameter_derivatives(
-    problem: geo.GeometryProblem, options: geo.GeometryOptions, coefficients: np.ndarray, alpha: float, gamma: float
+    problem: geo.GeometryProblem,
+    options: geo.GeometryOptions,
+    coefficients: np.ndarray,
+    alpha: float,
+    gamma: float,
+    gradient: bool = False,
 ):
     """Hessian of the geometry functional in ``c_R`` and ``d grad / d [m_annulus; alpha; gamma; c_x; c_y]``.
 
@@ -231,7 +236,8 @@ def geometry_parameter_derivatives(
     (``w_j = r_i / q^2`` for the points of voxel ``i``). The pointwise
     derivatives (of ``H_gamma`` and of the polar coordinates) are CasADi's
     exact ones (:func:`heaviside_pieces`, :func:`polar_pieces`); the
-    products are BLAS. Returns ``(H, dgrad, annulus)``.
+    products are BLAS. Returns ``(H, dgrad, annulus)``, and with ``gradient`` also
+    ``grad J = 2 |V| sum r_i grad_c F_i + 2 alpha W (c - c_ref)``.
     """
     n = options.n_fourier
     n_r = rad.n_coefficients(n)
@@ -265,6 +271,8 @@ def geometry_parameter_derivatives(
     dgrad[:, n_a + 1] = 2 * area * (g_c @ grad_g + b.T @ (wr * h1g))
     mixed_u = b.T @ ((wr * h2)[:, None] * dgap_du) + b1.T @ ((wr * h1)[:, None] * np.stack([dt_dx, dt_dy], axis=1))
     dgrad[:, n_a + 2 :] = 2 * area * (g_c @ grad_u + mixed_u)
+    if gradient:
+        return hmat, dgrad, model.annulus, 2 * area * g_c @ resid + 2 * alpha * w * (coefficients - ref)
     return hmat, dgrad, model.annulus
 
 
@@ -596,24 +604,31 @@ def decoupled(
     problem, gopt, geometry : the geometry solve (``geometry.alpha`` and ``geometry.gamma`` are used).
     vp, vopt, velocity : the velocity problem assembled on ``geometry`` and its solution (``velocity.beta``).
     tol : float
-        IPOPT tolerance of the re-solve that anchors the sensitivities; the
-        solution derivatives are only as good as the KKT point.
+        IPOPT tolerance of the re-solve that anchors the sensitivities when the
+        Newton step does not (:func:`_newton_anchor`: a box row on its bound, a
+        large step, k-space data); the solution derivatives are only as good as
+        the KKT point.
     """
     t_start = time.perf_counter()
-    # anchor: re-solve from the solution to a tight tolerance (the reconstruction's tolerance leaves the
-    # stationarity residual at ~1e-9, which would show in the derivatives)
     gopt_t = geo.with_options(gopt, alpha=geometry.alpha, tol=tol)
-    solver = geo.solver_for(problem, gopt_t, warm=True)
-    lam = geometry.box_multipliers  # empty after the projected Gauss-Newton solver: start from none active
-    lam = lam if lam.size == solver.nlp.g.numel() else np.zeros(solver.nlp.g.numel())
-    anchor = solver.solve(geometry.alpha, geometry.coefficients, problem, lam)
-    if not anchor.stats.converged:
-        raise SolverError(
-            f"geometry sensitivity re-solve did not converge ({anchor.stats.status}); "
-            "the derivatives would not be those of a solution"
-        )
-    c_r0 = anchor.coefficients
-    dcr_dpg, annulus = geometry_kkt(problem, gopt_t, c_r0, geometry.alpha, geometry.gamma, anchor.box_multipliers)
+    newton = _newton_anchor(problem, gopt_t, geometry) if problem.psf is None else None
+    if newton is not None:
+        c_r0, dcr_dpg, annulus, active_rows = newton
+    else:
+        # anchor: re-solve from the solution to a tight tolerance (the reconstruction's tolerance leaves the
+        # stationarity residual at ~1e-9, which would show in the derivatives)
+        solver = geo.solver_for(problem, gopt_t, warm=True)
+        lam = geometry.box_multipliers  # empty after the projected Gauss-Newton solver: start from none active
+        lam = lam if lam.size == solver.nlp.g.numel() else np.zeros(solver.nlp.g.numel())
+        anchor = solver.solve(geometry.alpha, geometry.coefficients, problem, lam)
+        if not anchor.stats.converged:
+            raise SolverError(
+                f"geometry sensitivity re-solve did not converge ({anchor.stats.status}); "
+                "the derivatives would not be those of a solution"
+            )
+        c_r0 = anchor.coefficients
+        dcr_dpg, annulus = geometry_kkt(problem, gopt_t, c_r0, geometry.alpha, geometry.gamma, anchor.box_multipliers)
+        active_rows = int(np.count_nonzero(anchor.box_multipliers))
 
     # velocity: c_v = H^{-1} T^T W u with H = T^T W T + beta G / pi (W includes 1/A); differentiate the
     # normal equations along each geometry direction
@@ -648,8 +663,46 @@ def decoupled(
     )
     _attach_correlation(out, problem)
     out.seconds = time.perf_counter() - t_start
-    out.noise["active_box_constraints"] = int(np.count_nonzero(anchor.box_multipliers))
+    out.noise["active_box_constraints"] = active_rows
+    out.noise["anchor"] = "newton step" if newton is not None else "ipopt re-solve"
     return out
+
+
+#: Relative size (W0 norm) of the Newton step above which the anchor falls back to an IPOPT re-solve.
+NEWTON_ANCHOR_STEP = 1e-4
+
+
+def _newton_anchor(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geometry: geo.GeometryResult):
+    """``(c, dc/dp, annulus, 0)`` from one Newton step on the geometry's stationarity, or None.
+
+    The reconstruction stops at a tolerance (its stationarity residual ~1e-9, or the projected Gauss-Newton
+    solver's 1e-5 mm), at which the exact Hessian it computes anyway for the KKT system gives the Newton step
+    to the optimum: ``c* = c - H^-1 grad J``. The derivatives are taken with ``H`` and ``dgrad/dp`` at ``c``,
+    which differ from those at ``c*`` by the step's relative size (``<=`` :data:`NEWTON_ANCHOR_STEP`). Box
+    rows on their bound (or a larger step) send the anchor back to an IPOPT re-solve (None): the active set
+    is IPOPT's business.
+    """
+    c = np.asarray(geometry.coefficients, float)
+    box = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
+    r = box @ c
+    if np.any(np.minimum(r - problem.r0, problem.r1 - r) <= 1e-6 * problem.r1):
+        return None
+    hmat, dgrad, annulus, grad = geometry_parameter_derivatives(
+        problem, gopt, c, geometry.alpha, geometry.gamma, gradient=True
+    )
+    try:
+        factor = scipy.linalg.cho_factor(hmat)
+    except np.linalg.LinAlgError:
+        return None  # not positive definite here: leave it to IPOPT
+    step = scipy.linalg.cho_solve(factor, grad)
+    w0 = rad.sobolev_weights(gopt.n_fourier, 0)
+    if np.sqrt(np.sum(w0 * step**2) / np.sum(w0 * c**2)) > NEWTON_ANCHOR_STEP:
+        return None
+    new = c - step
+    r = box @ new
+    if np.any(r < problem.r0) or np.any(r > problem.r1):
+        return None
+    return new, -scipy.linalg.cho_solve(factor, dgrad), annulus, 0
 
 
 def _attach_correlation(out: Sensitivity, problem: geo.GeometryProblem) -> None:
