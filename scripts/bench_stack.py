@@ -16,7 +16,7 @@ import time
 from dataclasses import replace
 
 from _report import RESULTS, write_report
-from wss_nlp import phantoms, stack
+from wss_nlp import phantoms, pipeline, stack
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_100_S = 60.0  # issue 6: 100 slices at h = 1 mm in under 60 s on 2 cores
@@ -24,7 +24,7 @@ TARGET_100_S = 60.0  # issue 6: 100 slices at h = 1 mm in under 60 s on 2 cores
 
 def run(acq, strategy, method="decoupled"):
     t0 = time.perf_counter()
-    _, info = stack.reconstruct_stack(
+    _, info = pipeline.reconstruct_stack(
         acq, ReconstructionOptions(beta_rule="fixed", method=method), stack.StackOptions(strategy=strategy)
     )
     total = time.perf_counter() - t0

@@ -25,7 +25,7 @@ import numpy as np
 from _report import write_report
 from wss_nlp import baselines as bl
 from wss_nlp import geometry as geo
-from wss_nlp import metrics, phantoms, stack
+from wss_nlp import metrics, phantoms, pipeline, stack
 from wss_nlp import velocity as vel
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
 
@@ -124,7 +124,7 @@ def main():
         acq, _ = phantoms.make_stack(case, nz=12, h_mm=1.0, spacing_mm=2.0, snr=25, seed=0)
         cells = []
         for ell in (2.0, 4.0):
-            _, info = stack.reconstruct_stack(
+            _, info = pipeline.reconstruct_stack(
                 acq,
                 ReconstructionOptions(uncertainty=False),
                 stack.StackOptions(z_smoothing_mm=ell, strategy="kaczmarz"),

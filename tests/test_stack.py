@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from wss_nlp import files as wio
-from wss_nlp import metrics, phantoms, stack
+from wss_nlp import metrics, phantoms, pipeline, stack
+from wss_nlp.parameters.choice import segment_beta
 from wss_nlp.cli import main
 from wss_nlp.errors import InputError
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
@@ -24,8 +25,8 @@ def test_kaczmarz_agrees_with_the_coupled_nlp(order):
     # tol 1e-9 and the sweeps at a relative optimality residual of 1e-9, so both sit within ~1e-8 of the optimum.
     acq, _ = phantoms.make_stack("curved", nz=5, h_mm=1.5, spacing_mm=2.0, snr=15, seed=3)
     st = dict(z_smoothing_mm=3.0, z_order=order, tol=1e-9)
-    a, ia = stack.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="coupled", **st))
-    b, ib = stack.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", **st))
+    a, ia = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="coupled", **st))
+    b, ib = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", **st))
     assert ia.strategy == "coupled" and ib.strategy == "kaczmarz" and ib.converged and ib.sweeps["geometry"][0] > 1
     ca_ = np.array([r.geometry.coefficients for r in a])
     cb = np.array([r.geometry.coefficients for r in b])
@@ -35,7 +36,7 @@ def test_kaczmarz_agrees_with_the_coupled_nlp(order):
     ta, tb = np.array([r.wss.tau for r in a]), np.array([r.wss.tau for r in b])
     assert np.abs(ta - tb).max() <= 1e-4 * np.abs(ta).max()
     # the coupling is real: without it the slices differ from the coupled solution by much more
-    c0, _ = stack.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
+    c0, _ = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
     assert np.abs(np.array([r.geometry.coefficients for r in c0]) - ca_).max() > 100 * np.abs(ca_ - cb).max()
 
 
@@ -43,7 +44,7 @@ def test_zero_smoothing_is_the_independent_reconstruction():
     # l = 0 removes the coupling: each slice then solves the 2D functional of reconstruct_slice (same optimum to
     # IPOPT's tolerance, whether found by Gauss-Newton steps or IPOPT).
     acq, _ = phantoms.make_stack("tapered", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=1)
-    a, _ = stack.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
+    a, _ = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
     b = reconstruct(
         acq,
         ReconstructionOptions(
@@ -59,9 +60,9 @@ def test_second_order_smoothing_is_unbiased_on_a_taper():
     # Noise-free tapered tube: the second-difference penalty leaves the slowly varying radius alone (error as
     # without coupling, 0.05 %), while the first-difference penalty pulls the ends of the stack (README numbers).
     acq, truth = phantoms.make_stack("tapered", nz=8, h_mm=1.0, spacing_mm=2.0, snr=None, seed=0)
-    r0, _ = _errors(stack.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0))[0], truth)
-    r2, _ = _errors(stack.reconstruct_stack(acq, FAST, stack.StackOptions(z_order=2))[0], truth)
-    r1, _ = _errors(stack.reconstruct_stack(acq, FAST, stack.StackOptions(z_order=1))[0], truth)
+    r0, _ = _errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0))[0], truth)
+    r2, _ = _errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_order=2))[0], truth)
+    r1, _ = _errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_order=1))[0], truth)
     assert r2 < 2 * r0 + 2e-4
     assert r1 > 2 * r2
 
@@ -72,8 +73,8 @@ def test_z_regularization_lowers_the_errors_of_noisy_stacks():
     ind, reg = [], []
     for seed in (0, 1):
         acq, truth = phantoms.make_stack("curved", nz=10, h_mm=1.0, spacing_mm=2.0, snr=10, seed=seed)
-        ind.append(_errors(stack.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0))[0], truth))
-        reg.append(_errors(stack.reconstruct_stack(acq, FAST, stack.StackOptions())[0], truth))
+        ind.append(_errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0))[0], truth))
+        reg.append(_errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions())[0], truth))
     ind, reg = np.mean(ind, axis=0), np.mean(reg, axis=0)
     assert reg[0] < 0.95 * ind[0], (ind, reg)
     assert reg[1] < 0.8 * ind[1], (ind, reg)
@@ -82,7 +83,7 @@ def test_z_regularization_lowers_the_errors_of_noisy_stacks():
 def test_velocity_sweeps_solve_the_coupled_normal_equations():
     # Block Gauss-Seidel against a direct dense solve of the same block system (an independent solver).
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=20, seed=2)
-    res, info = stack.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", tol=1e-12))
+    res, info = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", tol=1e-12))
     from wss_nlp import velocity as vel
 
     vps = [
@@ -160,9 +161,9 @@ def test_segment_beta_is_the_geometric_median():
     def ch(*values):
         return [pr.ParameterChoice("beta", "balance", v) for v in values]
 
-    assert stack.segment_beta(ch(1e-8, 1e-6, 1e-7)) == pytest.approx(1e-7)
-    assert stack.segment_beta(ch(1e-8, 1e-6)) == pytest.approx(1e-7)  # midpoint on the log scale
-    assert stack.segment_beta(ch(1e-8, 2e-8, 4e-8, 1e-2)) == pytest.approx(np.sqrt(2e-8 * 4e-8))  # outlier ignored
+    assert segment_beta(ch(1e-8, 1e-6, 1e-7)) == pytest.approx(1e-7)
+    assert segment_beta(ch(1e-8, 1e-6)) == pytest.approx(1e-7)  # midpoint on the log scale
+    assert segment_beta(ch(1e-8, 2e-8, 4e-8, 1e-2)) == pytest.approx(np.sqrt(2e-8 * 4e-8))  # outlier ignored
 
 
 def test_data_driven_beta_in_a_z_regularized_stack():
@@ -171,7 +172,7 @@ def test_data_driven_beta_in_a_z_regularized_stack():
     opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False, beta_rule="balance")
     own = []
     for z_smoothing in (None, 0.0):
-        res, _ = stack.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=z_smoothing))
+        res, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=z_smoothing))
         # each slice's own choice, recomputed from what the result stores: the first (largest) beta whose
         # balancing ratio is within kappa
         mine = [r.beta_choice.parameters[np.flatnonzero(r.beta_choice.criterion <= r.beta_choice.tau)[0]] for r in res]
@@ -320,7 +321,7 @@ def test_velocity_solvers_agree_when_slices_carry_near_wall_layers():
     from wss_nlp import velocity as vel
 
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=20, seed=3)
-    res, _ = stack.reconstruct_stack(acq, FAST)
+    res, _ = pipeline.reconstruct_stack(acq, FAST)
     vps = [
         vel.assemble(acq.grid, r.velocity_image, r.geometry.coefficients, r.geometry.center, FAST.velocity) for r in res
     ]

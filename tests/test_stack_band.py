@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from wss_nlp import geometry as geo
-from wss_nlp import phantoms, stack, stack_band
+from wss_nlp import phantoms, pipeline, stack, stack_band
 from wss_nlp import radius as rad
 from wss_nlp import velocity as vel
 from wss_nlp import wss as wss_mod
@@ -81,7 +81,7 @@ def segment(request):
     opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False)
     opts = replace(opts, velocity=replace(opts.velocity, near_wall="off"))
     st = stack.StackOptions(strategy="coupled", z_smoothing_mm=3.0, z_order=order)
-    res, info = stack.reconstruct_stack(acq, opts, st)
+    res, info = pipeline.reconstruct_stack(acq, opts, st)
     r1 = {}
     if box:
         r1[2] = float(np.max(res[2].geometry.radius(np.linspace(0, 2 * np.pi, 720)))) - 0.3
@@ -163,13 +163,13 @@ def test_weakly_coupled_stack_band_equals_the_slice_band():
     with the real weight the band narrows (the z-penalty pools neighbouring slices)."""
     acq, _ = phantoms.make_stack("curved", nz=3, h_mm=1.5, spacing_mm=2.0, snr=15, seed=8)
     opts = ReconstructionOptions(dephasing_correction=False, beta_rule="fixed")
-    weak, _ = stack.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
+    weak, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
     alone = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=0.0)))
     for a, b in zip(weak, alone):
         assert not any("no uncertainty band" in n for n in a.notes)
         np.testing.assert_allclose(a.wss.tau_std, b.wss.tau_std, rtol=1e-6)
         assert a.wss.mean_std == pytest.approx(b.wss.mean_std, rel=1e-6)
-    coupled, _ = stack.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=3.0))
+    coupled, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=3.0))
     assert all(c.wss.mean_std < 0.95 * b.wss.mean_std for c, b in zip(coupled, alone))
 
 
@@ -178,7 +178,7 @@ def test_turbulent_stack_band_carries_the_wall_law_scale():
     includes the law-of-the-wall scale's response to the noise (wss_nlp.reconstruct.uncertainty), to 1e-6."""
     acq, _ = phantoms.make_stack("turbulent", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=9)
     opts = ReconstructionOptions(dephasing_correction=False, beta_rule="fixed")
-    weak, _ = stack.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
+    weak, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
     alone = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=0.0)))
     for a, b in zip(weak, alone):
         assert a.near_wall.model == b.near_wall.model == "wall_law"
@@ -197,7 +197,7 @@ def coupled_segment():
         uncertainty=False, dephasing_correction=False, beta_rule="fixed", coupled=CoupledOptions(tol=1e-11)
     )
     opts = replace(opts, velocity=replace(opts.velocity, near_wall="off"))
-    res, info = stack.reconstruct_stack(acq, opts, stack.StackOptions(strategy="coupled", z_smoothing_mm=3.0))
+    res, info = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(strategy="coupled", z_smoothing_mm=3.0))
     problems = [
         geo.GeometryProblem(r.grid, r.magnitude, r.lumen.center, r.lumen.r0, r.lumen.r1, r.lumen.r_area) for r in res
     ]

@@ -20,8 +20,8 @@ from . import coupled as cpl
 from . import dephasing as deph
 from . import geometry as geo
 from . import kspace
-from .parameters import noise as nl
 from . import near_wall as nw
+from . import pipeline
 from . import plausibility as plaus
 from . import preprocess as pp
 from . import radius as rad
@@ -307,19 +307,16 @@ def reconstruct_slice(
     ``defer_band`` leaves the uncertainty band to :meth:`SliceResult.finish_band`
     (cine frames: only the model the series keeps needs one).
     """
-    where = f"{source} slice {index}"
     t = {}
     t0 = time.perf_counter()
-    norm, m, lumen = pp.preprocess(magnitude, grid, where, options.screen.vessel, clip_upper=psf is None)
-    if box is not None:
-        lumen = box.apply(lumen)
+    data = pipeline.prepare(
+        magnitude, velocity_image, grid, index, source, options.screen.vessel, psf, venc, noise_venc, box
+    )
+    where, norm, m, lumen, nvenc = data.where, data.norm, data.magnitude, data.lumen, data.noise_venc
     t["preprocess"] = time.perf_counter() - t0
-    nvenc = venc
-    if venc is None and nl.velocity_plateau(lumen.noise_mask).sum() < nl.MIN_PLATEAU_VOXELS:
-        nvenc = noise_venc
 
     t0 = time.perf_counter()
-    problem = geo.GeometryProblem(grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area, psf=psf)
+    problem = data.problem
     start = None if box is None else box.start
     g, alpha_choice = choose_alpha(problem, magnitude, norm, lumen, options, where, start)
     if psf is not None:  # the PSF's tails reach into the background the noise estimates use
@@ -331,9 +328,9 @@ def reconstruct_slice(
     near, layer_notes = None, []
     if options.velocity.near_wall != "off" and options.method == "coupled":
         layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
-    elif options.velocity.near_wall != "off":
-        vp, near = layer_model(vp, magnitude, lumen, nvenc, options, where, viscosity_pa_s, density)
-    beta_choice = velocity_beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
+    else:
+        vp, near = pipeline.near_wall_model(data, vp, options, viscosity_pa_s, density, lumen=lumen)
+    beta_choice = pipeline.beta_choice(data, vp, near, options, viscosity_pa_s, lumen=lumen)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0
 
@@ -347,15 +344,7 @@ def reconstruct_slice(
         if not (options.dephasing_correction and venc is not None):
             break
         t0 = time.perf_counter()
-        # Dephasing is set by the velocity variation inside wall voxels, which a beta tuned for WSS may smooth
-        # away (turbulent boundary layers); GCV targets the voxel-level prediction that matters here.
-        v_deph = v
-        if options.dephasing_beta_rule == "gcv":
-            v_deph = vel.solve(vp, replace(options.velocity, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
-        corr = deph.correct(
-            m, magnitude, norm.m0, velocity_image, vp, v_deph.evaluate_physical, venc, g.coefficients, g.center,
-            grid, psf, window,
-        )  # fmt: skip
+        corr, v_deph = pipeline.predict_dephasing(data, vp, v, g, options, window)
         t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
         if psf is not None:
             if k == 0:  # the first geometry assumed no phase: its own model is the one a pass must beat
@@ -389,8 +378,8 @@ def reconstruct_slice(
         )
         if near is not None and near.model != "plain":
             # the first pass's geometry was biased by the dephasing just corrected, and the layer scale with it
-            vp, near = layer_model(vp, magnitude, lumen, nvenc, options, where, viscosity_pa_s, density, around=near)
-            beta_choice = velocity_beta(vp, near, magnitude, lumen, nvenc, options, where, viscosity_pa_s)
+            vp, near = pipeline.near_wall_model(data, vp, options, viscosity_pa_s, density, lumen=lumen, around=near)
+            beta_choice = pipeline.beta_choice(data, vp, near, options, viscosity_pa_s, lumen=lumen)
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = t.get("dephasing_pass", 0.0) + time.perf_counter() - t0
         t["dephasing_passes"] = k + 1
@@ -403,7 +392,7 @@ def reconstruct_slice(
     if options.method == "coupled":
         t0 = time.perf_counter()
         # vp.data_image: the velocity the last pass corrected (the k-space phase nonlinearity; box: the data)
-        cres, info = solve_coupled(problem, g, v, magnitude, norm, lumen, vp.data_image, nvenc, options, where)
+        cres, info = solve_coupled(data, problem, g, v, lumen, vp.data_image, options)
         g, v = cres.geometry, cres.velocity
         t["coupled"] = time.perf_counter() - t0
 
@@ -519,21 +508,14 @@ def uncertainty(
     return s, ""
 
 
-def solve_coupled(problem, g, v, raw, norm, lumen, velocity_image, venc, options: ReconstructionOptions, where: str):
+def solve_coupled(data: pipeline.SliceData, problem, g, v, lumen, velocity_image, options: ReconstructionOptions):
     """The coupled NLP started from the decoupled ``(g, v)``, with the same alpha and beta.
 
     Returns the :class:`wss_nlp.coupled.CoupledResult` and a dict with the
-    weight, how it was chosen and the decoupled start's mean radius.
+    weight, how it was chosen (:func:`wss_nlp.pipeline.coupled_weight`) and the decoupled start's mean radius.
     """
-    copt = options.coupled
-    if copt.velocity_weight is not None:
-        weight, how = copt.velocity_weight, {"weight_method": "given (--velocity-weight)"}
-    else:
-        weight, how = cpl.weight_from_data(
-            problem, options.geometry, raw, norm, lumen.noise_mask, velocity_image, venc, where.rstrip(), lumen.signal
-        )
-        how["weight_method"] = "likelihood: W sigma_m^2 / sigma_u^2 from the estimated noise levels"
-    res = cpl.solve(problem, options.geometry, velocity_image, options.velocity, g, v, weight, copt)
+    weight, how = pipeline.coupled_weight(data, problem, velocity_image, options, lumen)
+    res = cpl.solve(problem, options.geometry, velocity_image, options.velocity, g, v, weight, options.coupled)
     info = {
         "velocity_weight": weight,
         **how,
@@ -628,7 +610,7 @@ def _reconstruct(acq: Acquisition, options: ReconstructionOptions, progress, box
     out = Results()
     out.psf = psf
     if stack_applies(acq, options):
-        results, info = stk.reconstruct_stack(acq, options, options.stack, progress, psf)
+        results, info = pipeline.reconstruct_stack(acq, options, options.stack, progress, psf)
         out.extend(
             r if r is not None else FailedSlice(k, info.failed[k], options.n_phi, options.geometry.n_fourier)
             for k, r in enumerate(results)

@@ -36,8 +36,11 @@ near-wall model (``--near-wall``, :func:`wss_nlp.parameters.choice.layer_model`)
 per slice, and the z-penalty ties the plain basis coefficients only (a layer's
 columns, with their own scale, stay the slice's own).
 
-A slice whose data are unusable (NaN or Inf, no vessel found) is reported by
-index, left out, and splits the stack into independent segments.
+The coupled method (Sec. 4's coupled functional) on a segment: :func:`coupled_segment`.
+
+This module holds the z-coupled mathematics only; the steps every slice goes
+through and the driver that runs them on a stack are in :mod:`wss_nlp.pipeline`
+(:func:`wss_nlp.pipeline.reconstruct_stack`), the band in :mod:`wss_nlp.stack_band`.
 """
 
 from __future__ import annotations
@@ -52,23 +55,13 @@ import scipy.linalg
 
 import casadi as ca
 
-from .parameters import noise as nl
-from .parameters import rules as pr
-from . import dephasing as deph
 from . import geometry as geo
-from . import preprocess as pp
 from . import operators
 from . import radius as rad
-from . import sensitivity as sens
-from . import stack_band
 from . import velocity as vel
-from . import wss as wss_mod
-from .errors import InputError, SolverError, WssNlpError
-from .parameters.choice import gcv_beta, layer_model, velocity_beta
+from .errors import InputError
 from . import coupled as cpl
 from .coupled import sparse_dm
-from .files import Acquisition
-from .results import SliceResult
 from .schema import option
 from .solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
 
@@ -159,16 +152,6 @@ class StackInfo:
 
     def as_dict(self) -> dict:
         return {k: (v if not isinstance(v, dict) else {str(a): b for a, b in v.items()}) for k, v in vars(self).items()}
-
-
-@dataclass
-class _Slice:
-    index: int
-    problem: geo.GeometryProblem
-    norm: pp.Normalization
-    lumen: pp.Lumen
-    magnitude: np.ndarray  # normalized
-    velocity_image: np.ndarray
 
 
 # ------------------------------------------------------------------ geometry
@@ -555,16 +538,7 @@ def coupled_segment(
 
 
 # ------------------------------------------------------------------ driver
-def _prepare(acq: Acquisition, iz: int, magnitude, velocity, finite: bool, vessel=None, psf=None) -> _Slice:
-    where = f"{acq.source} slice {iz}"
-    if not finite:
-        raise InputError(f"{where}: the images contain NaN or Inf")
-    norm, m, lumen = pp.preprocess(magnitude, acq.grid, where, vessel, clip_upper=psf is None)
-    problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area, psf=psf)
-    return _Slice(iz, problem, norm, lumen, m, np.asarray(velocity, dtype=float))
-
-
-def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray):
+def z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray):
     """z-derivatives at the slices of the cubic-spline interpolants (in z) of the radius coefficients and centres.
 
     The stack's wall model between slices; differentiated exactly (a straight line through two slices, zero
@@ -582,106 +556,14 @@ def _z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray)
     return out[0], out[1]
 
 
-def _segment_band(acq, options, seg, slices, problems, geoms, sgs, vps, vcoef, betas, nears, kappa, kappa_v, zop, mu):
-    """The band of a solved segment (:func:`wss_nlp.stack_band.segment_band`) and a note: ``(bands, "")``, or
-    ``(None, why)`` when it cannot be computed (the reconstruction itself stands)."""
-    from . import stack_band
-
-    band_slices = []
-    try:
-        for k, p, pb, g, sl, vp, cv, b, near in zip(seg, slices, problems, geoms, sgs, vps, vcoef, betas, nears):
-            sigma_m, sigma_u = _noise_levels(acq, options, k, p, vp.voxels.index)
-            band_slices.append(stack_band.BandSlice(pb, g, sl.lam_g, vp, cv, b, near, sigma_m, sigma_u))
-        bands = stack_band.segment_band(
-            band_slices, options.geometry, options.velocity, kappa, kappa_v, zop, mu, options.n_phi
-        )
-    except WssNlpError as exc:
-        return None, f"no uncertainty band: {exc}"
-    return bands, ""
-
-
-def _noise_levels(acq, options, k: int, p: _Slice, u_index: np.ndarray):
-    """Slice k's ``(sigma_m, sigma_u on u_index)`` as the single-slice band takes them (venc, or the noise
-    venc when the lumen has no plateau)."""
-    venc = acq.venc_m_s
-    if venc is None and nl.velocity_plateau(p.lumen.noise_mask).sum() < nl.MIN_PLATEAU_VOXELS:
-        venc = acq.noise_venc_m_s
-    sigma_m, sigma_u, _ = sens.noise_levels(
-        acq.magnitude[k], p.lumen.noise_mask, p.norm.m0, p.norm.m1, u_index, venc, options.noise_sigma, p.lumen.signal
-    )
-    return sigma_m, sigma_u
-
-
-def _coupled_segment_band(acq, options, seg, slices, problems, cres, kappa, kappa_v, zop, mu):
-    """:func:`wss_nlp.stack_band.coupled_segment_band` of a coupled segment: ``(bands, "")`` or ``(None, why)``."""
-    try:
-        bands = stack_band.coupled_segment_band(
-            cres, problems, lambda i, _, u_index: _noise_levels(acq, options, seg[i], slices[i], u_index),
-            options.geometry, options.velocity, kappa, kappa_v, zop, mu, options.n_phi,
-        )  # fmt: skip
-    except WssNlpError as exc:
-        return None, f"no uncertainty band: {exc}"
-    return bands, ""
-
-
-def _coupled_pass(acq, options, seg, slices, problems, images, starts, betas, kappa, kappa_v, order):
-    """The segment's coupled NLP (:func:`coupled_segment`) from its decoupled solution, with one velocity weight:
-    ``--velocity-weight``, or the geometric median of the slices' likelihood weights
-    (:func:`wss_nlp.coupled.weight_from_data`). Returns the results and each slice's record of the weight."""
-    copt = options.coupled
-    own = []
-    for k, p, pb in zip(seg, slices, problems):
-        if copt.velocity_weight is not None:
-            own.append((copt.velocity_weight, {"weight_method": "given (--velocity-weight)"}))
-            continue
-        venc = acq.venc_m_s
-        if venc is None and nl.velocity_plateau(p.lumen.noise_mask).sum() < nl.MIN_PLATEAU_VOXELS:
-            venc = acq.noise_venc_m_s
-        weight, how = cpl.weight_from_data(
-            pb, options.geometry, acq.magnitude[k], p.norm, p.lumen.noise_mask, p.velocity_image, venc,
-            f"{acq.source} slice {k}", p.lumen.signal,
-        )  # fmt: skip
-        how["weight_method"] = "likelihood: W sigma_m^2 / sigma_u^2 from the estimated noise levels"
-        own.append((weight, how))
-    weight = float(np.exp(np.median(np.log([w for w, _ in own]))))
-    vopt = replace(options.velocity, near_wall="off")
-    res, _ = coupled_segment(
-        problems, images, starts, options.geometry, vopt, weight, betas, kappa, kappa_v, order, copt
-    )
-    info = [
-        {
-            "velocity_weight": weight,
-            **how,
-            "velocity_weight_slice_alone": w,
-            "decoupled_mean_radius_mm": float(g.coefficients[0]),
-            "decoupled_converged": bool(g.stats.converged and v.stats.converged),
-        }
-        for (w, how), (g, v) in zip(own, starts)
-    ]
-    if len(seg) > 1 and copt.velocity_weight is None:
-        for d in info:
-            d["weight_method"] += f"; the geometric median over slices {seg[0]}-{seg[-1]}"
-    return res, info
-
-
 def supports(options) -> bool:
     """Whether z-regularization applies to these reconstruction options (decoupled or coupled method, fixed
     alpha).
 
     beta may come from any rule: a segment is fitted with one beta, the
-    median (on a log scale) of its slices' own choices (:func:`segment_beta`).
+    median (on a log scale) of its slices' own choices (:func:`wss_nlp.parameters.choice.segment_beta`).
     """
     return options.method in ("decoupled", "coupled") and options.alpha_rule == "fixed"
-
-
-def segment_beta(choices) -> float:
-    """One beta for a z-coupled segment from its slices' choices: their geometric median.
-
-    The z-penalty pools neighbouring slices, so they need a common beta; the
-    median keeps one slice with an outlying choice (a noisier image, a
-    fallback) from setting it, and the log scale matches the 2^-n grids.
-    """
-    return float(np.exp(np.median(np.log([c.chosen for c in choices]))))
 
 
 def segments_of(ok: list[int]) -> list[list[int]]:
@@ -693,297 +575,3 @@ def segments_of(ok: list[int]) -> list[list[int]]:
         else:
             out.append([i])
     return out
-
-
-def reconstruct_stack(acq: Acquisition, options, stack: StackOptions | None = None, progress=None, psf=None):
-    """Reconstruct all slices of a stack with z-regularization.
-
-    Parameters
-    ----------
-    acq : Acquisition with ``nz >= 1`` and ``slice_spacing_mm`` when ``nz > 1``.
-    options : :class:`wss_nlp.reconstruct.ReconstructionOptions` (alpha, beta, bases, ...).
-    stack : StackOptions
-    progress : callable ``(done, total, slice_result)`` or None, called per finished slice.
-    psf : wss_nlp.kspace.PSF or None
-        The k-space acquisition model of every slice (None: voxel means).
-
-    Returns
-    -------
-    (results, info): ``results[k]`` is a :class:`wss_nlp.reconstruct.SliceResult`
-    or None for a slice that failed (``info.failed[k]`` says why).
-
-    Notes
-    -----
-    What a long solve is doing (segments, sweeps) goes to the ``wss_nlp.stack`` logger at INFO level.
-    """
-    stack = stack or StackOptions()
-    if not supports(options):
-        raise InputError(
-            "stacks with z-regularization support the decoupled and coupled methods with a fixed alpha; "
-            "pass --z-smoothing 0 for independent slices with other settings"
-        )
-    mu = acq.viscosity(options.viscosity_pa_s)
-    density = acq.density(options.density_kg_m3)
-    dz = float(acq.slice_spacing_mm or 1.0) if acq.nz > 1 else 1.0  # validate() requires it for nz > 1
-    ell = dz if stack.z_smoothing_mm is None else float(stack.z_smoothing_mm)
-    velocity = acq.velocity_images()
-    t = {"preprocess": time.perf_counter()}
-    prepared, failed = {}, {}
-    bad = set(acq.nonfinite_slices())  # any image of the slice, in-plane velocity components included
-    for iz in range(acq.nz):
-        try:
-            prepared[iz] = _prepare(acq, iz, acq.magnitude[iz], velocity[iz], iz not in bad, options.screen.vessel, psf)
-        except WssNlpError as exc:
-            failed[iz] = str(exc)
-    if not prepared:
-        raise InputError(f"{acq.source}: no usable slice: " + "; ".join(f"{k}: {v}" for k, v in failed.items()))
-    t["preprocess"] = time.perf_counter() - t["preprocess"]
-    r_ref = float(np.mean([s.lumen.r_area for s in prepared.values()]))
-    h = acq.grid.h
-    m = stack.z_order
-    kappa = (ell / dz) ** (2 * m) * r_ref / h
-    kappa_v = (ell / dz) ** (2 * m)
-    segs = segments_of(sorted(prepared))
-    info = StackInfo("", ell, kappa, kappa_v, segs, failed)
-    results: list = [None] * acq.nz
-    gopt, vopt = options.geometry, options.velocity
-    layer_notes = []
-    if options.method == "coupled" and vopt.near_wall != "off":  # as reconstruct_slice
-        layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
-        vopt = replace(vopt, near_wall="off")
-    basis = vopt.make_basis()
-    gram0 = basis.laplacian_gram(0)
-    done = 0
-
-    def choose_velocity_models(seg, vps, around=None):
-        """Each slice's near-wall model (as a single slice chooses it; ``around``: the first pass's choices,
-        refined on the corrected geometry where they took a layer) and the velocity problems it gives."""
-        nears: list = [None] * len(seg)
-        if vopt.near_wall == "off":
-            return vps, nears
-        out = []
-        for i, (k, vp) in enumerate(zip(seg, vps)):
-            before = None if around is None else around[i]
-            if before is not None and before.model == "plain":  # as reconstruct_slice: a plain slice stays plain
-                out.append(vp)
-                nears[i] = before
-                continue
-            where = f"{acq.source} slice {k}"
-            problem, nears[i] = layer_model(
-                vp, acq.magnitude[k], prepared[k].lumen, acq.venc_m_s, options, where, mu, density, around=before
-            )
-            out.append(problem)
-        return out, nears
-
-    def choose_betas(seg, vps, nears):
-        """Each slice's own beta choice (the rule of ``options``, or its layer's BIC beta) and the betas used:
-        one per segment if coupled."""
-        choices = [
-            velocity_beta(vp, near, acq.magnitude[k], prepared[k].lumen, acq.venc_m_s, options,
-                          f"{acq.source} slice {k}", mu)
-            for k, vp, near in zip(seg, vps, nears)
-        ]  # fmt: skip
-        if kappa_v == 0 or len({c.chosen for c in choices}) == 1:
-            return choices, [c.chosen for c in choices]
-        return choices, [segment_beta(choices)] * len(seg)
-
-    def fit_velocity(vps, strategy, betas, record=True):
-        """The z-coupled velocity fit of one segment (any component: the data sit in ``vps``)."""
-        if strategy == "coupled":
-            vcoef, vstats = coupled_velocity(vps, betas, kappa_v, gram0, m)
-            return vcoef, [vstats] * len(vps)
-        vcoef, sweeps, hist = kaczmarz_velocity(vps, betas, kappa_v, gram0, stack.tol, stack.max_sweeps, m)
-        ok = hist[-1] < stack.tol or len(vps) == 1
-        if record:
-            info.sweeps.setdefault("velocity", []).append(sweeps)
-            info.residuals["velocity"] = hist
-        info.converged &= ok
-        return vcoef, [
-            SolverStats(
-                "kaczmarz (block Gauss-Seidel, Cholesky)",
-                "Solve_Succeeded" if ok else "Maximum_Iterations_Exceeded",
-                ok,
-                sweeps,
-                float("nan"),
-                0.0,
-            )
-        ] * len(vps)
-
-    def predict_dephasing(seg, vps, geoms, windows=None):
-        """Each slice's :class:`wss_nlp.dephasing.Correction` from a GCV-beta velocity (windows: k-space misfits)."""
-        out = []
-        for i, (k, vp) in enumerate(zip(seg, vps)):
-            v_deph = vel.solve(vp, replace(vopt, solver="cholesky"), beta=gcv_beta(vp, options).chosen)
-            p, g = prepared[k], geoms[i]
-            out.append(
-                deph.correct(
-                    p.magnitude, acq.magnitude[k], p.norm.m0, p.velocity_image, vp, v_deph.evaluate_physical,
-                    acq.venc_m_s, g.coefficients, g.center, acq.grid, psf, None if windows is None else windows[i],
-                )
-            )  # fmt: skip
-        return out
-
-    def solve_segment(seg, problems, x0, strategy, velocity_images=None, around=None):
-        """Geometry then velocity of one segment; ``(coef, geoms, vps, vcoef, vstats, beta choices, betas,
-        near-wall choices, the slices' SliceGeometry, the geometry problems)``."""
-        t0 = time.perf_counter()
-        sg = [SliceGeometry(pb, gopt, kappa) for pb in problems]
-        t["geometry_build"] = t.get("geometry_build", 0.0) + time.perf_counter() - t0
-        t0 = time.perf_counter()
-        if strategy == "coupled":
-            coef, gstats = coupled_geometry(sg, gopt.alpha, x0, m)
-            gstats = [gstats] * len(seg)
-            info.sweeps.setdefault("geometry", []).append(0)
-        else:
-            coef, sweeps, hist, gstats = kaczmarz_geometry(sg, gopt.alpha, x0, stack.tol, stack.max_sweeps, m)
-            info.sweeps.setdefault("geometry", []).append(sweeps)
-            info.residuals["geometry"] = hist
-            if hist[-1] >= stack.tol and len(seg) > 1:
-                info.converged = False
-        t["geometry"] = t.get("geometry", 0.0) + time.perf_counter() - t0
-        t0 = time.perf_counter()
-        geoms = [
-            geo.finish(pb, gopt, sl.nlp, coef[i], gstats[i], gopt.alpha) for i, (pb, sl) in enumerate(zip(problems, sg))
-        ]
-        images = velocity_images or [prepared[k].velocity_image for k in seg]
-        vps = [
-            vel.assemble(acq.grid, u, g.coefficients, g.center, vopt, basis=basis, psf=psf)
-            for u, g in zip(images, geoms)
-        ]
-        vps, nears = choose_velocity_models(seg, vps, around)
-        choices, betas = choose_betas(seg, vps, nears)
-        vcoef, vstats = fit_velocity(vps, strategy, betas)
-        t["velocity"] = t.get("velocity", 0.0) + time.perf_counter() - t0
-        return coef, geoms, vps, vcoef, vstats, choices, betas, nears, sg, problems
-
-    unexplained: list[int] = []  # slices whose k-space dephasing prediction was rejected
-    for seg in segs:
-        strategy = stack.strategy
-        if strategy == "auto":
-            strategy = "coupled" if len(seg) <= COUPLED_MAX_SLICES else "kaczmarz"
-        info.strategy = strategy if not info.strategy or info.strategy == strategy else "mixed"
-        logger.info(f"slices {seg[0]}-{seg[-1]}: {strategy} solve of {len(seg)} slice(s)")
-        problems = [prepared[k].problem for k in seg]
-        x0 = np.array([geo.initial_guess(pb, gopt.n_fourier) for pb in problems])
-        coef, geoms, vps, vcoef, vstats, choices, betas, nears, sgs, used = solve_segment(seg, problems, x0, strategy)
-        factors: list[Any] = [None] * len(seg)
-        if options.dephasing_correction and acq.venc_m_s is not None:
-            # as reconstruct_slice (one pass): predict the signal loss from a GCV-beta velocity, then solve again
-            t0 = time.perf_counter()
-            corrections = predict_dephasing(seg, vps, geoms)
-            factors = [c.factors for c in corrections]
-            t["dephasing_check"] = t.get("dephasing_check", 0.0) + time.perf_counter() - t0
-            if any(c.worth_a_pass for c in corrections):
-                logger.info(f"slices {seg[0]}-{seg[-1]}: second pass on dephasing-corrected magnitudes")
-                before = (coef, geoms, vps, vcoef, vstats, choices, betas, nears, sgs, used)
-                corrected = [replace(pb, magnitude=c.magnitude) for pb, c in zip(problems, corrections)]
-                coef, geoms, vps, vcoef, vstats, choices, betas, nears, sgs, used = solve_segment(
-                    seg, corrected, coef, strategy, [c.velocity for c in corrections], around=nears
-                )
-                info.dephasing_pass = True
-                if psf is not None:  # judged as in reconstruct_slice: undone if it explains the magnitude worse
-                    after = predict_dephasing(seg, vps, geoms, [c.window for c in corrections])
-                    if any(a.misfit_moving >= c.misfit_still for a, c in zip(after, corrections)):
-                        coef, geoms, vps, vcoef, vstats, choices, betas, nears, sgs, used = before
-                        unexplained.extend(seg)
-                        info.dephasing_pass = False
-        cres, cinfo = None, [{} for _ in seg]  # type: list | None, list[dict]
-        if options.method == "coupled":
-            t0 = time.perf_counter()
-            starts = [(g, vel.result(vp, vopt, c, b, st)) for g, vp, c, b, st in zip(geoms, vps, vcoef, betas, vstats)]
-            cres, cinfo = _coupled_pass(
-                acq, options, seg, [prepared[k] for k in seg], used, [vp.data_image for vp in vps], starts, betas,
-                kappa, kappa_v, m,
-            )  # fmt: skip
-            geoms = [c.geometry for c in cres]
-            t["coupled"] = t.get("coupled", 0.0) + time.perf_counter() - t0
-        planar = None
-        if acq.velocity_inplane is not None:
-            t0 = time.perf_counter()
-            planar = []
-            for comp in acq.velocity_inplane:
-                vps_c = [
-                    replace(vp, data=comp[k].ravel()[vp.voxels.index], data_image=comp[k]) for k, vp in zip(seg, vps)
-                ]
-                coef_c, st_c = fit_velocity(vps_c, strategy, betas, record=False)
-                planar.append(
-                    [
-                        wss_mod.from_reconstruction(vel.result(vp, vopt, cc, b, st), options.n_phi, mu).tau
-                        for vp, cc, st, b in zip(vps_c, coef_c, st_c, betas)
-                    ]
-                )
-            dcoef, dcenter = _z_derivatives(
-                np.array([g.coefficients for g in geoms]), np.array([g.center for g in geoms]), np.array(seg) * dz
-            )
-            t["velocity_inplane"] = t.get("velocity_inplane", 0.0) + time.perf_counter() - t0
-        bands, band_note = None, ""
-        if options.uncertainty and cres is not None:
-            t0 = time.perf_counter()
-            bands, band_note = _coupled_segment_band(
-                acq, options, seg, [prepared[k] for k in seg], used, cres, kappa, kappa_v, z_operator(len(seg), m), mu
-            )
-            t["uncertainty"] = t.get("uncertainty", 0.0) + time.perf_counter() - t0
-        elif options.uncertainty:
-            t0 = time.perf_counter()
-            bands, band_note = _segment_band(
-                acq, options, seg, [prepared[k] for k in seg], used, geoms, sgs, vps, vcoef, betas, nears, kappa,
-                kappa_v, z_operator(len(seg), m), mu,
-            )  # fmt: skip
-            t["uncertainty"] = t.get("uncertainty", 0.0) + time.perf_counter() - t0
-        for i, k in enumerate(seg):
-            v = vel.result(vps[i], vopt, vcoef[i], betas[i], vstats[i]) if cres is None else cres[i].velocity
-            w = wss_mod.from_reconstruction(v, options.n_phi, mu)
-            if bands is not None:
-                w.tau_std, w.mean_std = bands[i].tau_std, bands[i].mean_std
-                if nears[i] is not None and np.isfinite(bands[i].scale_std_log):
-                    nears[i].scale_std_log = bands[i].scale_std_log
-            if planar is not None:
-                w.vector = wss_mod.wss_vector(
-                    w.phi,
-                    geoms[i].coefficients,
-                    dcoef[i],
-                    dcenter[i],
-                    np.stack([planar[0][i], planar[1][i], w.tau], axis=1),
-                    mu,
-                )
-            if not np.all(np.isfinite(w.tau)):
-                raise SolverError(f"{acq.source} slice {k}: wall shear stress is not finite")
-            p = prepared[k]
-            sec = {"min_dephasing_factor": float(np.min(factors[i], initial=1.0)) if factors[i] is not None else 1.0}
-            notes = [deph.UNEXPLAINED_NOTE] if k in unexplained else []
-            notes += [band_note] if band_note else []
-            if betas[i] != choices[i].chosen:
-                notes.append(
-                    f"stack: beta = {betas[i]:.3g}, the geometric median of the {choices[i].rule} choices "
-                    f"of slices {seg[0]}-{seg[-1]} (this slice alone: {choices[i].chosen:.3g})"
-                )
-            results[k] = SliceResult(
-                k,
-                geoms[i],
-                v,
-                w,
-                p.norm,
-                p.lumen,
-                acq.grid,
-                p.magnitude,
-                p.velocity_image,
-                sec,
-                pr.ParameterChoice("alpha", "fixed", gopt.alpha),
-                replace(choices[i], chosen=betas[i]),
-                options.method,
-                cinfo[i],
-                None,
-                notes + layer_notes,
-                near_wall=nears[i],
-            )
-            done += 1
-            if progress is not None:
-                progress(done, len(prepared), results[k])
-    if not info.converged:
-        for r in results:
-            if r is not None:
-                r.notes.append(
-                    f"stack: Kaczmarz sweeps stopped before the coupled optimality residual reached {stack.tol:g}"
-                )
-    info.seconds = t
-    return results, info

@@ -615,3 +615,13 @@ def _velocity_noise(vp: vel.VelocityProblem, raw, lumen, venc, options: Reconstr
     return nl.velocity_noise(
         vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc, where.rstrip(), lumen.signal
     )
+
+
+def segment_beta(choices) -> float:
+    """One beta for a z-coupled segment of a stack from its slices' choices: their geometric median.
+
+    The z-penalty pools neighbouring slices, so they need a common beta; the
+    median keeps one slice with an outlying choice (a noisier image, a
+    fallback) from setting it, and the log scale matches the 2^-n grids.
+    """
+    return float(np.exp(np.median(np.log([c.chosen for c in choices]))))
