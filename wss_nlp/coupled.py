@@ -538,6 +538,17 @@ def build(
     return CoupledNLP(x, n_r, f, gnlp.g, residual, jacobian, gnlp, model, weight, gram, gamma, err_v, alpha, beta)
 
 
+#: IPOPT options of a coupled solve started from the decoupled solution: a small initial barrier parameter
+#: keeps IPOPT near it; exact zeros for inactive box multipliers (sensitivities read the active set from them).
+WARM_START = {
+    "clip_inactive_lam": True,
+    "ipopt.mu_init": 1e-6,
+    "ipopt.warm_start_init_point": "yes",
+    "ipopt.warm_start_bound_push": 1e-9,
+    "ipopt.warm_start_mult_bound_push": 1e-9,
+}
+
+
 @dataclass
 class CoupledResult:
     """Geometry and velocity of the coupled solve, as the decoupled result types, plus its stats."""
@@ -585,14 +596,7 @@ def solve(
         options.quad_order,
         start=start_geometry.coefficients,
     )
-    # warm start from the decoupled solution: a small initial barrier parameter keeps IPOPT near it
-    extra = {
-        "clip_inactive_lam": True,
-        "ipopt.mu_init": 1e-6,
-        "ipopt.warm_start_init_point": "yes",
-        "ipopt.warm_start_bound_push": 1e-9,
-        "ipopt.warm_start_mult_bound_push": 1e-9,
-    }
+    extra = dict(WARM_START)
     if options.hessian == "gauss-newton":
         jac = nlp.jacobian
         reg = np.zeros((nlp.x.numel(), nlp.x.numel()))

@@ -112,13 +112,20 @@ class Sensitivity:
         """Per row of ``g`` (values at the voxels ``index``): ``g R g^T`` (``R = I`` without a correlation)."""
         if self.correlation is None:
             return np.sum(g**2, axis=1)
-        ry, rx, (_, nx) = self.correlation
-        iy, ix = np.divmod(np.asarray(index), nx)
-        rows, cols = np.unique(iy), np.unique(ix)
-        image = np.zeros((g.shape[0], rows.size, cols.size))
-        image[:, np.searchsorted(rows, iy), np.searchsorted(cols, ix)] = g
-        smoothed = np.einsum("ab,nbc,dc->nad", ry[np.ix_(rows, rows)], image, rx[np.ix_(cols, cols)])
+        image, smoothed = correlated_images(g, index, self.correlation)
         return np.einsum("nad,nad->n", image, smoothed)
+
+
+def correlated_images(g: np.ndarray, index, correlation) -> tuple[np.ndarray, np.ndarray]:
+    r"""Rows of ``g`` (values at the voxels ``index``) as images ``G_n`` on the bounding rows and columns of the
+    voxels, and :math:`R_y G_n R_x^\top`: ``g R h^T = sum(G_n * (R_y H_k R_x^T))`` for the separable noise
+    correlation ``correlation = (R_y, R_x, shape)`` of a k-space acquisition."""
+    ry, rx, (_, nx) = correlation
+    iy, ix = np.divmod(np.asarray(index), nx)
+    rows, cols = np.unique(iy), np.unique(ix)
+    image = np.zeros((g.shape[0], rows.size, cols.size))
+    image[:, np.searchsorted(rows, iy), np.searchsorted(cols, ix)] = g
+    return image, np.einsum("ab,nbc,dc->nad", ry[np.ix_(rows, rows)], image, rx[np.ix_(cols, cols)])
 
 
 # --------------------------------------------------------------------------- symbolic pieces

@@ -497,15 +497,8 @@ def coupled_segment(
     zl = sparse_dm(zpen)
     f += ca.dot(big, ca.mtimes(zl, big))
     hess = ca.diagcat(*hess_blocks) + 2 * zl
-    extra = {
-        "clip_inactive_lam": True,
-        "ipopt.mu_init": 1e-6,
-        "ipopt.warm_start_init_point": "yes",
-        "ipopt.warm_start_bound_push": 1e-9,
-        "ipopt.warm_start_mult_bound_push": 1e-9,
-    }
     solver = gauss_newton_ipopt(
-        "stack_coupled", big, f, ca.vertcat(*g_all), hess, gammas, copt.tol, copt.max_iter, extra
+        "stack_coupled", big, f, ca.vertcat(*g_all), hess, gammas, copt.tol, copt.max_iter, dict(cpl.WARM_START)
     )
     x0 = np.concatenate([np.concatenate([g.coefficients, v.coefficients]) for g, v in starts])
     lbg = np.concatenate(

@@ -129,12 +129,7 @@ def weighted_gram(g: np.ndarray, index: np.ndarray, sigma, correlation=None) -> 
     gs = np.asarray(g, float) * np.broadcast_to(np.asarray(sigma, float), (np.size(index),))[None, :]
     if correlation is None:
         return gs @ gs.T
-    ry, rx, (_, nx) = correlation
-    iy, ix = np.divmod(np.asarray(index), nx)
-    rows, cols = np.unique(iy), np.unique(ix)
-    image = np.zeros((gs.shape[0], rows.size, cols.size))
-    image[:, np.searchsorted(rows, iy), np.searchsorted(cols, ix)] = gs
-    smoothed = np.einsum("ab,nbc,dc->nad", ry[np.ix_(rows, rows)], image, rx[np.ix_(cols, cols)])
+    image, smoothed = sens.correlated_images(gs, index, correlation)
     return np.einsum("nad,kad->nk", image, smoothed)
 
 
@@ -410,23 +405,26 @@ def segment_band(
     covs = lin.covariances(info_m, info_u, kappa, kappa_v, zop, w0, gram0)
     out = []
     for k, (cov_m, cov_u) in enumerate(covs):
-        jac, jm = lin.jac_tau[k], lin.jac_mean[k]
-        var_tau = np.einsum("ij,jk,ik->i", jac, cov_m + cov_u, jac)
-        mean_m, mean_u = float(jm @ cov_m @ jm), float(jm @ cov_u @ jm)
         scale_std = float("nan")
         if np.isfinite(lin.scale_factor[k]):
             a0 = slices[k].geometry.coefficients.size + slices[k].velocity_problem.basis.base.size
             scale_std = float(abs(lin.scale_factor[k]) * np.sqrt(cov_m[a0, a0] + cov_u[a0, a0]))
-        out.append(
-            SliceBand(
-                np.sqrt(np.maximum(var_tau, 0.0)),
-                float(np.sqrt(max(mean_m + mean_u, 0.0))),
-                float(np.sqrt(max(mean_m, 0.0))),
-                float(np.sqrt(max(mean_u, 0.0))),
-                scale_std,
-            )
-        )
+        out.append(slice_band(cov_m, cov_u, lin.jac_tau[k], lin.jac_mean[k], scale_std))
     return out
+
+
+def slice_band(cov_m, cov_u, jac_tau, jac_mean, scale_std: float = float("nan")) -> SliceBand:
+    """A slice's band from the covariances of its coefficients (magnitude and velocity noise) and the
+    Jacobians of tau and of its mean with respect to them."""
+    var_tau = np.einsum("ij,jk,ik->i", jac_tau, cov_m + cov_u, jac_tau)
+    mean_m, mean_u = float(jac_mean @ cov_m @ jac_mean), float(jac_mean @ cov_u @ jac_mean)
+    return SliceBand(
+        np.sqrt(np.maximum(var_tau, 0.0)),
+        float(np.sqrt(max(mean_m + mean_u, 0.0))),
+        float(np.sqrt(max(mean_m, 0.0))),
+        float(np.sqrt(max(mean_u, 0.0))),
+        scale_std,
+    )
 
 
 def coupled_segment_band(
@@ -508,16 +506,4 @@ def coupled_segment_band(
         return out
 
     covs = block_covariances(block, dims, noise, lambda k: np.arange(pieces[k][0].shape[0]), zop)
-    out = []
-    for (cov_m, cov_u), (jac, jm) in zip(covs, jacs):
-        var_tau = np.einsum("ij,jk,ik->i", jac, cov_m + cov_u, jac)
-        mean_m, mean_u = float(jm @ cov_m @ jm), float(jm @ cov_u @ jm)
-        out.append(
-            SliceBand(
-                np.sqrt(np.maximum(var_tau, 0.0)),
-                float(np.sqrt(max(mean_m + mean_u, 0.0))),
-                float(np.sqrt(max(mean_m, 0.0))),
-                float(np.sqrt(max(mean_u, 0.0))),
-            )
-        )
-    return out
+    return [slice_band(cov_m, cov_u, jac, jm) for (cov_m, cov_u), (jac, jm) in zip(covs, jacs)]
