@@ -1,9 +1,11 @@
-"""The decoupled reconstruction of one acquisition: geometry -> velocity -> WSS.
+"""The reconstruction of one acquisition: geometry -> velocity -> WSS, and its options.
 
-:func:`reconstruct_slice` runs the three steps of the paper on one slice;
-:func:`reconstruct` does so for every slice of an :class:`~wss_nlp.files.Acquisition`,
-reporting progress, and returns :class:`SliceResult` objects that carry the
-numbers, the solver statistics and what was assumed.
+:func:`reconstruct_slice` runs the steps of :mod:`wss_nlp.pipeline` on one slice
+alone; :func:`reconstruct` does so for every slice of an
+:class:`~wss_nlp.files.Acquisition` (or hands a stack to
+:func:`wss_nlp.pipeline.reconstruct_stack`), reporting progress, and returns
+:class:`SliceResult` objects that carry the numbers, the solver statistics and
+what was assumed. :class:`ReconstructionOptions` is the one options schema.
 """
 
 from __future__ import annotations
@@ -557,7 +559,7 @@ def reconstruct(
     """Reconstruct every slice of an acquisition.
 
     A stack (``nz > 1``) is reconstructed with z-regularization
-    (:mod:`wss_nlp.stack`) when the options allow it (decoupled or coupled method, fixed
+    (:func:`wss_nlp.pipeline.reconstruct_stack`) when the options allow it (decoupled or coupled method, fixed
     alpha and beta, ``options.stack.z_smoothing_mm != 0``), else slice by
     slice. In a stack, a slice that cannot be reconstructed (NaN or Inf, no
     vessel, solver failure) becomes a :class:`wss_nlp.files.FailedSlice` and
