@@ -37,6 +37,7 @@ and the inverse FFT (``numpy.fft``), noise added in k-space.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -193,26 +194,24 @@ class PSF:
         ``sum_m K[j, m] = w(0) = 1``. ``axis`` 0 is y, 1 is x; ``rows`` and
         ``cols`` select image points and fine points.
         """
-        n_acq = acquired_points(n, self.zero_fill[axis])
-        k, split = frequencies(n_acq)
-        wk = split * filter_weights(k, n_acq, self.filter)
-        fov = n * spacing_mm
-        x = np.arange(n, dtype=float) * spacing_mm if rows is None else np.asarray(rows, dtype=float) * spacing_mm
-        m = np.arange(n * order) if cols is None else np.asarray(cols)
-        xi = (m + 0.5) * spacing_mm / order - 0.5 * spacing_mm
-        d = x[:, None] - xi[None, :]
-        # sum over k of w_k cos(2 pi k d / L): one matrix product over the frequencies
-        arg = 2 * np.pi / fov * k
-        return (spacing_mm / order / fov) * (
-            np.cos(d[..., None] * arg) @ wk if d.size * k.size < 5e7 else _cos_sum(d, arg, wk)
-        )
+        # K depends on t = j order - m alone, periodically in n order (x_j - xi_m = (t + (order - 1)/2) Delta):
+        # one table per axis, cached, indexed for the rows and columns asked for
+        table = _kernel_table(n, float(spacing_mm), int(order), float(self.zero_fill[axis]), self.filter)
+        x = np.arange(n) if rows is None else np.asarray(rows, dtype=int)
+        m = np.arange(n * order) if cols is None else np.asarray(cols, dtype=int)
+        return table[(x[:, None] * order - m[None, :]) % (n * order)]
 
 
-def _cos_sum(d: np.ndarray, arg: np.ndarray, wk: np.ndarray) -> np.ndarray:
-    out = np.zeros(d.shape)
-    for a, w in zip(arg, wk):  # large kernels: frequency by frequency keeps memory at one kernel
-        out += w * np.cos(a * d)
-    return out
+@functools.lru_cache(maxsize=64)
+def _kernel_table(n: int, spacing_mm: float, order: int, zero_fill: float, filter_name: str) -> np.ndarray:
+    """``K`` of :meth:`PSF.kernel` as a function of ``t = j order - m`` (``t = 0 .. n order - 1``)."""
+    n_acq = acquired_points(n, zero_fill)
+    k, split = frequencies(n_acq)
+    wk = split * filter_weights(k, n_acq, filter_name)
+    fov = n * spacing_mm
+    d = (np.arange(n * order) + (order - 1) / 2) * spacing_mm / order
+    arg = 2 * np.pi / fov * k
+    return (spacing_mm / order / fov) * (np.cos(d[:, None] * arg) @ wk)
 
 
 # ------------------------------------------------------------------ fine-grid averaging (velocity, dephasing)
