@@ -306,12 +306,18 @@ def noise_correlation(n: int, zero_fill: float, kind: str, rows=None) -> np.ndar
     (symmetric frequencies, Nyquist split as in :meth:`PSF.kernel`): 1 on
     the diagonal; zero-filling (F > 1) and filters correlate neighbours.
     """
+    table = _correlation_table(n, float(zero_fill), kind)  # rho depends on (i - j) mod n alone
+    x = np.arange(n) if rows is None else np.asarray(rows, dtype=int)
+    return table[(x[:, None] - x[None, :]) % n]
+
+
+@functools.lru_cache(maxsize=32)
+def _correlation_table(n: int, zero_fill: float, kind: str) -> np.ndarray:
+    """``rho(t / n)`` of :func:`noise_correlation` for ``t = 0 .. n - 1`` (periodic in ``n``)."""
     n_acq = acquired_points(n, zero_fill)
     k, split = frequencies(n_acq)
     w2 = split * filter_weights(k, n_acq, kind) ** 2
-    x = np.arange(n) if rows is None else np.asarray(rows)
-    d = (x[:, None] - x[None, :]) / n
-    return np.cos(2 * np.pi * d[..., None] * k) @ w2 / np.sum(w2)
+    return np.cos(2 * np.pi * (np.arange(n) / n)[:, None] * k) @ w2 / np.sum(w2)
 
 
 class NoiseCorrelation:
