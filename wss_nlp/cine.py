@@ -399,7 +399,7 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
                     fitted, t, phi, mu
                 )
                 model.walls[k] = np.r_[t.coefficients, t.center]
-        log.info("slice %d: %s", iz, model_note(choice))
+        log.debug("slice %d: %s", iz, model_note(choice))  # the series' note says it (the CLI prints notes once)
         models[iz] = model
     return models
 
