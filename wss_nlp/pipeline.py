@@ -524,7 +524,7 @@ class StackRun:
             notes = [deph.UNEXPLAINED_NOTE] if k in self.unexplained else []
             notes += [band_note] if band_note else []
             chosen, beta = sol.choices[i], sol.betas[i]
-            if beta != chosen.chosen:
+            if not np.isclose(beta, chosen.chosen, rtol=1e-9, atol=0.0):  # exp(median(log)) rounds a shared choice
                 notes.append(
                     f"stack: beta = {beta:.3g}, the geometric median of the {chosen.rule} choices "
                     f"of slices {seg[0]}-{seg[-1]} (this slice alone: {chosen.chosen:.3g})"
