@@ -480,6 +480,35 @@ class CoupledNLP:
     alpha: float
     beta: float
 
+    def penalty_hessian(self) -> np.ndarray:
+        """Half the Hessian of the penalties: ``alpha W`` on ``c_R``, ``lambda beta G / pi`` on ``c_v``."""
+        n_r = self.n_r
+        out = np.zeros((self.x.numel(), self.x.numel()))
+        out[:n_r, :n_r] = self.alpha * np.diag(self.geometry.weights)
+        out[n_r:, n_r:] = self.weight * self.beta / np.pi * self.gram
+        return out
+
+    def result(self, problem, gopt, vopt, velocity_image, start_geometry, start_velocity, x, lam, stats):
+        """The :class:`CoupledResult` of the solution ``x = [c_R; c_v]`` with box multipliers ``lam`` (the
+        start's velocity basis and inner radius, which the map keeps)."""
+        c_r, c_v = x[: self.n_r], x[self.n_r :]
+        gnlp = self.geometry  # its residual holds the gamma parameter: substitute the value for the report
+        numeric = replace(gnlp, residual=ca.substitute(gnlp.residual, self.gamma, ca.MX(gnlp.gamma)))
+        g = geo.finish(problem, gopt, numeric, c_r, stats, self.alpha)
+        g.box_multipliers = np.asarray(lam, float).ravel()
+        vopt_fixed = replace(vopt, inner_radius=start_velocity.disk_map.r_in)
+        vp = vel.assemble(
+            problem.grid, velocity_image, c_r, g.center, vopt_fixed, basis=start_velocity.basis, psf=problem.psf
+        )
+        v = vel.result(vp, vopt_fixed, c_v, self.beta, stats)
+        return CoupledResult(g, v, stats, self.weight, (start_geometry.coefficients, start_velocity.coefficients), self)
+
+
+def lower_bound(problem: geo.GeometryProblem, r_in: float) -> float:
+    """The radius box's lower bound in the coupled NLP: ``r0``, raised above the map's frozen inner radius so
+    that ``phi_R`` stays one-to-one."""
+    return max(problem.r0, 1.000001 * r_in)
+
 
 def build(
     geometry_problem: geo.GeometryProblem,
@@ -599,12 +628,8 @@ def solve(
     extra = dict(WARM_START)
     if options.hessian == "gauss-newton":
         jac = nlp.jacobian
-        reg = np.zeros((nlp.x.numel(), nlp.x.numel()))
-        n_r = nlp.n_r
-        reg[:n_r, :n_r] = alpha * np.diag(nlp.geometry.weights)
-        reg[n_r:, n_r:] = weight * beta / np.pi * nlp.gram
         gram = operators.Gram(*jac.shape)  # J^T J by BLAS (CasADi's product is a loop: ~1 s at h = 0.3 mm)
-        hess = 2 * gram(jac) + 2 * ca.DM(reg)
+        hess = 2 * gram(jac) + 2 * ca.DM(nlp.penalty_hessian())
         solver = gauss_newton_ipopt(
             "coupled", nlp.x, nlp.f, nlp.g, hess, nlp.gamma, options.tol, options.max_iter, extra
         )
@@ -612,7 +637,7 @@ def solve(
         opts = ipopt_options(options.tol, options.max_iter, extra)
         solver = ca.nlpsol("coupled", "ipopt", {"x": nlp.x, "p": nlp.gamma, "f": nlp.f, "g": nlp.g}, opts)
     x0 = np.concatenate([start_geometry.coefficients, start_velocity.coefficients])
-    lower = max(geometry_problem.r0, 1.000001 * dm.r_in)
+    lower = lower_bound(geometry_problem, dm.r_in)
     t0 = time.perf_counter()
     sol, stats = run_nlpsol(
         solver, "coupled geometry+velocity (IPOPT)", x0=x0, p=nlp.geometry.gamma, lbg=lower, ubg=geometry_problem.r1
@@ -620,16 +645,8 @@ def solve(
     stats.extra["hessian"] = options.hessian
     stats.extra["velocity_weight"] = weight
     x = np.asarray(sol["x"]).ravel()
-    c_r, c_v = x[: nlp.n_r], x[nlp.n_r :]
-    gnlp = nlp.geometry  # its residual holds the gamma parameter: substitute the value for the report
-    numeric = replace(gnlp, residual=ca.substitute(gnlp.residual, nlp.gamma, ca.MX(gnlp.gamma)))
-    g = geo.finish(geometry_problem, gopt, numeric, c_r, stats, alpha)
-    g.box_multipliers = np.asarray(sol["lam_g"]).ravel()
-    vopt_fixed = replace(vopt, inner_radius=dm.r_in)
-    vp = vel.assemble(
-        geometry_problem.grid, velocity_image, c_r, g.center, vopt_fixed, basis=start_velocity.basis,
-        psf=geometry_problem.psf,
-    )  # fmt: skip
-    v = vel.result(vp, vopt_fixed, c_v, beta, stats)
+    res = nlp.result(
+        geometry_problem, gopt, vopt, velocity_image, start_geometry, start_velocity, x, sol["lam_g"], stats
+    )
     stats.seconds = time.perf_counter() - t0
-    return CoupledResult(g, v, stats, weight, (start_geometry.coefficients, start_velocity.coefficients), nlp)
+    return res

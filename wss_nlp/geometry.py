@@ -292,6 +292,17 @@ def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
     return c0
 
 
+#: A box row within this fraction of ``r1`` of its bound counts as on it (active).
+BOX_SLACK = 1e-6
+
+
+def on_bound(problem, options, coef) -> np.ndarray:
+    """Per box row (angle of ``options.box_angles()``): whether ``R`` sits on ``r0`` or ``r1`` (within
+    :data:`BOX_SLACK` ``r1``)."""
+    r = rad.evaluate(coef, options.box_angles())
+    return np.minimum(r - problem.r0, problem.r1 - r) <= BOX_SLACK * problem.r1
+
+
 def finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
     """GeometryResult of coefficients ``coef`` of the functional ``nlp`` (misfits, penalty, box activity)."""
     m = problem.magnitude.ravel()
@@ -301,9 +312,7 @@ def finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
         values.append(m[nlp.model.annulus])
     fun = ca.Function("parts", inputs, [ca.sumsqr(nlp.residual), nlp.penalty])
     mis, pen = (float(v) for v in fun(*values))
-    r_box = rad.evaluate(coef, options.box_angles())
-    slack = 1e-6 * problem.r1
-    active = bool(np.any(r_box <= problem.r0 + slack) or np.any(r_box >= problem.r1 - slack))
+    active = bool(np.any(on_bound(problem, options, coef)))
     return GeometryResult(
         coefficients=np.asarray(coef, dtype=float).ravel(),
         center=tuple(problem.center),

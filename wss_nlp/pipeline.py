@@ -39,7 +39,7 @@ from .files import Acquisition
 from .measurement import VoxelGrid
 from .parameters import noise as nl
 from .parameters import rules as pr
-from .parameters.choice import gcv_beta, layer_model, segment_beta, velocity_beta
+from .parameters.choice import gcv_beta, geometric_median, layer_model, segment_beta, velocity_beta
 from .results import SliceResult
 from .solver import SolverStats
 from .stack import (
@@ -63,6 +63,10 @@ if TYPE_CHECKING:
 
 #: What a long stack solve is doing (segments, sweeps) goes here at INFO level (the CLI shows it on stderr).
 logger = logging.getLogger("wss_nlp.stack")
+
+
+#: What a slice reconstructed by the coupled method with ``--near-wall auto`` says (it uses the plain basis).
+COUPLED_PLAIN_NOTE = "the coupled method does not take a near-wall layer yet: plain velocity basis"
 
 
 @dataclass
@@ -279,7 +283,7 @@ class StackRun:
         self.results: list = [None] * acq.nz
         self.layer_notes: list[str] = []
         if options.method == "coupled" and options.velocity.near_wall != "off":  # as reconstruct_slice
-            self.layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
+            self.layer_notes.append(COUPLED_PLAIN_NOTE)
             options = replace(options, velocity=replace(options.velocity, near_wall="off"))
         self.options = options
         self.basis = options.velocity.make_basis()
@@ -387,7 +391,7 @@ class StackRun:
         images = [vp.data_image for vp in sol.velocity_problems]
         starts = list(zip(sol.geometries, sol.velocity_results(options.velocity)))
         own = [coupled_weight(self.prepared[k], pb, u, options) for k, pb, u in zip(seg, sol.problems, images)]
-        weight = float(np.exp(np.median(np.log([w for w, _ in own]))))
+        weight = geometric_median([w for w, _ in own])
         res, _ = coupled_segment(
             sol.problems, images, starts, options.geometry, options.velocity, weight, sol.betas, self.kappa,
             self.kappa_v, self.order, copt,

@@ -314,7 +314,7 @@ def reconstruct_slice(
     data = pipeline.prepare(
         magnitude, velocity_image, grid, index, source, options.screen.vessel, psf, venc, noise_venc, box
     )
-    where, norm, m, lumen, nvenc = data.where, data.norm, data.magnitude, data.lumen, data.noise_venc
+    where, norm, m, lumen = data.where, data.norm, data.magnitude, data.lumen
     t["preprocess"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -329,7 +329,7 @@ def reconstruct_slice(
     vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity, psf=psf)
     near, layer_notes = None, []
     if options.velocity.near_wall != "off" and options.method == "coupled":
-        layer_notes.append("the coupled method does not take a near-wall layer yet: plain velocity basis")
+        layer_notes.append(pipeline.COUPLED_PLAIN_NOTE)
     else:
         vp, near = pipeline.near_wall_model(data, vp, options, viscosity_pa_s, density, lumen=lumen)
     beta_choice = pipeline.beta_choice(data, vp, near, options, viscosity_pa_s, lumen=lumen)
@@ -405,14 +405,12 @@ def reconstruct_slice(
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
     notes, sensitivity, pending = layer_notes + notes_deph, None, None
+    band_inputs = (problem, g, vp, v, w, data, lumen, viscosity_pa_s, options, cres, near)
     if options.uncertainty and defer_band:
-        band_inputs = (problem, g, vp, v, w, magnitude, norm, lumen, nvenc, viscosity_pa_s, options, cres, near)
         pending = functools.partial(uncertainty, *band_inputs)
     elif options.uncertainty:
         t0 = time.perf_counter()
-        sensitivity, note = uncertainty(
-            problem, g, vp, v, w, magnitude, norm, lumen, nvenc, viscosity_pa_s, options, cres, near
-        )
+        sensitivity, note = uncertainty(*band_inputs)
         notes += [note] if note else []
         t["uncertainty"] = time.perf_counter() - t0
     return SliceResult(
@@ -476,16 +474,17 @@ def uncertainty(
     vp,
     v,
     w,
-    raw,
-    norm,
+    data: pipeline.SliceData,
     lumen,
-    venc,
     viscosity_pa_s,
     options: ReconstructionOptions,
     coupled_result=None,
     near=None,
 ):
     """Sensitivities and the linearized band (sets ``w.tau_std``, ``w.mean_std``); returns ``(Sensitivity, note)``.
+
+    The noise levels are the slice's (:func:`wss_nlp.pipeline.noise_levels`, with ``lumen`` as the last pass
+    left it).
 
     A band that cannot be computed (no background for the noise level, no
     venc, a failed anchor re-solve) is reported in the note, not raised:
@@ -497,9 +496,7 @@ def uncertainty(
             s = sens.coupled(coupled_result, problem, options.geometry, options.velocity, viscosity_pa_s, w.phi.size)
         else:
             s = sens.decoupled(problem, options.geometry, g, vp, options.velocity, v, viscosity_pa_s, w.phi.size)
-        sigma_m, sigma_u, how = sens.noise_levels(
-            raw, lumen.noise_mask, norm.m0, norm.m1, s.u_index, venc, options.noise_sigma, lumen.signal
-        )
+        sigma_m, sigma_u, how = pipeline.noise_levels(data, options, s.u_index, lumen)
     except WssNlpError as exc:
         return None, f"no uncertainty band: {exc}"
     if near is not None and near.model == "wall_law" and nw.CONSISTENT in near.criterion:

@@ -690,9 +690,7 @@ def _newton_anchor(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geom
     is IPOPT's business.
     """
     c = np.asarray(geometry.coefficients, float)
-    box = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
-    r = box @ c
-    if np.any(np.minimum(r - problem.r0, problem.r1 - r) <= 1e-6 * problem.r1):
+    if np.any(geo.on_bound(problem, gopt, c)):
         return None
     hmat, dgrad, annulus, grad = geometry_parameter_derivatives(
         problem, gopt, c, geometry.alpha, geometry.gamma, gradient=True
@@ -706,22 +704,30 @@ def _newton_anchor(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geom
     if np.sqrt(np.sum(w0 * step**2) / np.sum(w0 * c**2)) > NEWTON_ANCHOR_STEP:
         return None
     new = c - step
-    r = box @ new
+    r = rad.evaluate(new, gopt.box_angles())
     if np.any(r < problem.r0) or np.any(r > problem.r1):
         return None
     return new, -scipy.linalg.cho_solve(factor, dgrad), annulus, 0
+
+
+def noise_correlation_of(problem: geo.GeometryProblem):
+    """``(R_y, R_x, shape)`` of a k-space acquisition's image noise (None for the box model: independent voxels)."""
+    if problem.psf is None:
+        return None
+    (ny, nx), psf = problem.grid.shape, problem.psf
+    return (
+        kspace.noise_correlation(ny, psf.zero_fill[0], psf.filter),
+        kspace.noise_correlation(nx, psf.zero_fill[1], psf.filter),
+        (ny, nx),
+    )
 
 
 def _attach_correlation(out: Sensitivity, problem: geo.GeometryProblem) -> None:
     """Give the band the noise correlation of a k-space acquisition (none for the box model)."""
     if problem.psf is None:
         return
-    (ny, nx), psf = problem.grid.shape, problem.psf
-    out.correlation = (
-        kspace.noise_correlation(ny, psf.zero_fill[0], psf.filter),
-        kspace.noise_correlation(nx, psf.zero_fill[1], psf.filter),
-        (ny, nx),
-    )
+    out.correlation = noise_correlation_of(problem)
+    psf = problem.psf
     out.noise["correlation"] = f"k-space noise: {psf.filter} filter, zero-filling {list(psf.zero_fill)}"
 
 
@@ -764,9 +770,7 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
         [nlp.jacobian, second, grad_f, ca.jtimes(grad_f, nlp.gamma, ca.DM(1.0)), nlp.velocity_error],
     )
     fun_res = ca.Function("res", [nlp.x, nlp.gamma], [nlp.residual])
-    reg = np.zeros((n_x, n_x))
-    reg[:n_r, :n_r] = 2 * nlp.alpha * np.diag(nlp.geometry.weights)
-    reg[n_r:, n_r:] = 2 * nlp.weight * nlp.beta / np.pi * nlp.gram
+    reg = 2 * nlp.penalty_hessian()
     box = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
     active = np.flatnonzero(cres.geometry.box_multipliers != 0)
     g_act = np.hstack([box[active], np.zeros((active.size, n_x - n_r))])

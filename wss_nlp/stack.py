@@ -47,7 +47,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -479,10 +479,7 @@ def coupled_segment(
         jk = jac(xk, gammas[k])
         f += fk
         g_all.append(gk)
-        reg = np.zeros((sizes[k], sizes[k]))
-        reg[: nlp.n_r, : nlp.n_r] = alpha * np.diag(nlp.geometry.weights)
-        reg[nlp.n_r :, nlp.n_r :] = weight * nlp.beta / np.pi * nlp.gram
-        hess_blocks.append(2 * grams[k](jk) + 2 * ca.DM(reg))
+        hess_blocks.append(2 * grams[k](jk) + 2 * ca.DM(nlp.penalty_hessian()))
     zop = z_operator(len(nlps), order)
     w0 = rad.sobolev_weights(gopt.n_fourier, 0)
     gram0 = getattr(starts[0][1].basis, "base", starts[0][1].basis).laplacian_gram(0)
@@ -503,7 +500,7 @@ def coupled_segment(
     x0 = np.concatenate([np.concatenate([g.coefficients, v.coefficients]) for g, v in starts])
     lbg = np.concatenate(
         [
-            np.full(nlp.g.numel(), max(pb.r0, 1.000001 * v.disk_map.r_in))
+            np.full(nlp.g.numel(), cpl.lower_bound(pb, v.disk_map.r_in))
             for nlp, pb, (_, v) in zip(nlps, problems, starts)
         ]
     )
@@ -515,18 +512,10 @@ def coupled_segment(
     stats.extra["velocity_weight"] = weight
     x = np.asarray(sol["x"]).ravel()
     lam = np.split(np.asarray(sol["lam_g"]).ravel(), np.cumsum([nlp.g.numel() for nlp in nlps])[:-1])
-    out = []
-    for k, (nlp, pb, u, (g0, v0), b) in enumerate(zip(nlps, problems, images, starts, betas)):
-        x_k = x[int(offsets[k]) : int(offsets[k + 1])]
-        c_r, c_v = x_k[:n_r], x_k[n_r:]
-        gnlp = nlp.geometry  # its residual holds the gamma parameter: substitute the value for the report
-        numeric = replace(gnlp, residual=ca.substitute(gnlp.residual, nlp.gamma, ca.MX(gnlp.gamma)))
-        g = geo.finish(pb, gopt, numeric, c_r, stats, alpha)
-        g.box_multipliers = lam[k]
-        vopt_fixed = replace(vopt, inner_radius=v0.disk_map.r_in)
-        vp = vel.assemble(pb.grid, u, c_r, g.center, vopt_fixed, basis=v0.basis, psf=pb.psf)
-        v = vel.result(vp, vopt_fixed, c_v, b, stats)
-        out.append(cpl.CoupledResult(g, v, stats, weight, (g0.coefficients, v0.coefficients), nlp))
+    out = [
+        nlp.result(pb, gopt, vopt, u, g0, v0, x[int(offsets[k]) : int(offsets[k + 1])], lam[k], stats)
+        for k, (nlp, pb, u, (g0, v0)) in enumerate(zip(nlps, problems, images, starts))
+    ]
     return out, stats
 
 

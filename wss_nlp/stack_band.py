@@ -62,7 +62,6 @@ import numpy as np
 import scipy.linalg
 
 from . import geometry as geo
-from . import kspace
 from . import near_wall as nw
 from . import radius as rad
 from . import sensitivity as sens
@@ -97,16 +96,14 @@ class SliceBand:
     scale_std_log: float = float("nan")
 
 
-def _correlation(problem: geo.GeometryProblem):
-    """``(R_y, R_x, shape)`` of a k-space acquisition's noise (None: independent voxels)."""
-    if problem.psf is None:
-        return None
-    (ny, nx), psf = problem.grid.shape, problem.psf
-    return (
-        kspace.noise_correlation(ny, psf.zero_fill[0], psf.filter),
-        kspace.noise_correlation(nx, psf.zero_fill[1], psf.filter),
-        (ny, nx),
-    )
+def _active_multipliers(lam, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, coef) -> np.ndarray:
+    """The box multipliers of rows that are active: IPOPT's ``clip_inactive_lam`` leaves ~1e-12 on rows far
+    from their bound in the joint stack NLP, so a row counts only where it also sits on its bound
+    (:func:`wss_nlp.geometry.on_bound`)."""
+    lam = np.asarray(lam, float)
+    if lam.size != len(gopt.box_angles()):
+        return np.zeros(len(gopt.box_angles()))
+    return np.where(geo.on_bound(problem, gopt, coef), lam, 0.0)
 
 
 def _row_space(rows: np.ndarray) -> np.ndarray:
@@ -330,18 +327,12 @@ def linearize(
             sens.geometry_parameter_derivatives if s.problem.psf is None else sens.kspace_parameter_derivatives
         )
         hmat, dgrad, annulus = derivatives(s.problem, geo.with_options(gopt, alpha=g.alpha), c_r, g.alpha, g.gamma)
-        lam = np.asarray(s.box_multipliers, float)
-        if lam.size == box.shape[0]:
-            # IPOPT's clip_inactive_lam leaves ~1e-12 on rows far from their bound in the joint stack NLP:
-            # a row is active where it also sits on its bound (the slack geo.finish uses)
-            r = box @ c_r
-            on_bound = np.minimum(r - s.problem.r0, s.problem.r1 - r) <= 1e-6 * s.problem.r1
-            lam = np.where(on_bound, lam, 0.0)
+        lam = _active_multipliers(s.box_multipliers, s.problem, gopt, c_r)
         out.hessians.append(hmat)
-        out.active.append(_row_space(box[lam != 0] if lam.size == box.shape[0] else box[:0]))
+        out.active.append(_row_space(box[lam != 0]))
         out.d_grad_m.append(dgrad[:, : annulus.size])
         out.m_index.append(annulus)
-        out.correlation.append(_correlation(s.problem))
+        out.correlation.append(sens.noise_correlation_of(s.problem))
 
         center = np.asarray(s.problem.center, float)
         od, r_in, dr_in = sens.operator_derivatives(vp, vopt, c_r, center)
@@ -454,19 +445,15 @@ def coupled_segment_band(
     inner radius of the map are held, as for one slice.
     """
     w0 = rad.sobolev_weights(gopt.n_fourier, 0)
-    box = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
     pieces, info, jacs = [], [], []
     for k, (cres, pb) in enumerate(zip(results, problems)):
         c_r = cres.geometry.coefficients
-        lam = np.asarray(cres.geometry.box_multipliers, float)
-        if lam.size == box.shape[0]:  # as in linearize: active only on the bound
-            r = box @ c_r
-            lam = np.where(np.minimum(r - pb.r0, pb.r1 - r) <= 1e-6 * pb.r1, lam, 0.0)
+        lam = _active_multipliers(cres.geometry.box_multipliers, pb, gopt, c_r)
         held = replace(cres, geometry=replace(cres.geometry, box_multipliers=lam))
         kkt = sens.coupled_kkt(held, pb, gopt, polish_steps=0)
         n_m, n_u = kkt.m_index.size, kkt.u_index.size
         sigma_m, sigma_u = levels(k, kkt.m_index, kkt.u_index)
-        corr = _correlation(pb)
+        corr = sens.noise_correlation_of(pb)
         info.append(
             (
                 weighted_gram(kkt.dgrad[:, :n_m], kkt.m_index, sigma_m, corr),

@@ -624,4 +624,9 @@ def segment_beta(choices) -> float:
     median keeps one slice with an outlying choice (a noisier image, a
     fallback) from setting it, and the log scale matches the 2^-n grids.
     """
-    return float(np.exp(np.median(np.log([c.chosen for c in choices]))))
+    return geometric_median([c.chosen for c in choices])
+
+
+def geometric_median(values) -> float:
+    """``exp(median(log values))``: the median on a log scale, for positive parameters pooled over slices."""
+    return float(np.exp(np.median(np.log(values))))
