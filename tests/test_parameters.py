@@ -1,6 +1,9 @@
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
+from wss_nlp.parameters import choice as ch
 from wss_nlp.parameters import noise as nl
 
 from wss_nlp.parameters import rules as pr
@@ -328,3 +331,63 @@ def test_alpha_discrepancy_same_choice_with_both_geometry_solvers(laminar_snr25)
     # scaled optimality, so residuals agree to ~1e-5 (measured 1.5e-5); 1e-4 is still 2500x below the 25 %
     # gaps between consecutive residuals that decide the choice.
     assert np.allclose(a.residuals, b.residuals, rtol=1e-4)
+
+
+def _synthetic_scale_score(consistency, crit):
+    """A ``score(log2 l/R)`` whose wall-law consistency ``g`` is ``consistency`` (R = 1000 mm, nu = 1 m^2/s, the
+    m = 0 layer coefficient first) and whose criterion is ``crit``; records the points it was asked for."""
+    asked = []
+
+    def score(x):
+        asked.append(x)
+        basis = SimpleNamespace(column_scale=1.0)
+        return crit(x), basis, 1e-6, np.array([(1.0 + consistency(x)) / 2.0**x])
+
+    return score, asked
+
+
+def test_wall_law_root_is_located_to_the_resolution_with_fewer_evaluations_than_bisection():
+    """A curved consistency with roots at -7.3 and -6.2: the one with the smaller criterion (-7.3) to within
+    ROOT_RESOLUTION octaves; at most 4 evaluations per root beyond the quarter-octave scan (bisection from a
+    quarter octave to 1/128 needs 5, and one more at the midpoint); a previous root is followed locally with
+    at most 6 evaluations and without the scan."""
+    g = lambda x: (x + 7.3) * (x + 6.2) * (1 + 0.3 * np.sin(3 * x))  # noqa: E731
+    score, asked = _synthetic_scale_score(g, lambda x: abs(x + 7.3))
+    x, how = ch._wall_law_scale(score, -12.0, -4.0, 1000.0, 1.0, 0, predicted=-7.0)
+    assert abs(x + 7.3) <= ch.ROOT_RESOLUTION and "2 root(s)" in how
+    assert len(set(asked)) <= 17 + 2 * 4  # the +-2 octave window's scan and two refinements
+    asked.clear()
+    x, how = ch._wall_law_scale(score, -12.0, -4.0, 1000.0, 1.0, 0, predicted=-7.0, previous=-6.21)
+    assert abs(x + 6.2) <= ch.ROOT_RESOLUTION and len(set(asked)) <= 6  # the root it follows, not the best one
+
+
+def test_refine_root_brackets_a_step_change_in_slope_and_a_jump():
+    """The consistency is piecewise smooth (the best beta on its grid switches): regula falsi with the
+    Anderson-Bjoerck scaling still converges to within the resolution, also onto a sign jump."""
+    for g, root in (
+        (lambda x: np.where(x < 0.1, 3 * (x - 0.1), 0.2 * (x - 0.1)), 0.1),
+        (lambda x: np.where(x < 0.07, -1.0 - x, 1.0 + x), 0.07),
+        (lambda x: np.expm1(8 * (x - 0.03)), 0.03),
+    ):
+        x = ch._refine_root(g, 0.0, 0.25)
+        assert abs(x - root) <= ch.ROOT_RESOLUTION, (x, root)
+
+
+def test_plain_criterion_chi2_equals_the_direct_weighted_misfit():
+    """chi^2 of the criterion's quadratic form (plain and with extra columns, through the bordered pencils and
+    the one product serving both weightings) equals sum((M c - u)^2 / sigma^2) of its own coefficients, to
+    rounding of u^T Sigma^-1 u (1e-10 relative)."""
+    from wss_nlp.velocity import VelocityProblem
+
+    rng = np.random.default_rng(41)
+    n, m, k = 400, 30, 5
+    op, extra = rng.standard_normal((n, m)), rng.standard_normal((n, k))
+    u, sigma = rng.standard_normal(n), rng.uniform(0.5, 2.0, n)
+    root = rng.standard_normal((m, m))
+    vp = VelocityProblem(op, rng.uniform(0.2, 1, n), u, None, root @ root.T, None, None, None)
+    crit = ch.PlainCriterion(vp, sigma)
+    for cols, full in ((None, op), (extra, np.hstack([op, extra]))):
+        chi2, dof, coef = crit.curve(cols)
+        direct = np.sum(((coef @ full.T - u) / sigma) ** 2, axis=1)
+        np.testing.assert_allclose(chi2, direct, rtol=0, atol=1e-10 * crit.usu)
+        assert np.all(np.diff(dof) >= -1e-9)  # more effective parameters as beta falls (the grid descends)

@@ -433,3 +433,31 @@ def test_coupled_stack_is_stationary_for_the_joint_functional():
     scale = max(np.abs(g).max() for g in grads)
     assert max(np.abs(t).max() for t in total) <= 1e-4 * scale
     assert max(np.abs(z).max() for z in z_parts) > 0.1 * scale  # the z-terms balance the slices' own gradients
+
+
+def test_stacks_honour_the_dephasing_beta_rule(monkeypatch):
+    """``--dephasing-beta same`` on a z-regularized stack predicts each slice's dephasing from the slice's own fit
+    (the velocity the stack solved, at its beta), ``gcv`` from a GCV-beta fit, as a single slice does."""
+    from dataclasses import replace
+
+    acq, _ = phantoms.make_stack("turbulent", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=33)
+    seen = []
+    original = pipeline.predict_dephasing
+
+    def spy(data, vp, v, geometry, options, window=None):
+        corr, used = original(data, vp, v, geometry, options, window)
+        seen.append((v, used))
+        return corr, used
+
+    monkeypatch.setattr(pipeline, "predict_dephasing", spy)
+    base = ReconstructionOptions(uncertainty=False)
+    for rule in ("same", "gcv"):
+        seen.clear()
+        res = reconstruct(acq, replace(base, dephasing_beta_rule=rule))
+        assert res.stack is not None and len(seen) >= 3
+        given = [v for v, _ in seen[:3]]
+        if rule == "same":  # the first pass's fits, at the betas the stack chose
+            assert all(v is not None for v in given)
+            assert all(np.isclose(used.beta, v.beta) for v, used in seen[:3])
+        else:
+            assert all(v is None for v in given)

@@ -343,11 +343,14 @@ class StackRun:
             SolverStats("kaczmarz (block Gauss-Seidel, Cholesky)", status, ok, sweeps, float("nan"), 0.0)
         ] * len(vps)
 
-    def dephasing(self, seg, vps, geoms, windows=None):
-        """Each slice's :class:`wss_nlp.dephasing.Correction` from a GCV-beta velocity (windows: k-space misfits)."""
+    def dephasing(self, seg, sol: Segment, windows=None):
+        """Each slice's :class:`wss_nlp.dephasing.Correction` (windows: k-space misfits), from a GCV-beta
+        velocity or, with ``--dephasing-beta same``, from the segment's own fit (as :func:`predict_dephasing`)."""
+        own = self.options.dephasing_beta_rule != "gcv"
+        vs = sol.velocity_results(self.options.velocity) if own else [None] * len(seg)
         return [
-            predict_dephasing(self.prepared[k], vp, None, g, self.options, None if windows is None else windows[i])[0]
-            for i, (k, vp, g) in enumerate(zip(seg, vps, geoms))
+            predict_dephasing(self.prepared[k], vp, v, g, self.options, None if windows is None else windows[i])[0]
+            for i, (k, vp, v, g) in enumerate(zip(seg, sol.velocity_problems, vs, sol.geometries))
         ]
 
     def solve(self, seg, problems, x0, strategy, velocity_images=None, around=None) -> Segment:
@@ -474,9 +477,9 @@ class StackRun:
         sol = self.solve(seg, problems, x0, strategy)
         factors: list[Any] = [None] * len(seg)
         if options.dephasing_correction and acq.venc_m_s is not None:
-            # as reconstruct_slice (one pass): predict the signal loss from a GCV-beta velocity, then solve again
+            # as reconstruct_slice (one pass): predict the signal loss, then solve again
             t0 = time.perf_counter()
-            corrections = self.dephasing(seg, sol.velocity_problems, sol.geometries)
+            corrections = self.dephasing(seg, sol)
             factors = [c.factors for c in corrections]
             self._time("dephasing_check", t0)
             if any(c.worth_a_pass for c in corrections):
@@ -488,7 +491,7 @@ class StackRun:
                 )
                 info.dephasing_pass = True
                 if self.psf is not None:  # judged as in reconstruct_slice: undone if it explains the magnitude worse
-                    after = self.dephasing(seg, sol.velocity_problems, sol.geometries, [c.window for c in corrections])
+                    after = self.dephasing(seg, sol, [c.window for c in corrections])
                     if any(a.misfit_moving >= c.misfit_still for a, c in zip(after, corrections)):
                         sol = before
                         self.unexplained.extend(seg)

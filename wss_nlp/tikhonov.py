@@ -227,11 +227,12 @@ class BorderedTikhonov:
     :math:`[H^{-1}]_{cc} = A^{-1} + A^{-1} B S^{-1} B^\top A^{-1}`.
     """
 
-    def __init__(self, base: LinearTikhonov, extra):
+    def __init__(self, base: LinearTikhonov, extra, border=None):
         self.base = base
         self.extra = np.asarray(extra, dtype=float)
         te = self.extra * base.w[:, None]
-        self.border = base.weighted_operator.T @ self.extra  # B
+        # ``border``: B = T^T W E computed by the caller (one product with T serving several weightings)
+        self.border = base.weighted_operator.T @ self.extra if border is None else np.asarray(border, float)
         self.corner = te.T @ self.extra  # C
         self.extra_rhs = te.T @ base.data  # e
 
@@ -247,11 +248,12 @@ class BorderedTikhonov:
         for vec, lam, _, idx, d in self.base._groups(betas):
             vb, vg = vec.T @ self.border, vec.T @ self.base.rhs  # V^T B, V^T g
             dinv = 1.0 / d  # (n_beta, m)
-            schur = self.corner[None] - np.einsum("ak,ba,al->bkl", vb, dinv, vb)
+            # B^T V diag(x_b) V^T B for every beta b as one batched product: (n_beta, k, m) @ (m, k)
+            schur = self.corner[None] - (vb.T[None] * dinv[:, None, :]) @ vb
             try:
                 amp = np.linalg.solve(schur, (self.extra_rhs[None] - (dinv * vg) @ vb)[..., None])[..., 0]
                 # tr(G [H^-1]_cc) in pencil coordinates: V^T G V = Lambda, V^T A^-1 V = D^-1
-                inner = np.linalg.solve(schur, np.einsum("ak,ba,al->bkl", vb, dinv * lam * dinv, vb))
+                inner = np.linalg.solve(schur, (vb.T[None] * (dinv * lam * dinv)[:, None, :]) @ vb)
             except np.linalg.LinAlgError as exc:
                 raise SolverError(f"velocity: the extra columns are linearly dependent ({exc})") from exc
             y = dinv * (vg[None] - amp @ vb.T)  # V^T c

@@ -291,17 +291,22 @@ class PlainCriterion:
     def curve(self, extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``chi^2``, dof and coefficients on :data:`CRITERION_BETAS` (a criterion over several problems, the
         frames of a cine slice in :mod:`wss_nlp.womersley`, weighs each with the joint ``ln n``)."""
+        tk = self.plain.tikhonov
         if extra is None:
-            tk = self.plain.tikhonov
             coef, dof = tk.coefficients(CRITERION_BETAS), tk.traces(CRITERION_BETAS)
-            quad, lin = self.tst, self.tsu
-        else:
-            coef, dof = BorderedTikhonov(self.plain.tikhonov, extra).coefficients_and_traces(CRITERION_BETAS)
-            se = self.inv_var[:, None] * extra
-            tse = self.plain.operator.T @ se
-            quad = np.block([[self.tst, tse], [tse.T, extra.T @ se]])
-            lin = np.concatenate([self.tsu, se.T @ self.plain.data])
-        chi2 = np.einsum("bi,ij,bj->b", coef, quad, coef) - 2 * coef @ lin + self.usu
+            return np.sum((coef @ self.tst) * coef, axis=1) - 2 * coef @ self.tsu + self.usu, dof, coef
+        k = extra.shape[1]
+        se = self.inv_var[:, None] * extra
+        # one pass over T for both weightings of the columns: the misfit's (W) and the criterion's (Sigma^-1)
+        both = self.plain.operator.T @ np.hstack([tk.w[:, None] * extra, se])
+        coef, dof = BorderedTikhonov(tk, extra, border=both[:, :k]).coefficients_and_traces(CRITERION_BETAS)
+        c, a = coef[:, :-k], coef[:, -k:]
+        chi2 = (
+            np.sum((c @ self.tst + 2 * a @ both[:, k:].T) * c, axis=1)
+            + np.sum((a @ (extra.T @ se)) * a, axis=1)
+            - 2 * (c @ self.tsu + a @ (se.T @ self.plain.data))
+            + self.usu
+        )
         return chi2, dof, coef
 
 
@@ -349,7 +354,8 @@ def choose_layer(
     score wins. ``mode`` restricts the candidates (``"auto"``: all; a family
     name: that family, plain excluded). ``around`` (an earlier choice on a
     nearby geometry, e.g. before the dephasing pass) keeps its family and
-    searches half an octave either side of its scale. Returns the chosen
+    searches half an octave either side of its scale (the law of the wall:
+    from its root outwards). Returns the chosen
     problem (the plain one or its enrichment) and the record of the choice.
     """
     big_r = float(vp.disk_map.coefficients[0])
@@ -374,10 +380,11 @@ def choose_layer(
             scored[key] = (crit, basis, beta, coef, columns)
         return scored[key][:4]
 
+    previous = None
     if around is not None and around.model in nw.FAMILIES:
         families: tuple = (around.model,)
-        start = float(np.log2(around.scale_mm / big_r))
-        brackets = {around.model: (start - 0.5, start + 0.5)}
+        previous = float(np.log2(around.scale_mm / big_r))
+        brackets = {around.model: (previous - 0.5, previous + 0.5)}
     else:
         families = (mode,) if mode != "auto" else nw.FAMILIES if reynolds is None else (nw.regime_family(reynolds),)
         logs = np.log2(LAYER_RATIOS)
@@ -387,7 +394,7 @@ def choose_layer(
         family_score = functools.partial(score, family)
         if family == "wall_law" and nu_m2_s is not None:
             predicted = None if reynolds is None or reynolds <= 0 else blasius_scale(reynolds)
-            x, how = _wall_law_scale(family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted)
+            x, how = _wall_law_scale(family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted, previous)
             notes[family] = how
         else:
             x = _bic_scale(family_score, lo, hi)
@@ -459,8 +466,21 @@ def blasius_scale(reynolds: float) -> float:
     return float(-np.log2(0.0994 * reynolds**0.875))
 
 
+#: Resolution (octaves of l) to which a root of the wall-law consistency is located.
+ROOT_RESOLUTION = 1.0 / 128
+#: Half-widths (octaves) of the widening probes around a previous root (a dephasing pass moves it by ~1e-3).
+LOCAL_STEPS = (ROOT_RESOLUTION / 2, 1.0 / 32, 1.0 / 4)
+
+
 def _wall_law_scale(
-    score, lo: float, hi: float, big_r: float, nu_m2_s: float, n_base: int, predicted: float | None = None
+    score,
+    lo: float,
+    hi: float,
+    big_r: float,
+    nu_m2_s: float,
+    n_base: int,
+    predicted: float | None = None,
+    previous: float | None = None,
 ) -> tuple[float, str]:
     r"""log2(l/R) at which the fitted wall-law layer is self-consistent, and how it was found.
 
@@ -471,17 +491,22 @@ def _wall_law_scale(
     :math:`a f(d/\ell)` fitted at scale :math:`\ell`, the law holds where
     :math:`g(\ell) = a \ell / \nu - 1 = 0` (``nu`` from the viscosity and
     the density). ``g`` is scanned on quarter octaves, each sign change is
-    refined by bisection in log l to 1/128 octave, and of several roots the
-    one with the smallest BIC is taken (spurious roots sit where the
-    layer's amplitude changes sign, far from the data's optimum). With a
+    refined to :data:`ROOT_RESOLUTION` octaves by regula falsi
+    (:func:`_refine_root`); of several roots the one with the smallest BIC
+    is taken (spurious roots sit where
+    the layer's amplitude changes sign, far from the data's optimum). With a
     ``predicted`` log2(l/R) (:func:`blasius_scale`) the scan starts two
     octaves either side of it and widens to the whole range only if that
-    window holds no root. Without a root the BIC's scale is used and the
-    record says so.
+    window holds no root. A ``previous`` root (the same slice before a
+    dephasing pass moved its wall a little) is followed locally: probes
+    either side of it at widening distances (:data:`LOCAL_STEPS`), and the
+    scan only if none brackets a root. Without a root the BIC's scale is
+    used and the record says so.
     """
     memo: dict = {}
 
     def consistency(x):
+        x = float(x)
         if x not in memo:
             crit, basis, _, c = score(x)
             u_tau = c[n_base] * basis.column_scale  # m/s: the m = 0 layer column is u_tau f(d/l)
@@ -489,29 +514,62 @@ def _wall_law_scale(
         return memo[x]
 
     def roots_on(xs):
-        vals = [consistency(float(x)) for x in xs]
+        vals = [consistency(x) for x in xs]
         found = []
         for i in range(xs.size - 1):
-            (ga, _), (gb, _) = vals[i], vals[i + 1]
-            if np.sign(ga) != np.sign(gb):
-                a, b = float(xs[i]), float(xs[i + 1])
-                for _ in range(5):
-                    m = (a + b) / 2
-                    gm, _ = consistency(m)
-                    a, b = (m, b) if np.sign(gm) == np.sign(ga) else (a, m)
-                x = (a + b) / 2
+            if np.sign(vals[i][0]) != np.sign(vals[i + 1][0]):
+                x = _refine_root(lambda v: consistency(v)[0], float(xs[i]), float(xs[i + 1]))
                 found.append((consistency(x)[1], x))
         return found
 
+    roots: list = []
+    for step in () if previous is None else LOCAL_STEPS:
+        roots = roots_on(previous + np.array([-step, step]))
+        if roots:
+            break
     xs = np.arange(hi, lo - 1e-9, -0.25)
     window = xs if predicted is None else xs[np.abs(xs - predicted) <= 2.0]
-    roots = roots_on(window) if window.size > 1 else []
+    if not roots:
+        roots = roots_on(window) if window.size > 1 else []
     if not roots and window.size < xs.size:
         roots = roots_on(xs)
     if not roots:
         return _bic_scale(score, lo, hi), "no scale satisfies u_tau l = nu; the BIC's scale"
     crit, x = min(roots)
     return x, f"law of the wall {nw.CONSISTENT} ({len(roots)} root(s), the one with the smallest BIC)"
+
+
+def _refine_root(g, a: float, b: float, resolution: float = ROOT_RESOLUTION) -> float:
+    """A root of ``g`` in ``[a, b]`` (``g(a)``, ``g(b)`` of opposite signs) to about ``resolution``.
+
+    The Anderson-Bjoerck variant of regula falsi (a retained end's value is
+    scaled down, so both ends move; Galdino 2011 compares the variants),
+    stopped when two successive iterates agree to half the resolution or
+    the bracket is within it: two or three evaluations where bisection to
+    1/128 octave from a quarter-octave bracket takes five and one more at
+    the midpoint. Returns the last point evaluated (its criterion is
+    known), a root of ``g`` to within the resolution.
+    """
+    a, b = min(a, b), max(a, b)
+    ga, gb = g(a), g(b)
+    side, last = 0, None
+    for _ in range(32):
+        if ga == gb:
+            break
+        x = float(np.clip(a - ga * (b - a) / (gb - ga), a + resolution / 8, b - resolution / 8))
+        gx = g(x)
+        if np.sign(gx) == np.sign(ga):
+            scale = 1 - gx / ga
+            gb = gb * (scale if scale > 0 else 0.5) if side == -1 else gb
+            a, ga, side = x, gx, -1
+        else:
+            scale = 1 - gx / gb
+            ga = ga * (scale if scale > 0 else 0.5) if side == 1 else ga
+            b, gb, side = x, gx, 1
+        if (last is not None and abs(x - last) <= resolution / 2) or b - a <= resolution:
+            return x
+        last = x
+    return (a + b) / 2 if last is None else last
 
 
 #: Relative margin of the magnitude misfit below which the k-space filter choice counts as ambiguous.
