@@ -224,7 +224,7 @@ def test_density_is_read_checked_and_overridable(tmp_path):
         ReconstructionOptions(density_kg_m3=-3.0)
 
 
-def test_cli_records_the_choice_and_refuses_what_it_cannot_do(tmp_path, capsys):
+def test_cli_records_the_choice_for_both_methods(tmp_path, capsys):
     acq, _ = phantoms.make_phantom("entrance", h_mm=1.0, snr=25.0, seed=13)
     src, out = str(tmp_path / "in.h5"), str(tmp_path / "r.h5")
     wio.write_acquisition(src, acq)
@@ -236,10 +236,8 @@ def test_cli_records_the_choice_and_refuses_what_it_cannot_do(tmp_path, capsys):
     assert cli.main(["analyze", out]) == 0
     assert "near-wall model 'exponential'" in capsys.readouterr().out
     coupled = ["reconstruct", src, "-o", str(tmp_path / "c.h5"), "--method", "coupled", "--no-uncertainty"]
-    assert cli.main(coupled + ["--near-wall", "exponential"]) == 2  # asked for explicitly: refused
-    assert "near-wall" in capsys.readouterr().err
-    assert cli.main(coupled + ["--near-wall", "auto"]) == 0  # auto: the plain basis, said so
-    assert "coupled method does not take a near-wall layer" in capsys.readouterr().err
+    assert cli.main(coupled + ["--near-wall", "auto"]) == 0  # the coupled method keeps the chosen layer
+    assert wio.read_near_wall(str(tmp_path / "c.h5"))["slice_000"]["model"] == "exponential"
     with pytest.raises(InputError, match="layer-scale"):
         vel.VelocityOptions(near_wall="auto", layer_scale_mm=0.1)
 
@@ -317,3 +315,33 @@ def test_z_regularized_stacks_choose_the_near_wall_model_per_slice():
     )
     results = reconstruct(acq, forced)
     assert results.stack is not None and all(r.near_wall.model == "exponential" for r in results)
+
+
+@pytest.mark.parametrize("family", ["wall_law", "exponential", "inside"])
+def test_casadi_cell_mean_equals_numpy_and_its_derivative_is_exact(family):
+    """The coupled method's CasADi cell mean (every branch: midpoint, far inside, box, trapezoid) equals the fit's
+    NumPy one to rounding (1e-8: NumPy's inside fraction far inside is the trapezoid's rounding of 1, CasADi's
+    exactly 1), its continuous variant (the trapezoid also far inside) within the far branch's truncation
+    (5e-4 relative at cells up to six layer scales wide; 3e-4 measured), and its y-derivative the central
+    differences of its values."""
+    rng = np.random.default_rng(17)
+    n = 3000
+    y, a = rng.uniform(-5, 40, n), rng.uniform(0, 6, n)
+    b = rng.uniform(0, 6, n) * rng.choice([0.0, 1e-5, 1.0], n)
+    a[:100] = 0.01  # cells small against the layer: the midpoint value
+    exact = nw.cell_mean(family, y, a, b)
+    value, slope = (np.asarray(v).ravel() for v in nw.cell_mean_function(family).map(n)(y, a, b))
+    np.testing.assert_allclose(value, exact, rtol=0, atol=1e-8 * np.max(np.abs(exact)))
+    smooth = nw.cell_mean_function(family, continuous=True).map(n)
+    wide = a > 0.02
+    sv, sd = (np.asarray(v).ravel() for v in smooth(y, a, b))
+    np.testing.assert_allclose(sv[wide], exact[wide], rtol=5e-4, atol=1e-8)
+    eps = 1e-5
+    fd = (np.asarray(smooth(y + eps, a, b)[0]).ravel() - np.asarray(smooth(y - eps, a, b)[0]).ravel()) / (2 * eps)
+    # away from the kinks of the truncated profile's antiderivatives (an argument y +- a +- b at the wall) and
+    # from the trapezoid's cancellation in the differences (a b small but not zero: the box formula's domain)
+    kinks = np.min(np.abs(np.stack([y + sa * a + sb * b for sa in (-1, 0, 1) for sb in (-1, 0, 1)])), axis=0)
+    ok = (kinks > 1e-3) & ((b == 0) | (a * b > 1e-3))
+    assert ok.mean() > 0.5
+    # the differences' own error: truncation eps^2 f''' and rounding 1e-16 F_2 / (a b eps), about 1e-5
+    np.testing.assert_allclose(sd[ok], fd[ok], rtol=0, atol=2e-5 * max(1.0, np.max(np.abs(sd))))

@@ -32,9 +32,10 @@ is :math:`\mu S/\ell` times its angular factor, independent of the family):
 Which model (plain, or a family and a scale on a grid) is chosen from the
 data by :mod:`wss_nlp.parameters.choice` (:func:`wss_nlp.parameters.choice.choose_layer`).
 
-The columns are separable in :math:`(\rho, \theta)`, so the polar form
-used by the coupled method and the sensitivities (:func:`wss_nlp.coupled.polar_basis`)
-applies to them unchanged.
+The columns are separable in :math:`(\rho, \theta)`; the fit integrates
+them across each quadrature cell (:class:`LayerQuadrature`), and the coupled
+method does the same with the cell means written in CasADi
+(:func:`cell_mean_function`), so that they move with the wall.
 """
 
 from __future__ import annotations
@@ -268,18 +269,20 @@ class EnrichedBasis:
         return out
 
 
-def antiderivatives(family: str, y) -> tuple[np.ndarray, np.ndarray]:
-    """First and second antiderivatives of ``f(y) 1(y > 0)`` from 0 (zero for ``y <= 0``; NumPy)."""
-    y = np.maximum(np.asarray(y, dtype=float), 0.0)
+def antiderivatives(family: str, y):
+    """First and second antiderivatives of ``f(y) 1(y > 0)`` from 0 (zero for ``y <= 0``; NumPy or CasADi)."""
+    is_sym = isinstance(y, (ca.SX, ca.MX))
+    y = ca.fmax(y, 0) if is_sym else np.maximum(np.asarray(y, dtype=float), 0.0)
+    log, exp = (ca.log, ca.exp) if is_sym else (np.log, np.exp)
     if family == "inside":  # f = 1: the cell's area fraction inside the wall
         return y, y * y / 2
     if family == "exponential":
-        e = np.exp(-y)
+        e = exp(-y)
         return y - 1 + e, y * y / 2 - y + 1 - e
     if family != "wall_law":
         raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
-    z, e11, e3 = 1 + KAPPA * y, np.exp(-y / 11), np.exp(-y / 3)
-    lz = np.log(z)
+    z, e11, e3 = 1 + KAPPA * y, exp(-y / 11), exp(-y / 3)
+    lz = log(z)
     f1 = (z * lz - KAPPA * y) / KAPPA**2 + REICHARDT_C * (y - 11 * (1 - e11) - (9 - (3 * y + 9) * e3) / 11)
     f2 = (z * z * lz / 2 - 3 * z * z / 4 + z - 0.25) / KAPPA**3 + REICHARDT_C * (
         y * y / 2 - 11 * y + 121 * (1 - e11) - (9 * y - 54 + (9 * y + 54) * e3) / 11
@@ -351,6 +354,61 @@ def cell_mean(family: str, y, a, b, derivative: bool = False, moment: bool = Fal
 
         out[trap] = (f2(yt + at + bt) - f2(yt + at - bt) - f2(yt - at + bt) + f2(yt - at - bt)) / (4 * at * bt)
     return out
+
+
+def cell_mean_function(family: str, continuous: bool = False) -> ca.Function:
+    r""":func:`cell_mean` as a CasADi function ``(y, a, b) -> (mean, d mean / d y)`` of scalars (map it).
+
+    The same branches as the NumPy version (midpoint value for cells small
+    against the layer, the curvature-corrected value far inside, the box and
+    the trapezoid means of the antiderivatives), so the coupled method's
+    layer columns equal the decoupled fit's (``tests/test_coupled.py``);
+    the ``y``-derivative is CasADi's exact derivative of that expression.
+    ``family`` may also be ``"inside"`` (the cell's area fraction inside
+    the wall). ``continuous=True`` drops the branches that switch with ``y``
+    (the far-inside value, within 1e-4 of the trapezoid, and the inside
+    fraction's midpoint step), so the mean is continuously differentiable in
+    ``y``, as a wall that moves needs (Newton steps across a switch see a jump).
+    """
+    y, a_in, b_in = ca.SX.sym("y"), ca.SX.sym("a"), ca.SX.sym("b")
+    a, b = ca.fmax(a_in, b_in), ca.fmin(a_in, b_in)
+    if family == "inside":
+        point, curvature = ca.if_else(y > 0, 1.0, 0.0), ca.SX(0)
+    else:
+        t = ca.SX.sym("t")
+        second = ca.Function("f2", [t], [ca.hessian(profile(family, t), t)[0]])
+        point = ca.if_else(y > 0, profile(family, ca.fmax(y, 0)), 0.0)
+        curvature = ca.if_else(y > 0, second(ca.fmax(y, 0)), 0.0)
+    f1 = lambda v: antiderivatives(family, v)[0]  # noqa: E731
+    f2 = lambda v: antiderivatives(family, v)[1]  # noqa: E731
+    wide = a > 0.02  # below, the midpoint value is exact to 1e-4 relative
+    far = wide * (y > 3 * (a + b))  # (the area fraction: exactly 1 there, where the trapezoid only rounds to it)
+    if continuous:  # a and b are fixed per cell; only y moves
+        far = ca.SX(0)
+        wide = ca.SX(1) if family == "inside" else wide
+    box = wide * (1 - far) * (b < 1e-3 * a)
+    trap = wide * (1 - far) * (1 - box)
+    safe_a, safe_ab = ca.fmax(a, 1e-300), ca.fmax(a * b, 1e-300)
+    value = ca.if_else(
+        trap,
+        (f2(y + a + b) - f2(y + a - b) - f2(y - a + b) + f2(y - a - b)) / (4 * safe_ab),
+        ca.if_else(
+            box,
+            (f1(y + a) - f1(y - a)) / (2 * safe_a),
+            ca.if_else(far, point + (a * a + b * b) / 6 * curvature, point),
+        ),
+    )
+    return ca.Function(f"cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)])
+
+
+def far_cell_mean_function(family: str) -> ca.Function:
+    """:func:`cell_mean_function` for cells wholly inside the wall, ``y > a + b`` (the branches that apply there)."""
+    y, a_in, b_in = ca.SX.sym("y"), ca.SX.sym("a"), ca.SX.sym("b")
+    t = ca.SX.sym("t")
+    second = ca.Function("f2", [t], [ca.hessian(profile(family, t), t)[0]])
+    wide = ca.fmax(a_in, b_in) > 0.02
+    value = profile(family, y) + wide * (a_in * a_in + b_in * b_in) / 6 * second(y)
+    return ca.Function(f"far_cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)])
 
 
 class LayerQuadrature:

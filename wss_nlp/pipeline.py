@@ -65,10 +65,6 @@ if TYPE_CHECKING:
 logger = logging.getLogger("wss_nlp.stack")
 
 
-#: What a slice reconstructed by the coupled method with ``--near-wall auto`` says (it uses the plain basis).
-COUPLED_PLAIN_NOTE = "the coupled method does not take a near-wall layer yet: plain velocity basis"
-
-
 @dataclass
 class SliceData:
     """One slice's inputs and what preprocessing found: the record every step takes."""
@@ -282,9 +278,6 @@ class StackRun:
         self.info = StackInfo("", ell, self.kappa, self.kappa_v, segments_of(sorted(self.prepared)), failed)
         self.results: list = [None] * acq.nz
         self.layer_notes: list[str] = []
-        if options.method == "coupled" and options.velocity.near_wall != "off":  # as reconstruct_slice
-            self.layer_notes.append(COUPLED_PLAIN_NOTE)
-            options = replace(options, velocity=replace(options.velocity, near_wall="off"))
         self.options = options
         self.basis = options.velocity.make_basis()
         self.gram0 = self.basis.laplacian_gram(0)

@@ -237,10 +237,6 @@ class ReconstructionOptions:
             raise InputError(f"n_phi must be >= 360 (file format), got {self.n_phi}")
         if self.method not in METHODS:
             raise InputError(f"method must be one of {METHODS}, got {self.method!r}")
-        if self.method == "coupled" and self.velocity.near_wall in nw.FAMILIES:
-            raise InputError(
-                "the coupled method does not take a near-wall layer yet; use --method decoupled or --near-wall off"
-            )
         if self.alpha_rule not in ALPHA_RULES:
             raise InputError(f"alpha rule must be one of {ALPHA_RULES}, got {self.alpha_rule!r}")
         if self.dephasing_beta_rule not in DEPHASING_BETA_RULES:
@@ -327,11 +323,8 @@ def reconstruct_slice(
 
     t0 = time.perf_counter()
     vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity, psf=psf)
-    near, layer_notes = None, []
-    if options.velocity.near_wall != "off" and options.method == "coupled":
-        layer_notes.append(pipeline.COUPLED_PLAIN_NOTE)
-    else:
-        vp, near = pipeline.near_wall_model(data, vp, options, viscosity_pa_s, density, lumen=lumen)
+    layer_notes: list[str] = []
+    vp, near = pipeline.near_wall_model(data, vp, options, viscosity_pa_s, density, lumen=lumen)
     beta_choice = pipeline.beta_choice(data, vp, near, options, viscosity_pa_s, lumen=lumen)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
     t["velocity"] = time.perf_counter() - t0

@@ -903,6 +903,7 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
         gamma,
         gopt.heaviside,
         center=center,
+        stretch=nlp.stretch,
     )
     grad_v = ca.gradient(nlp.weight * ca.sumsqr(res_v), nlp.x)
     fun = ca.Function("dcentre", [nlp.x, center], [ca.jtimes(grad_v, center, ca.DM.eye(2))])

@@ -458,27 +458,44 @@ def coupled_segment(
     copt = copt or cpl.CoupledOptions()
     alpha = gopt.alpha
     nlps = [
-        cpl.build(pb, gopt, u, vopt, v.basis, v.disk_map.r_in, weight, alpha, b, copt.quad_order, start=g.coefficients)
+        cpl.build(
+            pb,
+            gopt,
+            u,
+            vopt,
+            v.basis,
+            v.disk_map.r_in,
+            weight,
+            alpha,
+            b,
+            copt.quad_order,
+            start=g.coefficients,
+            stretch=cpl.layer_stretch(v),
+        )  # fmt: skip
         for pb, u, (g, v), b in zip(problems, images, starts, betas)
     ]
     sizes = [nlp.x.numel() for nlp in nlps]
     offsets = np.r_[0, np.cumsum(sizes)]
     big = ca.MX.sym("X", int(offsets[-1]))
-    # separate functions: derivatives of f must not run through the Gauss-Newton matrix's graph
+    # separate functions: derivatives of f must not run through the Gauss-Newton matrix's graph, and the box
+    # rows' (constant) Jacobian not through f's
     parts = [
-        (ca.Function("F", [nlp.x, nlp.gamma], [nlp.f, nlp.g]), ca.Function("J", [nlp.x, nlp.gamma], [nlp.jacobian]))
+        (
+            ca.Function("F", [nlp.x, nlp.gamma], [nlp.f]),
+            ca.Function("G", [nlp.x], [nlp.g]),
+            ca.Function("J", [nlp.x, nlp.gamma], [nlp.jacobian]),
+        )
         for nlp in nlps
     ]
     gammas = ca.MX.sym("gamma", len(nlps))
     grams = [operators.Gram(*nlp.jacobian.shape) for nlp in nlps]  # kept alive with the solver below
     f: Any = 0  # a CasADi expression once the first term is added
     g_all, hess_blocks = [], []
-    for k, (nlp, (fun, jac)) in enumerate(zip(nlps, parts)):
+    for k, (nlp, (fun, box, jac)) in enumerate(zip(nlps, parts)):
         xk = big[int(offsets[k]) : int(offsets[k + 1])]
-        fk, gk = fun(xk, gammas[k])
         jk = jac(xk, gammas[k])
-        f += fk
-        g_all.append(gk)
+        f += fun(xk, gammas[k])
+        g_all.append(box(xk))
         hess_blocks.append(2 * grams[k](jk) + 2 * ca.DM(nlp.penalty_hessian()))
     zop = z_operator(len(nlps), order)
     w0 = rad.sobolev_weights(gopt.n_fourier, 0)
