@@ -59,7 +59,7 @@ from . import geometry as geo
 from . import operators
 from . import radius as rad
 from . import velocity as vel
-from .errors import InputError
+from .errors import InputError, SolverError
 from . import coupled as cpl
 from .coupled import sparse_dm
 from .schema import option
@@ -524,7 +524,22 @@ def coupled_segment(
     ubg = np.concatenate([np.full(nlp.g.numel(), pb.r1) for nlp, pb in zip(nlps, problems)])
     p = np.array([float(nlp.geometry.gamma) for nlp in nlps])
     t0 = time.perf_counter()
-    sol, stats = run_nlpsol(solver, "stack coupled geometry+velocity (IPOPT)", x0=x0, p=p, lbg=lbg, ubg=ubg)
+    what = "stack coupled geometry+velocity (IPOPT)"
+    failed = ""
+    try:
+        sol, stats = run_nlpsol(solver, what, x0=x0, p=p, lbg=lbg, ubg=ubg)
+        failed = "" if stats.converged else stats.status
+    except SolverError as exc:
+        failed = str(exc)
+    if failed:  # as coupled.solve: a stalled Gauss-Newton solve is redone with CasADi's exact Hessian
+        logger.info(f"{what}: Gauss-Newton Hessian did not converge ({failed}); solving with the exact Hessian")
+        opts = ipopt_options(copt.tol, copt.max_iter, dict(cpl.WARM_START))
+        exact = ca.nlpsol(
+            "stack_coupled_exact", "ipopt", {"x": big, "p": gammas, "f": f, "g": ca.vertcat(*g_all)}, opts
+        )
+        sol, stats = run_nlpsol(exact, what, x0=x0, p=p, lbg=lbg, ubg=ubg)
+        stats.extra["gauss_newton_failed"] = failed
+    stats.extra["hessian"] = "exact" if failed else "gauss-newton"
     stats.seconds = time.perf_counter() - t0
     stats.extra["velocity_weight"] = weight
     x = np.asarray(sol["x"]).ravel()
