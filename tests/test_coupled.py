@@ -266,3 +266,15 @@ def test_a_failed_gauss_newton_solve_falls_back_to_the_exact_hessian(laminar_coa
     assert ref.stats.extra["hessian"] == "gauss-newton"
     np.testing.assert_allclose(out.velocity.coefficients, ref.velocity.coefficients, rtol=0,
                                atol=1e-6 * np.max(np.abs(ref.velocity.coefficients)))  # fmt: skip
+
+
+def test_coupled_with_the_layer_matches_the_decoupled_accuracy_on_the_re_tau_180_pipe():
+    """The resolution study's claim (coupled within 0.3 points of the decoupled WSS error on the Re_tau 180
+    pipe, 6-8 %, where the plain-basis coupled method was 15-20 % off) on a seed the study does not use
+    (h = 1 mm, SNR 25, seed 21; measured 7.8 % decoupled, 8.0 % coupled): within 1 point, and below 10 %."""
+    acq, truth = phantoms.make_phantom("turbulent", h_mm=1.0, snr=25, seed=21)
+    dec = metrics.compare_slice(reconstruct(acq, ReconstructionOptions(uncertainty=False))[0], truth)
+    res = reconstruct(acq, ReconstructionOptions(method="coupled", uncertainty=False))[0]
+    cou = metrics.compare_slice(res, truth)
+    assert res.near_wall.model == "wall_law" and res.converged
+    assert abs(cou.wss_rel_l2 - dec.wss_rel_l2) <= 0.01 and cou.wss_rel_l2 < 0.10

@@ -757,7 +757,9 @@ def solve(
 
     The inner radius of ``phi_R`` is frozen at the start's value (it is a
     parameter of the map, not an unknown), and the box's lower bound is
-    raised to it if needed so that ``phi_R`` stays one-to-one.
+    raised to it if needed so that ``phi_R`` stays one-to-one. A solve with
+    the Gauss-Newton Hessian that fails or stops short is redone with
+    CasADi's exact Hessian (``stats.extra["gauss_newton_failed"]`` says why).
     """
     options = options or CoupledOptions()
     alpha = start_geometry.alpha if alpha is None else float(alpha)

@@ -366,7 +366,7 @@ def cell_mean_function(family: str, continuous: bool = False) -> ca.Function:
     the ``y``-derivative is CasADi's exact derivative of that expression.
     ``family`` may also be ``"inside"`` (the cell's area fraction inside
     the wall). ``continuous=True`` drops the branches that switch with ``y``
-    (the far-inside value, within 1e-4 of the trapezoid, and the inside
+    (the far-inside value, within a few 1e-4 of the trapezoid, and the inside
     fraction's midpoint step), so the mean is continuously differentiable in
     ``y``, as a wall that moves needs (Newton steps across a switch see a jump).
     """

@@ -277,7 +277,6 @@ class StackRun:
         self.kappa_v = (ell / self.dz) ** (2 * self.order)
         self.info = StackInfo("", ell, self.kappa, self.kappa_v, segments_of(sorted(self.prepared)), failed)
         self.results: list = [None] * acq.nz
-        self.layer_notes: list[str] = []
         self.options = options
         self.basis = options.velocity.make_basis()
         self.gram0 = self.basis.laplacian_gram(0)
@@ -545,7 +544,7 @@ class StackRun:
                 options.method,
                 cinfo[i],
                 None,
-                notes + self.layer_notes,
+                notes,
                 near_wall=near,
             )
             self.done += 1

@@ -323,7 +323,6 @@ def reconstruct_slice(
 
     t0 = time.perf_counter()
     vp = vel.assemble(grid, velocity_image, g.coefficients, g.center, options.velocity, psf=psf)
-    layer_notes: list[str] = []
     vp, near = pipeline.near_wall_model(data, vp, options, viscosity_pa_s, density, lumen=lumen)
     beta_choice = pipeline.beta_choice(data, vp, near, options, viscosity_pa_s, lumen=lumen)
     v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
@@ -397,7 +396,7 @@ def reconstruct_slice(
     t["min_dephasing_factor"] = float(np.min(factors, initial=1.0)) if factors is not None else 1.0
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
-    notes, sensitivity, pending = layer_notes + notes_deph, None, None
+    notes, sensitivity, pending = list(notes_deph), None, None
     band_inputs = (problem, g, vp, v, w, data, lumen, viscosity_pa_s, options, cres, near)
     if options.uncertainty and defer_band:
         pending = functools.partial(uncertainty, *band_inputs)

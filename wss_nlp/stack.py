@@ -471,7 +471,7 @@ def coupled_segment(
             copt.quad_order,
             start=g.coefficients,
             stretch=cpl.layer_stretch(v),
-        )  # fmt: skip
+        )
         for pb, u, (g, v), b in zip(problems, images, starts, betas)
     ]
     sizes = [nlp.x.numel() for nlp in nlps]
