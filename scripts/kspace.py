@@ -10,8 +10,8 @@ no filter at the reported resolution (``none, F = 1``) and a Hamming filter with
 defaults (near-wall model ``auto``, beta by balancing, alpha fixed, no band) and ``--acquisition box`` or
 ``--acquisition kspace`` with the matching filter; the mismatch rows give the k-space model the wrong filter.
 Report seeds 100.. (development used seeds 0-7; the tests use 5, 7 and 11). Writes
-``scripts/results/kspace.md``. With ``--method coupled`` the coupled method (its own near-wall default: the
-plain basis) with the box and the k-space model, into ``scripts/results/kspace_coupled.md``.
+``scripts/results/kspace.md``. With ``--method coupled`` the coupled method (with the near-wall model its
+decoupled start chose) with the box and the k-space model, into ``scripts/results/kspace_coupled.md``.
 
     python scripts/kspace.py [--seeds 5] [--cases laminar,manufactured,turbulent] [--h 1.5,1.0,0.6,0.3]
                              [--snr 25,10] [--jobs 2] [--method decoupled|coupled]
@@ -99,7 +99,7 @@ def main() -> None:
         f"Seeds {SEED0}-{SEED0 + args.seeds - 1}; mean WSS error relative to the exact mean WSS (mean |.| and "
         "worst |.| over the seeds), radius relative L2 error (mean), slices flagged SUSPECT, seconds per "
         "reconstruction (mean). Defaults otherwise (near-wall auto, beta by balancing, no band)"
-        + (", method coupled (plain velocity basis)." if args.method == "coupled" else "."),
+        + (", method coupled (the near-wall model of its decoupled start)." if args.method == "coupled" else "."),
         "Made by `python scripts/kspace.py" + "".join(f" {a}" for a in sys.argv[1:]) + "`.",
         "",
         "| case | acquisition | SNR | h [mm] | model | WSS err mean | worst | radius err | SUSPECT | filter used | s |",
