@@ -50,7 +50,7 @@ def test_noise_free_recovery_of_radius_in_VN(fourier_noise_free):
     assert np.allclose(res.coefficients[0], truth.lumen.coefficients[0], rtol=1e-3)
 
 
-@pytest.mark.parametrize("hessian", ["gauss-newton", "exact"])
+@pytest.mark.parametrize("hessian", ["newton", "gauss-newton", "exact"])
 def test_projected_gauss_newton_agrees_with_ipopt(laminar_snr25, hessian):
     acq, _ = laminar_snr25
     prob = geometry_problem(acq)
@@ -61,6 +61,72 @@ def test_projected_gauss_newton_agrees_with_ipopt(laminar_snr25, hessian):
     # same strictly convex-near-solution functional: minimizers agree to solver tolerance
     assert np.allclose(a.coefficients, b.coefficients, rtol=0, atol=1e-6 * a.coefficients[0])
     assert a.stats.objective == pytest.approx(b.stats.objective, rel=1e-9)
+
+
+@pytest.mark.parametrize("kind", ["erf", "arctan"])
+def test_heaviside_curvature_is_the_slope_derivative(kind):
+    """H'' of the smoothed Heaviside equals CasADi's derivative of H' (two exact derivatives: to rounding)."""
+    x = ca.SX.sym("x")
+    ad = ca.Function("d2", [x], [ca.jacobian(meas.heaviside_slope(x, 0.3, kind), x)])
+    grid = np.linspace(-2, 2, 41)
+    assert np.allclose(meas.heaviside_curvature(grid, 0.3, kind), np.asarray(ad(grid)).ravel(), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("kind", ["erf", "arctan"])
+def test_newton_hessian_equals_casadi_exact_hessian(laminar_snr25, kind):
+    """The chain-rule Hessian 2 (J^T J + sum r_i Hess r_i + alpha W) the "newton" solver passes to IPOPT equals
+    CasADi's algorithmic Hessian of the functional at a point away from the minimizer (residuals not small),
+    to rounding relative to its largest entry."""
+    problem = geometry_problem(laminar_snr25[0])
+    opts = geo.GeometryOptions(heaviside=kind)
+    solver = geo.IpoptGeometrySolver(problem, opts)
+    assert solver.hessian == "newton"
+    nlp = solver.nlp
+    assert nlp.jacobian is not None and nlp.curvature is not None
+    gram = ca.mtimes(nlp.jacobian.T, nlp.jacobian)
+    chain = 2 * (gram + nlp.curvature + nlp.alpha * ca.diag(ca.DM(nlp.weights)))
+    exact = ca.hessian(nlp.f, nlp.c)[0]
+    both = ca.Function("h", [nlp.c, nlp.alpha, nlp.data], [chain, exact])
+    rng = np.random.default_rng(4)
+    c = geo.initial_guess(problem, opts.n_fourier) + 0.05 * rng.normal(size=nlp.c.numel())
+    data = problem.magnitude.ravel()[nlp.model.annulus]
+    ours, casadi_h = (np.asarray(v) for v in both(c, 1e-3, data))
+    assert np.max(np.abs(ours - casadi_h)) < 1e-10 * np.max(np.abs(casadi_h))
+    # and the second-order term matters here: Gauss-Newton alone is off by far more than rounding
+    assert np.max(np.abs(ours - np.asarray(ca.Function("g", [nlp.c, nlp.data], [2 * gram])(c, data)))) > 1e-3
+
+
+def test_newton_converges_in_fewer_iterations_to_the_same_minimizer(laminar_snr25):
+    """Same minimizer with the Newton and the Gauss-Newton Hessian (both at tol 1e-9: 1e-8 mm); the Gauss-Newton
+    iteration converges linearly on this non-zero-residual problem, Newton quadratically (fewer iterations)."""
+    problem = geometry_problem(laminar_snr25[0])
+    newton = geo.IpoptGeometrySolver(problem, geo.GeometryOptions()).solve()
+    gauss = geo.IpoptGeometrySolver(problem, geo.GeometryOptions(hessian="gauss-newton")).solve()
+    assert newton.stats.converged and gauss.stats.converged
+    assert newton.stats.extra["hessian"] == "newton" and gauss.stats.extra["hessian"] == "gauss-newton"
+    assert np.max(np.abs(newton.coefficients - gauss.coefficients)) < 1e-8
+    assert newton.stats.iterations < gauss.stats.iterations
+
+
+def test_initial_guess_is_the_half_maximum_contour(laminar_snr25):
+    """The start lies near the minimizer (the ellipse: within 0.1 mm, where the equal-area circle is ~1 mm off),
+    inside a box the contour leaves, and is the circle where no ray finds the contour."""
+    problem = geometry_problem(laminar_snr25[0])
+    opts = geo.GeometryOptions()
+    solution = geo.solve_ipopt(problem, opts).coefficients
+    start = geo.initial_guess(problem, opts.n_fourier)
+    circle = np.zeros_like(start)
+    circle[0] = problem.r_ref
+    phi = rad.uniform_angles(360)
+    assert np.max(np.abs(rad.evaluate(start - solution, phi))) < 0.1
+    assert np.max(np.abs(rad.evaluate(circle - solution, phi))) > 0.5
+    tight = geo.GeometryProblem(problem.grid, problem.magnitude, problem.center, problem.r0, 12.5, problem.r_ref)
+    inside = rad.evaluate(geo.initial_guess(tight, opts.n_fourier), phi)  # the ellipse reaches 13 mm
+    assert inside.min() > tight.r0 and inside.max() < tight.r1
+    flat = geo.GeometryProblem(
+        problem.grid, np.ones_like(problem.magnitude), problem.center, problem.r0, problem.r1, problem.r_ref
+    )
+    assert np.allclose(geo.initial_guess(flat, opts.n_fourier), circle, rtol=0, atol=1e-12)
 
 
 def test_box_constraint_active_both_solvers(laminar_snr25):

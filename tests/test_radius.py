@@ -12,6 +12,19 @@ def test_design_matrix_matches_series(rng):
     assert np.allclose(rad.evaluate(c, phi), direct, atol=1e-13)
 
 
+@pytest.mark.parametrize("n", [0, 1, 4, 8])
+def test_weighted_gram_from_three_products(rng, n):
+    """B^T diag(d) B assembled from B^T [d, d cos N phi, d sin N phi] equals the direct product for scattered
+    angles and signed weights (the same sums in another order: equal to rounding)."""
+    phi = rng.uniform(-np.pi, np.pi, 300)
+    d = rng.normal(size=300)
+    b = rad.design_matrix(phi, n)
+    direct = b.T @ (d[:, None] * b)
+    stacked = np.concatenate([b.T @ d, b.T @ (d * np.cos(n * phi)), b.T @ (d * np.sin(n * phi))])
+    assembled = (rad.weighted_gram_map(n) @ stacked).reshape(b.shape[1], b.shape[1])
+    assert np.max(np.abs(assembled - direct)) < 1e-11 * np.sum(np.abs(d))
+
+
 @pytest.mark.parametrize("s", [0, 1, 2, 3])
 def test_sobolev_norm_against_quadrature(rng, s):
     # The trapezoidal rule with more than 2N+1 points integrates products of

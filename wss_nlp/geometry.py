@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import scipy.ndimage
 
 import casadi as ca
 
@@ -27,6 +28,10 @@ from . import radius as rad
 from .errors import InputError, SolverError
 from .schema import option
 from .solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
+
+
+#: The geometry solver's Hessians (:attr:`GeometryOptions.hessian`).
+HESSIANS = ("newton", "gauss-newton", "exact", "limited-memory")
 
 
 @dataclass(frozen=True)
@@ -60,8 +65,16 @@ class GeometryOptions:
         q from h and the vessel size (:func:`wss_nlp.measurement.auto_quad_order`).
     solver : {"ipopt", "gauss-newton"}
         IPOPT with the box as linear inequalities, or projected Gauss-Newton.
-    hessian : {"gauss-newton", "exact", "limited-memory"}
-        Hessian used by IPOPT.
+    hessian : {"newton", "gauss-newton", "exact", "limited-memory"}
+        Hessian used by IPOPT. "newton": the exact Hessian assembled by the
+        chain rule, ``2 (J^T J + sum_i r_i Hess r_i + alpha W)`` with the
+        second-order term from Fourier moments
+        (:func:`wss_nlp.measurement.magnitude_model`,
+        :func:`wss_nlp.kspace.magnitude_model`); it converges quadratically
+        where the Gauss-Newton Hessian (without that term) converges linearly
+        (this non-zero-residual problem: 4 iterations instead of 11-25,
+        ``scripts/results/bench_geometry.md``). "exact": CasADi's algorithmic
+        Hessian (the cross-check; slower to evaluate).
     n_box : int
         Angles at which the box constraint is imposed (0: ``max(64, 8N)``).
     tol, max_iter : float, int
@@ -104,7 +117,10 @@ class GeometryOptions:
         choices=("ipopt", "gauss-newton"),
     )
     hessian: str = option(
-        "gauss-newton", "Hessian used by IPOPT", cli="--hessian", choices=("gauss-newton", "exact", "limited-memory")
+        "newton",
+        "Hessian used by IPOPT (newton: exact, by the chain rule; gauss-newton drops the second-order term)",
+        cli="--hessian",
+        choices=HESSIANS,
     )
     n_box: int = 0
     tol: float = 1e-9
@@ -119,8 +135,8 @@ class GeometryOptions:
             raise InputError(f"geometry prior must be 'area' or 'zero', got {self.prior!r}")
         if self.solver not in ("ipopt", "gauss-newton"):
             raise InputError(f"geometry solver must be 'ipopt' or 'gauss-newton', got {self.solver!r}")
-        if self.hessian not in ("gauss-newton", "exact", "limited-memory"):
-            raise InputError(f"hessian must be gauss-newton, exact or limited-memory, got {self.hessian!r}")
+        if self.hessian not in HESSIANS:
+            raise InputError(f"hessian must be one of {', '.join(HESSIANS)}, got {self.hessian!r}")
         if self.heaviside not in meas.HEAVISIDES:
             raise InputError(f"heaviside must be one of {meas.HEAVISIDES}, got {self.heaviside!r}")
         if self.gamma is not None and not self.gamma > 0:
@@ -182,6 +198,8 @@ class TikhonovNLP:
     gamma: float
     data: ca.MX | None = None  # the annulus magnitude as a symbol (solvers reused across data), or None: constants
     jacobian: ca.MX | None = None  # d residual / d c by the chain rule (the Gauss-Newton solvers' form), or None
+    # sum_i residual_i d^2 residual_i / dc^2 by the chain rule (with the Jacobian: the exact Hessian), or None
+    curvature: ca.MX | None = None
 
 
 def quad_order(problem: GeometryProblem, options: GeometryOptions) -> int:
@@ -198,6 +216,7 @@ def build_tikhonov(
     gamma_symbol=None,
     data_symbol: bool = False,
     separable_jacobian: bool = False,
+    second_order: bool = False,
 ) -> TikhonovNLP:
     """Build the CasADi expression of the Tikhonov functional (eq. (tik1)).
 
@@ -219,6 +238,11 @@ def build_tikhonov(
     (:func:`wss_nlp.measurement.magnitude_model` or
     :func:`wss_nlp.kspace.magnitude_model` with ``jacobian=True``): the
     Gauss-Newton solvers' form, 2-4x cheaper than CasADi's forward sweeps.
+    ``second_order`` (with ``separable_jacobian``) also sets
+    ``TikhonovNLP.curvature``, ``sum_i r_i Hess r_i``, so that
+    ``2 (J^T J + sum_i r_i Hess r_i + alpha W)`` is the exact Hessian of
+    ``J`` (:func:`wss_nlp.measurement.magnitude_model`,
+    :func:`wss_nlp.kspace.magnitude_model`).
     """
     n = options.n_fourier
     q = quad_order(problem, options)
@@ -227,15 +251,24 @@ def build_tikhonov(
     alpha = ca.MX.sym("alpha")  # a parameter, so one solver serves a whole alpha sequence
     width = gamma if gamma_symbol is None else gamma_symbol  # a symbol lets callers differentiate in gamma
     model: meas.AnnulusModel | kspace.KSpaceMagnitudeModel
+    second = None
     if problem.psf is None:
         model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
-        if separable_jacobian:
+        if separable_jacobian and second_order:
+            predicted, d_predicted, second = meas.magnitude_model(
+                model, c, width, options.heaviside, jacobian=True, second_order=True
+            )
+        elif separable_jacobian:
             predicted, d_predicted = meas.magnitude_model(model, c, width, options.heaviside, jacobian=True)
         else:
             predicted = meas.magnitude_model(model, c, width, options.heaviside)
     else:
         model = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf)
-        if separable_jacobian:
+        if separable_jacobian and second_order:
+            predicted, d_predicted, second = kspace.magnitude_model(
+                model, c, width, options.heaviside, jacobian=True, second_order=True
+            )
+        elif separable_jacobian:
             predicted, d_predicted = kspace.magnitude_model(model, c, width, options.heaviside, jacobian=True)
         else:
             predicted = kspace.magnitude_model(model, c, width, options.heaviside)
@@ -252,7 +285,9 @@ def build_tikhonov(
     f = ca.sumsqr(residual) + alpha * penalty
     g = ca.mtimes(ca.DM(rad.design_matrix(options.box_angles(), n)), c)
     jac = np.sqrt(area) * d_predicted if separable_jacobian else None
-    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, data, jac)
+    # r_i = sqrt|V| (F_i - m_i): sum_i r_i Hess r_i = sum_i (sqrt|V| r_i) Hess F_i
+    curvature = None if second is None else second(np.sqrt(area) * residual)
+    return TikhonovNLP(c, alpha, f, g, residual, penalty, ref, w, model, gamma, data, jac, curvature)
 
 
 def _constant_misfit(m: np.ndarray, model, area: float) -> float:
@@ -285,10 +320,50 @@ def model_image(problem: GeometryProblem, options: GeometryOptions, result: Geom
     return out.reshape(problem.magnitude.shape)
 
 
+#: Rays along which :func:`initial_guess` finds the half-maximum contour.
+START_RAYS = 64
+
+
 def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
-    """A circle of the equal-area radius about the centre."""
-    c0 = np.zeros(rad.n_coefficients(n_fourier))
-    c0[0] = problem.r_ref
+    """Coefficients to start the geometry solve from: the half-maximum contour of the normalized magnitude.
+
+    Notes
+    -----
+    Along :data:`START_RAYS` rays from the centre the normalized magnitude
+    (bilinear interpolation, steps of a quarter voxel) falls through 1/2;
+    of the crossings inside the box the one nearest the equal-area radius
+    ``r_ref`` is kept (a ray without one keeps ``r_ref``), and ``R`` is their
+    least-squares fit in V_N. Where that fit leaves the box the start is the
+    circle of radius ``r_ref``. The start does not choose the minimizer
+    (the same to 1e-11 mm from either start on the phantoms of
+    ``scripts/bench_geometry.py``): the contour lies within about 0.07 mm of
+    it where the circle may be 1.5 mm away, which spares IPOPT the steps of
+    a fraction of a voxel each that the smoothed Heaviside allows far from
+    the wall.
+    """
+    circle = np.zeros(rad.n_coefficients(n_fourier))
+    circle[0] = problem.r_ref
+    grid = problem.grid
+    phi = rad.uniform_angles(START_RAYS)
+    step = 0.25 * min(grid.dx, grid.dy)
+    r = np.arange(0.0, problem.r1 + step, step)
+    x = problem.center[0] + np.outer(np.cos(phi), r)
+    y = problem.center[1] + np.outer(np.sin(phi), r)
+    rows, cols = (y - grid.origin_mm[1]) / grid.dy, (x - grid.origin_mm[0]) / grid.dx
+    m = scipy.ndimage.map_coordinates(problem.magnitude, [rows.ravel(), cols.ravel()], order=1, mode="nearest")
+    m = m.reshape(x.shape)
+    radius = np.full(START_RAYS, float(problem.r_ref))
+    for k in range(START_RAYS):
+        above = m[k] >= 0.5
+        falls = np.flatnonzero(above[:-1] & ~above[1:])
+        falls = falls[(r[falls] >= problem.r0) & (r[falls + 1] <= problem.r1)]
+        if falls.size:
+            i = falls[np.argmin(np.abs(r[falls] - problem.r_ref))]
+            radius[k] = r[i] + step * (m[k, i] - 0.5) / (m[k, i] - m[k, i + 1])
+    c0 = np.linalg.lstsq(rad.design_matrix(phi, n_fourier), radius, rcond=None)[0]
+    check = rad.evaluate(c0, rad.uniform_angles(4 * START_RAYS))
+    if np.any(check <= problem.r0) or np.any(check >= problem.r1):
+        return circle
     return c0
 
 
@@ -332,9 +407,11 @@ def finish(problem, options, nlp, coef, stats, alpha) -> GeometryResult:
 class IpoptGeometrySolver:
     """IPOPT for the geometry functional, built once and reused for any alpha and any magnitude image.
 
-    ``options.hessian = "gauss-newton"`` passes ``2 (J^T J + alpha W)`` as the
-    Hessian of the Lagrangian (the constraints are linear), following
-    CasADi's ``sysid.py`` example; "exact" uses CasADi's exact Hessian.
+    ``options.hessian = "newton"`` passes the exact Hessian of the
+    Lagrangian assembled by the chain rule, ``2 (J^T J + sum_i r_i Hess r_i +
+    alpha W)`` (the constraints are linear); "gauss-newton" drops the
+    second-order term, following CasADi's ``sysid.py`` example; "exact"
+    uses CasADi's algorithmic Hessian.
     alpha and the fitted magnitude values are the NLP's parameters, so
     :meth:`solve` takes a ``problem`` with another magnitude on the same
     grid, centre and box (the dephasing passes, cine frames) without a
@@ -343,8 +420,11 @@ class IpoptGeometrySolver:
 
     def __init__(self, problem: GeometryProblem, options: GeometryOptions, warm: bool = False):
         self.problem, self.options = problem, options
-        gauss_newton = options.hessian == "gauss-newton"
-        nlp = self.nlp = build_tikhonov(problem, options, data_symbol=True, separable_jacobian=gauss_newton)
+        self.hessian = options.hessian
+        chain_rule = self.hessian in ("newton", "gauss-newton")
+        nlp = self.nlp = build_tikhonov(
+            problem, options, data_symbol=True, separable_jacobian=chain_rule, second_order=self.hessian == "newton"
+        )
         assert nlp.data is not None  # data_symbol=True
         params = ca.vertcat(nlp.alpha, nlp.data)
         # clip_inactive_lam: IPOPT leaves ~1e-12 multipliers on inactive bounds, which sensitivity analysis
@@ -352,14 +432,14 @@ class IpoptGeometrySolver:
         extra: dict = {"clip_inactive_lam": True}
         if warm:  # re-solves from a solution: start the barrier where it ended instead of at mu = 0.1
             extra.update(WARM_START)
-        if gauss_newton:
-            if nlp.jacobian is None:
-                jac = ca.jacobian(nlp.residual, nlp.c)
-                gram = ca.mtimes(jac.T, jac)
-            else:  # the chain rule's Jacobian: J^T J by BLAS too
-                self._gram = operators.Gram(*nlp.jacobian.shape)  # kept alive with the solver (a callback)
-                gram = self._gram(nlp.jacobian)
-            hess = 2 * gram + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights))
+        elif self.hessian == "newton":
+            extra.update(COLD_START)
+        if chain_rule:
+            assert nlp.jacobian is not None  # separable_jacobian=True
+            self._gram = operators.Gram(*nlp.jacobian.shape)  # kept alive with the solver (a callback): J^T J by BLAS
+            hess = 2 * self._gram(nlp.jacobian) + 2 * nlp.alpha * ca.diag(ca.DM(nlp.weights))
+            if nlp.curvature is not None:
+                hess = hess + 2 * nlp.curvature
             self.solver = gauss_newton_ipopt(
                 "geometry", nlp.c, nlp.f, nlp.g, hess, params, options.tol, options.max_iter, extra
             )
@@ -389,7 +469,7 @@ class IpoptGeometrySolver:
             ubg=problem.r1,
             **({} if lam_g0 is None else {"lam_g0": lam_g0}),
         )
-        stats.extra["hessian"] = self.options.hessian
+        stats.extra["hessian"] = self.hessian
         out = finish(problem, self.options, self.nlp, np.asarray(sol["x"]).ravel(), stats, alpha)
         out.box_multipliers = np.asarray(sol["lam_g"]).ravel()
         return out
@@ -405,6 +485,11 @@ WARM_START = {
     "ipopt.warm_start_mult_bound_push": 1e-9,
     "ipopt.warm_start_slack_bound_push": 1e-9,
 }
+
+#: IPOPT options of a first solve with the Newton Hessian: the adaptive barrier (Mehrotra's probing) lets the
+#: barrier follow Newton's quadratic convergence instead of the monotone schedule's fixed decrease from
+#: mu = 0.1 (4 iterations instead of 6 on the phantoms of ``scripts/bench_geometry.py``, same minimizer).
+COLD_START = {"ipopt.mu_strategy": "adaptive"}
 
 #: How many built geometry solvers :func:`solver_for` keeps (a slice needs two or three; the filter choice four).
 SOLVER_CACHE_SIZE = 8

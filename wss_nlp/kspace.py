@@ -600,7 +600,13 @@ def magnitude_setup(grid, center, r0: float, r1: float, order: int, gamma: float
 
 
 def magnitude_model(
-    model: KSpaceMagnitudeModel, coefficients, gamma, heaviside: str = "erf", shift=None, jacobian: bool = False
+    model: KSpaceMagnitudeModel,
+    coefficients,
+    gamma,
+    heaviside: str = "erf",
+    shift=None,
+    jacobian: bool = False,
+    second_order: bool = False,
 ):
     """``|K_y H K_x^T|`` on the window voxels: the k-space counterpart of eq. (discForw) (CasADi or NumPy).
 
@@ -621,8 +627,17 @@ def magnitude_model(
     Gauss-Newton form. Without it the PSF products are CasADi's own, which
     every other derivative (Hessians, parameter derivatives) goes through;
     both are the same function (``tests/test_kspace.py``).
+
+    ``second_order`` (with ``jacobian``) also returns ``w -> sum_i w_i
+    d^2F_i/dc^2`` for an ``MX`` column ``w`` over the window voxels, the
+    second-order term of a least-squares Hessian: with the filtered signal
+    ``I``, ``F = sqrt(I^2 + eps^2)`` and ``I_i = sum_j K_ij H_gamma(b_j^T c -
+    rho_j)``, ``sum_i w_i Hess F_i = dI^T diag(w eps^2 / F^3) dI + B^T
+    diag(d) B`` with ``d_j = H_gamma''_j (K^T (w I / F))_j``: the adjoint
+    PSF once, then the weighted Gram matrix of the radius basis at the free
+    points (:func:`wss_nlp.measurement.weighted_gram`).
     """
-    from .measurement import heaviside_slope, smoothed_heaviside
+    from .measurement import gram_pieces, heaviside_curvature, heaviside_slope, smoothed_heaviside, weighted_gram
 
     symbolic = isinstance(coefficients, (ca.MX, ca.SX))
     n = rad.n_fourier_from_size(coefficients.numel() if symbolic else np.size(coefficients))
@@ -664,8 +679,30 @@ def magnitude_model(
                 ca.mtimes(scatter, ca.repmat(slope, 1, n_c) * ca.DM(rad.design_matrix(model.phi, n))), fy, fx * n_c
             )
         blocks = model.operator.batched(n_c)(columns)
-        d_signal = ca.reshape(blocks, model.ky.shape[0] * model.kx.shape[0], n_c)[model.select.tolist(), :]
-        return magnitude, ca.repmat(signal / magnitude, 1, n_c) * d_signal
+        rows, cols = model.ky.shape[0], model.kx.shape[0]
+        d_signal = ca.reshape(blocks, rows * cols, n_c)[model.select.tolist(), :]
+        d_magnitude = ca.repmat(signal / magnitude, 1, n_c) * d_signal
+        if not second_order:
+            return magnitude, d_magnitude
+        if not isinstance(coefficients, ca.MX):
+            raise InputError("magnitude_model: second_order=True takes MX coefficients")
+        key = ("gram", n)
+        if key not in model.basis_ops:
+            model.basis_ops[key] = gram_pieces(model.basis_maps(n)[0], n)
+        pieces, adjoint = model.basis_ops[key], model.operator.batched(1, adjoint=True)
+        window = ca.DM(
+            ca.Sparsity.triplet(rows * cols, model.select.size, model.select.tolist(), list(range(model.select.size))),
+            np.ones(model.select.size),
+        )
+        curvature = heaviside_curvature(radius - rho, gamma, heaviside)
+
+        def second(weights):
+            w = ca.vec(weights)
+            outer = ca.mtimes(d_signal.T, ca.repmat(w * ABS_SMOOTHING**2 / magnitude**3, 1, n_c) * d_signal)
+            back = adjoint(ca.reshape(ca.mtimes(window, w * signal / magnitude), rows, cols))  # K^T (w I / F)
+            return outer + weighted_gram(pieces, ca.mtimes(scatter.T, ca.vec(back)) * curvature)
+
+        return magnitude, d_magnitude, second
     basis = rad.design_matrix(model.phi, n)
     vals = smoothed_heaviside(basis @ np.asarray(coefficients, dtype=float) - model.rho, gamma, heaviside)
     flat = model.constant.T.ravel().copy()

@@ -164,6 +164,31 @@ class AnnulusModel:
             )
         return self.maps[n_fourier]
 
+    def gram_maps(self, n_fourier: int) -> tuple[operators.MatrixProduct, np.ndarray, np.ndarray]:
+        """:func:`gram_pieces` of the points' radius basis (kept here)."""
+        key = ("gram", n_fourier)
+        if key not in self.maps:
+            self.maps[key] = gram_pieces(self.basis_maps(n_fourier)[0], n_fourier)
+        return self.maps[key]
+
+
+def gram_pieces(
+    radius_at: operators.MatrixProduct, n_fourier: int
+) -> tuple[operators.MatrixProduct, np.ndarray, np.ndarray]:
+    """For ``radius_at`` (``c -> B c`` at some points): ``X -> B^T X`` on three columns, the columns
+    ``[cos N phi_j, sin N phi_j]`` and the matrix taking ``B^T [d, d cos N phi, d sin N phi]`` to
+    ``vec(B^T diag(d) B)`` (:func:`wss_nlp.radius.weighted_gram_map`)."""
+    n_th = radius_at.a[:, [n_fourier, 2 * n_fourier]] if n_fourier else np.array([[1.0, 0.0]])
+    return radius_at.derived(3, True), n_th, rad.weighted_gram_map(n_fourier)
+
+
+def weighted_gram(pieces, d):
+    """``B^T diag(d) B`` (CasADi) for point weights ``d`` from :func:`gram_pieces`."""
+    transpose_times, n_th, assemble = pieces
+    size = int(round(np.sqrt(assemble.shape[0])))
+    products = transpose_times(ca.horzcat(d, d * ca.DM(n_th[:, 0]), d * ca.DM(n_th[:, 1])))
+    return ca.reshape(ca.mtimes(ca.DM(assemble), ca.vec(products)), size, size)
+
 
 def annulus_model(grid: VoxelGrid, center, r0: float, r1: float, order: int) -> AnnulusModel:
     """Split the grid for the magnitude model about ``center`` (see :class:`AnnulusModel`)."""
@@ -193,7 +218,24 @@ def heaviside_slope(x, gamma, kind: str = "erf"):
     raise ValueError(f"unknown smoothed Heaviside {kind!r}; choose from {HEAVISIDES}")
 
 
-def magnitude_model(model: AnnulusModel, coefficients, gamma: float, heaviside: str = "erf", jacobian: bool = False):
+def heaviside_curvature(x, gamma, kind: str = "erf"):
+    """``H_gamma''(x)``, the second derivative of :func:`smoothed_heaviside` in ``x`` (NumPy or CasADi)."""
+    t = x / gamma
+    if kind == "arctan":
+        return -2 * t / (np.pi * gamma**2 * (1 + t * t) ** 2)
+    if kind == "erf":
+        return -2 * t / gamma * heaviside_slope(x, gamma, kind)
+    raise ValueError(f"unknown smoothed Heaviside {kind!r}; choose from {HEAVISIDES}")
+
+
+def magnitude_model(
+    model: AnnulusModel,
+    coefficients,
+    gamma: float,
+    heaviside: str = "erf",
+    jacobian: bool = False,
+    second_order: bool = False,
+):
     """Voxel averages ``F_{gamma,h}(R)`` on the annulus voxels, eq. (discForw).
 
     Notes
@@ -219,6 +261,15 @@ def magnitude_model(model: AnnulusModel, coefficients, gamma: float, heaviside: 
         (:class:`wss_nlp.operators.GroupedWeightedSum`): the Gauss-Newton
         solver's form, one pass over the points instead of CasADi's forward
         sweeps, one per coefficient.
+    second_order : bool
+        With ``jacobian``: also return a function ``w -> sum_i w_i
+        d^2F_i/dc^2`` (``w`` an ``MX`` column over the annulus voxels), the
+        second-order term of a least-squares Hessian. Each point depends on
+        ``c`` only through ``R(phi_j) = b(phi_j)^T c``, so the term is
+        ``B^T diag(d) B`` with ``d_j = q^{-2} w_{i(j)} H_gamma''(R(phi_j) -
+        |xi_j|)``, assembled from its Fourier moments
+        (:func:`wss_nlp.radius.weighted_gram_map`): a product of ``B^T``
+        with three columns, about the cost of the Jacobian.
     """
     n_vox, nq = model.rho.shape
     symbolic = isinstance(coefficients, (ca.MX, ca.SX))
@@ -229,7 +280,16 @@ def magnitude_model(model: AnnulusModel, coefficients, gamma: float, heaviside: 
         predicted = (ca.sum1(ca.reshape(smoothed_heaviside(gap, gamma, heaviside), nq, n_vox)) / nq).T
         if not jacobian:
             return predicted
-        return predicted, ca.reshape(chain(heaviside_slope(gap, gamma, heaviside)), n_vox, 2 * n + 1)
+        d_predicted = ca.reshape(chain(heaviside_slope(gap, gamma, heaviside)), n_vox, 2 * n + 1)
+        if not second_order:
+            return predicted, d_predicted
+        pieces = model.gram_maps(n)
+        curvature = heaviside_curvature(gap, gamma, heaviside) / nq
+
+        def second(weights):  # point j of voxel i: d_j = w_i H''_j / q^2
+            return weighted_gram(pieces, ca.vec(ca.repmat(ca.vec(weights).T, nq, 1)) * curvature)
+
+        return predicted, d_predicted, second
     basis = rad.design_matrix(model.phi.ravel(), n)
     if symbolic:  # SX: no callbacks
         r_at = ca.mtimes(ca.DM(basis), coefficients)

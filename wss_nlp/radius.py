@@ -54,6 +54,64 @@ def design_matrix(phi, n_fourier: int, derivative: int = 0) -> np.ndarray:
     return np.hstack([const, powers.real, powers.imag])
 
 
+def weighted_gram_map(n_fourier: int) -> np.ndarray:
+    r"""Matrix ``G`` with ``vec(B^T diag(d) B) = G [u; v; w]``, ``u = B^T d``, ``v = B^T (d cos N phi)``,
+    ``w = B^T (d sin N phi)``: ``B`` the design matrix of degree ``N``, whatever the angles and weights ``d``.
+
+    Notes
+    -----
+    The entries of the weighted Gram matrix are Fourier moments of ``d``:
+    with :math:`C_m = \sum_j d_j \cos m\phi_j` and
+    :math:`S_m = \sum_j d_j \sin m\phi_j`,
+    :math:`\sum_j d_j \cos k\phi_j \cos l\phi_j = (C_{|k-l|} + C_{k+l})/2`,
+    :math:`\sum_j d_j \sin k\phi_j \sin l\phi_j = (C_{|k-l|} - C_{k+l})/2`,
+    :math:`\sum_j d_j \cos k\phi_j \sin l\phi_j = (S_{k+l} + S_{l-k})/2`
+    (:math:`S_{-m} = -S_m`, :math:`S_0 = 0`). The moments up to ``N`` are
+    ``u``; those above, :math:`C_{N+k} = v_{\cos k} - w_{\sin k}` and
+    :math:`S_{N+k} = w_{\cos k} + v_{\sin k}`, follow from
+    :math:`\cos(N+k)\phi = \cos N\phi \cos k\phi - \sin N\phi \sin k\phi`
+    and the like. So a weighted Gram matrix over many points costs three
+    products with :math:`B^\top` instead of :math:`(2N+1)^2` (and no second
+    matrix at the points). ``vec`` by columns, as CasADi's (the matrix is
+    symmetric, so either order).
+    """
+    n = n_fourier
+    size = 2 * n + 1
+    # moments C_0..C_2N at 0..2N and S_1..S_2N at 2N+1..4N, from [u; v; w] (columns of B: cos k at k, sin k at n+k)
+    moments = np.zeros((4 * n + 1, 3 * size))
+    for m in range(n + 1):
+        moments[m, m] = 1.0
+        if m:
+            moments[2 * n + m, n + m] = 1.0
+    for k in range(1, n + 1):
+        moments[n + k, size + k] = 1.0  # C_{N+k} = v_cos k - w_sin k
+        moments[n + k, 2 * size + n + k] = -1.0
+        moments[3 * n + k, 2 * size + k] = 1.0  # S_{N+k} = w_cos k + v_sin k
+        moments[3 * n + k, size + n + k] = 1.0
+    gram = np.zeros((size, size, 4 * n + 1))
+
+    def add_sin(row, col, m, weight):  # weight * S_m, with S_{-m} = -S_m and S_0 = 0
+        if m:
+            gram[row, col, 2 * n + abs(m)] += weight * np.sign(m)
+
+    for k in range(n + 1):
+        for l in range(n + 1):  # noqa: E741 (the formula's index)
+            if k == 0 or l == 0:  # the constant times cos(m phi): the single moment C_{k+l}
+                gram[k, l, k + l] += 1.0
+            else:
+                gram[k, l, abs(k - l)] += 0.5
+                gram[k, l, k + l] += 0.5
+                gram[n + k, n + l, abs(k - l)] += 0.5
+                gram[n + k, n + l, k + l] -= 0.5
+        for l in range(1, n + 1):  # noqa: E741 cos(k phi) sin(l phi) and its transpose
+            weight = 1.0 if k == 0 else 0.5
+            for row, col in ((k, n + l), (n + l, k)):
+                add_sin(row, col, k + l, weight)
+                if k:
+                    add_sin(row, col, l - k, weight)
+    return gram.reshape(size * size, 4 * n + 1) @ moments
+
+
 def evaluate(coefficients, phi, derivative: int = 0) -> np.ndarray:
     """``R^(derivative)(phi)`` for numeric coefficients."""
     c = np.asarray(coefficients, dtype=float).ravel()

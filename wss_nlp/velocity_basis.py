@@ -129,9 +129,12 @@ class ZernikeWallBasis:
         is much cheaper for voxel means.
         """
         x, y = np.ravel(x), np.ravel(y)
-        raw = np.array(self._raw(x, y))  # (size, npts), contiguous rows
-        raw = raw.T if average is None else np.asarray(average @ raw.T)
-        return raw @ self.transform
+        raw = self._raw(x, y)
+        if average is None:
+            return np.array(raw).T @ self.transform
+        # one sparse product per function: the (npts, size) array is never formed (forming it and the product
+        # with its transpose took 3x longer; the sums are the same, in the same order)
+        return np.column_stack([np.asarray(average @ f).ravel() for f in raw]) @ self.transform
 
     def symbolic(self, xi):
         """CasADi column of the basis functions at the reference point ``xi``."""
