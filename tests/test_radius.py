@@ -23,6 +23,7 @@ def test_weighted_gram_from_three_products(rng, n):
     stacked = np.concatenate([b.T @ d, b.T @ (d * np.cos(n * phi)), b.T @ (d * np.sin(n * phi))])
     assembled = (rad.weighted_gram_map(n) @ stacked).reshape(b.shape[1], b.shape[1])
     assert np.max(np.abs(assembled - direct)) < 1e-11 * np.sum(np.abs(d))
+    assert np.max(np.abs(rad.weighted_gram(b, d) - direct)) < 1e-11 * np.sum(np.abs(d))
 
 
 @pytest.mark.parametrize("s", [0, 1, 2, 3])

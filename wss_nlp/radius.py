@@ -112,6 +112,15 @@ def weighted_gram_map(n_fourier: int) -> np.ndarray:
     return gram.reshape(size * size, 4 * n + 1) @ moments
 
 
+def weighted_gram(basis: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``B^T diag(d) B`` for the design matrix ``B`` (:func:`design_matrix`) at some angles, from three products
+    with ``B^T`` (:func:`weighted_gram_map`) instead of one per pair of columns."""
+    n = n_fourier_from_size(basis.shape[1])
+    cos_n, sin_n = (basis[:, n], basis[:, 2 * n]) if n else (1.0, 0.0)
+    stacked = basis.T @ np.column_stack([d, d * cos_n, d * sin_n])
+    return (weighted_gram_map(n) @ stacked.ravel(order="F")).reshape(basis.shape[1], basis.shape[1])
+
+
 def evaluate(coefficients, phi, derivative: int = 0) -> np.ndarray:
     """``R^(derivative)(phi)`` for numeric coefficients."""
     c = np.asarray(coefficients, dtype=float).ravel()

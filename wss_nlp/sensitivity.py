@@ -271,7 +271,7 @@ def geometry_parameter_derivatives(
     ref = np.zeros(n_r)
     if options.prior == "area":
         ref[0] = problem.r_ref
-    hmat = 2 * area * (g_c @ g_c.T + b.T @ ((wr * h2)[:, None] * b)) + 2 * alpha * np.diag(w)
+    hmat = 2 * area * (g_c @ g_c.T + rad.weighted_gram(b, wr * h2)) + 2 * alpha * np.diag(w)
     dgrad = np.zeros((n_r, n_a + 4))
     dgrad[:, :n_a] = -2 * area * g_c
     dgrad[:, n_a] = 2 * w * (coefficients - ref)
