@@ -93,3 +93,21 @@ def test_eigen_symbolic_chebyshev_equals_callbacks():
     f = ca.Function("f", [xi], [ca.jacobian(b.symbolic(xi), xi), ca.jacobian(b.symbolic(xi, exact_callbacks=True), xi)])
     a, c = (np.asarray(v) for v in f([0.6, -0.8]))
     assert np.abs(a - c).max() < 1e-10
+
+
+def test_raw_values_through_the_transform_are_the_values_and_averages_agree():
+    """``evaluate_raw @ transform`` is ``evaluate`` for every basis (Zernike, eigen, with a near-wall layer), and
+    the voxel average taken function by function equals averaging the full value array (same sums)."""
+    import scipy.sparse
+
+    from wss_nlp import near_wall as nw
+
+    rng = np.random.default_rng(8)
+    rho, t = np.sqrt(rng.uniform(0, 1, 400)), rng.uniform(0, 2 * np.pi, 400)
+    x, y = rho * np.cos(t), rho * np.sin(t)
+    zernike = vb.ZernikeWallBasis(12, 4)
+    for basis in (zernike, vb.DirichletEigenBasis(60.0), nw.EnrichedBasis(zernike, "wall_law", 0.01)):
+        values = basis.evaluate(x, y)
+        assert np.allclose(basis.evaluate_raw(x, y) @ basis.transform, values, rtol=0, atol=1e-12)
+    average = scipy.sparse.csr_matrix((np.full(400, 0.25), (np.repeat(np.arange(100), 4), np.arange(400))))
+    assert np.allclose(zernike.evaluate(x, y, average=average), average @ zernike.evaluate(x, y), rtol=0, atol=1e-12)

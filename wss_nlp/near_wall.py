@@ -226,6 +226,12 @@ class EnrichedBasis:
             layer = np.asarray(average @ layer)
         return np.hstack([self.base.evaluate(x, y, average=average), layer])
 
+    def evaluate_raw(self, x, y) -> np.ndarray:
+        """The base's unnormalized functions and the layer's unscaled columns: ``evaluate = evaluate_raw @
+        transform``."""
+        x, y = np.ravel(x), np.ravel(y)
+        return np.hstack([self.base.evaluate_raw(x, y), np.array(self._layer_raw(x, y)).T])
+
     def symbolic_raw(self, xi):
         return ca.vertcat(self.base.symbolic_raw(xi), *self._layer_raw(xi[0], xi[1]))
 

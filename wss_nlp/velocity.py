@@ -242,7 +242,8 @@ class VelocityResult:
                 np.ravel(rho)[inside] * np.cos(np.ravel(t)[inside]),
                 np.ravel(rho)[inside] * np.sin(np.ravel(t)[inside]),
             )
-            out[inside] = self.basis.evaluate(xi, yi) @ self.coefficients
+            # the coefficients through the small transform first: one matrix-vector product at the points
+            out[inside] = self.basis.evaluate_raw(xi, yi) @ (self.basis.transform @ self.coefficients)
         return out.reshape(np.shape(rho))
 
 
@@ -288,9 +289,12 @@ def assemble(
         averager = kspace.Averager(grid, vox.index, q, psf)
         signal = averager(vox.inside.astype(float))
         keep = signal >= MIN_KSPACE_SIGNAL
-        values = np.zeros(vox.inside.shape + (basis.size,))
-        values[vox.inside] = basis.evaluate(rho * np.cos(t), rho * np.sin(t))
-        operator = np.where(keep[:, None], averager(values) / np.where(keep, signal, 1.0)[:, None], 0.0)
+        # the PSF (linear) on the unnormalized functions, the basis's transform on the small result
+        raw = basis.evaluate_raw(rho * np.cos(t), rho * np.sin(t))
+        values = np.zeros(vox.inside.shape + (raw.shape[1],))
+        values[vox.inside] = raw
+        averaged = averager(values) @ basis.transform
+        operator = np.where(keep[:, None], averaged / np.where(keep, signal, 1.0)[:, None], 0.0)
         weights = np.where(keep, signal, 0.0) * grid.voxel_area  # weight 0: the voxel's points still radiate
     return VelocityProblem(
         operator=operator,

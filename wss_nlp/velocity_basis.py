@@ -129,12 +129,20 @@ class ZernikeWallBasis:
         is much cheaper for voxel means.
         """
         x, y = np.ravel(x), np.ravel(y)
-        raw = self._raw(x, y)
         if average is None:
-            return np.array(raw).T @ self.transform
+            return self.evaluate_raw(x, y) @ self.transform
+        raw = self._raw(x, y)
         # one sparse product per function: the (npts, size) array is never formed (forming it and the product
         # with its transpose took 3x longer; the sums are the same, in the same order)
         return np.column_stack([np.asarray(average @ f).ravel() for f in raw]) @ self.transform
+
+    def evaluate_raw(self, x, y) -> np.ndarray:
+        """The unnormalized functions at reference points, ``(npts, size)``: ``evaluate = evaluate_raw @ transform``.
+
+        A linear map of the values (a voxel average, a PSF, a combination with coefficients) is cheaper
+        applied to these, with ``transform`` after it on the small result.
+        """
+        return np.array(self._raw(np.ravel(x), np.ravel(y))).T
 
     def symbolic(self, xi):
         """CasADi column of the basis functions at the reference point ``xi``."""
@@ -342,6 +350,10 @@ class DirichletEigenBasis:
     @property
     def transform(self) -> np.ndarray:
         return np.eye(self.size)
+
+    def evaluate_raw(self, x, y) -> np.ndarray:
+        """Same as :meth:`evaluate` (``transform`` is the identity)."""
+        return self.evaluate(x, y)
 
     def symbolic_raw(self, xi):
         """Same as :meth:`symbolic` (the functions are orthonormal already; ``transform`` is the identity)."""
