@@ -110,7 +110,7 @@ def test_newton_converges_in_fewer_iterations_to_the_same_minimizer(laminar_snr2
 
 def test_initial_guess_is_the_half_maximum_contour(laminar_snr25):
     """The start lies near the minimizer (the ellipse: within 0.1 mm, where the equal-area circle is ~1 mm off),
-    inside a box the contour leaves, and is the circle where no ray finds the contour."""
+    inside a box the contour leaves, and is the circle where no ray finds the contour or a value is not finite."""
     problem = geometry_problem(laminar_snr25[0])
     opts = geo.GeometryOptions()
     solution = geo.solve_ipopt(problem, opts).coefficients
@@ -127,6 +127,10 @@ def test_initial_guess_is_the_half_maximum_contour(laminar_snr25):
         problem.grid, np.ones_like(problem.magnitude), problem.center, problem.r0, problem.r1, problem.r_ref
     )
     assert np.allclose(geo.initial_guess(flat, opts.n_fourier), circle, rtol=0, atol=1e-12)
+    holes = problem.magnitude.copy()
+    holes[::7, ::5] = np.nan  # a non-finite value on some ray: the circle, never a non-finite start
+    gappy = geo.GeometryProblem(problem.grid, holes, problem.center, problem.r0, problem.r1, problem.r_ref)
+    assert np.array_equal(geo.initial_guess(gappy, opts.n_fourier), circle)
 
 
 def test_box_constraint_active_both_solvers(laminar_snr25):

@@ -362,7 +362,7 @@ def initial_guess(problem: GeometryProblem, n_fourier: int) -> np.ndarray:
             radius[k] = r[i] + step * (m[k, i] - 0.5) / (m[k, i] - m[k, i + 1])
     c0 = np.linalg.lstsq(rad.design_matrix(phi, n_fourier), radius, rcond=None)[0]
     check = rad.evaluate(c0, rad.uniform_angles(4 * START_RAYS))
-    if np.any(check <= problem.r0) or np.any(check >= problem.r1):
+    if not np.all((check > problem.r0) & (check < problem.r1)):  # also where a non-finite value got in
         return circle
     return c0
 
