@@ -44,6 +44,7 @@ import scipy.sparse
 import casadi as ca
 
 from .parameters import noise as nl
+from . import chebyshev
 from . import geometry as geo
 from . import kspace
 from . import measurement as meas
@@ -180,28 +181,43 @@ class VelocityMisfitModel:
     cos: np.ndarray
     sin: np.ndarray
     design: np.ndarray  # (n_points, 2N+1): R at each point's angle is design @ c_R
-    sum_matrix: scipy.sparse.csr_matrix  # (n_vox, n_points): sums over a voxel's points
     order: int
     voxel_area: float
     px: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (n_points,) absolute point coordinates, mm
     py: np.ndarray = field(default_factory=lambda: np.zeros(0))
     # k-space acquisition: the PSF image of the point values on the voxels ``index`` (kspace.Averager over the
-    # points of every voxel in ``points_index``); None: box model, the voxel sums of sum_matrix
+    # points of every voxel in ``points_index``); None: box model, the sums of each voxel's q^2 consecutive points
     averager: kspace.Averager | None = None
     points_index: np.ndarray | None = None
     cell_mm: tuple = (0.0, 0.0)  # (dx, dy) / order: one quadrature cell (a near-wall layer integrates across it)
     start_gap: np.ndarray | None = None  # (n_points,) distance to the centre minus the start's R there, mm
 
+    kept: list = field(default_factory=list)  # callbacks of the graphs built on this model (CasADi's rule)
+
     def aggregate(self, values):
         """Voxel values ``(n_vox, k)`` from point values ``(n_points, k)`` (CasADi): box sums or the PSF image."""
-        if self.averager is None:
-            return ca.mtimes(ca.DM(self.sum_matrix), values)
+        if self.averager is None:  # by NumPy: a sparse DM of the sums took 80 ms to build at h = 0.3 mm
+            q2 = self.order * self.order
+            means = operators.GroupedWeightedSum(np.full((self.dist.size, 1), float(q2)), q2, values.shape[1])
+            self.kept.append(means)
+            return means(values)
         return self.averager.casadi(values)
 
     @property
     def point_weight(self) -> float:
         """The weight of one sub-voxel point in ``s_i``: 1 (box sums) or ``1 / q^2`` (the PSF image, a fraction)."""
         return 1.0 if self.averager is None else 1.0 / self.order**2
+
+
+def _point_sums(averager: kspace.Averager | None, order: int):
+    """``(n_points, k) -> (n_vox, k)`` NumPy voxel values: sums of each voxel's ``order^2`` consecutive points, or
+    their PSF image (the callbacks hold this, not the model, so that the model and its callbacks form no cycle)."""
+
+    def apply(values: np.ndarray) -> np.ndarray:
+        grouped = values.reshape(-1, order * order, values.shape[1])
+        return grouped.sum(axis=1) if averager is None else averager(grouped)
+
+    return apply
 
 
 def velocity_misfit_model(
@@ -240,11 +256,6 @@ def velocity_misfit_model(
     dx, dy = (px - center[0]).ravel(), (py - center[1]).ravel()
     r = np.hypot(dx, dy)
     phi = np.arctan2(dy, dx)
-    nq = order * order
-    rows = np.repeat(np.arange(points_index.size), nq)
-    sums = scipy.sparse.csr_matrix(
-        (np.ones(rows.size), (rows, np.arange(rows.size))), shape=(points_index.size, rows.size)
-    )
     m = np.clip(np.asarray(magnitude, float).ravel()[index], 0.0, 1.0)
     gap = None if start is None else r - rad.evaluate(start, phi)
     return VelocityMisfitModel(
@@ -255,7 +266,6 @@ def velocity_misfit_model(
         dx / np.maximum(r, 1e-300),
         dy / np.maximum(r, 1e-300),
         rad.design_matrix(phi, n_fourier),
-        sums,
         order,
         grid.voxel_area,
         px.ravel(),
@@ -353,6 +363,98 @@ def sparse_dm(matrix: np.ndarray) -> ca.DM:
     return ca.DM(ca.Sparsity(sp.shape[0], sp.shape[1], sp.indptr.tolist(), sp.indices.tolist()), sp.data.tolist())
 
 
+class _VoxelSums(ca.Callback):
+    """A NumPy map of dense inputs to one dense output, for the chain-rule Jacobian of :func:`velocity_residual`.
+
+    Evaluated only: the Jacobian is an output of the NLP (the Gauss-Newton
+    Hessian, the KKT matrix of the sensitivities), never differentiated, so
+    no derivatives are defined (CasADi raises if one is asked for). Keep the
+    instance while functions built from it live (``VelocityMisfitModel.kept``).
+    """
+
+    def __init__(self, name: str, shapes_in: list, shape_out: tuple, apply):
+        ca.Callback.__init__(self)
+        self.shapes_in, self.shape_out, self.apply = shapes_in, shape_out, apply
+        self.construct(name, {})
+
+    def get_n_in(self):
+        return len(self.shapes_in)
+
+    def get_n_out(self):
+        return 1
+
+    def get_sparsity_in(self, i):
+        return ca.Sparsity.dense(*self.shapes_in[i])
+
+    def get_sparsity_out(self, i):
+        return ca.Sparsity.dense(*self.shape_out)
+
+    def has_eval_buffer(self):
+        return True
+
+    def eval_buffer(self, arg, res):
+        # column-major buffers: an (r, c) matrix is the transpose of a row-major (c, r) array
+        ins = [np.frombuffer(a, dtype=np.float64).reshape(c, r).T for a, (r, c) in zip(arg, self.shapes_in)]
+        out = np.frombuffer(res[0], dtype=np.float64).reshape(self.shape_out[1], self.shape_out[0])
+        out[...] = self.apply(*ins).T
+        return 0
+
+
+def _design_sums(model: VelocityMisfitModel, k: int) -> _VoxelSums:
+    r"""``(S, W) -> sum_j diag(W_{:,j}) A(diag(S_{:,j}) D)``: the chain rule through ``R(phi_p) = D_p c_R``.
+
+    ``S`` (n_points, k) holds point derivatives, ``W`` (n_vox, k) voxel
+    factors, ``D`` the radius design at the points and ``A`` the voxel
+    aggregation (:func:`_point_sums`). About
+    ``2 k n_points (2N+1)`` flops.
+    """
+    design = np.ascontiguousarray(model.design)
+    n_pts, n = design.shape
+    n_vox, box, point_sums = model.index.size, model.averager is None, _point_sums(model.averager, model.order)
+
+    def apply(s, w):
+        if box:  # a voxel's points are consecutive
+            sums = np.einsum("vgj,vgl->vjl", s.reshape(n_vox, -1, k), design.reshape(n_vox, -1, n))
+        else:
+            sums = point_sums((s[:, :, None] * design[:, None, :]).reshape(n_pts, k * n))
+        return np.einsum("ij,ijl->il", w, sums.reshape(n_vox, k, n))
+
+    return _VoxelSums(f"design_sums_{k}", [(n_pts, k), (n_vox, k)], (n_vox, n), apply)
+
+
+def _basis_sums(model: VelocityMisfitModel, pb: PolarBasis, transform: np.ndarray) -> _VoxelSums:
+    r"""``(w, x, a) -> diag(a) A(diag(w) raw^T) Q``: the velocity columns of the Jacobian, in NumPy.
+
+    ``raw_j = angular_{a(j)} (C T)_{r(j)}`` at the points (``T`` the
+    Chebyshev polynomials at the points' ``x = 2 rho / RHO_MAX - 1``, ``C``
+    the radial factors' coefficients, :class:`PolarBasis`), ``w`` point weights (1, n_points),
+    ``a`` voxel factors (n_vox, 1), ``A`` the voxel aggregation and ``Q``
+    the orthonormalizing transform. About ``2 n_radial K n_points`` flops
+    for the radial factors and ``3 n_raw n_points`` for the rest.
+    """
+    cheb, ang = np.ascontiguousarray(pb.cheb), np.ascontiguousarray(pb.angular)
+    a_idx, r_idx = np.argmax(pb.select_angular, axis=1), np.argmax(pb.select_radial, axis=1)
+    n_pts, n_vox, q2 = ang.shape[1], model.index.size, model.order**2
+    box, point_sums = model.averager is None, _point_sums(model.averager, model.order)
+
+    def apply(w, arg, rows):
+        radial = cheb @ np.polynomial.chebyshev.chebvander(arg.ravel(), cheb.shape[1] - 1).T  # (n_radial, n_pts)
+        weighted = ang * w
+        if box:  # a voxel's points are consecutive: one product-sum of views per function
+            # (gathering the (n_raw, n_points) array first took 4x longer: memory traffic, not flops)
+            radial, weighted = radial.reshape(radial.shape[0], -1, q2), weighted.reshape(ang.shape[0], -1, q2)
+            sums = np.empty((a_idx.size, n_vox))
+            for j, (a, r) in enumerate(zip(a_idx, r_idx)):
+                np.einsum("vg,vg->v", weighted[a], radial[r], out=sums[j])
+            sums = sums.T
+        else:
+            sums = point_sums(np.ascontiguousarray((weighted[a_idx] * radial[r_idx]).T))
+        return rows * (sums @ transform)
+
+    shapes = [(1, n_pts), (1, n_pts), (n_vox, 1)]
+    return _VoxelSums("basis_sums", shapes, (n_vox, transform.shape[1]), apply)
+
+
 def velocity_residual(
     model: VelocityMisfitModel,
     c_r,
@@ -434,10 +536,14 @@ def velocity_residual(
     f_rho = ca.Function("rho", [big_r, dist], [rho_expr, ca.jacobian(rho_expr, big_r)]).map(n_pts)
 
     pb = polar_basis(basis, np.arctan2(model.sin, model.cos))
+    n_cheb = pb.cheb.shape[1]
     if center is None:
-        r_at = ca.mtimes(ca.DM(model.design), c_r).T  # (1, n_pts)
+        # fixed angles: the products with the (n_points, .) design and angular factors by BLAS (operators)
+        design_product = operators.MatrixProduct(model.design)
+        angular_product = operators.MatrixProduct(pb.angular.T, cols=n_cheb)
+        model.kept += [design_product, angular_product]
+        r_at = design_product(c_r).T  # (1, n_pts)
         dist_row = ca.DM(model.dist).T
-        ang = ca.DM(pb.angular)
         center_harmonics = None
     else:
         if jacobian:
@@ -460,17 +566,21 @@ def velocity_residual(
     rho_c = ca.fmax(ca.fmin(rho, 2 - rho), 0)
     drho = drho * (rho < 2)
     arg = 2 * rho_c / RHO_MAX - 1
-    tk = [ca.MX.ones(1, n_pts), arg]
-    while len(tk) < pb.cheb.shape[1]:
-        tk.append(2 * arg * tk[-1] - tk[-2])
-    tk = ca.vertcat(*tk[: pb.cheb.shape[1]])
+    series = chebyshev.Family(n_pts, n_cheb)
+    model.kept.append(series)
+
+    def angular_sum(coef):
+        """``sum_a angular_a(t_p) sum_k coef_ak T_k(arg_p)`` at every point, ``coef`` (n_angular, K)."""
+        per_point = angular_product(coef) if center is None else ca.mtimes(ang.T, coef)  # (n_pts, K)
+        return series.contracted(0)(arg, per_point)
+
     transform = ca.DM(basis.transform)
     c_base = c_v[: basis.size]
     c_raw = ca.mtimes(transform, c_base)  # v = c_v^T transform^T raw
     # v_p = sum_a angular_a(t_p) sum_r Q_ar radial_r(rho_p),  Q = S_a^T diag(c_raw) S_r
     sel_a, sel_r = sparse_dm(pb.select_angular), sparse_dm(pb.select_radial)  # one-hot: keep them sparse
     q_mat = ca.mtimes(sel_a.T, ca.repmat(c_raw, 1, pb.n_radial) * sel_r)
-    v = sign * ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb)), tk))  # (1, n_pts)
+    v = sign * angular_sum(ca.mtimes(q_mat, ca.DM(pb.cheb)))  # (1, n_pts)
     agg = model.aggregate
     u = ca.DM(model.data)
     s = agg(chi.T)
@@ -498,20 +608,21 @@ def velocity_residual(
     res = scale * (model_u - u)
     if not jacobian:
         return res
-    dv = ca.sum1(ang * ca.mtimes(ca.mtimes(q_mat, ca.DM(pb.cheb_derivative)), tk))
-    radial = ca.mtimes(ca.DM(pb.cheb), tk)  # (n_radial, n_pts)
-    raw = ca.repmat(sign, basis.size, 1) * ca.mtimes(sel_a, ang) * ca.mtimes(sel_r, radial)  # (n_raw, n_pts)
-    design = ca.DM(model.design)
-    n_r = model.design.shape[1]
-    ds_dr = agg(ca.repmat(dchi.T, 1, n_r) * design)
-    dt_dr = agg(ca.repmat((dchi * v + chi * dv * drho).T, 1, n_r) * design)
-    dt_dv = ca.mtimes(agg(ca.repmat(chi.T, 1, basis.size) * raw.T), transform)
-    jac_r = ca.repmat(scale * ratio, 1, n_r) * dt_dr + ca.repmat(scale * t * dratio, 1, n_r) * ds_dr
-    jac_v = ca.repmat(scale * ratio, 1, basis.size) * dt_dv
+    dv = angular_sum(ca.mtimes(q_mat, ca.DM(pb.cheb_derivative)))
+    # d T_i / d c_R = g(s_i) dt_i/dc_R + t_i g'(s_i) ds_i/dc_R with ds/dc_R = A(diag(chi') D) and
+    # dt/dc_R = A(diag(chi' v + chi v' rho') D) (A the voxel sums or PSF image, D the radius design at the
+    # points); a layer adds its own pair. Each side is one NumPy map: CasADi's products with the dense
+    # (n_points, 2N+1) and (n_points, n_raw) matrices were loops, and building them took seconds.
+    point = [dchi, dchi * v + chi * dv * drho]
+    voxel = [scale * t * dratio, scale * ratio]
     if layered:  # rho moves with R: d/dc_R through d rho/d R, the columns' own coefficients linearly
-        dtl_dr = agg(ca.repmat((ca.mtimes(c_v[basis.size :].T, dlay) * drho_wall).T, 1, n_r) * design)
-        dsl_dr = agg(ca.repmat((darea * drho_wall).T, 1, n_r) * design)
-        jac_r += ca.repmat(scale * ratio_l, 1, n_r) * dtl_dr + ca.repmat(scale * t_layer * dratio_l, 1, n_r) * dsl_dr
+        point += [darea * drho_wall, ca.mtimes(c_v[basis.size :].T, dlay) * drho_wall]
+        voxel += [scale * t_layer * dratio_l, scale * ratio_l]
+    design_sums, basis_sums = _design_sums(model, len(point)), _basis_sums(model, pb, basis.transform)
+    model.kept += [design_sums, basis_sums]
+    jac_r = design_sums(ca.vertcat(*point).T, ca.horzcat(*voxel))
+    jac_v = basis_sums(sign * chi, arg, scale * ratio)  # d T_i / d c_v = g(s_i) A(diag(chi) raw^T) Q
+    if layered:
         jac_v = ca.horzcat(jac_v, ca.repmat(scale * ratio_l, 1, full.n_layer) * agg(lay.T))
     return res, jac_r, jac_v, model_u - u
 
