@@ -86,6 +86,18 @@ def test_module_imports_in_a_fresh_interpreter(module):
     subprocess.run([sys.executable, "-c", f"import wss_nlp.{module}"], check=True, capture_output=True)
 
 
+def test_the_command_line_starts_without_scipy():
+    """`wss-nlp --help` imports no SciPy module (they cost more than the rest of its start-up; issue 19), and the
+    package's stand-in imports one when it is first used, attributes of the package itself too."""
+    code = (
+        "import sys; import wss_nlp.cli; from wss_nlp.cli import main; "
+        "assert not [m for m in sys.modules if m.split('.')[0] == 'scipy'], 'scipy imported at start-up'; "
+        "from wss_nlp._lazy import scipy; assert scipy.linalg.norm([3.0, 4.0]) == 5.0; "
+        "assert 'scipy.linalg' in sys.modules and isinstance(scipy.__version__, str)"
+    )
+    subprocess.run([sys.executable, "-c", code], check=True, capture_output=True)
+
+
 def test_no_module_shadows_the_standard_library():
     assert not {m.split(".")[-1] for m in MODULES} & set(sys.stdlib_module_names)
 

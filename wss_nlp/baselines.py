@@ -29,9 +29,8 @@ import time
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-import scipy.linalg
-import scipy.ndimage
 
+from ._lazy import scipy
 from . import preprocess as pp
 from . import radius as rad
 from .errors import NoVesselError, SolverError

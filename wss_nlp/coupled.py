@@ -39,10 +39,10 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.sparse
 
 import casadi as ca
 
+from ._lazy import scipy
 from .parameters import noise as nl
 from . import chebyshev
 from . import geometry as geo

@@ -17,10 +17,10 @@ import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.ndimage
 
 import casadi as ca
 
+from ._lazy import scipy
 from . import kspace
 from . import measurement as meas
 from . import operators

@@ -15,11 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse
-import scipy.special
 
 import casadi as ca
 
+from ._lazy import scipy
 from . import operators
 from . import radius as rad
 

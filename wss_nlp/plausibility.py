@@ -38,8 +38,8 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
-import scipy.ndimage
 
+from ._lazy import scipy
 from .parameters import noise as nl
 from . import preprocess as pp
 from .errors import InputError, WssNlpError

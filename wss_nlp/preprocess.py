@@ -15,8 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.ndimage
 
+from ._lazy import scipy
 from .errors import LumenTouchesBorderError, NoVesselError
 from .measurement import VoxelGrid
 

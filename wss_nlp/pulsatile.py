@@ -30,8 +30,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.special
 
+from ._lazy import scipy
 from . import womersley
 from .errors import InputError
 from .files import Acquisition

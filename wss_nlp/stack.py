@@ -51,10 +51,10 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.linalg
 
 import casadi as ca
 
+from ._lazy import scipy
 from . import geometry as geo
 from . import operators
 from . import radius as rad

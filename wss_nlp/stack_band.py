@@ -59,8 +59,8 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
-import scipy.linalg
 
+from ._lazy import scipy
 from . import geometry as geo
 from . import near_wall as nw
 from . import radius as rad

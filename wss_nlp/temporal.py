@@ -47,8 +47,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.linalg
 
+from ._lazy import scipy
 from .errors import SolverError
 from .velocity import VelocityProblem
 

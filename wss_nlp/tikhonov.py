@@ -36,8 +36,8 @@ Units: ``u`` in m/s, ``c`` in m/s, beta dimensionless.
 from __future__ import annotations
 
 import numpy as np
-import scipy.linalg
 
+from ._lazy import scipy
 from .errors import NoiseEstimationError, SolverError
 
 #: Smallest beta of the parameter grids (below it the normal matrix loses definiteness in double precision).

@@ -20,10 +20,10 @@ from __future__ import annotations
 from functools import lru_cache, cache
 
 import numpy as np
-import scipy.special
 
 import casadi as ca
 
+from ._lazy import scipy
 from .errors import InputError
 
 BASES = ("zernike", "eigen")

@@ -51,11 +51,10 @@ import json
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-import scipy.interpolate
-import scipy.special
 
 import casadi as ca
 
+from ._lazy import scipy
 from .parameters import noise as nl
 from . import radius as rad
 from . import velocity as vel
@@ -227,6 +226,8 @@ def shapes_at(sigma: np.ndarray, lams: list[complex]) -> np.ndarray:
 
 @functools.lru_cache(maxsize=64)
 def _spline(lam: complex):
+    import scipy.interpolate  # here: a slow import (0.1 s) the command line should not pay at start-up
+
     table = np.linspace(0.0, 1.0, TABLE_POINTS)
     return scipy.interpolate.CubicSpline(table, shape(table, lam))
 

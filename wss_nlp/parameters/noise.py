@@ -17,9 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.ndimage
-import scipy.special
 
+from .._lazy import scipy
 from ..errors import NoiseEstimationError
 from ..preprocess import robust_std, where_prefix
 
