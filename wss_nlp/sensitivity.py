@@ -177,8 +177,8 @@ def _mapped(fun: ca.Function, n: int) -> ca.Function:
 def _rows(fun: ca.Function, *args) -> list[np.ndarray]:
     """``fun`` on every point (array arguments: one value per point; scalars shared), outputs as flat arrays.
 
-    Evaluated in chunks of at most :data:`ROW_CHUNK` points (the point count rounded up to a power of two
-    below that) by one cached ``map`` (building a map for each point count costs about twice its
+    Evaluated in chunks of :data:`ROW_CHUNK` points (fewer points: their count rounded up to a power of
+    two) by one cached ``map`` (building a map for each point count costs about twice its
     evaluation; calling ``fun`` on rows maps implicitly, 15x slower), reading and writing NumPy memory
     directly (``Function.buffer``: converting the outputs from ``DM`` took a fifth of a band).
     """
@@ -866,8 +866,8 @@ def coupled(
     Implicit function theorem on the KKT system of the coupled NLP with the
     exact Hessian ``2 J^T J + 2 sum_i r_i hess r_i + penalty Hessian``: ``J``
     is the chain-rule Jacobian of the residuals, and the second-order term
-    comes from CasADi (forward-over-reverse along the ``c_R`` directions;
-    the residuals are linear in ``c_v``). Parameters: the normalized
+    comes from CasADi (forward-over-reverse along the ``c_R`` directions, one
+    direction at a time, at IPOPT's solution; the residuals are linear in ``c_v``). Parameters: the normalized
     magnitude (annulus voxels through the geometry misfit and the velocity
     voxels through the precision weights ``|V| m_i^2``), the velocity image,
     alpha, beta, gamma and the centre (geometry part from the per-voxel
