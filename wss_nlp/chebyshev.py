@@ -25,7 +25,8 @@ Both are linear in their second argument and
     \bar x = \bar R\, R_{d+1}(x, Y), \quad \bar Y = S_d(x, \bar R),
 
 so every derivative is again one of the two maps (``tests/test_chebyshev.py``
-checks them against finite differences and with dot tests).
+checks values, forward and reverse derivatives and the Hessian against the
+same graph written with CasADi's own recursion).
 :math:`T_k^{(d)}` comes from the derivative's Chebyshev coefficients
 (``numpy.polynomial.chebyshev.chebder``). Keep the :class:`Family` while
 functions built from it live (CasADi's rule for callbacks).

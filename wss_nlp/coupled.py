@@ -422,15 +422,18 @@ def _design_sums(model: VelocityMisfitModel, k: int) -> _VoxelSums:
     return _VoxelSums(f"design_sums_{k}", [(n_pts, k), (n_vox, k)], (n_vox, n), apply)
 
 
-def _basis_sums(model: VelocityMisfitModel, pb: PolarBasis, transform: np.ndarray) -> _VoxelSums:
+def _basis_sums(
+    model: VelocityMisfitModel, pb: PolarBasis, transform: np.ndarray, series: chebyshev.Family
+) -> _VoxelSums:
     r"""``(w, x, a) -> diag(a) A(diag(w) raw^T) Q``: the velocity columns of the Jacobian, in NumPy.
 
     ``raw_j = angular_{a(j)} (C T)_{r(j)}`` at the points (``T`` the
     Chebyshev polynomials at the points' ``x = 2 rho / RHO_MAX - 1``, ``C``
     the radial factors' coefficients, :class:`PolarBasis`), ``w`` point weights (1, n_points),
     ``a`` voxel factors (n_vox, 1), ``A`` the voxel aggregation and ``Q``
-    the orthonormalizing transform. About ``2 n_radial K n_points`` flops
-    for the radial factors and ``3 n_raw n_points`` for the rest.
+    the orthonormalizing transform; ``T`` comes from ``series`` (the residual's
+    own, which holds it for the same points). About ``2 n_radial K n_points``
+    flops for the radial factors and ``3 n_raw n_points`` for the rest.
     """
     cheb, ang = np.ascontiguousarray(pb.cheb), np.ascontiguousarray(pb.angular)
     a_idx, r_idx = np.argmax(pb.select_angular, axis=1), np.argmax(pb.select_radial, axis=1)
@@ -438,7 +441,7 @@ def _basis_sums(model: VelocityMisfitModel, pb: PolarBasis, transform: np.ndarra
     box, point_sums = model.averager is None, _point_sums(model.averager, model.order)
 
     def apply(w, arg, rows):
-        radial = cheb @ np.polynomial.chebyshev.chebvander(arg.ravel(), cheb.shape[1] - 1).T  # (n_radial, n_pts)
+        radial = cheb @ series.values(arg.ravel(), 0)  # (n_radial, n_pts)
         weighted = ang * w
         if box:  # a voxel's points are consecutive: one product-sum of views per function
             # (gathering the (n_raw, n_points) array first took 4x longer: memory traffic, not flops)
@@ -618,7 +621,7 @@ def velocity_residual(
     if layered:  # rho moves with R: d/dc_R through d rho/d R, the columns' own coefficients linearly
         point += [darea * drho_wall, ca.mtimes(c_v[basis.size :].T, dlay) * drho_wall]
         voxel += [scale * t_layer * dratio_l, scale * ratio_l]
-    design_sums, basis_sums = _design_sums(model, len(point)), _basis_sums(model, pb, basis.transform)
+    design_sums, basis_sums = _design_sums(model, len(point)), _basis_sums(model, pb, basis.transform, series)
     model.kept += [design_sums, basis_sums]
     jac_r = design_sums(ca.vertcat(*point).T, ca.horzcat(*voxel))
     jac_v = basis_sums(sign * chi, arg, scale * ratio)  # d T_i / d c_v = g(s_i) A(diag(chi) raw^T) Q
