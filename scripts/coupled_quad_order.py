@@ -12,7 +12,6 @@ the largest WSS change against q = 3 relative to the peak WSS. Writes
     python scripts/coupled_quad_order.py
 """
 
-import gc
 import os
 import time
 from dataclasses import replace
@@ -20,7 +19,7 @@ from dataclasses import replace
 import numpy as np
 
 from _report import RESULTS, write_report
-from wss_nlp import geometry as geo
+from bench import fresh
 from wss_nlp import metrics, phantoms
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
 
@@ -28,8 +27,7 @@ SEEDS = (100, 101, 102)
 
 
 def timed(acq, options):
-    geo.clear_solvers()
-    gc.collect()
+    fresh()
     t0 = time.perf_counter()
     res = reconstruct(acq, options)[0]
     return res, time.perf_counter() - t0
