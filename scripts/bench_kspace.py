@@ -20,7 +20,7 @@ import time
 import numpy as np
 
 from _report import RESULTS, write_report
-from wss_nlp import geometry as geo
+from bench import fresh
 from wss_nlp import kspace
 from wss_nlp import phantoms as ph
 from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
@@ -54,7 +54,7 @@ def main(argv=None):
             for model in times:
                 how = kspace.AcquisitionOptions(model, "hamming")
                 options = ReconstructionOptions(method=args.method, uncertainty=False, acquisition=how)
-                geo.clear_solvers()  # every timing builds its solvers, as a user's first slice does
+                fresh()  # every timing builds its solvers, as a user's first slice does
                 t0 = time.perf_counter()
                 r = reconstruct(acq, options)[0]
                 times[model].append(time.perf_counter() - t0)

@@ -357,6 +357,14 @@ def reconstruct_slice(
         # a further pass only pays where some wall voxel loses more than 1 % of its magnitude
         if k == passes or not corr.worth_a_pass:
             break
+        if psf is not None and k > 0:
+            # the pass would end the iteration if it moved the wall less than the tolerance: predicted to first
+            # order (within 1 % of such small moves on the phantoms), it need not be run
+            change = geo.predicted_change(problem, options.geometry, g, corr.magnitude)
+            if change is not None:
+                t["dephasing_next_move"] = float(np.max(np.abs(rad.evaluate(change, rad.uniform_angles(72)))) / grid.h)
+                if t["dephasing_next_move"] < KSPACE_PASS_TOL:
+                    break
         t0 = time.perf_counter()
         previous = (problem, g, vp, v, near, beta_choice, lumen)
         problem = replace(problem, magnitude=corr.magnitude)
