@@ -3,8 +3,8 @@
 
 Issue 14's target: a slice within 2x the box model's time. The laminar phantom acquired in k-space
 (Hamming filter, no zero-filling), SNR 25, seed 0, at each h: median wall time of ``reconstruct`` with
-``--acquisition box`` and with ``--acquisition kspace`` (default options otherwise, no band: the band is
-box-only), their ratio, and the k-space slice's split into geometry, velocity and dephasing passes. Writes
+``--acquisition box`` and with ``--acquisition kspace`` (default options otherwise, no band: the target is
+the solve's), their ratio, and the k-space slice's split into geometry, velocity and dephasing passes. Writes
 ``scripts/results/bench_kspace.md``.
 
     python scripts/bench_kspace.py [--h 1.5,1.0,0.6,0.3] [--runs 3] [--case laminar] [--method coupled]

@@ -357,7 +357,7 @@ def reconstruct_slice(
         # a further pass only pays where some wall voxel loses more than 1 % of its magnitude
         if k == passes or not corr.worth_a_pass:
             break
-        if psf is not None and k > 0:
+        if psf is not None and k > 0 and KSPACE_PASS_PREDICTION:
             # the pass would end the iteration if it moved the wall less than the tolerance: predicted to first
             # order (within 1 % of such small moves on the phantoms), it need not be run
             change = geo.predicted_change(problem, options.geometry, g, corr.magnitude)
@@ -438,6 +438,8 @@ def reconstruct_slice(
 
 #: Largest number of dephasing passes with the k-space model, and the wall movement (in voxels) that ends them.
 KSPACE_PASSES, KSPACE_PASS_TOL = 3, 1e-3
+#: Skip a pass predicted to move the wall less than KSPACE_PASS_TOL (False: run it; ``scripts/kspace_passes.py``).
+KSPACE_PASS_PREDICTION = True
 
 
 def _add_scale_spread(s, vp, v, w, near, viscosity_pa_s: float, sigma_m: float, sigma_u) -> None:
