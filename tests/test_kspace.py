@@ -762,3 +762,20 @@ def test_dephasing_passes_stop_when_the_next_one_would_not_move_the_wall(monkeyp
     # the prediction itself: within 5 % of the move it predicted (measured 1e-4)
     assert moved / acq.grid.h == pytest.approx(short.seconds["dephasing_next_move"], rel=0.05)
     assert abs(full.wss.mean - short.wss.mean) < 1e-3 * abs(full.wss.mean)
+
+
+def test_analyze_reports_the_dephasing_passes(tmp_path, capsys):
+    """``wss-nlp analyze`` states each slice's dephasing passes, the smallest predicted magnitude factor and,
+    for a k-space slice that ran a pass, the predicted move of a further pass against the tolerance; the
+    numbers are the slice's own (read back from the result file)."""
+    inp, out = tmp_path / "in.h5", tmp_path / "out.h5"
+    kspace_args = ["--acquisition", "kspace", "--kspace-filter", "hamming"]
+    assert cli.main(["phantom", "--case", "laminar", "--h", "1.0", "--snr", "25", "-o", str(inp), *kspace_args]) == 0
+    assert cli.main(["reconstruct", str(inp), "-o", str(out), "--no-uncertainty", *kspace_args]) == 0
+    rec = wio.read_dephasing(str(out))["slice_000"]
+    assert rec["passes"] >= 1 and rec["min_factor"] < 0.99 and rec["next_move"] is not None
+    capsys.readouterr()
+    assert cli.main(["analyze", str(out)]) == 0
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if "dephasing:" in ln)
+    assert f"{rec['passes']} pass(es)" in line and f"{rec['min_factor']:.4g}" in line
+    assert f"{rec['next_move']:.2g} voxel" in line and f"below {rc.KSPACE_PASS_TOL:g}" in line

@@ -22,7 +22,8 @@ from . import phantoms
 from . import schema
 from .errors import InputError, WssNlpError
 from .kspace import AcquisitionOptions
-from .reconstruct import ReconstructionOptions, reconstruct
+from .measurement import DEPHASING_THRESHOLD
+from .reconstruct import KSPACE_PASS_TOL, ReconstructionOptions, reconstruct
 
 
 def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
@@ -392,6 +393,8 @@ def cmd_analyze(args) -> int:
             print(f"    {model:>12}: {value:12.2f}" + ("  <- chosen" if model == rec["model"] else ""))
         if rec["ambiguous"]:
             print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
+    for name, rec in wio.read_dephasing(args.result).items():
+        print(f"{name}: {_dephasing_text(rec)}")
     if args.figures:
         from .plotting import save_parameter_figures
 
@@ -400,6 +403,20 @@ def cmd_analyze(args) -> int:
             paths = staged.commit()
         print(f"{len(paths)} figure(s) in {args.figures}")
     return 0
+
+
+def _dephasing_text(rec: dict) -> str:
+    """One line on a slice's dephasing passes (:func:`wss_nlp.files.read_dephasing`)."""
+    text = (
+        f"dephasing: {rec['passes']} pass(es) on corrected magnitudes; smallest predicted magnitude factor "
+        f"{rec['min_factor']:.4g} (a pass below {1 - DEPHASING_THRESHOLD:g})"
+    )
+    if rec["next_move"] is not None:
+        text += (
+            f"; a further pass predicted to move the wall {rec['next_move']:.2g} voxel "
+            f"(passes stop below {KSPACE_PASS_TOL:g})"
+        )
+    return text
 
 
 def _layer_text(rec: dict) -> str:
@@ -762,7 +779,9 @@ def build_parser() -> argparse.ArgumentParser:
     schema.add_arguments(ph, AcquisitionOptions)  # acquire in k-space: --acquisition kspace --kspace-filter ...
     ph.set_defaults(func=cmd_phantom)
 
-    a = sub.add_parser("analyze", help="how alpha and beta were chosen (table and residual curves)")
+    a = sub.add_parser(
+        "analyze", help="how alpha, beta, the near-wall model and the dephasing passes were chosen (tables, curves)"
+    )
     a.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
     a.add_argument("--figures", default=None, help="folder for residual-vs-parameter PNGs")
     a.set_defaults(func=cmd_analyze)

@@ -829,6 +829,28 @@ def read_choices(path) -> dict:
     return out
 
 
+def read_dephasing(path) -> dict:
+    """``{slice name: {"passes", "min_factor", "next_move"}}``: each slice's dephasing passes (``seconds_json``).
+
+    ``min_factor`` is the smallest predicted magnitude factor of the first check (a pass runs below
+    ``1 - DEPHASING_THRESHOLD``); ``next_move`` the last predicted wall move of a further k-space pass in
+    voxels (None when none was predicted).
+    """
+    import h5py
+
+    out = {}
+    with h5py.File(path, "r") as f:
+        for name in sorted(k for k in f if k.startswith("slice_")):
+            sec = json.loads(f[name].attrs.get("seconds_json", "{}"))
+            if "min_dephasing_factor" in sec:
+                out[name] = {
+                    "passes": int(sec.get("dephasing_passes", 0)),
+                    "min_factor": float(sec["min_dephasing_factor"]),
+                    "next_move": sec.get("dephasing_next_move"),
+                }
+    return out
+
+
 def read_near_wall(path) -> dict:
     """``{slice name: dict}``: the near-wall model record of each slice that has one (``near_wall_json``)."""
     import h5py
