@@ -502,10 +502,10 @@ class IpoptGeometrySolver:
             inputs: list = [nlp.c, ca.vertcat(nlp.alpha, nlp.data)]
             outputs: list = [nlp.jacobian, self._gram(nlp.jacobian) + nlp.curvature]
             self._response = ca.Function("geometry_response", inputs, outputs)
-        annulus = self.nlp.model.annulus
+        annulus = nlp.model.annulus
         data = problem.magnitude.ravel()[annulus]
         jac, hmat = (np.asarray(v) for v in self._response(result.coefficients, np.concatenate([[result.alpha], data])))
-        hmat = hmat + result.alpha * np.diag(self.nlp.weights)
+        hmat = hmat + result.alpha * np.diag(nlp.weights)
         change = np.asarray(magnitude, dtype=float).ravel()[annulus] - data
         try:
             return np.linalg.solve(hmat, jac.T @ (np.sqrt(problem.grid.voxel_area) * change))

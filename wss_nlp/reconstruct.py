@@ -360,7 +360,9 @@ def reconstruct_slice(
         if psf is not None and k > 0 and KSPACE_PASS_PREDICTION:
             # the pass would end the iteration if it moved the wall less than the tolerance: predicted to first
             # order (within 1 % of such small moves on the phantoms), it need not be run
+            t0 = time.perf_counter()
             change = geo.predicted_change(problem, options.geometry, g, corr.magnitude)
+            t["dephasing_check"] += time.perf_counter() - t0
             if change is not None:
                 t["dephasing_next_move"] = float(np.max(np.abs(rad.evaluate(change, rad.uniform_angles(72)))) / grid.h)
                 if t["dephasing_next_move"] < KSPACE_PASS_TOL:
