@@ -17,6 +17,7 @@ import numpy as np
 from . import __version__
 from . import files as wio
 from . import metrics
+from . import near_wall as nw
 from . import outputs
 from . import phantoms
 from . import schema
@@ -425,6 +426,13 @@ def _layer_text(rec: dict) -> str:
     spread = rec.get("scale_std_log", float("nan"))
     pm = f" +- {100 * (np.exp(spread) - 1):.2g} %" if np.isfinite(spread) else ""
     scale = f"l = {rec['scale_mm'] * 1000:.3g} um{pm} (l/R = {rec['scale_ratio']:.3g})"
+    spread = rec.get("scale_wss_spread", float("nan"))
+    if spread is not None and np.isfinite(spread):  # a scale chosen by the criterion: how sharply
+        lo, hi = rec["scale_interval"]
+        scale += (
+            f"; l/R {lo:.3g}-{hi:.3g} within {nw.AMBIGUOUS_MARGIN:g} of its criterion, "
+            f"mean WSS {100 * spread:.2g} % apart"
+        )
     return f", layer scale {scale}, margin {rec['margin']:.3g}"
 
 

@@ -514,6 +514,12 @@ class NearWallChoice:
         Bulk Reynolds number from the data (:func:`bulk_reynolds`).
     scale_std_log : float
         Standard deviation of ``log l`` from the velocity noise (law of the wall with the band; else NaN).
+    scale_interval : tuple
+        A scale chosen by the criterion (``exponential``): the range of ``l/R`` over the evaluated scales
+        whose criterion lies within :data:`AMBIGUOUS_MARGIN` of the best; else NaN.
+    scale_wss_spread : float
+        The range of the mean WSS over those scales, relative to the chosen scale's (NaN likewise).
+        A spread larger than the band flags the slice (:func:`scale_ambiguity_note`).
     quad_order : int
         Quadrature cells per voxel axis of the layer columns (:class:`LayerQuadrature`).
     unresolved_mm : float
@@ -537,9 +543,30 @@ class NearWallChoice:
     density_source: str = ""
     reynolds: float = float("nan")
     scale_std_log: float = float("nan")
+    scale_interval: tuple = (float("nan"), float("nan"))
+    scale_wss_spread: float = float("nan")
 
     def as_dict(self) -> dict:
         return asdict(self)
+
+
+def scale_ambiguity_note(choice: NearWallChoice | None, mean_pa: float, mean_std_pa) -> str:
+    """A warning when scales the data hardly tell apart give mean WSS further apart than the band, else "".
+
+    ``mean_std_pa`` is the band's standard deviation of the mean WSS (None or NaN: no band, no judgement).
+    """
+    if choice is None or not np.isfinite(choice.scale_wss_spread) or mean_std_pa is None:
+        return ""
+    spread_pa = choice.scale_wss_spread * abs(mean_pa)
+    if not np.isfinite(mean_std_pa) or spread_pa <= mean_std_pa:
+        return ""
+    lo, hi = choice.scale_interval
+    return (
+        f"near-wall layer scale ambiguous: scales l/R {lo:.3g}-{hi:.3g} fit within {AMBIGUOUS_MARGIN:g} of the "
+        f"best criterion and give mean WSS {100 * choice.scale_wss_spread:.2g} % apart ({spread_pa:.2g} Pa), more "
+        f"than the band ({mean_std_pa:.2g} Pa), which leaves the scale's spread out: read the spread as the mean "
+        "WSS's uncertainty"
+    )
 
 
 #: Bulk Reynolds number above which pipe flow is taken as turbulent (the classical critical value; Reynolds

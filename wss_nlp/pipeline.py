@@ -29,6 +29,7 @@ from . import coupled as cpl
 from . import dephasing as deph
 from . import geometry as geo
 from . import kspace
+from . import near_wall as nw
 from . import preprocess as pp
 from . import sensitivity as sens
 from . import stack_band
@@ -522,6 +523,8 @@ class StackRun:
             sec = {"min_dephasing_factor": float(np.min(factors[i], initial=1.0)) if factors[i] is not None else 1.0}
             notes = [deph.UNEXPLAINED_NOTE] if k in self.unexplained else []
             notes += [band_note] if band_note else []
+            if bands is not None and (scale_note := nw.scale_ambiguity_note(near, w.mean, w.mean_std)):
+                notes.append(scale_note)
             chosen, beta = sol.choices[i], sol.betas[i]
             if not np.isclose(beta, chosen.chosen, rtol=1e-9, atol=0.0):  # exp(median(log)) rounds a shared choice
                 notes.append(

@@ -493,7 +493,9 @@ def uncertainty(
     A band that cannot be computed (no background for the noise level, no
     venc, a failed anchor re-solve) is reported in the note, not raised:
     the reconstruction itself is still valid. With a law-of-the-wall layer
-    (``near``) the band includes the scale's response to the noise.
+    (``near``) the band includes the scale's response to the noise; with an
+    exponential layer whose nearly equally good scales give mean WSS further
+    apart than the band, the note says so (:func:`wss_nlp.near_wall.scale_ambiguity_note`).
     """
     try:
         if coupled_result is not None:
@@ -508,7 +510,7 @@ def uncertainty(
     w.tau_std, w.mean_std, s.mean_std_magnitude, s.mean_std_velocity = s.band(sigma_m, sigma_u)
     s.tau_std, s.mean_std = w.tau_std, w.mean_std
     s.noise.update({"sigma_m": sigma_m, "method": how})
-    return s, ""
+    return s, nw.scale_ambiguity_note(near, w.mean, w.mean_std)
 
 
 def solve_coupled(data: pipeline.SliceData, problem, g, v, lumen, velocity_image, options: ReconstructionOptions):

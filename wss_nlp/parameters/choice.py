@@ -422,6 +422,10 @@ def choose_layer(
         # a jump at the wall, not a layer: no WSS follows from it; keep the paper's model and flag the slice
         unresolved, chosen = best[chosen][1], "plain"
         margin = float("nan")
+    interval, spread = (float("nan"), float("nan")), float("nan")
+    if chosen in notes and notes[chosen].startswith("the BIC's"):
+        x_best = float(np.log2(best[chosen][1] / big_r))
+        interval, spread = _scale_spread(functools.partial(score, chosen), x_best, brackets[chosen], vp.disk_map)
     how = "BIC = chi^2 + ln(n) tr(H^-1 K), each model at its best beta; "
     how += f"a layer needs a BIC {nw.LAYER_EVIDENCE:g} below plain"
     if reynolds is not None and mode == "auto" and around is None:
@@ -438,8 +442,56 @@ def choose_layer(
         quad_order=quad.order,
         unresolved_mm=unresolved,
         beta=best[chosen][3],
+        scale_interval=interval,
+        scale_wss_spread=spread,
     )
     return best[chosen][2], choice
+
+
+def _scale_spread(score, x_best: float, bracket: tuple, disk_map) -> tuple[tuple[float, float], float]:
+    """The scales the data hardly tell from the chosen one, and how far apart their mean WSS lie.
+
+    Returns ``((l_lo/R, l_hi/R), spread)``: the interval of ``log2(l/R)`` about ``x_best`` on which the
+    criterion ``score(x)[0]`` stays within :data:`wss_nlp.near_wall.AMBIGUOUS_MARGIN` of its value at
+    ``x_best`` (each end widened from :data:`SPREAD_RESOLUTION` octaves in doubling steps, then bisected to a
+    quarter of its distance from ``x_best``, inside ``bracket``), and
+    the range of the mean wall shear stress of the fits at the two ends and at ``x_best`` (each at its own
+    best beta) over the chosen fit's. With a Gaussian likelihood in ``log l`` the interval spans about
+    +-1.4 standard deviations (a criterion rise of 2).
+    """
+    limit = score(x_best)[0] + nw.AMBIGUOUS_MARGIN
+    ends = []
+    for side, stop in ((-1.0, bracket[0]), (1.0, bracket[1])):
+        inner, step = x_best, SPREAD_RESOLUTION
+        outer = inner
+        while side * (stop - outer) > 0:  # widen until the criterion leaves the margin or the bracket ends
+            outer = float(np.clip(inner + side * step, min(bracket), max(bracket)))
+            if score(outer)[0] > limit:
+                break
+            inner, step = outer, 2 * step
+        else:
+            ends.append(inner)
+            continue
+        # to a quarter of the half-width found (a sharp minimum gets a fine end, a flat one a coarse one)
+        while abs(outer - inner) > max(SPREAD_RESOLUTION, abs(outer - x_best) / 4):
+            mid = (inner + outer) / 2
+            inner, outer = (mid, outer) if score(mid)[0] <= limit else (inner, mid)
+        ends.append(inner)
+    fits = [score(x) for x in (ends[0], x_best, ends[1])]  # (criterion, basis, beta, coefficients)
+    means = [_mean_wall_slope(basis, coef, disk_map) for _, basis, _, coef in fits]
+    return (float(2.0 ** ends[0]), float(2.0 ** ends[1])), float((max(means) - min(means)) / abs(means[1]))
+
+
+#: First step and finest resolution (octaves, 0.14 % of l) of the ends of the scale interval of :func:`_scale_spread`.
+SPREAD_RESOLUTION = 1.0 / 512
+
+
+def _mean_wall_slope(basis, coefficients, disk_map, n_phi: int = 180) -> float:
+    """Arc-length mean of ``-dU/dn`` on the wall (the mean WSS over the viscosity) of a fit."""
+    slope, _ = wss_mod.wss_matrix(basis, disk_map, 1.0, n_phi)
+    phi, c = rad.uniform_angles(n_phi), disk_map.coefficients
+    ds = np.hypot(rad.evaluate(c, phi), rad.evaluate(c, phi, 1))
+    return float(np.sum((slope @ np.asarray(coefficients, float)) * ds) / np.sum(ds))
 
 
 def _bic_scale(score, lo: float, hi: float) -> float:
