@@ -380,7 +380,7 @@ def choose_layer(
             scored[key] = (crit, basis, beta, coef, columns)
         return scored[key][:4]
 
-    previous = None
+    previous, chosen_log = None, {}
     if around is not None and around.model in nw.FAMILIES:
         families: tuple = (around.model,)
         previous = float(np.log2(around.scale_mm / big_r))
@@ -405,6 +405,7 @@ def choose_layer(
             crit += criterion.log_n
         problem = vp.with_layer(basis, scored[family, float(x)][4], vopt.laplacian_power)
         best[family] = (crit, 2.0**x * big_r, problem, beta)
+        chosen_log[family] = float(x)
     # the paper's model is the null hypothesis: a layer must be preferred by "very strong" evidence
     penalty = {m: (nw.LAYER_EVIDENCE if m != "plain" else 0.0) for m in best}
     order = sorted(best, key=lambda m: best[m][0] + penalty[m])
@@ -424,8 +425,9 @@ def choose_layer(
         margin = float("nan")
     interval, spread = (float("nan"), float("nan")), float("nan")
     if chosen in notes and notes[chosen].startswith("the BIC's"):
-        x_best = float(np.log2(best[chosen][1] / big_r))
-        interval, spread = _scale_spread(functools.partial(score, chosen), x_best, brackets[chosen], vp.disk_map)
+        interval, spread = _scale_spread(
+            functools.partial(score, chosen), chosen_log[chosen], brackets[chosen], vp.disk_map
+        )
     how = "BIC = chi^2 + ln(n) tr(H^-1 K), each model at its best beta; "
     how += f"a layer needs a BIC {nw.LAYER_EVIDENCE:g} below plain"
     if reynolds is not None and mode == "auto" and around is None:
@@ -456,8 +458,9 @@ def _scale_spread(score, x_best: float, bracket: tuple, disk_map) -> tuple[tuple
     ``x_best`` (each end widened from :data:`SPREAD_RESOLUTION` octaves in doubling steps, then bisected to a
     quarter of its distance from ``x_best``, inside ``bracket``), and
     the range of the mean wall shear stress of the fits at the two ends and at ``x_best`` (each at its own
-    best beta) over the chosen fit's. With a Gaussian likelihood in ``log l`` the interval spans about
-    +-1.4 standard deviations (a criterion rise of 2).
+    best beta) over the chosen fit's. For a correctly specified Gaussian likelihood in ``log l`` the interval
+    would span about +-1.4 standard deviations (a criterion rise of 2); on the entrance flow the spread came
+    out near one Monte-Carlo standard deviation of the mean WSS instead (``scripts/results/scale_spread.md``).
     """
     limit = score(x_best)[0] + nw.AMBIGUOUS_MARGIN
     ends = []
