@@ -295,7 +295,7 @@ def test_band_with_the_chosen_scale_includes_the_scales_spread():
     rng = np.random.default_rng(17)
     auto = vel.VelocityOptions(near_wall="auto")
     first = reconstruct(phantoms.noisy_copy(acq0, 25, rng), ReconstructionOptions(velocity=auto))[0]
-    assert nw.CONSISTENT in first.near_wall.criterion and first.near_wall.scale_std_log > 0
+    assert first.near_wall.consistent and first.near_wall.scale_std_log > 0
     opts = ReconstructionOptions(uncertainty=False, velocity=auto)
     means = [reconstruct(phantoms.noisy_copy(acq0, 25, rng), opts)[0].wss.mean for _ in range(24)]
     assert 0.6 < np.std(means, ddof=1) / first.wss.mean_std < 1.6
@@ -325,6 +325,25 @@ def test_exponential_scale_interval_and_the_ambiguity_flag():
     assert not any("ambiguous" in n for n in quiet.notes)
     assert nw.scale_ambiguity_note(choice, r.wss.mean, float("nan")) == ""
     assert nw.scale_ambiguity_note(choice, r.wss.mean, 10 * abs(r.wss.mean)) == ""
+
+
+def test_wall_law_without_a_root_takes_the_criterions_scale_as_a_fitted_one():
+    """Where no scale satisfies u_tau l = nu (the wall law forced on developing laminar flow), the wall law falls
+    back to the criterion's scale, which then counts as one more fitted parameter (+ ln n, as the exponential
+    layer's), gets the same scale interval and WSS spread, and is not marked consistent (so the band does not
+    take the consistency's implicit-function term for it). Seed 29 (not used in development)."""
+    acq, _ = phantoms.make_phantom("entrance", h_mm=1.0, snr=25.0, seed=29)
+    forced = ReconstructionOptions(uncertainty=False, velocity=vel.VelocityOptions(near_wall="wall_law"))
+    choice = reconstruct(acq, forced)[0].near_wall
+    assert choice.model == "wall_law" and "no scale satisfies" in choice.criterion
+    assert "+ ln(n) for the fitted scale" in choice.criterion and not choice.consistent
+    lo, hi = choice.scale_interval
+    assert lo <= choice.scale_ratio <= hi and np.isfinite(choice.scale_wss_spread)
+    crit = {ratio: c for model, ratio, c in choice.tried if model == "wall_law"}
+    raw = crit[min(crit, key=lambda k: abs(k - choice.scale_ratio))]
+    # the recorded criterion is the raw one plus ln n, n the number of velocity voxels (box data: all independent)
+    n = np.exp(choice.values["wall_law"] - raw)
+    assert 100 < n < 1e5 and n == pytest.approx(round(n), abs=1e-6 * n)
 
 
 def test_z_regularized_stacks_choose_the_near_wall_model_per_slice():

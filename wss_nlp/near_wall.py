@@ -514,6 +514,9 @@ class NearWallChoice:
         Bulk Reynolds number from the data (:func:`bulk_reynolds`).
     scale_std_log : float
         Standard deviation of ``log l`` from the velocity noise (law of the wall with the band; else NaN).
+    consistent : bool
+        The scale is the law of the wall's self-consistent one, ``u_tau l = nu`` (its noise response goes
+        into the band); False for every other choice, a wall law without a root included.
     scale_interval : tuple
         A scale chosen by the criterion (``exponential``): the range of ``l/R`` over the evaluated scales
         whose criterion lies within :data:`AMBIGUOUS_MARGIN` of the best; else NaN.
@@ -545,6 +548,7 @@ class NearWallChoice:
     scale_std_log: float = float("nan")
     scale_interval: tuple = (float("nan"), float("nan"))
     scale_wss_spread: float = float("nan")
+    consistent: bool = False
 
     def as_dict(self) -> dict:
         return asdict(self)

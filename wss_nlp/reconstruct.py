@@ -505,7 +505,7 @@ def uncertainty(
         sigma_m, sigma_u, how = pipeline.noise_levels(data, options, s.u_index, lumen)
     except WssNlpError as exc:
         return None, f"no uncertainty band: {exc}"
-    if near is not None and near.model == "wall_law" and nw.CONSISTENT in near.criterion:
+    if near is not None and near.consistent:
         _add_scale_spread(s, vp, v, w, near, viscosity_pa_s, sigma_m, sigma_u)
     w.tau_std, w.mean_std, s.mean_std_magnitude, s.mean_std_velocity = s.band(sigma_m, sigma_u)
     s.tau_std, s.mean_std = w.tau_std, w.mean_std

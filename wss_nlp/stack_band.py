@@ -350,7 +350,7 @@ def linearize(
         )
         factor = float("nan")
         near = s.near
-        if near is not None and near.model == "wall_law" and nw.CONSISTENT in near.criterion:
+        if near is not None and near.consistent:
             # the scale follows the layer amplitude a_0 (u_tau l = nu): d log l = -(dg/da_0)/(dg/d log l) d a_0
             smat, _ = wss_mod.wss_matrix(vp.basis, vp.disk_map, viscosity_pa_s, n_phi)
             nu = viscosity_pa_s / near.density_kg_m3

@@ -381,6 +381,7 @@ def choose_layer(
         return scored[key][:4]
 
     previous, chosen_log = None, {}
+    fitted: dict = {}  # family -> its scale minimizes the criterion (rather than solving u_tau l = nu)
     if around is not None and around.model in nw.FAMILIES:
         families: tuple = (around.model,)
         previous = float(np.log2(around.scale_mm / big_r))
@@ -395,12 +396,12 @@ def choose_layer(
         if family == "wall_law" and nu_m2_s is not None:
             predicted = None if reynolds is None or reynolds <= 0 else blasius_scale(reynolds)
             x, how = _wall_law_scale(family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted, previous)
-            notes[family] = how
+            fitted[family] = how == NO_ROOT  # no root: the BIC's scale
         else:
-            x = _bic_scale(family_score, lo, hi)
-            notes[family] = "the BIC's, + ln(n) for the fitted scale"
+            x, how, fitted[family] = _bic_scale(family_score, lo, hi), "the BIC's", True
+        notes[family] = how + (", + ln(n) for the fitted scale" if fitted[family] else "")
         crit, basis, beta, _ = score(family, x)
-        if family in notes and notes[family].startswith("the BIC's"):
+        if fitted[family]:
             # a scale fitted to the data is one more parameter, which tr(H^-1 K) does not count
             crit += criterion.log_n
         problem = vp.with_layer(basis, scored[family, float(x)][4], vopt.laplacian_power)
@@ -424,7 +425,7 @@ def choose_layer(
         unresolved, chosen = best[chosen][1], "plain"
         margin = float("nan")
     interval, spread = (float("nan"), float("nan")), float("nan")
-    if chosen in notes and notes[chosen].startswith("the BIC's"):
+    if fitted.get(chosen, False):
         interval, spread = _scale_spread(
             functools.partial(score, chosen), chosen_log[chosen], brackets[chosen], vp.disk_map
         )
@@ -446,6 +447,7 @@ def choose_layer(
         beta=best[chosen][3],
         scale_interval=interval,
         scale_wss_spread=spread,
+        consistent=chosen == "wall_law" and not fitted.get(chosen, True),
     )
     return best[chosen][2], choice
 
@@ -521,6 +523,8 @@ def blasius_scale(reynolds: float) -> float:
     return float(-np.log2(0.0994 * reynolds**0.875))
 
 
+#: What the record says when no scale satisfies the law of the wall's consistency (the BIC's scale is taken).
+NO_ROOT = "no scale satisfies the wall law's consistency; the BIC's scale"
 #: Resolution (octaves of l) to which a root of the wall-law consistency is located.
 ROOT_RESOLUTION = 1.0 / 128
 #: Half-widths (octaves) of the widening probes around a previous root (a dephasing pass moves it by ~1e-3).
@@ -589,7 +593,7 @@ def _wall_law_scale(
     if not roots and window.size < xs.size:
         roots = roots_on(xs)
     if not roots:
-        return _bic_scale(score, lo, hi), "no scale satisfies u_tau l = nu; the BIC's scale"
+        return _bic_scale(score, lo, hi), NO_ROOT
     crit, x = min(roots)
     return x, f"law of the wall {nw.CONSISTENT} ({len(roots)} root(s), the one with the smallest BIC)"
 
