@@ -214,7 +214,8 @@ def test_response_predicts_the_resolve_to_second_order(acquisition):
     """IpoptGeometrySolver.response (implicit function theorem on the stationarity, the exact Hessian) against
     re-solves after a change eps * d of the magnitude: the prediction's error falls like eps^2 (ratio 4 when eps
     halves; the re-solves' tolerance, ~1e-10 mm, lies far below the smallest error, ~2e-5 mm) and is below 5 %
-    of the move at the larger eps (measured 2 %, a 4-7 um move). Box and k-space model (Hamming PSF), seed 13
+    of the move at the larger eps (measured 2 %, a 4-7 um move); and it equals sensitivity.geometry_kkt's
+    derivative in the magnitude (measured 1e-15 relative). Box and k-space model (Hamming PSF), seed 13
     (not used elsewhere)."""
     from wss_nlp import kspace
 
@@ -239,4 +240,12 @@ def test_response_predicts_the_resolve_to_second_order(acquisition):
         errors.append(np.max(np.abs(again.coefficients - g.coefficients - predicted)))
     assert errors[0] < 0.05 * moves[0]
     assert errors[0] / errors[1] == pytest.approx(4.0, rel=0.25)
+    # the same derivative from the band's implicit-function theorem (its own graph): equal to rounding
+    from wss_nlp import sensitivity as sens
+
+    dc_dp, annulus = sens.geometry_kkt(problem, opts, g.coefficients, g.alpha, g.gamma, g.box_multipliers)
+    predicted = solver.response(g, problem, problem.magnitude + d)
+    assert np.max(np.abs(predicted - dc_dp[:, : annulus.size] @ d.ravel()[annulus])) <= 1e-10 * np.max(
+        np.abs(predicted)
+    )
     assert geo.IpoptGeometrySolver(problem, geo.GeometryOptions(hessian="gauss-newton")).response(g, problem, d) is None

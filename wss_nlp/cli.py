@@ -423,15 +423,15 @@ def _dephasing_text(rec: dict) -> str:
 def _layer_text(rec: dict) -> str:
     if rec["model"] == "plain":
         return ""
-    spread = rec.get("scale_std_log", float("nan"))
-    pm = f" +- {100 * (np.exp(spread) - 1):.2g} %" if np.isfinite(spread) else ""
+    std_log = rec.get("scale_std_log", float("nan"))
+    pm = f" +- {100 * (np.exp(std_log) - 1):.2g} %" if np.isfinite(std_log) else ""
     scale = f"l = {rec['scale_mm'] * 1000:.3g} um{pm} (l/R = {rec['scale_ratio']:.3g})"
-    spread = rec.get("scale_wss_spread", float("nan"))
-    if spread is not None and np.isfinite(spread):  # a scale chosen by the criterion: how sharply
+    wss_spread = rec.get("scale_wss_spread", float("nan"))
+    if wss_spread is not None and np.isfinite(wss_spread):  # a scale chosen by the criterion: how sharply
         lo, hi = rec["scale_interval"]
         scale += (
             f"; l/R {lo:.3g}-{hi:.3g} within {nw.AMBIGUOUS_MARGIN:g} of its criterion, "
-            f"mean WSS {100 * spread:.2g} % apart"
+            f"mean WSS {100 * wss_spread:.2g} % apart"
         )
     return f", layer scale {scale}, margin {rec['margin']:.3g}"
 

@@ -495,8 +495,7 @@ def _mean_wall_slope(basis, coefficients, disk_map, n_phi: int = 180) -> float:
     """Arc-length mean of ``-dU/dn`` on the wall (the mean WSS over the viscosity) of a fit."""
     slope, _ = wss_mod.wss_matrix(basis, disk_map, 1.0, n_phi)
     phi, c = rad.uniform_angles(n_phi), disk_map.coefficients
-    ds = np.hypot(rad.evaluate(c, phi), rad.evaluate(c, phi, 1))
-    return float(np.sum((slope @ np.asarray(coefficients, float)) * ds) / np.sum(ds))
+    return rad.arc_length_mean(slope @ np.asarray(coefficients, float), rad.evaluate(c, phi), rad.evaluate(c, phi, 1))
 
 
 def _bic_scale(score, lo: float, hi: float) -> float:
