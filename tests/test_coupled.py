@@ -98,6 +98,27 @@ def test_chain_rule_jacobian_equals_casadi_ad(laminar_coarse):
     assert_coupled_jacobian_is_exact(_coupled_nlp(res), res.geometry, res.velocity)
 
 
+def test_gauss_newton_solver_gradient_and_hessian_from_the_jacobian_blocks(laminar_coarse):
+    """The coupled IPOPT's gradient ``2 J^T r + grad(penalty)`` and Hessian ``2 J^T J + 2 P`` (from the Jacobian's
+    blocks, one shared evaluation) equal CasADi's reverse-mode gradient of the functional and the product of the
+    assembled Jacobian, at a perturbed start."""
+    _, _, res = laminar_coarse
+    g, v = res.geometry, res.velocity
+    nlp = _coupled_nlp(res)
+    solver, _keep = cpl._ipopt(nlp, "gauss-newton", cpl.CoupledOptions())
+    _, shared = solver.shared
+    x = np.concatenate([g.coefficients, v.coefficients])
+    x = x + np.random.default_rng(5).normal(size=x.size) * 1e-3 * (np.abs(x) + 1e-2)
+    f, grad, hess = (np.asarray(a) for a in shared.function(x, g.gamma))
+    ref = ca.Function("ref", [nlp.x, nlp.gamma], [nlp.f, ca.gradient(nlp.f, nlp.x), nlp.jacobian])
+    f_ref, grad_ref, jac = (np.asarray(a) for a in ref(x, g.gamma))
+    hess_ref = 2 * jac.T @ jac + 2 * nlp.penalty_hessian()
+    # the same derivatives summed in another order: rounding-level agreement
+    assert abs(f.item() - f_ref.item()) <= 1e-12 * abs(f_ref.item())
+    np.testing.assert_allclose(grad.ravel(), grad_ref.ravel(), rtol=0, atol=1e-9 * np.max(np.abs(grad_ref)))
+    np.testing.assert_allclose(hess, hess_ref, rtol=0, atol=1e-11 * np.max(np.abs(hess_ref)))
+
+
 def test_objective_gradient_taylor(laminar_coarse):
     """Taylor test of CasADi's gradient of the coupled functional: remainder O(t^2)."""
     _, _, res = laminar_coarse

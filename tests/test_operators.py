@@ -62,6 +62,17 @@ def test_gram_equals_casadi_product_with_exact_derivatives():
     _same_graph(gram(j), ca.mtimes(j.T, j), j, rng.normal(size=(9, 4)))
 
 
+def test_block_gram_equals_the_gram_of_the_assembled_matrix():
+    """BlockGram (A, B, C) -> J^T J with J = [[A, 0], [sqrt(w) B, sqrt(w) C]], against the dense product of J."""
+    rng = np.random.default_rng(14)
+    a, b, c, w = rng.normal(size=(7, 3)), rng.normal(size=(11, 3)), rng.normal(size=(11, 5)), 2.7
+    gram = operators.BlockGram(7, 3, 11, 5, w)
+    j = np.block([[a, np.zeros((7, 5))], [np.sqrt(w) * b, np.sqrt(w) * c]])
+    out = np.asarray(gram(a, b, c))
+    # three BLAS products against one: equal to rounding
+    np.testing.assert_allclose(out, j.T @ j, rtol=0, atol=1e-13 * np.max(np.abs(j.T @ j)))
+
+
 @pytest.mark.parametrize("kind", meas.HEAVISIDES)
 def test_box_magnitude_jacobian_by_the_chain_rule_equals_casadi_ad(kind):
     """The box magnitude model's Gauss-Newton Jacobian (magnitude_model(jacobian=True)) equals CasADi's AD of

@@ -479,24 +479,25 @@ def coupled_segment(
     big = ca.MX.sym("X", int(offsets[-1]))
     # separate functions: derivatives of f must not run through the Gauss-Newton matrix's graph, and the box
     # rows' (constant) Jacobian not through f's
+    derivatives = [cpl.gauss_newton_derivatives(nlp) for nlp in nlps]  # holds callbacks: alive while we solve
     parts = [
         (
             ca.Function("F", [nlp.x, nlp.gamma], [nlp.f]),
             ca.Function("G", [nlp.x], [nlp.g]),
-            ca.Function("J", [nlp.x, nlp.gamma], [nlp.jacobian]),
+            ca.Function("D", [nlp.x, nlp.gamma], [grad, hess]),
         )
-        for nlp in nlps
+        for nlp, (grad, hess, _) in zip(nlps, derivatives)
     ]
     gammas = ca.MX.sym("gamma", len(nlps))
-    grams = [operators.Gram(*nlp.jacobian.shape) for nlp in nlps]  # kept alive with the solver below
     f: Any = 0  # a CasADi expression once the first term is added
-    g_all, hess_blocks = [], []
-    for k, (nlp, (fun, box, jac)) in enumerate(zip(nlps, parts)):
+    g_all, grad_blocks, hess_blocks = [], [], []
+    for k, (fun, box, deriv) in enumerate(parts):
         xk = big[int(offsets[k]) : int(offsets[k + 1])]
-        jk = jac(xk, gammas[k])
         f += fun(xk, gammas[k])
         g_all.append(box(xk))
-        hess_blocks.append(2 * grams[k](jk) + 2 * ca.DM(nlp.penalty_hessian()))
+        grad_k, hess_k = deriv(xk, gammas[k])
+        grad_blocks.append(grad_k)
+        hess_blocks.append(hess_k)
     zop = z_operator(len(nlps), order)
     w0 = rad.sobolev_weights(gopt.n_fourier, 0)
     gram0 = getattr(starts[0][1].basis, "base", starts[0][1].basis).laplacian_gram(0)
@@ -511,9 +512,11 @@ def coupled_segment(
     zl = sparse_dm(zpen)
     f += ca.dot(big, ca.mtimes(zl, big))
     hess = ca.diagcat(*hess_blocks) + 2 * zl
+    grad = ca.vertcat(*grad_blocks) + 2 * ca.mtimes(zl, big)  # zl is symmetric
     solver = gauss_newton_ipopt(
-        "stack_coupled", big, f, ca.vertcat(*g_all), hess, gammas, copt.tol, copt.max_iter, dict(cpl.WARM_START)
-    )
+        "stack_coupled", big, f, ca.vertcat(*g_all), hess, gammas, copt.tol, copt.max_iter, dict(cpl.WARM_START),
+        grad=grad,
+    )  # fmt: skip
     x0 = np.concatenate([np.concatenate([g.coefficients, v.coefficients]) for g, v in starts])
     lbg = np.concatenate(
         [
