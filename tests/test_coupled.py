@@ -50,6 +50,19 @@ def test_polar_basis_reproduces_the_basis(kind):
     assert np.allclose(raw[:, inside].T @ basis.transform, direct, rtol=0, atol=1e-10 * np.max(np.abs(direct)))
 
 
+def test_coupled_quadrature_defaults_to_the_decoupled_rule_capped_at_three():
+    """``--coupled-quad-order`` unset: the decoupled fit's q (about R/60 apart, at least 2), at most 3; set: as
+    given; the solve records the q it used."""
+    grid = meas.VoxelGrid((64, 64), (0.3, 0.3))
+    problem = geo.GeometryProblem(grid, np.zeros((64, 64)), (9.6, 9.6), 8.0, 12.0, 10.0)
+    gopt = geo.GeometryOptions()
+    assert meas.auto_quad_order(None, grid, 10.0) == 2 and cpl.misfit_quad_order(problem, gopt, None) == 2
+    coarse = replace(problem, grid=meas.VoxelGrid((16, 16), (1.5, 1.5)))
+    assert meas.auto_quad_order(None, coarse.grid, 10.0) == 6 and cpl.misfit_quad_order(coarse, gopt, None) == 3
+    assert cpl.misfit_quad_order(problem, replace(gopt, quad_order=1), None) == 1
+    assert cpl.misfit_quad_order(coarse, gopt, 5) == 5
+
+
 def test_sharp_coupled_operator_is_the_decoupled_one(laminar_coarse):
     """With a (nearly) sharp indicator and R fixed, T_i(R) c is the decoupled voxel mean T~_h c exactly."""
     _, _, res = laminar_coarse
@@ -280,7 +293,7 @@ def test_a_failed_gauss_newton_solve_falls_back_to_the_exact_hessian(laminar_coa
 
     monkeypatch.setattr(cpl, "run_nlpsol", flaky)
     out = cpl.solve(_problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), g, v, 1e4)
-    assert len(calls) == 2 and out.stats.converged
+    assert len(calls) == 2 and out.stats.converged and out.stats.extra["quad_order"] == 3
     assert out.stats.extra["hessian"] == "exact" and "Error_In_Step" in out.stats.extra["gauss_newton_failed"]
     monkeypatch.setattr(cpl, "run_nlpsol", real)
     ref = cpl.solve(_problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), g, v, 1e4)

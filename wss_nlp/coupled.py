@@ -76,16 +76,26 @@ class CoupledOptions:
     hessian : {"gauss-newton", "exact"}
         IPOPT Hessian: Gauss-Newton ``2 (J^T J + penalty Hessian)`` (default;
         the functional is a sum of squares) or CasADi's exact Hessian.
-    quad_order : int
+    quad_order : int or None
         Sub-voxel points per axis of the velocity misfit (q x q per voxel).
-        3 keeps the solve within a few times the decoupled one; the smoothed
-        indicator makes the partial volumes continuous in R at any q.
+        None (default): the decoupled fit's own q (``--quad-order``, by
+        default points about R/60 apart: :func:`wss_nlp.measurement.auto_quad_order`),
+        at most :data:`MAX_AUTO_QUAD_ORDER`; the smoothed indicator makes the
+        partial volumes continuous in R at any q. The cost grows like q^2:
+        fine images of large vessels need only 2 x 2 points (measured at
+        h = 0.3 and 0.6 mm: WSS within 0.02 % of the peak of q = 3, in half
+        the time; ``scripts/results/coupled_quad_order.md``).
     tol, max_iter : float, int
-        IPOPT stopping rules. The misfit sums thousands of sub-voxel terms,
-        so much tighter tolerances only meet rounding noise (measured: 1e-7
-        ran into the iteration limit on a laminar SNR 6 slice whose solution
-        agreed with the 1e-6 one to 1e-9 mm). Sensitivities polish the
-        solution with Newton steps anyway (:func:`wss_nlp.sensitivity.coupled`).
+        IPOPT stopping rules. The Gauss-Newton iteration converges linearly
+        (the dual infeasibility falls about 5x per iteration) and 1e-6
+        costs 1-2 more iterations than 1e-5 for a WSS change of at most
+        3.4e-7 of its peak (24 slices: four flows, h 1.5-0.3 mm, SNR 10
+        and 25; ``scripts/coupled_tolerance.py``); the misfit sums
+        thousands of sub-voxel terms, so much tighter tolerances only meet
+        rounding noise (1e-7 ran into the iteration limit on a laminar
+        SNR 6 slice whose solution agreed with the 1e-6 one to 1e-9 mm).
+        Sensitivities polish the solution with Newton steps anyway
+        (:func:`wss_nlp.sensitivity.coupled`).
     """
 
     schema_group = "method and parameter choice"
@@ -98,17 +108,32 @@ class CoupledOptions:
         toml=("velocity_weight",),
     )
     hessian: str = "gauss-newton"
-    quad_order: int = option(3, "coupled: sub-voxel points per axis of the velocity misfit", cli="--coupled-quad-order")
-    tol: float = 1e-6
+    quad_order: int | None = option(
+        None,
+        "coupled: sub-voxel points per axis of the velocity misfit (default: the decoupled fit's, at most 3)",
+        cli="--coupled-quad-order",
+    )
+    tol: float = 1e-5
     max_iter: int = 200
 
     def __post_init__(self):
         if self.velocity_weight is not None and not self.velocity_weight > 0:
             raise InputError(f"velocity weight must be > 0, got {self.velocity_weight}")
-        if self.quad_order < 1:
+        if self.quad_order is not None and self.quad_order < 1:
             raise InputError(f"coupled quad_order must be >= 1, got {self.quad_order}")
         if self.hessian not in ("gauss-newton", "exact"):
             raise InputError(f"coupled hessian must be 'gauss-newton' or 'exact', got {self.hessian!r}")
+
+
+#: The default coupled quadrature takes the decoupled fit's q up to this: the coupled cost grows like q^2, and at
+#: coarse h, where the decoupled rule asks for up to 6 points per axis, the coupled misfit has always used 3.
+MAX_AUTO_QUAD_ORDER = 3
+
+
+def misfit_quad_order(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, order: int | None) -> int:
+    """Sub-voxel points per axis of the coupled misfit: ``order``, or the decoupled fit's, at most
+    :data:`MAX_AUTO_QUAD_ORDER`."""
+    return int(order) if order is not None else min(MAX_AUTO_QUAD_ORDER, geo.quad_order(problem, gopt))
 
 
 def likelihood_weight(delta: float, n_annulus: int, voxel_area: float, sigma_u: float, weight_sum: float) -> float:
@@ -768,7 +793,7 @@ def build(
     weight: float,
     alpha: float,
     beta: float,
-    quad_order: int = 3,
+    quad_order: int | None = None,
     start=None,
     stretch: float | None = None,
 ) -> CoupledNLP:
@@ -791,7 +816,7 @@ def build(
     n_r = gnlp.c.numel()
     c_v = ca.MX.sym("c_v", basis.size)
     x = ca.vertcat(gnlp.c, c_v)
-    q = quad_order
+    q = misfit_quad_order(geometry_problem, gopt, quad_order)
     model = velocity_misfit_model(
         geometry_problem.grid,
         velocity_image,
@@ -944,6 +969,7 @@ def solve(
         stats.extra["gauss_newton_failed"] = failed
     stats.extra["hessian"] = hessian
     stats.extra["velocity_weight"] = weight
+    stats.extra["quad_order"] = nlp.velocity_model.order
     x = np.asarray(sol["x"]).ravel()
     res = nlp.result(
         geometry_problem, gopt, vopt, velocity_image, start_geometry, start_velocity, x, sol["lam_g"], stats
