@@ -87,8 +87,9 @@ def gauss_newton_ipopt(
     come from one evaluation of ``(f, grad, hess)`` per point
     (:class:`SharedEvaluation`), so the Jacobian is formed once per
     iteration instead of twice (once by reverse mode for the gradient).
-    The objective is then passed as an evaluation-only callback as well
-    (nlpsol's set-up would otherwise propagate sparsity through its graph).
+    The objective is then passed behind a callback as well, whose
+    derivatives are built only if evaluated: nlpsol's set-up otherwise builds
+    the Lagrangian's gradient by reverse mode through the whole graph.
     The returned Function holds the callbacks (attribute ``shared``: the
     objective's and the derivatives').
     """
@@ -100,7 +101,7 @@ def gauss_newton_ipopt(
     if grad is not None:
         point, point_names = ([x], ["x"]) if p is None else ([x, p], ["x", "p"])
         # the objective behind a callback too: IPOPT needs no derivatives of it here, and nlpsol's set-up
-        # propagates sparsity through an expression graph (0.1-0.4 s for the coupled misfit at h = 0.3 mm)
+        # would build a reverse sweep through its graph (0.1-0.4 s for the coupled misfit at h = 0.3 mm)
         objective = SharedEvaluation(ca.Function(f"{name}_objective", point, [f], point_names, ["f"]))
         nlp["f"] = objective(*point)
         derivatives = SharedEvaluation(
@@ -133,11 +134,12 @@ class SharedEvaluation(ca.Callback):
     IPOPT evaluates the gradient and the Hessian of the Lagrangian at the same
     iterate through separate functions; this callback lets both read the
     outputs of one evaluation (the last point only: the inputs are compared
-    exactly, byte for byte). Reverse derivatives are the wrapped function's
-    own (:meth:`casadi.Function.reverse`), built only if one is evaluated:
-    nlpsol's set-up asks for a gradient function it does not call when the
-    gradient and Hessian are supplied, and building it through a large graph
-    costs 0.1-0.4 s (the coupled misfit at h = 0.3 mm).
+    exactly, byte for byte). Its derivatives are the wrapped function's own
+    (:meth:`casadi.Function.forward`, :meth:`casadi.Function.reverse`, and
+    theirs in turn), built only when one is evaluated: nlpsol's set-up asks
+    for a gradient function it does not call when the gradient and Hessian
+    are supplied, and building it through a large graph costs 0.1-0.4 s
+    (the coupled misfit at h = 0.3 mm).
     """
 
     def __init__(self, function: ca.Function):
