@@ -327,6 +327,45 @@ def test_exponential_scale_interval_and_the_ambiguity_flag():
     assert nw.scale_ambiguity_note(choice, r.wss.mean, 10 * abs(r.wss.mean)) == ""
 
 
+def test_wall_law_roots_within_the_margin_give_the_scale_spread_and_the_flag(monkeypatch):
+    """Several roots of u_tau l = nu: a rival root whose criterion lies within AMBIGUOUS_MARGIN of the chosen
+    one's makes the record carry both scales' range and the spread of their fits' mean WSS (flagged where it
+    exceeds the band, as for the exponential scale), kept through the dephasing pass, which follows the chosen
+    root only; a rival outside the margin leaves both NaN. On the
+    phantoms the other roots lie 300-450 above (Re_tau 180) or do not exist (Re_tau 549, 998), so the rival
+    here is planted a quarter octave from the real root, its fit the real one at that scale."""
+    from wss_nlp.parameters import choice as ch
+
+    acq, _ = phantoms.make_phantom("turbulent", h_mm=1.5, snr=25.0, seed=24)
+    real = ch._wall_law_scale
+
+    passes = []
+
+    def with_rival(gap):
+        def planted(score, *args):
+            x, how, rivals = real(score, *args)
+            passes.append(args[-1])  # previous: None on the first pass, the root before a dephasing pass
+            # a dephasing pass follows the chosen root only: the rival is planted where the scan would find it
+            return x, how, ([(score(x)[0] + gap, x + 0.25)] if args[-1] is None else [])
+
+        return planted
+
+    monkeypatch.setattr(ch, "_wall_law_scale", with_rival(nw.AMBIGUOUS_MARGIN / 2))
+    r = reconstruct(acq, ReconstructionOptions())[0]
+    choice = r.near_wall
+    assert choice.model == "wall_law" and choice.consistent
+    assert passes[0] is None and any(p is not None for p in passes)  # the record is the dephasing pass's
+    lo, hi = choice.scale_interval
+    # the first pass's range, kept: the pass moved the root by far less than the planted quarter octave
+    assert hi == pytest.approx(2**0.25 * lo, rel=1e-12) and lo == pytest.approx(choice.scale_ratio, rel=0.05)
+    assert choice.scale_wss_spread > 0
+    flagged = any("layer scale ambiguous" in n for n in r.notes)
+    assert flagged == (choice.scale_wss_spread * abs(r.wss.mean) > r.wss.mean_std)
+    monkeypatch.setattr(ch, "_wall_law_scale", with_rival(2 * nw.AMBIGUOUS_MARGIN))
+    far = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0].near_wall
+    assert np.isnan(far.scale_wss_spread) and np.isnan(far.scale_interval[0])
+
+
 def test_wall_law_without_a_root_takes_the_criterions_scale_as_a_fitted_one():
     """Where no scale satisfies u_tau l = nu (the wall law forced on developing laminar flow), the wall law falls
     back to the criterion's scale, which then counts as one more fitted parameter (+ ln n, as the exponential

@@ -353,11 +353,14 @@ def test_wall_law_root_is_located_to_the_resolution_with_fewer_evaluations_than_
     at most 6 evaluations and without the scan."""
     g = lambda x: (x + 7.3) * (x + 6.2) * (1 + 0.3 * np.sin(3 * x))  # noqa: E731
     score, asked = _synthetic_scale_score(g, lambda x: abs(x + 7.3))
-    x, how = ch._wall_law_scale(score, -12.0, -4.0, 1000.0, 1.0, 0, predicted=-7.0)
+    x, how, rivals = ch._wall_law_scale(score, -12.0, -4.0, 1000.0, 1.0, 0, predicted=-7.0)
     assert abs(x + 7.3) <= ch.ROOT_RESOLUTION and "2 root(s)" in how
+    # the other root is reported with its criterion (|x + 7.3| there: 1.1) and named in the record
+    assert len(rivals) == 1 and abs(rivals[0][1] + 6.2) <= ch.ROOT_RESOLUTION
+    assert rivals[0][0] == pytest.approx(abs(rivals[0][1] + 7.3)) and "the next 1.1 above" in how
     assert len(set(asked)) <= 17 + 2 * 4  # the +-2 octave window's scan and two refinements
     asked.clear()
-    x, how = ch._wall_law_scale(score, -12.0, -4.0, 1000.0, 1.0, 0, predicted=-7.0, previous=-6.21)
+    x, how, rivals = ch._wall_law_scale(score, -12.0, -4.0, 1000.0, 1.0, 0, predicted=-7.0, previous=-6.21)
     assert abs(x + 6.2) <= ch.ROOT_RESOLUTION and len(set(asked)) <= 6  # the root it follows, not the best one
 
 

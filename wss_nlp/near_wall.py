@@ -519,7 +519,9 @@ class NearWallChoice:
         into the band); False for every other choice, a wall law without a root included.
     scale_interval : tuple
         A scale chosen by the criterion (``exponential``): the range of ``l/R`` over the evaluated scales
-        whose criterion lies within :data:`AMBIGUOUS_MARGIN` of the best; else NaN.
+        whose criterion lies within :data:`AMBIGUOUS_MARGIN` of the best; a law-of-the-wall scale with other
+        roots of ``u_tau l = nu`` within that margin of its criterion: the range of those roots (the first
+        pass's, kept through a dephasing pass, which follows the chosen root only); else NaN.
     scale_wss_spread : float
         The range of the mean WSS over those scales, relative to the chosen scale's (NaN likewise).
         A spread larger than the band flags the slice (:func:`scale_ambiguity_note`).

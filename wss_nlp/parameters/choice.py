@@ -382,6 +382,7 @@ def choose_layer(
 
     previous, chosen_log = None, {}
     fitted: dict = {}  # family -> its scale minimizes the criterion (rather than solving u_tau l = nu)
+    rivals: dict = {}  # family -> other roots of u_tau l = nu whose criterion is within the ambiguity margin
     if around is not None and around.model in nw.FAMILIES:
         families: tuple = (around.model,)
         previous = float(np.log2(around.scale_mm / big_r))
@@ -395,8 +396,11 @@ def choose_layer(
         family_score = functools.partial(score, family)
         if family == "wall_law" and nu_m2_s is not None:
             predicted = None if reynolds is None or reynolds <= 0 else blasius_scale(reynolds)
-            x, how = _wall_law_scale(family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted, previous)
+            x, how, rival_roots = _wall_law_scale(
+                family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted, previous
+            )
             fitted[family] = how == NO_ROOT  # no root: the BIC's scale
+            rivals[family] = [r for c, r in rival_roots if c <= family_score(x)[0] + nw.AMBIGUOUS_MARGIN]
         else:
             x, how, fitted[family] = _bic_scale(family_score, lo, hi), "the BIC's", True
         notes[family] = how + (", + ln(n) for the fitted scale" if fitted[family] else "")
@@ -429,6 +433,13 @@ def choose_layer(
         interval, spread = _scale_spread(
             functools.partial(score, chosen), chosen_log[chosen], brackets[chosen], vp.disk_map
         )
+    elif rivals.get(chosen):  # several self-consistent scales the data hardly tell apart
+        interval, spread = _scales_spread(functools.partial(score, chosen), [chosen_log[chosen], *rivals[chosen]],
+                                          vp.disk_map)  # fmt: skip
+    elif around is not None and around.consistent and chosen == around.model and np.isfinite(around.scale_wss_spread):
+        # a dephasing pass follows the chosen root only (a few hundredths of an octave away): keep the first
+        # pass's range and spread of the rival roots
+        interval, spread = around.scale_interval, around.scale_wss_spread
     how = "BIC = chi^2 + ln(n) tr(H^-1 K), each model at its best beta; "
     how += f"a layer needs a BIC {nw.LAYER_EVIDENCE:g} below plain"
     if reynolds is not None and mode == "auto" and around is None:
@@ -482,9 +493,15 @@ def _scale_spread(score, x_best: float, bracket: tuple, disk_map) -> tuple[tuple
             mid = (inner + outer) / 2
             inner, outer = (mid, outer) if score(mid)[0] <= limit else (inner, mid)
         ends.append(inner)
-    fits = [score(x) for x in (ends[0], x_best, ends[1])]  # (criterion, basis, beta, coefficients)
+    return _scales_spread(score, [x_best, ends[0], ends[1]], disk_map)
+
+
+def _scales_spread(score, xs: list, disk_map) -> tuple[tuple[float, float], float]:
+    """``((min l/R, max l/R), spread)`` over the scales ``log2(l/R) = xs`` (the chosen one first): the range of
+    their fits' mean WSS (each at its own best beta) over the chosen fit's."""
+    fits = [score(x) for x in xs]  # (criterion, basis, beta, coefficients)
     means = [_mean_wall_slope(basis, coef, disk_map) for _, basis, _, coef in fits]
-    return (float(2.0 ** ends[0]), float(2.0 ** ends[1])), float((max(means) - min(means)) / abs(means[1]))
+    return (float(2.0 ** min(xs)), float(2.0 ** max(xs))), float((max(means) - min(means)) / abs(means[0]))
 
 
 #: First step and finest resolution (octaves, 0.14 % of l) of the ends of the scale interval of :func:`_scale_spread`.
@@ -539,7 +556,7 @@ def _wall_law_scale(
     n_base: int,
     predicted: float | None = None,
     previous: float | None = None,
-) -> tuple[float, str]:
+) -> tuple[float, str, list]:
     r"""log2(l/R) at which the fitted wall-law layer is self-consistent, and how it was found.
 
     Notes
@@ -551,15 +568,19 @@ def _wall_law_scale(
     the density). ``g`` is scanned on quarter octaves, each sign change is
     refined to :data:`ROOT_RESOLUTION` octaves by regula falsi
     (:func:`_refine_root`); of several roots the one with the smallest BIC
-    is taken (spurious roots sit where
-    the layer's amplitude changes sign, far from the data's optimum). With a
+    is taken (spurious roots sit where the layer's amplitude changes sign,
+    far from the data's optimum: 243-493 above the chosen one on the
+    Re_tau 180 phantoms, none at Re_tau 549 and 998;
+    ``scripts/results/wall_law_roots.md``); :func:`choose_layer` records
+    the WSS spread of rivals within the ambiguity margin. With a
     ``predicted`` log2(l/R) (:func:`blasius_scale`) the scan starts two
     octaves either side of it and widens to the whole range only if that
     window holds no root. A ``previous`` root (the same slice before a
     dephasing pass moved its wall a little) is followed locally: probes
     either side of it at widening distances (:data:`LOCAL_STEPS`), and the
     scan only if none brackets a root. Without a root the BIC's scale is
-    used and the record says so.
+    used and the record says so. Returns ``(log2 l/R, how, rivals)`` with
+    ``rivals`` the other roots found, ``(criterion, log2 l/R)``, best first.
     """
     memo: dict = {}
 
@@ -592,9 +613,12 @@ def _wall_law_scale(
     if not roots and window.size < xs.size:
         roots = roots_on(xs)
     if not roots:
-        return _bic_scale(score, lo, hi), NO_ROOT
+        return _bic_scale(score, lo, hi), NO_ROOT, []
     crit, x = min(roots)
-    return x, f"law of the wall {nw.CONSISTENT} ({len(roots)} root(s), the one with the smallest BIC)"
+    rivals = sorted(r for r in roots if r[1] != x)
+    how = f"law of the wall {nw.CONSISTENT} ({len(roots)} root(s), the one with the smallest BIC"
+    how += f"; the next {rivals[0][0] - crit:.3g} above)" if rivals else ")"
+    return x, how, rivals
 
 
 def _refine_root(g, a: float, b: float, resolution: float = ROOT_RESOLUTION) -> float:
