@@ -59,12 +59,12 @@ def main(argv=None):
                 t0 = time.perf_counter()
                 r = reconstruct(acq, options)[0]
                 times[model].append(time.perf_counter() - t0)
-                split[model] = r.seconds
+                split[model] = (r.seconds, r.dephasing)
         box, ksp = float(np.median(times["box"])), float(np.median(times["kspace"]))
-        sec = split["kspace"]
+        sec = split["kspace"][0]
         deph = sec.get("dephasing_check", 0.0) + sec.get("dephasing_pass", 0.0)
-        passes = " / ".join(str(split[m].get("dephasing_passes", 0)) for m in times)
-        factors = " / ".join(f"{split[m]['min_dephasing_factor']:.3f}" for m in times)
+        passes = " / ".join(str(split[m][1].get("passes", 0)) for m in times)
+        factors = " / ".join(f"{split[m][1]['min_factor']:.3f}" for m in times)
         lines.append(
             f"| {h:g} | {box:.2f} | {ksp:.2f} | {ksp / box:.1f}{'' if ksp / box <= TARGET_RATIO else ' (missed)'} | "
             f"{sec['geometry']:.2f} / {sec['velocity']:.2f} / {deph:.2f}"

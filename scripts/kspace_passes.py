@@ -67,7 +67,7 @@ def main(argv=None):
                         for seed in range(args.seeds):
                             acq, truth = ph.make_phantom(case, h_mm=h, snr=snr, seed=seed, psf=psf)
                             out = [_run(acq, psf, predict) for predict in (False, True)]
-                            counts = [r.seconds.get("dephasing_passes", 0) for r, _ in out]
+                            counts = [r.dephasing.get("passes", 0) for r, _ in out]
                             passes += counts
                             fewer += counts[1] < counts[0]
                             taus = [r.wss.tau for r, _ in out]

@@ -751,16 +751,16 @@ def test_dephasing_passes_stop_when_the_next_one_would_not_move_the_wall(monkeyp
     acq, _ = ph.make_phantom("laminar", h_mm=0.6, snr=25, seed=17, psf=psf)
     options = rc.ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "hamming"))
     short = rc.reconstruct(acq, options)[0]
-    assert short.seconds["dephasing_passes"] >= 1
-    assert short.seconds["dephasing_next_move"] < rc.KSPACE_PASS_TOL
+    assert short.dephasing["passes"] >= 1
+    assert short.dephasing["next_move"] < rc.KSPACE_PASS_TOL
     monkeypatch.setattr(rc, "KSPACE_PASS_PREDICTION", False)
     full = rc.reconstruct(acq, options)[0]
-    assert full.seconds["dephasing_passes"] == short.seconds["dephasing_passes"] + 1
+    assert full.dephasing["passes"] == short.dephasing["passes"] + 1
     phi = rad.uniform_angles(72)
     moved = np.max(np.abs(full.geometry.radius(phi) - short.geometry.radius(phi)))
     assert moved < rc.KSPACE_PASS_TOL * acq.grid.h
     # the prediction itself: within 5 % of the move it predicted (measured 1e-4)
-    assert moved / acq.grid.h == pytest.approx(short.seconds["dephasing_next_move"], rel=0.05)
+    assert moved / acq.grid.h == pytest.approx(short.dephasing["next_move"], rel=0.05)
     assert abs(full.wss.mean - short.wss.mean) < 1e-3 * abs(full.wss.mean)
 
 
@@ -779,3 +779,15 @@ def test_analyze_reports_the_dephasing_passes(tmp_path, capsys):
     line = next(ln for ln in capsys.readouterr().out.splitlines() if "dephasing:" in ln)
     assert f"{rec['passes']} pass(es)" in line and f"{rec['min_factor']:.4g}" in line
     assert f"{rec['next_move']:.2g} voxel" in line and f"below {rc.KSPACE_PASS_TOL:g}" in line
+    # the record is its own attribute, not part of the timings; a file written before it existed (the record
+    # inside seconds_json under the old keys) reads back the same
+    with h5py.File(out, "r+") as f:
+        attrs = f["slice_000"].attrs
+        record, seconds = json.loads(attrs["dephasing_json"]), json.loads(attrs["seconds_json"])
+        assert "min_factor" in record
+        assert not {"dephasing_passes", "min_dephasing_factor", "dephasing_next_move", "dephasing_beta"} & set(seconds)
+        old = {"dephasing_passes": "passes", "min_dephasing_factor": "min_factor", "dephasing_next_move": "next_move"}
+        seconds.update({key: record[new] for key, new in old.items()})
+        attrs["seconds_json"] = json.dumps(seconds)
+        del attrs["dephasing_json"]
+    assert wio.read_dephasing(str(out))["slice_000"] == rec

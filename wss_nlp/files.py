@@ -667,6 +667,8 @@ def _write_core(s, r) -> None:
     s.attrs["converged"] = bool(r.converged)
     s.attrs["warnings"] = json.dumps(r.warnings)
     s.attrs["seconds_json"] = json.dumps(r.seconds)
+    if getattr(r, "dephasing", None):
+        s.attrs["dephasing_json"] = json.dumps(r.dephasing)
     s.attrs["method"] = getattr(r, "method", "decoupled")
     gg = s.create_group("geometry")
     gg["center_mm"] = np.asarray(g.center, dtype=float)
@@ -830,25 +832,36 @@ def read_choices(path) -> dict:
 
 
 def read_dephasing(path) -> dict:
-    """``{slice name: {"passes", "min_factor", "next_move"}}``: each slice's dephasing passes (``seconds_json``).
+    """``{slice name: {"passes", "min_factor", "next_move"}}``: each slice's dephasing passes (``dephasing_json``).
 
     ``min_factor`` is the smallest predicted magnitude factor of the first check (a pass runs below
     ``1 - DEPHASING_THRESHOLD``); ``next_move`` the last predicted wall move of a further k-space pass in
-    voxels (None when none was predicted).
+    voxels (None when none was predicted). Files written before ``dephasing_json`` existed kept these
+    numbers in ``seconds_json`` (``dephasing_passes``, ``min_dephasing_factor``, ``dephasing_next_move``).
     """
     import h5py
 
     out = {}
     with h5py.File(path, "r") as f:
         for name in sorted(k for k in f if k.startswith("slice_")):
-            sec = json.loads(f[name].attrs.get("seconds_json", "{}"))
-            if "min_dephasing_factor" in sec:
+            attrs = f[name].attrs
+            if "dephasing_json" in attrs:
+                rec = json.loads(attrs["dephasing_json"])
+            else:
+                old = json.loads(attrs.get("seconds_json", "{}"))
+                rec = {new: old[key] for new, key in _OLD_DEPHASING_KEYS.items() if key in old}
+            if "min_factor" in rec:
                 out[name] = {
-                    "passes": int(sec.get("dephasing_passes", 0)),
-                    "min_factor": float(sec["min_dephasing_factor"]),
-                    "next_move": sec.get("dephasing_next_move"),
+                    "passes": int(rec.get("passes", 0)),
+                    "min_factor": float(rec["min_factor"]),
+                    "next_move": rec.get("next_move"),
                 }
     return out
+
+
+#: Where files written before ``dephasing_json`` kept the dephasing record (inside ``seconds_json``).
+_OLD_DEPHASING_KEYS = {"passes": "dephasing_passes", "min_factor": "min_dephasing_factor",
+                       "next_move": "dephasing_next_move", "beta": "dephasing_beta"}  # fmt: skip
 
 
 def read_near_wall(path) -> dict:

@@ -520,7 +520,7 @@ class StackRun:
             if not np.all(np.isfinite(w.tau)):
                 raise SolverError(f"{acq.source} slice {k}: wall shear stress is not finite")
             p = self.prepared[k]
-            sec = {"min_dephasing_factor": float(np.min(factors[i], initial=1.0)) if factors[i] is not None else 1.0}
+            dep = {"min_factor": float(np.min(factors[i], initial=1.0)) if factors[i] is not None else 1.0}
             notes = [deph.UNEXPLAINED_NOTE] if k in self.unexplained else []
             notes += [band_note] if band_note else []
             if bands is not None and (scale_note := nw.scale_ambiguity_note(near, w.mean, w.mean_std)):
@@ -541,7 +541,7 @@ class StackRun:
                 acq.grid,
                 p.magnitude,
                 p.velocity,
-                sec,
+                {},
                 pr.ParameterChoice("alpha", "fixed", options.geometry.alpha),
                 replace(chosen, chosen=beta),
                 options.method,
@@ -549,6 +549,7 @@ class StackRun:
                 None,
                 notes,
                 near_wall=near,
+                dephasing=dep,
             )
             self.done += 1
             if progress is not None:

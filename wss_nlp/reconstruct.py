@@ -329,6 +329,7 @@ def reconstruct_slice(
     t["velocity"] = time.perf_counter() - t0
 
     factors, notes_deph = None, []
+    dep: dict = {}  # the dephasing record (SliceResult.dephasing)
     passes = 1 if psf is None else KSPACE_PASSES
     # box: one corrective pass (the factors hardly move after it); k-space: the phase mixing reaches further
     # than a wall voxel, so passes repeat until the wall stops moving, each judged by how well its state
@@ -345,7 +346,7 @@ def reconstruct_slice(
                 window, explained = corr.window, corr.misfit_still
             elif corr.misfit_moving >= explained:
                 problem, g, vp, v, near, beta_choice, lumen = previous  # type: ignore[misc]
-                t["dephasing_passes"] = k - 1
+                dep["passes"] = k - 1
                 if k == 1:  # later passes that do not help just end the iteration
                     notes_deph.append(deph.UNEXPLAINED_NOTE)
                 break
@@ -353,7 +354,7 @@ def reconstruct_slice(
                 explained = corr.misfit_moving
             lumen = replace(lumen, signal=corr.signal)  # the phases' prediction of the background tails
         factors = corr.factors if factors is None else factors
-        t["dephasing_beta"] = float(v_deph.beta)
+        dep["beta"] = float(v_deph.beta)
         # a further pass only pays where some wall voxel loses more than 1 % of its magnitude
         if k == passes or not corr.worth_a_pass:
             break
@@ -364,8 +365,8 @@ def reconstruct_slice(
             change = geo.predicted_change(problem, options.geometry, g, corr.magnitude)
             t["dephasing_check"] += time.perf_counter() - t0
             if change is not None:
-                t["dephasing_next_move"] = float(np.max(np.abs(rad.evaluate(change, rad.uniform_angles(72)))) / grid.h)
-                if t["dephasing_next_move"] < KSPACE_PASS_TOL:
+                dep["next_move"] = float(np.max(np.abs(rad.evaluate(change, rad.uniform_angles(72)))) / grid.h)
+                if dep["next_move"] < KSPACE_PASS_TOL:
                     break
         t0 = time.perf_counter()
         previous = (problem, g, vp, v, near, beta_choice, lumen)
@@ -386,7 +387,7 @@ def reconstruct_slice(
             beta_choice = pipeline.beta_choice(data, vp, near, options, viscosity_pa_s, lumen=lumen)
         v = vel.solve(vp, options.velocity, beta=beta_choice.chosen)
         t["dephasing_pass"] = t.get("dephasing_pass", 0.0) + time.perf_counter() - t0
-        t["dephasing_passes"] = k + 1
+        dep["passes"] = k + 1
         moved = np.max(np.abs(g.radius(rad.uniform_angles(72)) - previous[1].radius(rad.uniform_angles(72))))
         if psf is None or moved < KSPACE_PASS_TOL * grid.h:
             break
@@ -403,7 +404,7 @@ def reconstruct_slice(
     t0 = time.perf_counter()
     w = wss_mod.from_reconstruction(v, options.n_phi, viscosity_pa_s)
     t["wss"] = time.perf_counter() - t0
-    t["min_dephasing_factor"] = float(np.min(factors, initial=1.0)) if factors is not None else 1.0
+    dep["min_factor"] = float(np.min(factors, initial=1.0)) if factors is not None else 1.0
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
     notes, sensitivity, pending = list(notes_deph), None, None
@@ -435,6 +436,7 @@ def reconstruct_slice(
         near_wall=near,
         problem=vp,
         pending_band=pending,
+        dephasing=dep,
     )
 
 

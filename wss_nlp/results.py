@@ -57,7 +57,7 @@ class SliceResult:
     grid: VoxelGrid
     magnitude: np.ndarray  # normalized, (ny, nx)
     velocity_image: np.ndarray  # measured velocity, (ny, nx)
-    seconds: dict = field(default_factory=dict)
+    seconds: dict = field(default_factory=dict)  # wall-clock seconds per stage
     alpha_choice: pr.ParameterChoice | None = None
     beta_choice: pr.ParameterChoice | None = None
     method: str = "decoupled"
@@ -66,6 +66,9 @@ class SliceResult:
     notes: list = field(default_factory=list)  # things the user should know that are not failures
     screen: dict = field(default_factory=dict)  # what wss_nlp.plausibility found (vessels, aliasing)
     near_wall: nw.NearWallChoice | None = None  # the near-wall model and why (wss_nlp.parameters.choice.choose_layer)
+    # the dephasing passes: "passes" run, "min_factor" (smallest predicted magnitude factor of the first check),
+    # "next_move" (k-space: predicted wall move of a further pass, voxels), "beta" (of the velocity the check used)
+    dephasing: dict = field(default_factory=dict)
     # the velocity problem of the final fit, kept only with a deferred band (cine frames), then dropped
     problem: vel.VelocityProblem | None = None
     # the uncertainty band still to compute (reconstruct_slice(defer_band=True)): () -> (Sensitivity, note)
