@@ -427,7 +427,7 @@ def _layer_text(rec: dict) -> str:
     pm = f" +- {100 * (np.exp(std_log) - 1):.2g} %" if np.isfinite(std_log) else ""
     scale = f"l = {rec['scale_mm'] * 1000:.3g} um{pm} (l/R = {rec['scale_ratio']:.3g})"
     wss_spread = rec.get("scale_wss_spread", float("nan"))
-    if wss_spread is not None and np.isfinite(wss_spread):  # a scale chosen by the criterion: how sharply
+    if wss_spread is not None and np.isfinite(wss_spread):  # scales the data hardly tell apart, and their WSS
         lo, hi = rec["scale_interval"]
         scale += (
             f"; l/R {lo:.3g}-{hi:.3g} within {nw.AMBIGUOUS_MARGIN:g} of its criterion, "

@@ -728,8 +728,6 @@ class CoupledNLP:
     n_r: int
     f: ca.MX
     g: ca.MX
-    residual: ca.MX  # stacked [magnitude residual; sqrt(lambda) velocity residual]
-    jacobian: ca.MX  # d residual / d x, assembled by the chain rule (see velocity_residual)
     geometry: geo.TikhonovNLP
     velocity_model: VelocityMisfitModel
     weight: float
@@ -739,9 +737,23 @@ class CoupledNLP:
     alpha: float
     beta: float
     penalty: ca.MX  # alpha ||R - R_ref||^2_{H^s} + lambda beta ||Delta^t v||^2 / pi: f = |residual|^2 + penalty
-    # ((r_m, r_v), (dr_m/dc_R, dr_v/dc_R, dr_v/dc_v)): residual = [r_m; sqrt(lambda) r_v] and its Jacobian by blocks
+    # ((r_m, r_v), (dr_m/dc_R, dr_v/dc_R, dr_v/dc_v)): the magnitude and velocity residuals and the Jacobian's
+    # blocks (the velocity ones by the chain rule, see velocity_residual)
     blocks: tuple
     stretch: float | None = None  # S of a near-wall layer's cells (velocity_residual), fixed at the start's map
+
+    @property
+    def residual(self) -> ca.MX:
+        """The stacked residual ``[r_m; sqrt(lambda) r_v]``."""
+        (r_m, r_v), _ = self.blocks
+        return ca.vertcat(r_m, np.sqrt(self.weight) * r_v)
+
+    @property
+    def jacobian(self) -> ca.MX:
+        """``d residual / d x``, assembled from :attr:`blocks` (the solver uses the blocks themselves)."""
+        _, (j_m, j_vr, j_vv) = self.blocks
+        zeros = ca.MX(j_m.shape[0], j_vv.shape[1])  # the magnitude residual does not depend on c_v
+        return ca.vertcat(ca.horzcat(j_m, zeros), np.sqrt(self.weight) * ca.horzcat(j_vr, j_vv))
 
     def penalty_hessian(self) -> np.ndarray:
         """Half the Hessian of the penalties: ``alpha W`` on ``c_R``, ``lambda beta G / pi`` on ``c_v``."""
@@ -836,16 +848,9 @@ def build(
     penalty = alpha * gnlp.penalty + weight * beta * pen_v
     # f summed term by term (not |residual|^2 + penalty): sqrt(lambda)^2 != lambda in rounding
     f = ca.sumsqr(gnlp.residual) + alpha * gnlp.penalty + weight * (ca.sumsqr(res_v) + beta * pen_v)
-    residual = ca.vertcat(gnlp.residual, np.sqrt(weight) * res_v)
     jac_m = ca.jacobian(gnlp.residual, gnlp.c) if gnlp.jacobian is None else gnlp.jacobian
-    jacobian = ca.vertcat(
-        ca.horzcat(jac_m, ca.MX(jac_m.shape[0], basis.size)), np.sqrt(weight) * ca.horzcat(jac_vr, jac_vv)
-    )
     blocks = ((gnlp.residual, res_v), (jac_m, jac_vr, jac_vv))
-    return CoupledNLP(
-        x, n_r, f, gnlp.g, residual, jacobian, gnlp, model, weight, gram, gamma, err_v, alpha, beta, penalty, blocks,
-        stretch,
-    )  # fmt: skip
+    return CoupledNLP(x, n_r, f, gnlp.g, gnlp, model, weight, gram, gamma, err_v, alpha, beta, penalty, blocks, stretch)
 
 
 #: IPOPT options of a coupled solve started from the decoupled solution: a small initial barrier parameter

@@ -495,9 +495,10 @@ def uncertainty(
     A band that cannot be computed (no background for the noise level, no
     venc, a failed anchor re-solve) is reported in the note, not raised:
     the reconstruction itself is still valid. With a law-of-the-wall layer
-    (``near``) the band includes the scale's response to the noise; with an
-    exponential layer whose nearly equally good scales give mean WSS further
-    apart than the band, the note says so (:func:`wss_nlp.near_wall.scale_ambiguity_note`).
+    (``near``) the band includes the scale's response to the noise; with a
+    layer whose nearly equally good scales (an exponential layer's interval,
+    a wall law's rival roots) give mean WSS further apart than the band, the
+    note says so (:func:`wss_nlp.near_wall.scale_ambiguity_note`).
     """
     try:
         if coupled_result is not None:

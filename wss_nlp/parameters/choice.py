@@ -400,11 +400,11 @@ def choose_layer(
                 family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted, previous
             )
             fitted[family] = how == NO_ROOT  # no root: the BIC's scale
-            rivals[family] = [r for c, r in rival_roots if c <= family_score(x)[0] + nw.AMBIGUOUS_MARGIN]
         else:
-            x, how, fitted[family] = _bic_scale(family_score, lo, hi), "the BIC's", True
+            x, how, fitted[family], rival_roots = _bic_scale(family_score, lo, hi), "the BIC's", True, []
         notes[family] = how + (", + ln(n) for the fitted scale" if fitted[family] else "")
         crit, basis, beta, _ = score(family, x)
+        rivals[family] = [r for c, r in rival_roots if c <= crit + nw.AMBIGUOUS_MARGIN]
         if fitted[family]:
             # a scale fitted to the data is one more parameter, which tr(H^-1 K) does not count
             crit += criterion.log_n
