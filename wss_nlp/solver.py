@@ -128,7 +128,29 @@ def gauss_newton_ipopt(
     return solver
 
 
-class SharedEvaluation(ca.Callback):
+class _DeferredDerivatives:
+    """Forward and reverse derivatives of a callback that are those of ``self.built()`` (a CasADi Function),
+    each built only when first evaluated (:func:`_deferred_derivative`); the callback keeps them in ``_kept``."""
+
+    _kept: list
+
+    def built(self) -> ca.Function:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def has_forward(self, nfwd):
+        return True
+
+    def get_forward(self, nfwd, name, inames, onames, opts):
+        return _deferred_derivative(self, self.built, False, nfwd, name, inames, onames, opts)
+
+    def has_reverse(self, nadj):
+        return True
+
+    def get_reverse(self, nadj, name, inames, onames, opts):
+        return _deferred_derivative(self, self.built, True, nadj, name, inames, onames, opts)
+
+
+class SharedEvaluation(_DeferredDerivatives, ca.Callback):
     """A CasADi Function evaluated once per distinct input and reused for repeated calls at the same point.
 
     IPOPT evaluates the gradient and the Hessian of the Lagrangian at the same
@@ -150,6 +172,9 @@ class SharedEvaluation(ca.Callback):
         self._kept: list = []  # derivative callbacks (CasADi's rule: keep them while in use)
         self.evaluations = 0
         self.construct(f"shared_{function.name()}", {})
+
+    def built(self) -> ca.Function:
+        return self.function
 
     def get_n_in(self):
         return self.function.n_in()
@@ -179,18 +204,6 @@ class SharedEvaluation(ca.Callback):
             self.evaluations += 1
         return list(self._values)
 
-    def has_forward(self, nfwd):
-        return True
-
-    def get_forward(self, nfwd, name, inames, onames, opts):
-        return _deferred_derivative(self, lambda: self.function, False, nfwd, name, inames, onames, opts)
-
-    def has_reverse(self, nadj):
-        return True
-
-    def get_reverse(self, nadj, name, inames, onames, opts):
-        return _deferred_derivative(self, lambda: self.function, True, nadj, name, inames, onames, opts)
-
 
 def _deferred_derivative(owner, function, reverse: bool, n: int, name, inames, onames, opts) -> ca.Function:
     """CasADi's ``n``-direction forward or reverse derivative of ``function()``, built when first evaluated.
@@ -211,7 +224,7 @@ def _deferred_derivative(owner, function, reverse: bool, n: int, name, inames, o
     return ca.Function(name, args, lazy.call(args), inames, onames, opts)
 
 
-class _Deferred(ca.Callback):
+class _Deferred(_DeferredDerivatives, ca.Callback):
     """A function built by ``build()`` on its first evaluation (sparsities given up front); its derivatives
     are deferred the same way."""
 
@@ -243,18 +256,6 @@ class _Deferred(ca.Callback):
     def eval(self, arg):
         out = self.built()(*arg)
         return list(out) if isinstance(out, (list, tuple)) else [out]
-
-    def has_forward(self, nfwd):
-        return True
-
-    def get_forward(self, nfwd, name, inames, onames, opts):
-        return _deferred_derivative(self, self.built, False, nfwd, name, inames, onames, opts)
-
-    def has_reverse(self, nadj):
-        return True
-
-    def get_reverse(self, nadj, name, inames, onames, opts):
-        return _deferred_derivative(self, self.built, True, nadj, name, inames, onames, opts)
 
 
 def run_nlpsol(solver: ca.Function, what: str, **args) -> tuple[dict, SolverStats]:
