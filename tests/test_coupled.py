@@ -231,8 +231,12 @@ def test_sharp_coupled_operator_with_a_layer_is_the_decoupled_one(turbulent_laye
         start=g.coefficients,
     )  # fmt: skip
     # the start's wall classifies the points: full cell means near it, the far-inside branch and zero beyond
-    band = cpl.LAYER_BAND_VOXELS * res.grid.h
-    assert min(np.mean(model.start_gap < -band), np.mean(model.start_gap > band)) > 0.02
+    model.layer_margin_mm = cpl.LAYER_MARGIN_VOXELS * res.grid.h  # as build() sets it
+    l_mm = v.basis.scale * cpl.layer_stretch(v)
+    classes = cpl.layer_point_classes(model, l_mm, cpl.layer_stretch(v), v.disk_map.r_in, model.layer_margin_mm)
+    n_pts = model.dist.size
+    outside = n_pts - classes["band"].size - classes["far"].size
+    assert min(classes["band"].size, classes["far"].size, outside) > 0.02 * n_pts
     c = np.random.default_rng(2).normal(size=v.basis.size)
     c_r, c_v = ca.MX.sym("c_r", g.coefficients.size), ca.MX.sym("c_v", c.size)
     expr = cpl.velocity_residual(
@@ -312,3 +316,25 @@ def test_coupled_with_the_layer_matches_the_decoupled_accuracy_on_the_re_tau_180
     cou = metrics.compare_slice(res, truth)
     assert res.near_wall.model == "wall_law" and res.converged
     assert abs(cou.wss_rel_l2 - dec.wss_rel_l2) <= 0.01 and cou.wss_rel_l2 < 0.10
+
+
+def test_a_wall_move_beyond_the_layer_margin_is_re_solved_with_wider_point_classes(turbulent_layered, monkeypatch):
+    """The layer's point classes hold for walls within a margin of the start (the far-inside formula needs the
+    cell wholly in the fluid). A margin smaller than the solve's actual move (measured 0.04 mm here, h = 1.5 mm)
+    sends the solve round again with classes for twice that move, and the result equals the default one's to
+    IPOPT's tolerance: the far-inside cell means differ from the trapezoid by less than 1e-4 relative, and the
+    two solves stop at IPOPT's tolerance (1e-4) from different starts (measured: radius coefficients 1.2e-5 mm,
+    velocity coefficients 1e-5 of the largest)."""
+    _, _, res = turbulent_layered
+    g, v = res.geometry, res.velocity
+    args = (_problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), g, v, 1e4)
+    ref = cpl.solve(*args)
+    assert ref.stats.extra["layer_passes"] == 1
+    assert ref.stats.extra["wall_move_mm"] <= ref.stats.extra["layer_margin_mm"]
+    monkeypatch.setattr(cpl, "LAYER_MARGIN_VOXELS", 1e-3)  # 0.0015 mm: below the move
+    out = cpl.solve(*args)
+    assert out.stats.extra["layer_passes"] == 2 and out.stats.converged
+    assert out.stats.extra["layer_margin_mm"] == pytest.approx(2 * ref.stats.extra["wall_move_mm"], rel=0.05)
+    np.testing.assert_allclose(out.geometry.coefficients, ref.geometry.coefficients, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(out.velocity.coefficients, ref.velocity.coefficients, rtol=0,
+                               atol=1e-4 * np.max(np.abs(ref.velocity.coefficients)))  # fmt: skip

@@ -87,10 +87,11 @@ class CoupledOptions:
         the time; ``scripts/results/coupled_quad_order.md``).
     tol, max_iter : float, int
         IPOPT stopping rules. The Gauss-Newton iteration converges linearly
-        (the dual infeasibility falls about 5x per iteration) and 1e-6
-        costs 1-2 more iterations than 1e-5 for a WSS change of at most
-        3.4e-7 of its peak (24 slices: four flows, h 1.5-0.3 mm, SNR 10
-        and 25; ``scripts/coupled_tolerance.py``); the misfit sums
+        (the dual infeasibility falls about 5-7x per iteration); 1e-6 costs
+        2-3 more iterations than 1e-4 for a WSS change of at most 2.3e-6 of
+        its peak (24 slices: four flows, h 1.5-0.3 mm, SNR 10 and 25;
+        ``scripts/coupled_tolerance.py``), far below any error the data
+        allow; the misfit sums
         thousands of sub-voxel terms, so much tighter tolerances only meet
         rounding noise (1e-7 ran into the iteration limit on a laminar
         SNR 6 slice whose solution agreed with the 1e-6 one to 1e-9 mm).
@@ -113,7 +114,7 @@ class CoupledOptions:
         "coupled: sub-voxel points per axis of the velocity misfit (default: the decoupled fit's, at most 3)",
         cli="--coupled-quad-order",
     )
-    tol: float = 1e-5
+    tol: float = 1e-4
     max_iter: int = 200
 
     def __post_init__(self):
@@ -216,6 +217,8 @@ class VelocityMisfitModel:
     points_index: np.ndarray | None = None
     cell_mm: tuple = (0.0, 0.0)  # (dx, dy) / order: one quadrature cell (a near-wall layer integrates across it)
     start_gap: np.ndarray | None = None  # (n_points,) distance to the centre minus the start's R there, mm
+    # how far the wall may move from the start before a near-wall layer's point classes can be wrong, mm
+    layer_margin_mm: float = 0.0
 
     kept: list = field(default_factory=list)  # callbacks of the graphs built on this model (CasADi's rule)
 
@@ -448,9 +451,11 @@ def _design_sums(model: VelocityMisfitModel, k: int) -> _VoxelSums:
 
 
 def _basis_sums(
-    model: VelocityMisfitModel, pb: PolarBasis, transform: np.ndarray, series: chebyshev.Family
+    model: VelocityMisfitModel, pb: PolarBasis, transform: np.ndarray | None, series: chebyshev.Family
 ) -> _VoxelSums:
     r"""``(w, x, a) -> diag(a) A(diag(w) raw^T) Q``: the velocity columns of the Jacobian, in NumPy.
+
+    ``transform = None`` leaves ``Q`` out (the columns of the raw functions).
 
     ``raw_j = angular_{a(j)} (C T)_{r(j)}`` at the points (``T`` the
     Chebyshev polynomials at the points' ``x = 2 rho / RHO_MAX - 1``, ``C``
@@ -474,13 +479,17 @@ def _basis_sums(
             sums = np.empty((a_idx.size, n_vox))
             for j, (a, r) in enumerate(zip(a_idx, r_idx)):
                 np.einsum("vg,vg->v", weighted[a], radial[r], out=sums[j])
-            sums = sums.T
         else:
-            sums = point_sums(np.ascontiguousarray((weighted[a_idx] * radial[r_idx]).T))
-        return rows * (sums @ transform)
+            sums = point_sums(np.ascontiguousarray((weighted[a_idx] * radial[r_idx]).T)).T
+        # (columns, voxels) in row-major order is CasADi's column-major (voxels, columns): the caller's copy
+        # into the output buffer is then contiguous
+        out = sums if transform is None else transform.T @ sums
+        out *= rows.T
+        return out.T
 
     shapes = [(1, n_pts), (1, n_pts), (n_vox, 1)]
-    return _VoxelSums("basis_sums", shapes, (n_vox, transform.shape[1]), apply)
+    n_cols = a_idx.size if transform is None else transform.shape[1]
+    return _VoxelSums("basis_sums", shapes, (n_vox, n_cols), apply)
 
 
 def velocity_residual(
@@ -495,14 +504,21 @@ def velocity_residual(
     floor: float = DENOMINATOR_FLOOR,
     center=None,
     stretch: float | None = None,
+    factored: bool = False,
 ):
     """Weighted velocity residual ``sqrt(w_i / W) (T_i(R) c_v - u_i)`` on the fixed voxel set (CasADi MX).
 
-    With ``jacobian=True`` returns ``(r, dr/dc_R, dr/dc_v)``; the Jacobian
-    is assembled by the chain rule from CasADi's exact derivatives of the
-    pointwise pieces (``H_gamma'``, ``d rho / d R``, ``d v / d rho``), which
-    costs a few basis evaluations instead of one sweep per unknown
-    (``tests/test_coupled.py`` checks it against ``ca.jacobian``).
+    With ``jacobian=True`` returns ``(r, dr/dc_R, dr/dc_v, T(R) c_v - u)``;
+    the Jacobian is assembled by the chain rule from CasADi's exact
+    derivatives of the pointwise pieces (``H_gamma'``, ``d rho / d R``,
+    ``d v / d rho``), which costs a few basis evaluations instead of one
+    sweep per unknown (``tests/test_coupled.py`` checks it against
+    ``ca.jacobian``). With ``factored=True`` as well, ``dr/dc_v = C F`` is
+    returned as ``C`` (the raw functions' columns, then the layer's) with the
+    constant ``F`` (NumPy: the basis's orthonormalizing transform, the
+    identity on the layer) appended to the tuple: the Gauss-Newton Hessian
+    then needs ``F^T (C^T C) F``, and ``C^T C`` costs what ``C F`` alone
+    would (:class:`wss_nlp.operators.BlockGram`).
 
     Notes
     -----
@@ -624,7 +640,7 @@ def velocity_residual(
     model_u = t * ratio
     if layered:
         assert stretch is not None  # checked above
-        lay, dlay, area, darea = _layer_points(full, model, rho_wall, stretch, center_harmonics)
+        lay, dlay, area, darea = _layer_points(full, model, rho_wall, stretch, r_in, center_harmonics)
         t_layer, s_layer = ca.mtimes(agg(lay.T), c_v[basis.size :]), agg(area.T)
         if model.averager is None:
             den_l = ca.sqrt(s_layer * s_layer + s0**2)
@@ -646,22 +662,62 @@ def velocity_residual(
     if layered:  # rho moves with R: d/dc_R through d rho/d R, the columns' own coefficients linearly
         point += [darea * drho_wall, ca.mtimes(c_v[basis.size :].T, dlay) * drho_wall]
         voxel += [scale * t_layer * dratio_l, scale * ratio_l]
-    design_sums, basis_sums = _design_sums(model, len(point)), _basis_sums(model, pb, basis.transform, series)
+    design_sums = _design_sums(model, len(point))
+    basis_sums = _basis_sums(model, pb, None if factored else basis.transform, series)
     model.kept += [design_sums, basis_sums]
     jac_r = design_sums(ca.vertcat(*point).T, ca.horzcat(*voxel))
     jac_v = basis_sums(sign * chi, arg, scale * ratio)  # d T_i / d c_v = g(s_i) A(diag(chi) raw^T) Q
     if layered:
         jac_v = ca.horzcat(jac_v, ca.repmat(scale * ratio_l, 1, full.n_layer) * agg(lay.T))
-    return res, jac_r, jac_v, model_u - u
+    if not factored:
+        return res, jac_r, jac_v, model_u - u
+    n_layer = full.n_layer if layered else 0
+    right = scipy.linalg.block_diag(basis.transform, np.eye(n_layer))
+    return res, jac_r, jac_v, model_u - u, right
 
 
-#: Half-width (voxels) of the band about the start's wall in which a layer's cell means take the full formula;
-#: deeper inside a cell lies wholly in the fluid (far branch), farther out wholly outside (zero). The coupled
-#: solve moves the wall by a small fraction of a voxel.
-LAYER_BAND_VOXELS = 3.0
+#: How far (voxels) the wall may move from the coupled solve's start before a near-wall layer's point classes
+#: (:func:`layer_point_classes`) can be wrong; :func:`solve` checks the move and re-solves with a wider margin
+#: if it was exceeded. The coupled solve moves the wall by a few hundredths of a voxel (0.02 at h = 0.3 mm and
+#: 0.03 at h = 1.5 mm on the turbulent phantom).
+LAYER_MARGIN_VOXELS = 0.5
+
+#: At most this many coupled solves, each with the layer's point classes for twice the previous wall move.
+MAX_LAYER_PASSES = 3
 
 
-def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, harmonics=None):
+def layer_point_classes(model: VelocityMisfitModel, l_mm: float, stretch: float, r_in: float, margin_mm: float):
+    r"""Which formula a near-wall layer's cell mean takes at each point: ``{"band": idx, "far": idx}``.
+
+    Notes
+    -----
+    At the start's map a point lies at depth ``y = (1 - rho)/(l/S)`` (layer
+    units: ``l = l_mm``, ``S = stretch``) and its cell reaches ``a + b``
+    across the wall normal (:func:`wss_nlp.near_wall.cell_half_widths` over ``l``). A wall that
+    moves by ``|dR| <= margin_mm`` changes ``y`` by at most
+    ``|d rho / d R| margin_mm / (l/S)``. Points that stay deeper than
+    ``3 (a + b)`` take the far-inside formula
+    (:func:`wss_nlp.near_wall.far_cell_mean_function`, within 1e-4 of the
+    trapezoid, as the decoupled fit's :class:`wss_nlp.near_wall.LayerQuadrature`);
+    points whose cells stay wholly outside the wall (``y < -(a + b)``) are
+    zero (no class); the rest (the band) take the full trapezoid mean. A
+    model without a start (``start_gap`` None) puts every point in the band.
+    """
+    n_pts = model.dist.size
+    if model.start_gap is None:
+        return {"band": np.arange(n_pts), "far": np.arange(0)}
+    half_x, half_y = nw.cell_half_widths(model.cell_mm, np.arctan2(model.sin, model.cos))
+    reach = (half_x + half_y) / l_mm
+    r = model.dist
+    root = np.sqrt(r_in**2 + 4 * (r - model.start_gap - r_in) * r)
+    y = (1 - 2 * r / (r_in + root)) * stretch / l_mm
+    spread = 4 * r**2 / (root * (r_in + root) ** 2) * stretch * margin_mm / l_mm  # |d rho/d R| margin / (l/S)
+    far = y - spread > 3 * reach
+    outside = y + spread < -reach
+    return {"band": np.flatnonzero(~far & ~outside), "far": np.flatnonzero(far)}
+
+
+def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, r_in: float, harmonics=None):
     """The layer columns at the misfit's points and what the voxels integrate them with (CasADi, ``(k, n_pts)``).
 
     Returns ``(lay, dlay, area, darea)``: ``lay_jp = s f_cell(y_p) rho_p^m trig_j(t_p)``
@@ -671,9 +727,10 @@ def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, harmon
     :class:`wss_nlp.near_wall.LayerQuadrature`, ``rho^m`` is not capped at 1
     for cells centred outside the wall and no far-inside shortcut is taken
     near it: both would switch as the wall moves.
-    Within :data:`LAYER_BAND_VOXELS` of the start's wall (``model.start_gap``)
-    the cell means take the trapezoid formula throughout; farther inside the
-    far-inside formula, farther outside zero (their values there).
+    Near the start's wall (``model.start_gap``) the cell means take the
+    trapezoid formula throughout; farther inside the far-inside formula,
+    farther outside zero (their values there; :func:`layer_point_classes`
+    with the model's ``layer_margin``). ``r_in``: the map's inner radius.
     ``harmonics``: symbolic ``(cos, sin)`` of the points' angles (a symbolic
     centre), else the model's fixed angles.
     """
@@ -687,9 +744,7 @@ def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, harmon
         half_x, half_y = nw.cell_half_widths(model.cell_mm, 0.0)[0], nw.cell_half_widths(model.cell_mm, np.pi / 2)[1]
         a_l, b_l = half_x * ca.fabs(harmonics[0]) / (ell * stretch), half_y * ca.fabs(harmonics[1]) / (ell * stretch)
     y = (1 - rho) / ell
-    band_mm = LAYER_BAND_VOXELS * model.order * max(model.cell_mm)
-    gap = np.zeros(n_pts) if model.start_gap is None else model.start_gap
-    classes = {"band": np.flatnonzero(np.abs(gap) <= band_mm), "far": np.flatnonzero(gap < -band_mm)}
+    classes = layer_point_classes(model, ell * stretch, stretch, r_in, model.layer_margin_mm)
     f, df, area, darea = (ca.MX(1, n_pts) for _ in range(4))
     for kind, idx in classes.items():
         if idx.size == 0:
@@ -737,9 +792,10 @@ class CoupledNLP:
     alpha: float
     beta: float
     penalty: ca.MX  # alpha ||R - R_ref||^2_{H^s} + lambda beta ||Delta^t v||^2 / pi: f = |residual|^2 + penalty
-    # ((r_m, r_v), (dr_m/dc_R, dr_v/dc_R, dr_v/dc_v)): the magnitude and velocity residuals and the Jacobian's
-    # blocks (the velocity ones by the chain rule, see velocity_residual)
+    # ((r_m, r_v), (dr_m/dc_R, dr_v/dc_R, C)): the magnitude and velocity residuals and the Jacobian's blocks
+    # (the velocity ones by the chain rule, see velocity_residual), with dr_v/dc_v = C right
     blocks: tuple
+    right: np.ndarray  # the constant right factor of dr_v/dc_v (velocity_residual(factored=True))
     stretch: float | None = None  # S of a near-wall layer's cells (velocity_residual), fixed at the start's map
 
     @property
@@ -751,7 +807,11 @@ class CoupledNLP:
     @property
     def jacobian(self) -> ca.MX:
         """``d residual / d x``, assembled from :attr:`blocks` (the solver uses the blocks themselves)."""
-        _, (j_m, j_vr, j_vv) = self.blocks
+        _, (j_m, j_vr, raw) = self.blocks
+        # dr_v/dc_v = raw right by BLAS (CasADi's dense product is a loop): (right^T raw^T)^T
+        product = operators.MatrixProduct(self.right.T, cols=raw.shape[0])
+        self.velocity_model.kept.append(product)
+        j_vv = product(raw.T).T
         zeros = ca.MX(j_m.shape[0], j_vv.shape[1])  # the magnitude residual does not depend on c_v
         return ca.vertcat(ca.horzcat(j_m, zeros), np.sqrt(self.weight) * ca.horzcat(j_vr, j_vv))
 
@@ -808,11 +868,14 @@ def build(
     quad_order: int | None = None,
     start=None,
     stretch: float | None = None,
+    layer_margin_mm: float | None = None,
 ) -> CoupledNLP:
     """The coupled functional as a CasADi NLP (variables ``[c_R; c_v]``).
 
     ``start`` (radius coefficients) fixes the voxel set of a k-space
-    acquisition (``geometry_problem.psf``; see :func:`velocity_misfit_model`).
+    acquisition (``geometry_problem.psf``; see :func:`velocity_misfit_model`)
+    and a near-wall layer's point classes (:func:`layer_point_classes`, for
+    walls within ``layer_margin_mm`` of it; default :data:`LAYER_MARGIN_VOXELS`).
     ``stretch``: the start map's ``S`` when ``basis`` carries a near-wall layer
     (:func:`velocity_residual`).
     """
@@ -840,8 +903,10 @@ def build(
         psf=geometry_problem.psf,
         start=start,
     )
-    res_v, jac_vr, jac_vv, err_v = velocity_residual(
-        model, gnlp.c, c_v, basis, r_in, gamma, gopt.heaviside, jacobian=True, stretch=stretch
+    default_margin = LAYER_MARGIN_VOXELS * geometry_problem.grid.h
+    model.layer_margin_mm = default_margin if layer_margin_mm is None else float(layer_margin_mm)
+    res_v, jac_vr, jac_vv, err_v, right = velocity_residual(
+        model, gnlp.c, c_v, basis, r_in, gamma, gopt.heaviside, jacobian=True, stretch=stretch, factored=True
     )
     gram = basis.laplacian_gram(vopt.laplacian_power)
     pen_v = ca.dot(c_v, ca.mtimes(ca.DM(gram), c_v)) / np.pi
@@ -850,7 +915,9 @@ def build(
     f = ca.sumsqr(gnlp.residual) + alpha * gnlp.penalty + weight * (ca.sumsqr(res_v) + beta * pen_v)
     jac_m = ca.jacobian(gnlp.residual, gnlp.c) if gnlp.jacobian is None else gnlp.jacobian
     blocks = ((gnlp.residual, res_v), (jac_m, jac_vr, jac_vv))
-    return CoupledNLP(x, n_r, f, gnlp.g, gnlp, model, weight, gram, gamma, err_v, alpha, beta, penalty, blocks, stretch)
+    return CoupledNLP(
+        x, n_r, f, gnlp.g, gnlp, model, weight, gram, gamma, err_v, alpha, beta, penalty, blocks, right, stretch
+    )
 
 
 #: IPOPT options of a coupled solve started from the decoupled solution: a small initial barrier parameter
@@ -885,17 +952,16 @@ def gauss_newton_derivatives(nlp: CoupledNLP) -> tuple[ca.MX, ca.MX, operators.B
     -----
     With ``r = [r_m; sqrt(lambda) r_v]`` and ``J = [[J_m, 0], [sqrt(lambda) J_vR, sqrt(lambda) J_vv]]``,
     ``grad = 2 J^T r + grad(penalty)`` and ``hess = 2 J^T J + 2 P`` (``P``: :meth:`CoupledNLP.penalty_hessian`).
-    ``J^T J`` is formed by BLAS from the blocks (:class:`wss_nlp.operators.BlockGram`): CasADi's product is a
-    loop (about 1 s at h = 0.3 mm), and concatenating the blocks into ``J`` in the graph costs as much as
-    computing them. The gradient from the same blocks replaces a reverse sweep through the misfit, which costs
-    as much as forming ``J`` again.
+    ``J^T J`` and ``J^T r`` are formed by BLAS from the blocks (:class:`wss_nlp.operators.BlockGram`):
+    CasADi's product is a loop (about 1 s at h = 0.3 mm), and concatenating the blocks into ``J`` in the
+    graph costs as much as computing them. The gradient from the same blocks replaces a reverse sweep
+    through the misfit, which costs as much as forming ``J`` again.
     """
     (r_m, r_v), (j_m, j_vr, j_vv) = nlp.blocks
-    (m1, n1), (m2, n2) = j_m.shape, j_vv.shape
-    gram = operators.BlockGram(m1, n1, m2, n2, nlp.weight)
-    hess = 2 * gram(j_m, j_vr, j_vv) + 2 * ca.DM(nlp.penalty_hessian())
-    lam = nlp.weight
-    jtr = ca.vertcat(ca.mtimes(j_m.T, r_m) + lam * ca.mtimes(j_vr.T, r_v), lam * ca.mtimes(j_vv.T, r_v))
+    (m1, n1), m2, n2 = j_m.shape, j_vv.shape[0], nlp.right.shape[1]
+    gram = operators.BlockGram(m1, n1, m2, n2, nlp.weight, right=nlp.right)
+    jtj, jtr = gram(j_m, j_vr, j_vv, r_m, r_v)
+    hess = 2 * jtj + 2 * ca.DM(nlp.penalty_hessian())
     return 2 * jtr + ca.gradient(nlp.penalty, nlp.x), hess, gram
 
 
@@ -936,23 +1002,56 @@ def solve(
     alpha = start_geometry.alpha if alpha is None else float(alpha)
     beta = start_velocity.beta if beta is None else float(beta)
     dm = start_velocity.disk_map
-    nlp = build(
-        geometry_problem,
-        gopt,
-        velocity_image,
-        vopt,
-        start_velocity.basis,
-        dm.r_in,
-        weight,
-        alpha,
-        beta,
-        options.quad_order,
-        start=start_geometry.coefficients,
-        stretch=layer_stretch(start_velocity),
-    )
     x0 = np.concatenate([start_geometry.coefficients, start_velocity.coefficients])
-    lower = lower_bound(geometry_problem, dm.r_in)
     t0 = time.perf_counter()
+    margin, passes = None, 0
+    while True:
+        passes += 1
+        nlp = build(
+            geometry_problem,
+            gopt,
+            velocity_image,
+            vopt,
+            start_velocity.basis,
+            dm.r_in,
+            weight,
+            alpha,
+            beta,
+            options.quad_order,
+            start=start_geometry.coefficients,
+            stretch=layer_stretch(start_velocity),
+            layer_margin_mm=margin,
+        )
+        sol, stats = _solve_nlp(nlp, geometry_problem, dm.r_in, x0, options)
+        x = np.asarray(sol["x"]).ravel()
+        model = nlp.velocity_model
+        move = float(np.max(np.abs(model.design @ (x[: nlp.n_r] - start_geometry.coefficients))))
+        layered = isinstance(start_velocity.basis, nw.EnrichedBasis)
+        if not layered or move <= model.layer_margin_mm or passes == MAX_LAYER_PASSES:
+            break
+        # the layer's point classes assumed a smaller move: classify them again for this one (and more), re-solve
+        logger.info(f"coupled: the wall moved {move:.3g} mm, beyond the layer's margin; re-solving with a wider one")
+        margin, x0 = 2 * move, x
+    if layered:
+        stats.extra["layer_margin_mm"] = model.layer_margin_mm
+        stats.extra["layer_passes"] = passes
+        if move > model.layer_margin_mm:
+            stats.converged = False
+            stats.status = f"wall moved {move:.3g} mm, beyond the near-wall layer's margin {model.layer_margin_mm:.3g}"
+            logger.warning(f"coupled: {stats.status}; the layer's cell means may be off (flagged not converged)")
+    stats.extra["wall_move_mm"] = move
+    stats.extra["velocity_weight"] = weight
+    stats.extra["quad_order"] = model.order
+    res = nlp.result(
+        geometry_problem, gopt, vopt, velocity_image, start_geometry, start_velocity, x, sol["lam_g"], stats
+    )
+    stats.seconds = time.perf_counter() - t0
+    return res
+
+
+def _solve_nlp(nlp: CoupledNLP, geometry_problem: geo.GeometryProblem, r_in: float, x0, options: CoupledOptions):
+    """IPOPT on ``nlp`` from ``x0``: the Gauss-Newton Hessian, and CasADi's exact one if that fails."""
+    lower = lower_bound(geometry_problem, r_in)
     args = {"x0": x0, "p": nlp.geometry.gamma, "lbg": lower, "ubg": geometry_problem.r1}
     what = "coupled geometry+velocity (IPOPT)"
     hessian, failed = options.hessian, ""
@@ -973,11 +1072,4 @@ def solve(
         sol, stats = run_nlpsol(solver, what, **args)
         stats.extra["gauss_newton_failed"] = failed
     stats.extra["hessian"] = hessian
-    stats.extra["velocity_weight"] = weight
-    stats.extra["quad_order"] = nlp.velocity_model.order
-    x = np.asarray(sol["x"]).ravel()
-    res = nlp.result(
-        geometry_problem, gopt, vopt, velocity_image, start_geometry, start_velocity, x, sol["lam_g"], stats
-    )
-    stats.seconds = time.perf_counter() - t0
-    return res
+    return sol, stats

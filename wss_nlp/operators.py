@@ -201,57 +201,79 @@ class Gram(_DenseCallback):
 
 
 class BlockGram(ca.Callback):
-    r"""``(A, B, C) -> J^T J`` for ``J = [[A, 0], [sqrt(w) B, sqrt(w) C]]`` without forming ``J``.
+    r"""``(A, B, C, r_1, r_2) -> (J^T J, J^T r)`` for ``J = [[A, 0], [sqrt(w) B, sqrt(w) C F]]`` and
+    ``r = [r_1; sqrt(w) r_2]``, without forming ``J``.
 
     Notes
     -----
-    ``A`` is ``(m1, n1)``, ``B`` ``(m2, n1)``, ``C`` ``(m2, n2)``, ``w > 0``
-    a constant. The result is
+    ``A`` is ``(m1, n1)``, ``B`` ``(m2, n1)``, ``C`` ``(m2, k)``, ``F`` a
+    constant ``(k, n2)`` (``right``; default the identity, ``k = n2``),
+    ``r_1`` ``(m1, 1)``, ``r_2`` ``(m2, 1)``, ``w > 0`` a constant. The
+    results are
 
     .. math::
 
-        J^\top J = \begin{pmatrix} A^\top A + w B^\top B & w B^\top C \\
-                    w C^\top B & w C^\top C \end{pmatrix},
+        J^\top J = \begin{pmatrix} A^\top A + w B^\top B & w B^\top C F \\
+                    w F^\top C^\top B & w F^\top (C^\top C) F \end{pmatrix}, \qquad
+        J^\top r = \begin{pmatrix} A^\top r_1 + w B^\top r_2 \\ w F^\top C^\top r_2 \end{pmatrix},
 
-    three BLAS products, about ``m1 n1^2 + m2 (n1 + n2)^2`` flops. The
+    BLAS products, about ``m1 n1^2 + m2 (n1 + k)^2 / 2`` flops (``C^T C``
+    by a symmetric rank-k update, half of ``C F``'s ``2 m2 k n2``). The
     coupled Jacobian has this shape (magnitude rows depend on ``c_R`` only);
     concatenating and scaling its blocks in the graph cost as much as the
-    blocks themselves (measured at h = 0.3 mm: 40 ms of 85 per evaluation).
+    blocks themselves (measured at h = 0.3 mm: 40 ms of 85 per evaluation),
+    and CasADi's ``J^T r`` transposes the blocks first (about 10 ms).
     Evaluation only (the Gauss-Newton Hessian is never differentiated).
     """
 
-    def __init__(self, m1: int, n1: int, m2: int, n2: int, weight: float):
+    def __init__(self, m1: int, n1: int, m2: int, n2: int, weight: float, right: np.ndarray | None = None):
         ca.Callback.__init__(self)
+        self.right = None if right is None else np.ascontiguousarray(right, dtype=float)
+        self.k = n2 if right is None else self.right.shape[0]  # type: ignore[union-attr]
+        if right is not None and self.right.shape[1] != n2:  # type: ignore[union-attr]
+            raise ValueError(f"BlockGram: right factor of shape {np.shape(right)} does not give {n2} columns")
         self.m1, self.n1, self.m2, self.n2, self.weight = int(m1), int(n1), int(m2), int(n2), float(weight)
         self.construct(f"block_gram_{m1}_{m2}x{n1}_{n2}", {})
 
     def get_n_in(self):
-        return 3
+        return 5
 
     def get_n_out(self):
-        return 1
+        return 2
 
     def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(*[(self.m1, self.n1), (self.m2, self.n1), (self.m2, self.n2)][i])
+        shapes = [(self.m1, self.n1), (self.m2, self.n1), (self.m2, self.k), (self.m1, 1), (self.m2, 1)]
+        return ca.Sparsity.dense(*shapes[i])
 
     def get_sparsity_out(self, i):
-        return ca.Sparsity.dense(self.n1 + self.n2, self.n1 + self.n2)
+        n = self.n1 + self.n2
+        return ca.Sparsity.dense(n, n) if i == 0 else ca.Sparsity.dense(n, 1)
 
     def has_eval_buffer(self):
         return True
 
     def eval_buffer(self, arg, res):
-        n1, n = self.n1, self.n1 + self.n2
+        n1, n, f = self.n1, self.n1 + self.n2, self.right
         # row-major views of the column-major inputs are their transposes
         at = np.frombuffer(arg[0], dtype=np.float64).reshape(n1, self.m1)
         bt = np.frombuffer(arg[1], dtype=np.float64).reshape(n1, self.m2)
-        ct = np.frombuffer(arg[2], dtype=np.float64).reshape(self.n2, self.m2)
-        out = np.frombuffer(res[0], dtype=np.float64).reshape(n, n)  # symmetric: layout does not matter
+        ct = np.frombuffer(arg[2], dtype=np.float64).reshape(self.k, self.m2)
+        r1, r2 = np.frombuffer(arg[3], dtype=np.float64), np.frombuffer(arg[4], dtype=np.float64)
         w = self.weight
-        out[:n1, :n1] = at @ at.T + w * (bt @ bt.T)
-        out[:n1, n1:] = w * (bt @ ct.T)
-        out[n1:, :n1] = out[:n1, n1:].T
-        out[n1:, n1:] = w * (ct @ ct.T)
+        if res[0] is not None:  # CasADi passes None for an output nobody reads
+            out = np.frombuffer(res[0], dtype=np.float64).reshape(n, n)  # symmetric: layout does not matter
+            out[:n1, :n1] = at @ at.T + w * (bt @ bt.T)
+            ctc, btc = ct @ ct.T, bt @ ct.T  # ct @ ct.T: NumPy calls the symmetric update (syrk)
+            if f is not None:
+                ctc, btc = f.T @ ctc @ f, btc @ f
+            out[:n1, n1:] = w * btc
+            out[n1:, :n1] = out[:n1, n1:].T
+            out[n1:, n1:] = w * ctc
+        if res[1] is not None:
+            jtr = np.frombuffer(res[1], dtype=np.float64)
+            jtr[:n1] = at @ r1 + w * (bt @ r2)
+            ctr = ct @ r2
+            jtr[n1:] = w * (ctr if f is None else f.T @ ctr)
         return 0
 
 
