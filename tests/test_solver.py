@@ -3,7 +3,7 @@
 import casadi as ca
 import numpy as np
 
-from wss_nlp.solver import SharedEvaluation, gauss_newton_ipopt, run_nlpsol
+from wss_nlp.solver import EagerObjective, SharedEvaluation, gauss_newton_ipopt, run_nlpsol
 
 
 def _toy():
@@ -61,3 +61,32 @@ def test_gauss_newton_ipopt_with_a_supplied_gradient_reaches_the_same_minimizer_
     _, derivatives = shared.shared
     requests = stats["n_call_nlp_grad_f"] + stats["n_call_nlp_hess_l"]
     assert derivatives.evaluations <= stats["n_call_nlp_grad_f"] < requests
+
+
+def test_eager_objective_reads_f_from_the_derivatives_at_accepted_points_and_alone_after_a_rejected_trial():
+    """IPOPT asks for f at a trial point and, once it accepts the step, for the derivatives there: the objective
+    evaluates (f, grad, hess) together while steps are accepted (the derivatives were asked for at its last
+    point) and f alone after a rejected trial; every value is f's own (the same expression: equal exactly)."""
+    x, p, r = _toy()
+    f = ca.sumsqr(r) + 0.1 * ca.sumsqr(x)
+    jac = ca.jacobian(r, x)
+    grad, hess = 2 * ca.mtimes(jac.T, r) + 0.2 * x, 2 * ca.mtimes(jac.T, jac)
+    derivatives = SharedEvaluation(ca.Function("d", [x, p], [f, grad, hess], ["x", "p"], ["f", "grad", "hess"]))
+    f_only = ca.Function("f", [x, p], [f], ["x", "p"], ["f"])
+    objective = EagerObjective(f_only, derivatives)
+    points = [np.array([0.3, -1.2, 0.7]) + k * 0.01 for k in range(4)]
+    p0 = 1.9
+
+    def value(k):
+        return float(objective(points[k], p0))
+
+    assert value(0) == float(f_only(points[0], p0)) and derivatives.evaluations == 1  # the first point: eager
+    derivatives(points[0], p0)  # accepted: IPOPT asks for the derivatives at it, read from the same evaluation
+    assert derivatives.evaluations == 1
+    assert value(1) == float(f_only(points[1], p0)) and derivatives.evaluations == 2  # eager again
+    # no derivatives asked at points[1] (a rejected trial): the next f comes from f alone
+    assert value(2) == float(f_only(points[2], p0)) and derivatives.evaluations == 2 and objective.evaluations == 1
+    derivatives(points[2], p0)  # accepted after all: evaluated now, and the objective is eager again
+    assert derivatives.evaluations == 3
+    assert value(3) == float(f_only(points[3], p0)) and derivatives.evaluations == 4
+    assert objective.eager_evaluations == 3
