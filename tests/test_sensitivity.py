@@ -353,3 +353,48 @@ def test_newton_anchor_equals_the_ipopt_anchor(monkeypatch):
     assert ref.sensitivity.noise["anchor"] == "ipopt re-solve"
     np.testing.assert_allclose(res.wss.tau_std, ref.wss.tau_std, rtol=1e-8)
     assert res.wss.mean_std == pytest.approx(ref.wss.mean_std, rel=1e-8)
+
+
+@pytest.mark.parametrize("correlated", [False, True])
+def test_band_from_coefficient_grams_equals_the_per_voxel_sums(correlated):
+    """The band's Gram form ``(d tau/dc) (X D R D X^T) (d tau/dc)^T`` equals the per-voxel sums it replaces,
+    ``sum_i g_ki^2 sigma_i^2`` (or ``g_k^T D R D g_k`` with a separable correlation R), for the per-voxel
+    derivatives ``g = (d tau/dc) X`` formed explicitly: random derivatives on a 9 x 11 image, two voxel sets."""
+    rng = np.random.default_rng(41)
+    shape, n_r, n_v, n_phi = (9, 11), 5, 7, 13
+    m_index = np.sort(rng.choice(99, 30, replace=False))
+    u_index = np.sort(rng.choice(99, 40, replace=False))
+    n_all = m_index.size + u_index.size + len(sens.SCALARS)
+    correlation = None
+    if correlated:  # a separable positive definite correlation, as kspace.noise_correlation gives
+        ay, ax = rng.normal(size=(9, 9)), rng.normal(size=(11, 11))
+        ry, rx = ay @ ay.T / 9 + np.eye(9), ax @ ax.T / 11 + np.eye(11)
+        correlation = (ry, rx, shape)
+    s = sens.Sensitivity(
+        phi=np.linspace(0, 2 * np.pi, n_phi, endpoint=False),
+        d_tau=np.zeros((n_phi, len(sens.SCALARS))),
+        d_mean=np.zeros(len(sens.SCALARS)),
+        d_tau_d_coef=rng.normal(size=(n_phi, n_r + n_v)),
+        d_mean_d_m=rng.normal(size=m_index.size),
+        d_mean_d_u=rng.normal(size=u_index.size),
+        m_index=m_index,
+        u_index=u_index,
+        d_coef_r=rng.normal(size=(n_r, n_all)),
+        d_coef_v=rng.normal(size=(n_v, n_all)),
+        correlation=correlation,
+    )
+    sigma_m, sigma_u = 0.03, rng.uniform(0.01, 0.05, u_index.size)
+    tau_std, *_ = s.band(sigma_m, sigma_u)
+    g_m, g_u = s.d_tau_d_m, s.d_tau_d_u * sigma_u[None, :]
+    if correlation is None:
+        expected = sigma_m**2 * np.sum(g_m**2, axis=1) + np.sum(g_u**2, axis=1)
+    else:
+
+        def quadratic(g, index):  # g R g^T per row, R = R_y (x) R_x on the flat row-major image
+            full = np.zeros((g.shape[0], 99))
+            full[:, index] = g
+            return np.einsum("ki,ij,kj->k", full, np.kron(ry, rx), full)
+
+        expected = sigma_m**2 * quadratic(g_m, m_index) + quadratic(g_u, u_index)
+    # the same sums in another order: rounding-level agreement
+    np.testing.assert_allclose(tau_std**2, expected, rtol=1e-12)

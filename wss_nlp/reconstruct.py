@@ -459,13 +459,16 @@ def _add_scale_spread(s, vp, v, w, near, viscosity_pa_s: float, sigma_m: float, 
     smat, _ = wss_mod.wss_matrix(v.basis, v.disk_map, viscosity_pa_s, w.phi.size)
     nu = viscosity_pa_s / near.density_kg_m3
     dg_da0, dg_dlog, dtau_dlog = nw.scale_sensitivity(vp, v.coefficients, v.beta, smat, nu)
-    dlog_dp = -dg_da0 * s.d_coef_v[v.basis.base.size] / dg_dlog
+    row = v.basis.base.size  # the layer's first coefficient a_0
+    dlog_da0 = -dg_da0 / dg_dlog
+    dlog_dp = dlog_da0 * s.d_coef_v[row]
     c = v.disk_map.coefficients
     ds = np.hypot(rad.evaluate(c, w.phi), rad.evaluate(c, w.phi, 1))
     dmean_dlog = float(np.sum(dtau_dlog * ds) / np.sum(ds))
     n_m, n_u = s.m_index.size, s.u_index.size
+    # d tau/dp = (d tau/dc) (dc/dp) gains (d tau/d log l) (d log l/d a_0) (d a_0/dp): a term in d tau/d a_0
+    s.d_tau_d_coef[:, s.d_coef_r.shape[0] + row] += dlog_da0 * dtau_dlog
     for name, cols in (("m", slice(0, n_m)), ("u", slice(n_m, n_m + n_u))):
-        setattr(s, f"d_tau_d_{name}", getattr(s, f"d_tau_d_{name}") + np.outer(dtau_dlog, dlog_dp[cols]))
         setattr(s, f"d_mean_d_{name}", getattr(s, f"d_mean_d_{name}") + dmean_dlog * dlog_dp[cols])
     s.d_tau = s.d_tau + np.outer(dtau_dlog, dlog_dp[n_m + n_u :])
     s.d_mean = s.d_mean + dmean_dlog * dlog_dp[n_m + n_u :]

@@ -67,13 +67,16 @@ class Sensitivity:
     ``d_tau_d_u`` have one column per voxel of ``m_index`` / ``u_index``
     (flat row-major indices). Units: Pa per unit of the parameter (alpha,
     beta: dimensionless; gamma, centre: mm; m: dimensionless; u: m/s).
+    The per-voxel matrices are products ``(d tau / d c) (d c / d p)`` of
+    the stored ``d_tau_d_coef`` and ``d_coef_r``, ``d_coef_v``, formed only
+    when asked for: the band needs only Gram matrices of ``d c / d p``
+    (:meth:`band`).
     """
 
     phi: np.ndarray
     d_tau: np.ndarray  # (n_phi, 5)
     d_mean: np.ndarray  # (5,)
-    d_tau_d_m: np.ndarray  # (n_phi, n_m)
-    d_tau_d_u: np.ndarray  # (n_phi, n_u)
+    d_tau_d_coef: np.ndarray  # (n_phi, 2N+1 + n_basis): d tau / d [c_R; c_v]
     d_mean_d_m: np.ndarray
     d_mean_d_u: np.ndarray
     m_index: np.ndarray
@@ -92,20 +95,55 @@ class Sensitivity:
     def names(self) -> tuple[str, ...]:
         return SCALARS
 
+    def _d_coef(self, start: int, stop: int) -> np.ndarray:
+        """``d [c_R; c_v] / d p`` for the parameter columns ``start:stop``."""
+        return np.vstack([self.d_coef_r[:, start:stop], self.d_coef_v[:, start:stop]])
+
+    @property
+    def d_tau_d_m(self) -> np.ndarray:
+        """``d tau / d m`` at the voxels ``m_index`` (n_phi, n_m), Pa."""
+        return self.d_tau_d_coef @ self._d_coef(0, self.m_index.size)
+
+    @property
+    def d_tau_d_u(self) -> np.ndarray:
+        """``d tau / d u`` at the voxels ``u_index`` (n_phi, n_u), Pa per m/s."""
+        n_m = self.m_index.size
+        return self.d_tau_d_coef @ self._d_coef(n_m, n_m + self.u_index.size)
+
     def band(self, sigma_m: float, sigma_u: np.ndarray) -> tuple[np.ndarray, float, float, float]:
         """``(tau_std, mean_std, mean_std from m, mean_std from u)`` for per-voxel noise levels.
 
-        Independent voxels (box model): ``sum_i g_i^2 sigma_i^2``. With :attr:`correlation` (a k-space
-        acquisition: filtered, zero-filled noise) ``g^T D R D g``, ``R = R_y (x) R_x`` the separable noise
-        correlation of :func:`wss_nlp.kspace.noise_correlation` and ``D`` the per-voxel standard deviations.
+        Notes
+        -----
+        Independent voxels (box model): ``var tau_k = sum_i g_ki^2 sigma_i^2``
+        with ``g_k = (d tau_k / d c) X``, ``X = d c / d p``. With
+        :attr:`correlation` (a k-space acquisition: filtered, zero-filled
+        noise) ``g_k^T D R D g_k``, ``R = R_y (x) R_x`` the separable noise
+        correlation of :func:`wss_nlp.kspace.noise_correlation` and ``D`` the
+        per-voxel standard deviations. Both are evaluated as
+        ``(d tau_k / d c) (X D R D X^T) (d tau_k / d c)^T``: a Gram matrix of
+        the few coefficient rows of ``X`` instead of the (n_phi x voxels)
+        products ``g`` (4-8x fewer flops at h = 0.3 mm).
         """
         sigma_u = np.broadcast_to(np.asarray(sigma_u, float), self.u_index.shape)
+        n_m, n_u = self.m_index.size, self.u_index.size
+        gram_m = sigma_m**2 * self._gram(self._d_coef(0, n_m), self.m_index)
+        gram_u = self._gram(self._d_coef(n_m, n_m + n_u) * sigma_u[None, :], self.u_index)
+        jac = self.d_tau_d_coef
+        var_m = np.sum((jac @ gram_m) * jac, axis=1)
+        var_u = np.sum((jac @ gram_u) * jac, axis=1)
         square = self._square_sum
-        var_m = sigma_m**2 * square(self.d_tau_d_m, self.m_index)
-        var_u = square(self.d_tau_d_u * sigma_u, self.u_index)
         mean_m = sigma_m**2 * float(square(self.d_mean_d_m[None, :], self.m_index)[0])
         mean_u = float(square((self.d_mean_d_u * sigma_u)[None, :], self.u_index)[0])
-        return np.sqrt(var_m + var_u), float(np.sqrt(mean_m + mean_u)), float(np.sqrt(mean_m)), float(np.sqrt(mean_u))
+        tau_std = np.sqrt(np.maximum(var_m, 0.0) + np.maximum(var_u, 0.0))  # >= 0 up to rounding
+        return tau_std, float(np.sqrt(mean_m + mean_u)), float(np.sqrt(mean_m)), float(np.sqrt(mean_u))
+
+    def _gram(self, g: np.ndarray, index: np.ndarray) -> np.ndarray:
+        """``g R g^T`` for the rows of ``g`` (values at the voxels ``index``; ``R = I`` without a correlation)."""
+        if self.correlation is None:
+            return g @ g.T
+        image, smoothed = correlated_images(g, index, self.correlation)
+        return np.einsum("nad,mad->nm", image, smoothed)
 
     def _square_sum(self, g: np.ndarray, index: np.ndarray) -> np.ndarray:
         """Per row of ``g`` (values at the voxels ``index``): ``g R g^T`` (``R = I`` without a correlation)."""
@@ -587,14 +625,13 @@ def _wss_sensitivity(
     phi, tau0, mean0, dt_dr, dt_dv, dm_dr, dm_dv = wss_jacobians(
         basis, eta, viscosity_pa_s, n_phi, c_r0, center, c_v0, r_in, dr_in
     )
-    dtau = dt_dr @ dcr + dt_dv @ dcv
+    scalars = slice(n_m + n_u, None)
     dmean = dm_dr @ dcr + dm_dv @ dcv
     out = Sensitivity(
         phi=phi,
-        d_tau=dtau[:, n_m + n_u :],
+        d_tau=dt_dr @ dcr[:, scalars] + dt_dv @ dcv[:, scalars],
         d_mean=dmean[n_m + n_u :],
-        d_tau_d_m=dtau[:, :n_m],
-        d_tau_d_u=dtau[:, n_m : n_m + n_u],
+        d_tau_d_coef=np.hstack([dt_dr, dt_dv]),
         d_mean_d_m=dmean[:n_m],
         d_mean_d_u=dmean[n_m : n_m + n_u],
         m_index=np.asarray(m_index),
