@@ -65,26 +65,32 @@ def test_gram_equals_casadi_product_with_exact_derivatives():
 @pytest.mark.parametrize("factored", [False, True])
 def test_block_gram_equals_the_products_of_the_assembled_matrix(factored):
     """BlockGram (A, B, C, r1, r2) -> (J^T J, J^T r) with J = [[A, 0], [sqrt(w) B, sqrt(w) C F]] and
-    r = [r1; sqrt(w) r2] (F = right, or the identity), against the dense products of the assembled J."""
+    r = [r1; sqrt(w) r2] (F = right, or the identity; C in two column blocks with F), against the dense
+    products of the assembled J."""
     rng = np.random.default_rng(14)
     k = 6 if factored else 5
     a, b, c, w = rng.normal(size=(7, 3)), rng.normal(size=(11, 3)), rng.normal(size=(11, k)), 2.7
     r1, r2 = rng.normal(size=7), rng.normal(size=11)
     right = rng.normal(size=(k, 5)) if factored else None
-    gram = operators.BlockGram(7, 3, 11, 5, w, right=right)
+    widths = (4, 2) if factored else (5,)
+    gram = operators.BlockGram(7, 3, 11, 5, w, right=right, widths=widths)
+    blocks = [c[:, :4], c[:, 4:]] if factored else [c]
     cf = c if right is None else c @ right
     j = np.block([[a, np.zeros((7, 5))], [np.sqrt(w) * b, np.sqrt(w) * cf]])
     r = np.concatenate([r1, np.sqrt(w) * r2])
-    jtj, jtr = (np.asarray(v) for v in gram(a, b, c, r1, r2))
+    jtj, jtr = (np.asarray(v) for v in gram(a, b, *blocks, r1, r2))
     # a few BLAS products in another order than the assembled ones: equal to rounding
     np.testing.assert_allclose(jtj, j.T @ j, rtol=0, atol=1e-13 * np.max(np.abs(j.T @ j)))
     np.testing.assert_allclose(jtr.ravel(), j.T @ r, rtol=0, atol=1e-13 * np.max(np.abs(j.T @ r)))
     # an output nobody reads is skipped (CasADi passes no buffer for it)
-    x = [ca.MX.sym(n, *shape) for n, shape in zip("abcrs", [(7, 3), (11, 3), (11, k), (7, 1), (11, 1)])]
+    shapes = [(7, 3), (11, 3), *[(11, wd) for wd in widths], (7, 1), (11, 1)]
+    x = [ca.MX.sym(f"x{i}", *shape) for i, shape in enumerate(shapes)]
     only = ca.Function("only", x, [gram(*x)[0]])
-    np.testing.assert_array_equal(np.asarray(only(a, b, c, r1, r2)), jtj)
+    np.testing.assert_array_equal(np.asarray(only(a, b, *blocks, r1, r2)), jtj)
     with pytest.raises(ValueError, match="right factor"):
         operators.BlockGram(7, 3, 11, 4, w, right=np.ones((k, 5)))
+    with pytest.raises(ValueError, match="column blocks"):
+        operators.BlockGram(7, 3, 11, 5, w, right=right, widths=(k, 1))
 
 
 @pytest.mark.parametrize("kind", meas.HEAVISIDES)

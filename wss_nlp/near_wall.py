@@ -40,6 +40,7 @@ method does the same with the cell means written in CasADi
 
 from __future__ import annotations
 
+import functools
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -362,6 +363,7 @@ def cell_mean(family: str, y, a, b, derivative: bool = False, moment: bool = Fal
     return out
 
 
+@functools.lru_cache(maxsize=16)  # a few families; building one costs about 10 ms
 def cell_mean_function(family: str, continuous: bool = False) -> ca.Function:
     r""":func:`cell_mean` as a CasADi function ``(y, a, b) -> (mean, d mean / d y)`` of scalars (map it).
 
@@ -404,9 +406,10 @@ def cell_mean_function(family: str, continuous: bool = False) -> ca.Function:
             ca.if_else(far, point + (a * a + b * b) / 6 * curvature, point),
         ),
     )
-    return ca.Function(f"cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)])
+    return ca.Function(f"cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)], {"cse": True})
 
 
+@functools.lru_cache(maxsize=16)
 def far_cell_mean_function(family: str) -> ca.Function:
     """:func:`cell_mean_function` for cells wholly inside the wall, ``y > a + b`` (the branches that apply there)."""
     y, a_in, b_in = ca.SX.sym("y"), ca.SX.sym("a"), ca.SX.sym("b")
@@ -414,7 +417,7 @@ def far_cell_mean_function(family: str) -> ca.Function:
     second = ca.Function("f2", [t], [ca.hessian(profile(family, t), t)[0]])
     wide = ca.fmax(a_in, b_in) > 0.02
     value = profile(family, y) + wide * (a_in * a_in + b_in * b_in) / 6 * second(y)
-    return ca.Function(f"far_cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)])
+    return ca.Function(f"far_cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)], {"cse": True})
 
 
 class LayerQuadrature:

@@ -208,8 +208,10 @@ class BlockGram(ca.Callback):
     -----
     ``A`` is ``(m1, n1)``, ``B`` ``(m2, n1)``, ``C`` ``(m2, k)``, ``F`` a
     constant ``(k, n2)`` (``right``; default the identity, ``k = n2``),
-    ``r_1`` ``(m1, 1)``, ``r_2`` ``(m2, 1)``, ``w > 0`` a constant. The
-    results are
+    ``r_1`` ``(m1, 1)``, ``r_2`` ``(m2, 1)``, ``w > 0`` a constant. ``C``
+    may come as column blocks ``C_1, ..., C_p`` of the ``widths`` given
+    (inputs ``A, B, C_1, ..., C_p, r_1, r_2``): concatenating them in a
+    CasADi graph costs more than the products. The results are
 
     .. math::
 
@@ -226,23 +228,36 @@ class BlockGram(ca.Callback):
     Evaluation only (the Gauss-Newton Hessian is never differentiated).
     """
 
-    def __init__(self, m1: int, n1: int, m2: int, n2: int, weight: float, right: np.ndarray | None = None):
+    def __init__(
+        self,
+        m1: int,
+        n1: int,
+        m2: int,
+        n2: int,
+        weight: float,
+        right: np.ndarray | None = None,
+        widths: tuple[int, ...] | None = None,
+    ):
         ca.Callback.__init__(self)
         self.right = None if right is None else np.ascontiguousarray(right, dtype=float)
         self.k = n2 if right is None else self.right.shape[0]  # type: ignore[union-attr]
         if right is not None and self.right.shape[1] != n2:  # type: ignore[union-attr]
             raise ValueError(f"BlockGram: right factor of shape {np.shape(right)} does not give {n2} columns")
+        self.widths = (self.k,) if widths is None else tuple(int(w) for w in widths)
+        if sum(self.widths) != self.k:
+            raise ValueError(f"BlockGram: column blocks {self.widths} do not add up to {self.k} columns")
         self.m1, self.n1, self.m2, self.n2, self.weight = int(m1), int(n1), int(m2), int(n2), float(weight)
         self.construct(f"block_gram_{m1}_{m2}x{n1}_{n2}", {})
 
     def get_n_in(self):
-        return 5
+        return 4 + len(self.widths)
 
     def get_n_out(self):
         return 2
 
     def get_sparsity_in(self, i):
-        shapes = [(self.m1, self.n1), (self.m2, self.n1), (self.m2, self.k), (self.m1, 1), (self.m2, 1)]
+        shapes = [(self.m1, self.n1), (self.m2, self.n1), *[(self.m2, w) for w in self.widths]]
+        shapes += [(self.m1, 1), (self.m2, 1)]
         return ca.Sparsity.dense(*shapes[i])
 
     def get_sparsity_out(self, i):
@@ -253,17 +268,24 @@ class BlockGram(ca.Callback):
         return True
 
     def eval_buffer(self, arg, res):
-        n1, n, f = self.n1, self.n1 + self.n2, self.right
+        n1, n, f, p = self.n1, self.n1 + self.n2, self.right, len(self.widths)
         # row-major views of the column-major inputs are their transposes
         at = np.frombuffer(arg[0], dtype=np.float64).reshape(n1, self.m1)
         bt = np.frombuffer(arg[1], dtype=np.float64).reshape(n1, self.m2)
-        ct = np.frombuffer(arg[2], dtype=np.float64).reshape(self.k, self.m2)
-        r1, r2 = np.frombuffer(arg[3], dtype=np.float64), np.frombuffer(arg[4], dtype=np.float64)
+        cts = [np.frombuffer(a, dtype=np.float64).reshape(wd, self.m2) for a, wd in zip(arg[2 : 2 + p], self.widths)]
+        r1, r2 = np.frombuffer(arg[2 + p], dtype=np.float64), np.frombuffer(arg[3 + p], dtype=np.float64)
+        edges = np.cumsum((0,) + self.widths)
         w = self.weight
         if res[0] is not None:  # CasADi passes None for an output nobody reads
             out = np.frombuffer(res[0], dtype=np.float64).reshape(n, n)  # symmetric: layout does not matter
             out[:n1, :n1] = at @ at.T + w * (bt @ bt.T)
-            ctc, btc = ct @ ct.T, bt @ ct.T  # ct @ ct.T: NumPy calls the symmetric update (syrk)
+            ctc, btc = np.empty((self.k, self.k)), np.empty((n1, self.k))
+            for i, ci in enumerate(cts):
+                rows = slice(edges[i], edges[i + 1])
+                btc[:, rows] = bt @ ci.T
+                for j, cj in enumerate(cts[: i + 1]):  # ci @ ci.T: NumPy calls the symmetric update (syrk)
+                    ctc[rows, edges[j] : edges[j + 1]] = ci @ cj.T
+                    ctc[edges[j] : edges[j + 1], rows] = ctc[rows, edges[j] : edges[j + 1]].T
             if f is not None:
                 ctc, btc = f.T @ ctc @ f, btc @ f
             out[:n1, n1:] = w * btc
@@ -272,7 +294,7 @@ class BlockGram(ca.Callback):
         if res[1] is not None:
             jtr = np.frombuffer(res[1], dtype=np.float64)
             jtr[:n1] = at @ r1 + w * (bt @ r2)
-            ctr = ct @ r2
+            ctr = np.concatenate([ci @ r2 for ci in cts])
             jtr[n1:] = w * (ctr if f is None else f.T @ ctr)
         return 0
 
