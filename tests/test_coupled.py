@@ -231,9 +231,9 @@ def test_sharp_coupled_operator_with_a_layer_is_the_decoupled_one(turbulent_laye
         start=g.coefficients,
     )  # fmt: skip
     # the start's wall classifies the points: full cell means near it, the far-inside branch and zero beyond
-    model.layer_margin_mm = cpl.LAYER_MARGIN_VOXELS * res.grid.h  # as build() sets it
+    model.margin_mm = cpl.START_MARGIN_VOXELS * res.grid.h  # as build() sets it
     l_mm = v.basis.scale * cpl.layer_stretch(v)
-    classes = cpl.layer_point_classes(model, l_mm, cpl.layer_stretch(v), v.disk_map.r_in, model.layer_margin_mm)
+    classes = cpl.layer_point_classes(model, l_mm, cpl.layer_stretch(v), v.disk_map.r_in, model.margin_mm)
     n_pts = model.dist.size
     outside = n_pts - classes["band"].size - classes["far"].size
     assert min(classes["band"].size, classes["far"].size, outside) > 0.02 * n_pts
@@ -329,12 +329,43 @@ def test_a_wall_move_beyond_the_layer_margin_is_re_solved_with_wider_point_class
     g, v = res.geometry, res.velocity
     args = (_problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), g, v, 1e4)
     ref = cpl.solve(*args)
-    assert ref.stats.extra["layer_passes"] == 1
-    assert ref.stats.extra["wall_move_mm"] <= ref.stats.extra["layer_margin_mm"]
-    monkeypatch.setattr(cpl, "LAYER_MARGIN_VOXELS", 1e-3)  # 0.0015 mm: below the move
+    assert ref.stats.extra["margin_passes"] == 1
+    assert ref.stats.extra["wall_move_mm"] <= ref.stats.extra["start_margin_mm"]
+    monkeypatch.setattr(cpl, "START_MARGIN_VOXELS", 1e-3)  # 0.0015 mm: below the move
     out = cpl.solve(*args)
-    assert out.stats.extra["layer_passes"] == 2 and out.stats.converged
-    assert out.stats.extra["layer_margin_mm"] == pytest.approx(2 * ref.stats.extra["wall_move_mm"], rel=0.05)
+    assert out.stats.extra["margin_passes"] == 2 and out.stats.converged
+    assert out.stats.extra["start_margin_mm"] == pytest.approx(2 * ref.stats.extra["wall_move_mm"], rel=0.05)
     np.testing.assert_allclose(out.geometry.coefficients, ref.geometry.coefficients, rtol=0, atol=1e-4)
     np.testing.assert_allclose(out.velocity.coefficients, ref.velocity.coefficients, rtol=0,
                                atol=1e-4 * np.max(np.abs(ref.velocity.coefficients)))  # fmt: skip
+
+
+def test_voxels_beyond_the_indicators_reach_hold_no_points_and_change_nothing(laminar_coarse):
+    """Voxels farther outside the start's wall than the erf indicator's reach (6 gamma) plus the margin keep
+    their rows (model value 0) but lose their points: the residual and its Jacobian equal the model with every
+    point's, at the start and at a wall moved by 0.8 of the margin (exact zeros there in double precision;
+    the Jacobian's dropped entries were below 1e-15 of its largest)."""
+    _, _, res = laminar_coarse
+    g, v = res.geometry, res.velocity
+    q, gamma = meas.auto_quad_order(None, res.grid, g.coefficients[0]), g.gamma
+    margin = cpl.START_MARGIN_VOXELS * res.grid.h
+    args = (res.grid, res.velocity_image, res.magnitude, g.center, res.lumen.r1, geo.GeometryOptions().n_fourier, q)
+    full = cpl.velocity_misfit_model(*args, start=g.coefficients, margin_mm=margin)
+    kept = cpl.velocity_misfit_model(
+        *args, start=g.coefficients, margin_mm=margin, reach_mm=meas.heaviside_reach(gamma, "erf")
+    )
+    assert full.dropped == 0 and full.rows is None
+    assert kept.dropped > 0.1 * kept.index.size and kept.rows.size + kept.dropped == kept.index.size
+    np.testing.assert_array_equal(kept.index, full.index)
+    c_r, c_v = ca.MX.sym("c_r", g.coefficients.size), ca.MX.sym("c_v", v.basis.size)
+    values = []
+    for model in (full, kept):
+        r, j_r, j_v, _ = cpl.velocity_residual(model, c_r, c_v, v.basis, v.disk_map.r_in, gamma, "erf", jacobian=True)
+        values.append(ca.Function("f", [c_r, c_v], [r, j_r, j_v]))
+    moved = g.coefficients.copy()
+    moved[0] += 0.8 * margin
+    for c in (g.coefficients, moved):
+        ref, out = (f(c, v.coefficients) for f in values)
+        np.testing.assert_array_equal(np.asarray(out[0]), np.asarray(ref[0]))
+        for a, b in zip(out[1:], ref[1:]):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-15 * np.max(np.abs(np.asarray(b))))

@@ -45,6 +45,7 @@ import casadi as ca
 from ._lazy import scipy
 from .parameters import noise as nl
 from . import chebyshev
+from . import elementwise
 from . import geometry as geo
 from . import kspace
 from . import measurement as meas
@@ -217,13 +218,30 @@ class VelocityMisfitModel:
     points_index: np.ndarray | None = None
     cell_mm: tuple = (0.0, 0.0)  # (dx, dy) / order: one quadrature cell (a near-wall layer integrates across it)
     start_gap: np.ndarray | None = None  # (n_points,) distance to the centre minus the start's R there, mm
-    # how far the wall may move from the start before a near-wall layer's point classes can be wrong, mm
-    layer_margin_mm: float = 0.0
+    # how far the wall may move from the start before the point classes can be wrong (the points a near-wall
+    # layer takes the far-inside formula at, the voxels left without points), mm
+    margin_mm: float = 0.0
+    # box model: positions in ``index`` of the voxels that hold points (None: all); the others lie beyond the
+    # smoothed indicator's reach of every wall within ``margin_mm`` of the start, where their model value is 0
+    rows: np.ndarray | None = None
+    dropped: int = 0  # candidate voxels left without points (box and k-space alike)
 
     kept: list = field(default_factory=list)  # callbacks of the graphs built on this model (CasADi's rule)
 
+    @property
+    def n_rows(self) -> int:
+        """The number of voxel values the points give (``rows``, or every voxel of ``index``)."""
+        return self.index.size if self.rows is None else self.rows.size
+
+    def row_scatter(self) -> ca.DM | None:
+        """The ``(n_vox, n_rows)`` 0/1 matrix putting the point-given voxel values into the set (None: all)."""
+        rows = self.rows
+        if rows is None:
+            return None
+        return ca.DM(ca.Sparsity.triplet(self.index.size, rows.size, rows.tolist(), list(range(rows.size))), 1.0)
+
     def aggregate(self, values):
-        """Voxel values ``(n_vox, k)`` from point values ``(n_points, k)`` (CasADi): box sums or the PSF image."""
+        """Voxel values ``(n_rows, k)`` from point values ``(n_points, k)`` (CasADi): box sums or the PSF image."""
         if self.averager is None:  # by NumPy: a sparse DM of the sums took 80 ms to build at h = 0.3 mm
             q2 = self.order * self.order
             means = operators.GroupedWeightedSum(np.full((self.dist.size, 1), float(q2)), q2, values.shape[1])
@@ -258,6 +276,8 @@ def velocity_misfit_model(
     order: int,
     psf: kspace.PSF | None = None,
     start=None,
+    margin_mm: float = 0.0,
+    reach_mm: float = np.inf,
 ) -> VelocityMisfitModel:
     """The fixed voxel set, its precision weights and sub-voxel points (see :func:`velocity_residual`).
 
@@ -266,13 +286,28 @@ def velocity_misfit_model(
     set is every voxel whose modeled signal ``(K * chi)_i`` for the starting
     radius ``start`` reaches :data:`KSPACE_VOXEL_SIGNAL` (below it the phase
     is not a stable signal-weighted mean velocity).
+
+    With a start, points are kept only in voxels with a point closer than
+    ``margin_mm + reach_mm`` outside the start's wall (``reach_mm``: where the
+    smoothed indicator and its derivatives vanish, :func:`wss_nlp.measurement.heaviside_reach`):
+    for walls within ``margin_mm`` of the start the others contribute exactly
+    nothing. Their voxels stay in the set (model value 0).
     """
     xc, yc = grid.centers()
     dist = np.hypot(xc - center[0], yc - center[1]).ravel()
     points_index = np.flatnonzero(dist <= r1 + 0.5 * np.hypot(grid.dx, grid.dy))
     px, py = meas.subvoxel_points(grid, points_index, order)
-    averager, index = None, points_index
+    held = np.arange(points_index.size)
+    if start is not None and np.isfinite(reach_mm):
+        rx, ry = np.ravel(px) - center[0], np.ravel(py) - center[1]
+        gaps = (np.hypot(rx, ry) - rad.evaluate(start, np.arctan2(ry, rx))).reshape(points_index.size, -1)
+        held = np.flatnonzero(np.min(gaps, axis=1) <= margin_mm + reach_mm)
+        px, py = px[held], py[held]
+    dropped = points_index.size - held.size
+    averager, index, rows = None, points_index, (None if dropped == 0 else held)
+    points_index = points_index[held]
     if psf is not None:
+        rows = None  # the PSF image of the held points reaches every voxel of the set
         if start is None:
             raise InputError("the coupled k-space misfit needs the starting radius to choose its voxels")
         rx, ry = np.ravel(px) - center[0], np.ravel(py) - center[1]
@@ -302,6 +337,9 @@ def velocity_misfit_model(
         points_index,
         (grid.dx / order, grid.dy / order),
         gap,
+        float(margin_mm),
+        rows,
+        int(dropped),
     )
 
 
@@ -438,7 +476,7 @@ def _design_sums(model: VelocityMisfitModel, k: int) -> _VoxelSums:
     """
     design = np.ascontiguousarray(model.design)
     n_pts, n = design.shape
-    n_vox, box, point_sums = model.index.size, model.averager is None, _point_sums(model.averager, model.order)
+    n_vox, box, point_sums = model.n_rows, model.averager is None, _point_sums(model.averager, model.order)
 
     def apply(s, w):
         if box:  # a voxel's points are consecutive
@@ -467,7 +505,7 @@ def _basis_sums(
     """
     cheb, ang = np.ascontiguousarray(pb.cheb), np.ascontiguousarray(pb.angular)
     a_idx, r_idx = np.argmax(pb.select_angular, axis=1), np.argmax(pb.select_radial, axis=1)
-    n_pts, n_vox, q2 = ang.shape[1], model.index.size, model.order**2
+    n_pts, n_vox, q2 = ang.shape[1], model.n_rows, model.order**2
     box, point_sums = model.averager is None, _point_sums(model.averager, model.order)
 
     def apply(w, arg, rows):
@@ -630,7 +668,9 @@ def velocity_residual(
     u = ca.DM(model.data)
     s = agg(chi.T)
     t = agg((chi * v).T)
-    scale = ca.DM(np.sqrt(model.weights / np.sum(model.weights)))
+    scale_all = np.sqrt(model.weights / np.sum(model.weights))
+    rows = model.rows
+    scale = ca.DM(scale_all if rows is None else scale_all[rows])  # on the voxels the points give
     s0 = floor * model.point_weight
     if model.averager is None:
         den = ca.sqrt(s * s + s0**2)
@@ -650,7 +690,10 @@ def velocity_residual(
             den_l = s_layer * s_layer + s0**2
             ratio_l, dratio_l = s_layer / den_l, (s0**2 - s_layer * s_layer) / den_l**2
         model_u = model_u + t_layer * ratio_l
-    res = scale * (model_u - u)
+    put = model.row_scatter()
+    if put is not None:  # the voxels without points have model value 0: scatter the others into the set
+        model_u = ca.mtimes(put, model_u)
+    res = ca.DM(scale_all) * (model_u - u)
     if not jacobian:
         return res
     dv = angular_sum(ca.mtimes(q_mat, ca.DM(pb.cheb_derivative)))
@@ -671,20 +714,23 @@ def velocity_residual(
     if layered:
         columns.append(ca.repmat(scale * ratio_l, 1, full.n_layer) * agg(lay.T))
     if not factored:
+        if put is not None:
+            jac_r, columns = ca.mtimes(put, jac_r), [ca.mtimes(put, c) for c in columns]
         return res, jac_r, ca.horzcat(*columns), model_u - u
     n_layer = full.n_layer if layered else 0
     right = scipy.linalg.block_diag(basis.transform, np.eye(n_layer))
     return res, jac_r, tuple(columns), model_u - u, right
 
 
-#: How far (voxels) the wall may move from the coupled solve's start before a near-wall layer's point classes
-#: (:func:`layer_point_classes`) can be wrong; :func:`solve` checks the move and re-solves with a wider margin
-#: if it was exceeded. The coupled solve moves the wall by a few hundredths of a voxel (0.02 at h = 0.3 mm and
-#: 0.03 at h = 1.5 mm on the turbulent phantom).
-LAYER_MARGIN_VOXELS = 0.5
+#: How far (voxels) the wall may move from the coupled solve's start before its point classes can be wrong: the
+#: voxels left without points (:func:`velocity_misfit_model`) and a near-wall layer's far-inside points
+#: (:func:`layer_point_classes`). :func:`solve` checks the move and re-solves with a wider margin if it was
+#: exceeded. The coupled solve moves the wall by a few hundredths of a voxel (0.02 at h = 0.3 mm and 0.03 at
+#: h = 1.5 mm on the turbulent phantom).
+START_MARGIN_VOXELS = 0.5
 
-#: At most this many coupled solves, each with the layer's point classes for twice the previous wall move.
-MAX_LAYER_PASSES = 3
+#: At most this many coupled solves, each with the point classes for twice the previous wall move.
+MAX_MARGIN_PASSES = 3
 
 
 def layer_point_classes(model: VelocityMisfitModel, l_mm: float, stretch: float, r_in: float, margin_mm: float):
@@ -718,6 +764,15 @@ def layer_point_classes(model: VelocityMisfitModel, l_mm: float, stretch: float,
     return {"band": np.flatnonzero(~far & ~outside), "far": np.flatnonzero(far)}
 
 
+def _far_mean(family: str, a: np.ndarray, b: np.ndarray):
+    """``(y, d) ->`` the ``d``-th derivative of the far-inside cell mean of cells ``(a, b)`` (an elementwise ladder)."""
+
+    def derivative(y: np.ndarray, d: int) -> np.ndarray:
+        return nw.far_cell_mean_derivative(family, y, a, b, d)
+
+    return derivative
+
+
 def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, r_in: float, harmonics=None):
     """The layer columns at the misfit's points and what the voxels integrate them with (CasADi, ``(k, n_pts)``).
 
@@ -731,7 +786,7 @@ def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, r_in: 
     Near the start's wall (``model.start_gap``) the cell means take the
     trapezoid formula throughout; farther inside the far-inside formula,
     farther outside zero (their values there; :func:`layer_point_classes`
-    with the model's ``layer_margin``). ``r_in``: the map's inner radius.
+    with the model's ``margin_mm``). ``r_in``: the map's inner radius.
     ``harmonics``: symbolic ``(cos, sin)`` of the points' angles (a symbolic
     centre), else the model's fixed angles.
     """
@@ -745,7 +800,7 @@ def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, r_in: 
         half_x, half_y = nw.cell_half_widths(model.cell_mm, 0.0)[0], nw.cell_half_widths(model.cell_mm, np.pi / 2)[1]
         a_l, b_l = half_x * ca.fabs(harmonics[0]) / (ell * stretch), half_y * ca.fabs(harmonics[1]) / (ell * stretch)
     y = (1 - rho) / ell
-    classes = layer_point_classes(model, ell * stretch, stretch, r_in, model.layer_margin_mm)
+    classes = layer_point_classes(model, ell * stretch, stretch, r_in, model.margin_mm)
     f, df, area, darea = (ca.MX(1, n_pts) for _ in range(4))
     for kind, idx in classes.items():
         if idx.size == 0:
@@ -758,6 +813,12 @@ def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, r_in: 
             ak_, dak = nw.cell_mean_function("inside", continuous=True).map(idx.size)(yk, ak, bk)
             area += ca.mtimes(ak_, put)
             darea += ca.mtimes(dak, put)
+        elif harmonics is None:  # fixed cells: the far-inside mean and its derivatives by NumPy (elementwise)
+            a_k, b_k = half_x[idx] / (ell * stretch), half_y[idx] / (ell * stretch)
+            ladder = elementwise.Ladder(idx.size, _far_mean(basis.family, a_k, b_k), "far_mean")
+            model.kept.append(ladder)
+            fk, dfk = ladder.map(0)(yk), ladder.map(1)(yk)
+            area += ca.DM(np.ones(idx.size)).T @ put
         else:
             fk, dfk = nw.far_cell_mean_function(basis.family).map(idx.size)(yk, ak, bk)
             area += ca.DM(np.ones(idx.size)).T @ put
@@ -794,7 +855,8 @@ class CoupledNLP:
     beta: float
     penalty: ca.MX  # alpha ||R - R_ref||^2_{H^s} + lambda beta ||Delta^t v||^2 / pi: f = |residual|^2 + penalty
     # ((r_m, r_v), (dr_m/dc_R, dr_v/dc_R, (C_1, ...))): the magnitude and velocity residuals and the Jacobian's
-    # blocks (the velocity ones by the chain rule, see velocity_residual), dr_v/dc_v = [C_1, ...] right
+    # blocks (the velocity ones by the chain rule, see velocity_residual), dr_v/dc_v = [C_1, ...] right; the
+    # velocity blocks have the rows velocity_model.rows of r_v (the others are constant)
     blocks: tuple
     right: np.ndarray  # the constant right factor of dr_v/dc_v (velocity_residual(factored=True))
     stretch: float | None = None  # S of a near-wall layer's cells (velocity_residual), fixed at the start's map
@@ -814,6 +876,9 @@ class CoupledNLP:
         product = operators.MatrixProduct(self.right.T, cols=raw.shape[0])
         self.velocity_model.kept.append(product)
         j_vv = product(raw.T).T
+        put = self.velocity_model.row_scatter()
+        if put is not None:  # the constant rows of r_v have zero derivatives
+            j_vr, j_vv = ca.mtimes(put, j_vr), ca.mtimes(put, j_vv)
         zeros = ca.MX(j_m.shape[0], j_vv.shape[1])  # the magnitude residual does not depend on c_v
         return ca.vertcat(ca.horzcat(j_m, zeros), np.sqrt(self.weight) * ca.horzcat(j_vr, j_vv))
 
@@ -870,14 +935,15 @@ def build(
     quad_order: int | None = None,
     start=None,
     stretch: float | None = None,
-    layer_margin_mm: float | None = None,
+    margin_mm: float | None = None,
 ) -> CoupledNLP:
     """The coupled functional as a CasADi NLP (variables ``[c_R; c_v]``).
 
     ``start`` (radius coefficients) fixes the voxel set of a k-space
     acquisition (``geometry_problem.psf``; see :func:`velocity_misfit_model`)
-    and a near-wall layer's point classes (:func:`layer_point_classes`, for
-    walls within ``layer_margin_mm`` of it; default :data:`LAYER_MARGIN_VOXELS`).
+    and the point classes (the points kept, :func:`velocity_misfit_model`;
+    a near-wall layer's formulas, :func:`layer_point_classes`) for walls
+    within ``margin_mm`` of it (default :data:`START_MARGIN_VOXELS`).
     ``stretch``: the start map's ``S`` when ``basis`` carries a near-wall layer
     (:func:`velocity_residual`).
     """
@@ -894,6 +960,7 @@ def build(
     c_v = ca.MX.sym("c_v", basis.size)
     x = ca.vertcat(gnlp.c, c_v)
     q = misfit_quad_order(geometry_problem, gopt, quad_order)
+    margin = START_MARGIN_VOXELS * geometry_problem.grid.h if margin_mm is None else float(margin_mm)
     model = velocity_misfit_model(
         geometry_problem.grid,
         velocity_image,
@@ -904,9 +971,9 @@ def build(
         q,
         psf=geometry_problem.psf,
         start=start,
+        margin_mm=margin,
+        reach_mm=meas.heaviside_reach(gnlp.gamma, gopt.heaviside),
     )
-    default_margin = LAYER_MARGIN_VOXELS * geometry_problem.grid.h
-    model.layer_margin_mm = default_margin if layer_margin_mm is None else float(layer_margin_mm)
     res_v, jac_vr, jac_vv, err_v, right = velocity_residual(
         model, gnlp.c, c_v, basis, r_in, gamma, gopt.heaviside, jacobian=True, stretch=stretch, factored=True
     )
@@ -960,6 +1027,8 @@ def gauss_newton_derivatives(nlp: CoupledNLP) -> tuple[ca.MX, ca.MX, operators.B
     through the misfit, which costs as much as forming ``J`` again.
     """
     (r_m, r_v), (j_m, j_vr, columns) = nlp.blocks
+    rows = nlp.velocity_model.rows
+    r_v = r_v if rows is None else r_v[rows.tolist()]  # the constant rows add nothing to J^T r
     (m1, n1), m2, n2 = j_m.shape, j_vr.shape[0], nlp.right.shape[1]
     widths = tuple(c.shape[1] for c in columns)
     gram = operators.BlockGram(m1, n1, m2, n2, nlp.weight, right=nlp.right, widths=widths)
@@ -1023,25 +1092,25 @@ def solve(
             options.quad_order,
             start=start_geometry.coefficients,
             stretch=layer_stretch(start_velocity),
-            layer_margin_mm=margin,
+            margin_mm=margin,
         )
         sol, stats = _solve_nlp(nlp, geometry_problem, dm.r_in, x0, options)
         x = np.asarray(sol["x"]).ravel()
         model = nlp.velocity_model
         move = float(np.max(np.abs(model.design @ (x[: nlp.n_r] - start_geometry.coefficients))))
-        layered = isinstance(start_velocity.basis, nw.EnrichedBasis)
-        if not layered or move <= model.layer_margin_mm or passes == MAX_LAYER_PASSES:
+        # the point classes (points kept, a layer's formulas) hold for walls within the margin of the start
+        classified = model.dropped > 0 or isinstance(start_velocity.basis, nw.EnrichedBasis)
+        if not classified or move <= model.margin_mm or passes == MAX_MARGIN_PASSES:
             break
-        # the layer's point classes assumed a smaller move: classify them again for this one (and more), re-solve
-        logger.info(f"coupled: the wall moved {move:.3g} mm, beyond the layer's margin; re-solving with a wider one")
+        logger.info(f"coupled: the wall moved {move:.3g} mm, beyond the points' margin; re-solving with a wider one")
         margin, x0 = 2 * move, x
-    if layered:
-        stats.extra["layer_margin_mm"] = model.layer_margin_mm
-        stats.extra["layer_passes"] = passes
-        if move > model.layer_margin_mm:
+    if classified:
+        stats.extra["start_margin_mm"] = model.margin_mm
+        stats.extra["margin_passes"] = passes
+        if move > model.margin_mm:
             stats.converged = False
-            stats.status = f"wall moved {move:.3g} mm, beyond the near-wall layer's margin {model.layer_margin_mm:.3g}"
-            logger.warning(f"coupled: {stats.status}; the layer's cell means may be off (flagged not converged)")
+            stats.status = f"wall moved {move:.3g} mm from the start, beyond the points' margin {model.margin_mm:.3g}"
+            logger.warning(f"coupled: {stats.status}; the misfit's point classes may be wrong (flagged)")
     stats.extra["wall_move_mm"] = move
     stats.extra["velocity_weight"] = weight
     stats.extra["quad_order"] = model.order

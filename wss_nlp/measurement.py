@@ -227,6 +227,21 @@ def heaviside_curvature(x, gamma, kind: str = "erf"):
     raise ValueError(f"unknown smoothed Heaviside {kind!r}; choose from {HEAVISIDES}")
 
 
+#: Beyond this many widths below the wall the erf indicator is 0 in double precision (erfc(6)/2 = 1e-17, below
+#: half an ulp of 1) and its first and second derivatives are below 1e-15 and 1e-14 of their peaks.
+ERF_REACH_WIDTHS = 6.0
+
+
+def heaviside_reach(gamma: float, kind: str = "erf") -> float:
+    r"""Distance (mm) outside the wall beyond which ``H_gamma`` and its derivatives vanish: ``6 gamma`` (erf), or
+    ``inf`` for the arctan indicator, whose tails decay like :math:`\gamma / (\pi |x|)`."""
+    if kind == "erf":
+        return ERF_REACH_WIDTHS * float(gamma)
+    if kind == "arctan":
+        return float("inf")
+    raise ValueError(f"unknown smoothed Heaviside {kind!r}; choose from {HEAVISIDES}")
+
+
 def magnitude_model(
     model: AnnulusModel,
     coefficients,

@@ -97,6 +97,43 @@ def profile_second_derivative(family: str, y) -> np.ndarray:
     raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
 
 
+def profile_derivatives(family: str, y, order: int) -> np.ndarray:
+    r"""``f^(k)(y)`` of a family for any order ``k >= 0`` (NumPy, ``y > -1/kappa``; no cut-off).
+
+    Notes
+    -----
+    Reichardt's law :math:`f = \ln(1 + \kappa y)/\kappa + C (1 - e^{-y/11} - (y/11) e^{-y/3})` has, for
+    :math:`k \ge 1`,
+
+    .. math::
+
+        f^{(k)} = \frac{(-1)^{k-1} (k-1)!\, \kappa^{k-1}}{(1 + \kappa y)^k}
+        - C \Big[ (-\tfrac{1}{11})^k e^{-y/11}
+        + \tfrac{1}{11} \big( y (-\tfrac{1}{3})^k + k (-\tfrac{1}{3})^{k-1} \big) e^{-y/3} \Big];
+
+    the exponential family :math:`1 - e^{-y}` has :math:`f^{(k)} = (-1)^{k+1} e^{-y}`.
+    """
+    y = np.asarray(y, dtype=float)
+    if family == "wall_law":
+        if order == 0:
+            return profile(family, y)
+        z, e11, e3, k = 1 + KAPPA * y, np.exp(-y / 11), np.exp(-y / 3), int(order)
+        log_part = (-1) ** (k - 1) * float(np.prod(np.arange(1, k))) * KAPPA ** (k - 1) / z**k
+        third = -1.0 / 3
+        return log_part - REICHARDT_C * ((-1.0 / 11) ** k * e11 + (y * third**k + k * third ** (k - 1)) / 11 * e3)
+    if family == "exponential":
+        return profile(family, y) if order == 0 else (-1.0) ** (order + 1) * np.exp(-y)
+    raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+
+
+def far_cell_mean_derivative(family: str, y, a, b, order: int) -> np.ndarray:
+    """The ``order``-th ``y``-derivative of :func:`far_cell_mean_function` (NumPy; cells wholly inside the wall,
+    ``a``, ``b`` fixed): ``f^(k)(y) + [max(a, b) > 0.02] (a^2 + b^2)/6 f^(k+2)(y)``."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    curvature = np.where(np.maximum(a, b) > 0.02, (a * a + b * b) / 6, 0.0)
+    return profile_derivatives(family, y, order) + curvature * profile_derivatives(family, y, order + 2)
+
+
 def cell_half_widths(cell_mm, t) -> tuple[np.ndarray, np.ndarray]:
     """Half-widths (mm) of a quadrature cell's projections on the wall normal at polar angle ``t``.
 
