@@ -68,7 +68,8 @@ class LinearTikhonov:
         self.gram = np.asarray(gram, dtype=float)
         self._pencils: dict = {}
         self.weighted_operator = self.operator * self.w[:, None]
-        self.normal = self.weighted_operator.T @ self.operator  # K = T^T W T
+        root = self.operator * np.sqrt(self.w)[:, None]
+        self.normal = root.T @ root  # K = T^T W T: NumPy's symmetric rank-k update (syrk), half a product's flops
         self.rhs = self.weighted_operator.T @ self.data  # g = T^T W u
 
     def hessian(self, beta: float) -> np.ndarray:

@@ -274,7 +274,8 @@ class PlainCriterion:
     def __init__(self, plain: vel.VelocityProblem, sigma: np.ndarray):
         self.plain, self.inv_var = plain, 1.0 / np.asarray(sigma, float) ** 2
         t = plain.operator
-        self.tst = t.T @ (self.inv_var[:, None] * t)
+        root = t * np.sqrt(self.inv_var)[:, None]
+        self.tst = root.T @ root  # T^T Sigma^-1 T by a symmetric rank-k update (syrk)
         self.tsu = t.T @ (self.inv_var * plain.data)
         self.usu = float(plain.data @ (self.inv_var * plain.data))
         # correlated (k-space) noise: chi^2 and the sample count of nu n effectively independent voxels
