@@ -55,7 +55,7 @@ from . import radius as rad
 from . import velocity as vel
 from .errors import InputError, SolverError
 from .schema import option
-from .solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
+from .solver import SolverStats, gauss_newton_ipopt, run_nlpsol
 
 
 logger = logging.getLogger(__name__)
@@ -76,7 +76,8 @@ class CoupledOptions:
         velocity part is the decoupled velocity problem.
     hessian : {"gauss-newton", "exact"}
         IPOPT Hessian: Gauss-Newton ``2 (J^T J + penalty Hessian)`` (default;
-        the functional is a sum of squares) or CasADi's exact Hessian.
+        the functional is a sum of squares) or the exact Hessian (Gauss-Newton
+        plus ``2 sum_i r_i hess r_i`` from CasADi's exact derivatives).
     quad_order : int or None
         Sub-voxel points per axis of the velocity misfit (q x q per voxel).
         None (default): the decoupled fit's own q (``--quad-order``, by
@@ -1037,17 +1038,60 @@ def gauss_newton_derivatives(nlp: CoupledNLP) -> tuple[ca.MX, ca.MX, operators.B
     return 2 * jtr + ca.gradient(nlp.penalty, nlp.x), hess, gram
 
 
+def residual_curvature(nlp: CoupledNLP) -> ca.Function:
+    r"""``(x, gamma, w, E) -> (sum_i w_i hess r_i) E``: the second-order term of the residual, along the columns
+    of ``E`` (``n_x x n_r``; the ``c_R`` directions), one forward-over-reverse sweep per column.
+
+    Notes
+    -----
+    The residual is linear in ``c_v``, so ``sum_i w_i hess r_i`` vanishes on the ``c_v``-``c_v`` block and its
+    ``c_R`` columns give the whole matrix (:func:`curvature_matrix`). One direction's graph is mapped over the
+    ``n_r`` columns (serial): with all directions in one graph CasADi took 18 s to build it and 2 GB at
+    h = 0.3 mm, and the Hessian CasADi's nlpsol generates by itself (a Jacobian of the gradient through the
+    callbacks) exhausted 24 GB on a turbulent slice at h = 1 mm.
+    """
+    n_x, n_r = nlp.x.numel(), nlp.n_r
+    weights = ca.MX.sym("w", nlp.residual.numel())
+    grad_w = ca.gradient(ca.dot(weights, nlp.residual), nlp.x)
+    direction = ca.MX.sym("direction", n_x)
+    second = ca.Function("second", [nlp.x, nlp.gamma, weights, direction], [ca.jtimes(grad_w, nlp.x, direction)])
+    return second.map("second_columns", "serial", n_r, [0, 1, 2], [])
+
+
+def curvature_matrix(columns, n_r: int):
+    """The symmetric ``n_x x n_x`` matrix whose ``c_R`` columns are ``columns`` (``n_x x n_r``; zero ``c_v`` block;
+    NumPy or CasADi)."""
+    if isinstance(columns, np.ndarray):
+        out = np.zeros((columns.shape[0], columns.shape[0]))
+        out[:, :n_r] = columns
+        out[:n_r, n_r:] = columns[n_r:].T
+        return out
+    n_x = columns.shape[0]
+    lower = columns[n_r:, :]
+    return ca.horzcat(columns, ca.vertcat(lower.T, ca.MX(n_x - n_r, n_x - n_r)))
+
+
 def _ipopt(nlp: CoupledNLP, hessian: str, options: CoupledOptions):
-    """The coupled NLP's IPOPT solver with the Gauss-Newton or CasADi's exact Hessian, and the callback it uses
-    (keep it referenced while the solver lives)."""
+    """The coupled NLP's IPOPT solver with the Gauss-Newton or the exact Hessian, and the callbacks it uses
+    (keep them referenced while the solver lives).
+
+    The exact Hessian is the Gauss-Newton one plus ``2 sum_i r_i hess r_i`` by :func:`residual_curvature`
+    (one forward-over-reverse sweep per ``c_R`` direction at each point): nlpsol's own exact Hessian of the
+    misfit exhausted the memory (24 GB) on a turbulent slice at h = 1 mm.
+    """
     extra = dict(WARM_START)
-    if hessian == "gauss-newton":
-        grad, hess, gram = gauss_newton_derivatives(nlp)
-        return gauss_newton_ipopt(
-            "coupled", nlp.x, nlp.f, nlp.g, hess, nlp.gamma, options.tol, options.max_iter, extra, grad=grad
-        ), gram
-    opts = ipopt_options(options.tol, options.max_iter, extra)
-    return ca.nlpsol("coupled", "ipopt", {"x": nlp.x, "p": nlp.gamma, "f": nlp.f, "g": nlp.g}, opts), None
+    grad, hess, gram = gauss_newton_derivatives(nlp)
+    keep: tuple = (gram,)
+    if hessian == "exact":
+        second = residual_curvature(nlp)
+        directions = ca.DM(np.eye(nlp.x.numel())[:, : nlp.n_r])
+        columns = second(nlp.x, nlp.gamma, nlp.residual, directions)
+        hess = hess + 2 * curvature_matrix(columns, nlp.n_r)
+        keep += (second,)
+    solver = gauss_newton_ipopt(
+        "coupled", nlp.x, nlp.f, nlp.g, hess, nlp.gamma, options.tol, options.max_iter, extra, grad=grad
+    )
+    return solver, keep
 
 
 def solve(
@@ -1067,8 +1111,8 @@ def solve(
     The inner radius of ``phi_R`` is frozen at the start's value (it is a
     parameter of the map, not an unknown), and the box's lower bound is
     raised to it if needed so that ``phi_R`` stays one-to-one. A solve with
-    the Gauss-Newton Hessian that fails or stops short is redone with
-    CasADi's exact Hessian (``stats.extra["gauss_newton_failed"]`` says why).
+    the Gauss-Newton Hessian that fails or stops short is redone with the
+    exact Hessian (``stats.extra["gauss_newton_failed"]`` says why).
     """
     options = options or CoupledOptions()
     alpha = start_geometry.alpha if alpha is None else float(alpha)
@@ -1122,7 +1166,7 @@ def solve(
 
 
 def _solve_nlp(nlp: CoupledNLP, geometry_problem: geo.GeometryProblem, r_in: float, x0, options: CoupledOptions):
-    """IPOPT on ``nlp`` from ``x0``: the Gauss-Newton Hessian, and CasADi's exact one if that fails."""
+    """IPOPT on ``nlp`` from ``x0``: the Gauss-Newton Hessian, and the exact one if that fails."""
     lower = lower_bound(geometry_problem, r_in)
     args = {"x0": x0, "p": nlp.geometry.gamma, "lbg": lower, "ubg": geometry_problem.r1}
     what = "coupled geometry+velocity (IPOPT)"
@@ -1137,7 +1181,8 @@ def _solve_nlp(nlp: CoupledNLP, geometry_problem: geo.GeometryProblem, r_in: flo
         failed = str(exc)
     if failed and hessian == "gauss-newton":
         # the Gauss-Newton Hessian drops sum r_i hess(r_i), which a near-wall layer (steep in R) can make matter
-        # near the solution: IPOPT then stalls; the exact Hessian converges (measured on a turbulent slice)
+        # near the solution: IPOPT then stalls; the exact Hessian converged on a turbulent slice (h = 0.75 mm)
+        # (not on every one: a turbulent slice at h = 1 mm with the fixed beta 5e-8 stalls with both)
         logger.info(f"{what}: Gauss-Newton Hessian did not converge ({failed}); solving with the exact Hessian")
         hessian = "exact"
         solver, _keep = _ipopt(nlp, hessian, options)

@@ -810,14 +810,7 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
     x = np.concatenate([cres.geometry.coefficients, cres.velocity.coefficients])
     n_x = x.size
     gam = float(nlp.geometry.gamma)
-    n_res = nlp.residual.numel()
-    weights_res = ca.MX.sym("w_res", n_res)
-    grad_w = ca.gradient(ca.dot(weights_res, nlp.residual), nlp.x)
-    # columns of hess(w^T r) along c_R: one direction's forward-over-reverse graph, mapped over the n_r
-    # directions (a graph with all n_r seeds at once took 18 s to build and 2 GB at h = 0.3 mm)
-    direction = ca.MX.sym("direction", n_x)
-    second = ca.Function("second", [nlp.x, nlp.gamma, weights_res, direction], [ca.jtimes(grad_w, nlp.x, direction)])
-    second = second.map("second_columns", "serial", n_r, [0, 1, 2], [])
+    second = cpl.residual_curvature(nlp)  # columns of hess(w^T r) along c_R, one sweep each
     directions = np.eye(n_x)[:, :n_r]
     grad_f = ca.gradient(nlp.f, nlp.x)
     fun = ca.Function(
@@ -832,10 +825,7 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
     g_act = np.hstack([box[active], np.zeros((active.size, n_x - n_r))])
 
     def hessian(jac, sec):
-        h2 = np.zeros((n_x, n_x))  # hess(res^T r): only the c_R columns and rows are nonzero
-        h2[:, :n_r] = sec
-        h2[:n_r, n_r:] = sec[n_r:].T
-        return 2 * jac.T @ jac + 2 * h2 + reg
+        return 2 * jac.T @ jac + 2 * cpl.curvature_matrix(sec, n_r) + reg
 
     lam, sec = np.zeros(active.size), None
     for it in range(polish_steps + 1):
