@@ -8,7 +8,7 @@ the default when the table was made) and reports the mean
 coupled error is smaller, and seconds per slice (the coupled time includes
 its decoupled warm start). Writes ``scripts/results/coupled.md``.
 
-    python scripts/compare_coupled.py [--seeds 5] [--snr 6,10,25] [--h 1.5,1.0]   (about 10 minutes)
+    python scripts/compare_coupled.py [--seeds 5] [--snr 6,10,25] [--h 1.5,1.0]   (about 4 minutes)
 """
 
 import sys
