@@ -1181,8 +1181,10 @@ def _solve_nlp(nlp: CoupledNLP, geometry_problem: geo.GeometryProblem, r_in: flo
         failed = str(exc)
     if failed and hessian == "gauss-newton":
         # the Gauss-Newton Hessian drops sum r_i hess(r_i), which a near-wall layer (steep in R) can make matter
-        # near the solution: IPOPT then stalls; the exact Hessian converged on a turbulent slice (h = 0.75 mm)
-        # (not on every one: a turbulent slice at h = 1 mm with the fixed beta 5e-8 stalls with both)
+        # near the solution: IPOPT then stalls; the exact Hessian converged on a turbulent slice (h = 0.75 mm).
+        # Not on every one: a turbulent slice at h = 1 mm with the fixed beta 5e-8 stalls with both, because a
+        # layer's inside fraction of a cell aligned with the image axes (the box branch of the cell mean) is
+        # piecewise linear in the wall's position: its slope jumps where the cell's edge crosses the wall.
         logger.info(f"{what}: Gauss-Newton Hessian did not converge ({failed}); solving with the exact Hessian")
         hessian = "exact"
         solver, _keep = _ipopt(nlp, hessian, options)
