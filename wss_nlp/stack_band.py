@@ -116,20 +116,6 @@ def _row_space(rows: np.ndarray) -> np.ndarray:
     return vt[sv > 1e-10 * sv[0]]
 
 
-def weighted_gram(g: np.ndarray, index: np.ndarray, sigma, correlation=None) -> np.ndarray:
-    r"""``G diag(s) R diag(s) G^T`` for the voxels ``index`` (``R = I`` without a correlation).
-
-    ``g`` has one column per voxel of ``index`` (flat row-major), ``sigma``
-    their noise levels; ``correlation = (R_y, R_x, shape)`` the separable
-    noise correlation :math:`R = R_y \otimes R_x` of a k-space acquisition.
-    """
-    gs = np.asarray(g, float) * np.broadcast_to(np.asarray(sigma, float), (np.size(index),))[None, :]
-    if correlation is None:
-        return gs @ gs.T
-    image, smoothed = sens.correlated_images(gs, index, correlation)
-    return np.einsum("nad,kad->nk", image, smoothed)
-
-
 def joint_blocks(lin: Linearization, kappa: float, kappa_v: float, zop: np.ndarray, w0: np.ndarray, gram0):
     """The blocks ``A_kj`` of the segment's joint linear system in ``[c_k; lambda_k; v_k]`` per slice (see
     :func:`covariances`); returns ``(block(k, j) -> ndarray, sizes [(n_r, n_active, n_v)] per slice)``."""
@@ -384,11 +370,12 @@ def segment_band(
     """
     lin = linearize(slices, gopt, vopt, viscosity_pa_s, n_phi)
     info_m = [
-        weighted_gram(d, idx, s.sigma_m, corr)
+        sens.weighted_gram(d, idx, s.sigma_m, corr)
         for d, idx, s, corr in zip(lin.d_grad_m, lin.m_index, slices, lin.correlation)
     ]
     info_u = [
-        weighted_gram(p, idx, s.sigma_u, corr) for p, idx, s, corr in zip(lin.p, lin.u_index, slices, lin.correlation)
+        sens.weighted_gram(p, idx, s.sigma_u, corr)
+        for p, idx, s, corr in zip(lin.p, lin.u_index, slices, lin.correlation)
     ]
     w0 = rad.sobolev_weights(gopt.n_fourier, 0)
     basis = slices[0].velocity_problem.basis
@@ -407,7 +394,7 @@ def segment_band(
 def slice_band(cov_m, cov_u, jac_tau, jac_mean, scale_std: float = float("nan")) -> SliceBand:
     """A slice's band from the covariances of its coefficients (magnitude and velocity noise) and the
     Jacobians of tau and of its mean with respect to them."""
-    var_tau = np.einsum("ij,jk,ik->i", jac_tau, cov_m + cov_u, jac_tau)
+    var_tau = sens.row_quadratic(jac_tau, cov_m + cov_u)
     mean_m, mean_u = float(jac_mean @ cov_m @ jac_mean), float(jac_mean @ cov_u @ jac_mean)
     return SliceBand(
         np.sqrt(np.maximum(var_tau, 0.0)),
@@ -456,8 +443,8 @@ def coupled_segment_band(
         corr = sens.noise_correlation_of(pb)
         info.append(
             (
-                weighted_gram(kkt.dgrad[:, :n_m], kkt.m_index, sigma_m, corr),
-                weighted_gram(kkt.dgrad[:, n_m : n_m + n_u], kkt.u_index, sigma_u, corr),
+                sens.weighted_gram(kkt.dgrad[:, :n_m], kkt.m_index, sigma_m, corr),
+                sens.weighted_gram(kkt.dgrad[:, n_m : n_m + n_u], kkt.u_index, sigma_u, corr),
             )
         )
         pieces.append((kkt.hessian, _row_space(kkt.active), c_r.size))
