@@ -297,31 +297,29 @@ def velocity_misfit_model(
     xc, yc = grid.centers()
     dist = np.hypot(xc - center[0], yc - center[1]).ravel()
     points_index = np.flatnonzero(dist <= r1 + 0.5 * np.hypot(grid.dx, grid.dy))
-    px, py = meas.subvoxel_points(grid, points_index, order)
+    px, py = meas.subvoxel_points(grid, points_index, order)  # (voxels, q^2)
+    dx, dy = px - center[0], py - center[1]
+    r, phi = np.hypot(dx, dy), np.arctan2(dy, dx)
+    design = rad.design_matrix(phi.ravel(), n_fourier).reshape(*phi.shape, -1)
+    # distance of each point outside the start's wall (the classes of points follow from it)
+    gap = None if start is None else r - design @ np.asarray(start, float)
     held = np.arange(points_index.size)
-    if start is not None and np.isfinite(reach_mm):
-        rx, ry = np.ravel(px) - center[0], np.ravel(py) - center[1]
-        gaps = (np.hypot(rx, ry) - rad.evaluate(start, np.arctan2(ry, rx))).reshape(points_index.size, -1)
-        held = np.flatnonzero(np.min(gaps, axis=1) <= margin_mm + reach_mm)
-        px, py = px[held], py[held]
+    if gap is not None and np.isfinite(reach_mm):
+        held = np.flatnonzero(np.min(gap, axis=1) <= margin_mm + reach_mm)
     dropped = points_index.size - held.size
     averager, index, rows = None, points_index, (None if dropped == 0 else held)
-    points_index = points_index[held]
+    points_index, px, py, dx, dy, r, design = (a[held] for a in (points_index, px, py, dx, dy, r, design))
+    gap = None if gap is None else gap[held]
     if psf is not None:
         rows = None  # the PSF image of the held points reaches every voxel of the set
-        if start is None:
+        if gap is None:
             raise InputError("the coupled k-space misfit needs the starting radius to choose its voxels")
-        rx, ry = np.ravel(px) - center[0], np.ravel(py) - center[1]
-        inside = (np.hypot(rx, ry) < rad.evaluate(start, np.arctan2(ry, rx))).reshape(points_index.size, -1)
         reach = np.flatnonzero(dist <= r1 + kspace.WINDOW_ACQUIRED_VOXELS * max(psf.zero_fill) * grid.h)
-        signal = kspace.Averager(grid, points_index, order, psf, out_index=reach)(inside.astype(float))
+        signal = kspace.Averager(grid, points_index, order, psf, out_index=reach)((gap < 0).astype(float))
         index = reach[signal >= KSPACE_VOXEL_SIGNAL]
         averager = kspace.Averager(grid, points_index, order, psf, out_index=index)
-    dx, dy = (px - center[0]).ravel(), (py - center[1]).ravel()
-    r = np.hypot(dx, dy)
-    phi = np.arctan2(dy, dx)
+    r, dx, dy = r.ravel(), dx.ravel(), dy.ravel()
     m = np.clip(np.asarray(magnitude, float).ravel()[index], 0.0, 1.0)
-    gap = None if start is None else r - rad.evaluate(start, phi)
     return VelocityMisfitModel(
         index,
         np.asarray(velocity_image, float).ravel()[index],
@@ -329,7 +327,7 @@ def velocity_misfit_model(
         r,
         dx / np.maximum(r, 1e-300),
         dy / np.maximum(r, 1e-300),
-        rad.design_matrix(phi, n_fourier),
+        design.reshape(r.size, -1),
         order,
         grid.voxel_area,
         px.ravel(),
@@ -337,7 +335,7 @@ def velocity_misfit_model(
         averager,
         points_index,
         (grid.dx / order, grid.dy / order),
-        gap,
+        None if gap is None else gap.ravel(),
         float(margin_mm),
         rows,
         int(dropped),
