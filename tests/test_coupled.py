@@ -106,6 +106,18 @@ def _coupled_nlp(res):
     )  # fmt: skip
 
 
+def _solver_derivatives(res, hessian: str, seed: int):
+    """The coupled NLP of ``res``, a start perturbed by 1e-3 relative (``seed``), gamma, and the solver's shared
+    ``(f, grad, hess)`` there (``hessian``: "gauss-newton" or "exact")."""
+    g, v = res.geometry, res.velocity
+    nlp = _coupled_nlp(res)
+    solver, _keep = cpl._ipopt(nlp, hessian, cpl.CoupledOptions())
+    _, shared = solver.shared
+    x = np.concatenate([g.coefficients, v.coefficients])
+    x = x + np.random.default_rng(seed).normal(size=x.size) * 1e-3 * (np.abs(x) + 1e-2)
+    return nlp, x, g.gamma, [np.asarray(a) for a in shared.function(x, g.gamma)]
+
+
 def test_chain_rule_jacobian_equals_casadi_ad(laminar_coarse):
     _, _, res = laminar_coarse
     assert_coupled_jacobian_is_exact(_coupled_nlp(res), res.geometry, res.velocity)
@@ -116,15 +128,9 @@ def test_gauss_newton_solver_gradient_and_hessian_from_the_jacobian_blocks(lamin
     blocks, one shared evaluation) equal CasADi's reverse-mode gradient of the functional and the product of the
     assembled Jacobian, at a perturbed start."""
     _, _, res = laminar_coarse
-    g, v = res.geometry, res.velocity
-    nlp = _coupled_nlp(res)
-    solver, _keep = cpl._ipopt(nlp, "gauss-newton", cpl.CoupledOptions())
-    _, shared = solver.shared
-    x = np.concatenate([g.coefficients, v.coefficients])
-    x = x + np.random.default_rng(5).normal(size=x.size) * 1e-3 * (np.abs(x) + 1e-2)
-    f, grad, hess = (np.asarray(a) for a in shared.function(x, g.gamma))
+    nlp, x, gamma, (f, grad, hess) = _solver_derivatives(res, "gauss-newton", 5)
     ref = ca.Function("ref", [nlp.x, nlp.gamma], [nlp.f, ca.gradient(nlp.f, nlp.x), nlp.jacobian])
-    f_ref, grad_ref, jac = (np.asarray(a) for a in ref(x, g.gamma))
+    f_ref, grad_ref, jac = (np.asarray(a) for a in ref(x, gamma))
     hess_ref = 2 * jac.T @ jac + 2 * nlp.penalty_hessian()
     # the same derivatives summed in another order: rounding-level agreement
     assert abs(f.item() - f_ref.item()) <= 1e-12 * abs(f_ref.item())
@@ -377,12 +383,6 @@ def test_the_exact_hessian_fallback_equals_casadis_hessian_of_the_functional(lam
     CasADi's Hessian of the functional on a small slice, at a perturbed start (the same derivatives summed
     in another order: 1e-9 of the largest entry)."""
     _, _, res = laminar_coarse
-    g, v = res.geometry, res.velocity
-    nlp = _coupled_nlp(res)
-    solver, _keep = cpl._ipopt(nlp, "exact", cpl.CoupledOptions())
-    _, shared = solver.shared
-    x = np.concatenate([g.coefficients, v.coefficients])
-    x = x + np.random.default_rng(6).normal(size=x.size) * 1e-3 * (np.abs(x) + 1e-2)
-    hess = np.asarray(shared.function(x, g.gamma)[2])
-    ref = np.asarray(ca.Function("h", [nlp.x, nlp.gamma], [ca.hessian(nlp.f, nlp.x)[0]])(x, g.gamma))
+    nlp, x, gamma, (_, _, hess) = _solver_derivatives(res, "exact", 6)
+    ref = np.asarray(ca.Function("h", [nlp.x, nlp.gamma], [ca.hessian(nlp.f, nlp.x)[0]])(x, gamma))
     np.testing.assert_allclose(hess, ref, rtol=0, atol=1e-9 * np.max(np.abs(ref)))
