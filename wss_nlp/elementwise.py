@@ -36,6 +36,8 @@ import numpy as np
 
 import casadi as ca
 
+from .operators import DenseCallback
+
 
 class Ladder:
     """The maps :math:`D_d` of ``derivative(y, d)`` at ``n`` points, each built once and kept.
@@ -67,28 +69,12 @@ class Ladder:
         return self._maps[d]
 
 
-class _Derivative(ca.Callback):
+class _Derivative(DenseCallback):
     """:math:`D_d(y) = F^{(d)}(y)` on a row of points; its derivatives are :math:`D_{d+1}` times the seeds."""
 
     def __init__(self, ladder: Ladder, d: int):
-        ca.Callback.__init__(self)
         self.ladder, self.d = ladder, int(d)
-        self.construct(f"{ladder.name}_d{d}_{ladder.n}", {})
-
-    def get_n_in(self):
-        return 1
-
-    def get_n_out(self):
-        return 1
-
-    def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(1, self.ladder.n)
-
-    def get_sparsity_out(self, i):
-        return ca.Sparsity.dense(1, self.ladder.n)
-
-    def has_eval_buffer(self):
-        return True
+        super().__init__(f"{ladder.name}_d{d}_{ladder.n}", (1, ladder.n), (1, ladder.n))
 
     def eval_buffer(self, arg, res):
         out = np.frombuffer(res[0], dtype=np.float64)

@@ -26,7 +26,7 @@ import numpy as np
 import casadi as ca
 
 
-class _DenseCallback(ca.Callback):
+class DenseCallback(ca.Callback):
     """One dense input of shape ``shape_in`` to one dense output of shape ``shape_out``, evaluated in place."""
 
     def __init__(self, name: str, shape_in: tuple, shape_out: tuple):
@@ -50,7 +50,7 @@ class _DenseCallback(ca.Callback):
         return True
 
 
-class _LinearCallback(_DenseCallback):
+class _LinearCallback(DenseCallback):
     """A linear map ``X -> L(X)`` on ``cols`` side-by-side columns; subclasses give ``apply`` and shapes."""
 
     def __init__(self, name: str, n_in: int, n_out: int, cols: int):
@@ -159,7 +159,7 @@ class GroupedWeightedSum(_LinearCallback):
         return root._kept((cols, adjoint), lambda: GroupedWeightedSum(root.b, root.group, cols, adjoint, root))
 
 
-class Gram(_DenseCallback):
+class Gram(DenseCallback):
     r"""``J -> J^T J`` for a dense ``(m, n)`` matrix ``J``, one BLAS product (the Gauss-Newton Hessian).
 
     Notes
