@@ -234,7 +234,7 @@ def test_sharp_coupled_operator_with_a_layer_is_the_decoupled_one(turbulent_laye
     q = meas.auto_quad_order(None, res.grid, g.coefficients[0])
     model = cpl.velocity_misfit_model(
         res.grid, res.velocity_image, res.magnitude, g.center, res.lumen.r1, geo.GeometryOptions().n_fourier, q,
-        start=g.coefficients,
+        start=g.coefficients, reach_mm=meas.heaviside_reach(1e-9),
     )  # fmt: skip
     # the start's wall classifies the points: full cell means near it, the far-inside branch and zero beyond
     model.margin_mm = cpl.START_MARGIN_VOXELS * res.grid.h  # as build() sets it
@@ -242,7 +242,8 @@ def test_sharp_coupled_operator_with_a_layer_is_the_decoupled_one(turbulent_laye
     classes = cpl.layer_point_classes(model, l_mm, cpl.layer_stretch(v), v.disk_map.r_in, model.margin_mm)
     n_pts = model.dist.size
     outside = n_pts - classes["band"].size - classes["far"].size
-    assert min(classes["band"].size, classes["far"].size, outside) > 0.02 * n_pts
+    # (the voxels wholly beyond the indicator's reach of the start's wall hold no points: few outside points left)
+    assert min(classes["band"].size, classes["far"].size) > 0.02 * n_pts and outside > 0.005 * n_pts
     c = np.random.default_rng(2).normal(size=v.basis.size)
     c_r, c_v = ca.MX.sym("c_r", g.coefficients.size), ca.MX.sym("c_v", c.size)
     expr = cpl.velocity_residual(
@@ -310,6 +311,19 @@ def test_a_failed_gauss_newton_solve_falls_back_to_the_exact_hessian(laminar_coa
     assert ref.stats.extra["hessian"] == "gauss-newton"
     np.testing.assert_allclose(out.velocity.coefficients, ref.velocity.coefficients, rtol=0,
                                atol=1e-6 * np.max(np.abs(ref.velocity.coefficients)))  # fmt: skip
+
+
+def test_coupled_converges_where_a_sharp_inside_fraction_stalled():
+    """The turbulent slice (h = 1 mm, SNR 25, seed 4, beta fixed) on which the coupled solve stalled with both
+    Hessians while the layer's inside fraction was sharp (piecewise linear in the wall's position; a cell's edge
+    sat 2e-5 mm from the wall at the stall) converges with the smoothed one, by Gauss-Newton alone and within a
+    wall move of the start's margin; its WSS error is its neighbours' (7.1 %; below 10 %)."""
+    acq, truth = phantoms.make_phantom("turbulent", h_mm=1.0, snr=25, seed=4)
+    res = reconstruct(acq, ReconstructionOptions(method="coupled", uncertainty=False, beta_rule="fixed"))[0]
+    extra = res.velocity.stats.extra
+    assert res.converged and res.near_wall.model == "wall_law"
+    assert extra["hessian"] == "gauss-newton" and extra["margin_passes"] == 1
+    assert metrics.compare_slice(res, truth).wss_rel_l2 < 0.10
 
 
 def test_coupled_with_the_layer_matches_the_decoupled_accuracy_on_the_re_tau_180_pipe():

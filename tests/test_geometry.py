@@ -74,6 +74,25 @@ def test_heaviside_curvature_is_the_slope_derivative(kind):
 
 
 @pytest.mark.parametrize("kind", ["erf", "arctan"])
+def test_heaviside_antiderivatives_differentiate_to_the_heaviside(kind):
+    """G_1' = H_gamma and G_2' = G_1 by CasADi's exact derivative (to rounding of G ~ x^2: 1e-12), and the erf pair
+    tends to the sharp (x_+, x_+^2/2) as gamma -> 0: at gamma = 1e-5 the Gaussian tails are below 1e-12 for
+    |x| >= 0.1, and G_2 keeps gamma^2/4 = 2.5e-11 inside (a constant the means' differences cancel)."""
+    x = ca.SX.sym("x")
+    g1, g2 = meas.heaviside_antiderivatives(x, 0.3, kind)
+    ad = ca.Function("d", [x], [ca.jacobian(g1, x), ca.jacobian(g2, x), g1])
+    grid = np.linspace(-3, 3, 61)
+    d1, d2, v1 = (np.asarray(v).ravel() for v in ad(grid))
+    np.testing.assert_allclose(d1, meas.smoothed_heaviside(grid, 0.3, kind), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(d2, v1, rtol=0, atol=1e-12)
+    if kind == "erf":
+        far = np.abs(grid) >= 0.1
+        sharp1, sharp2 = meas.heaviside_antiderivatives(grid[far], 1e-5, kind)
+        np.testing.assert_allclose(sharp1, np.maximum(grid[far], 0), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(sharp2, np.maximum(grid[far], 0) ** 2 / 2, rtol=0, atol=3e-11)
+
+
+@pytest.mark.parametrize("kind", ["erf", "arctan"])
 def test_newton_hessian_equals_casadi_exact_hessian(laminar_snr25, kind):
     """The chain-rule Hessian 2 (J^T J + sum r_i Hess r_i + alpha W) the "newton" solver passes to IPOPT equals
     CasADi's algorithmic Hessian of the functional at a point away from the minimizer (residuals not small),

@@ -10,6 +10,7 @@ import casadi as ca
 
 from wss_nlp import cli, metrics, phantoms
 from wss_nlp import files as wio
+from wss_nlp import measurement as meas
 from wss_nlp import near_wall as nw
 from wss_nlp import velocity as vel
 from wss_nlp import wss as wss_mod
@@ -451,3 +452,33 @@ def test_casadi_cell_mean_equals_numpy_and_its_derivative_is_exact(family):
     assert ok.mean() > 0.5
     # the differences' own error: truncation eps^2 f''' and rounding 1e-16 F_2 / (a b eps), about 1e-5
     np.testing.assert_allclose(sd[ok], fd[ok], rtol=0, atol=2e-5 * max(1.0, np.max(np.abs(sd))))
+
+
+@pytest.mark.parametrize("kind", ["erf", "arctan"])
+def test_smoothed_inside_fraction_is_the_trapezoid_mean_of_the_smoothed_indicator(kind):
+    """The coupled layer's inside fraction (every branch: point value, box, trapezoid) equals the mean of H_g over
+    the cell's projection by brute force (a 400 x 400 midpoint rule over the cell: error (1/400)^2 (a^2 + b^2)
+    max|H''| / 24 < 1e-6 for these widths), its y-derivative the central differences of its values (smooth
+    everywhere, no kinks to avoid), and as g -> 0 (1e-9) the decoupled fit's sharp fraction away from the kinks
+    of its piecewise-linear box mean."""
+    rng = np.random.default_rng(23)
+    n = 60
+    y, a, g = rng.uniform(-6, 6, n), rng.uniform(0, 4, n), rng.uniform(0.5, 3, n)
+    b = rng.uniform(0, 4, n) * rng.choice([0.0, 1e-5, 1.0], n)
+    a[:5] = 1e-4 * g[:5]  # narrower than 1e-3 g: the point value
+    fun = nw.smoothed_inside_function(kind).map(n)
+    value, slope = (np.asarray(v).ravel() for v in fun(y, a, b, g))
+    u = (np.arange(400) + 0.5) / 400 * 2 - 1  # midpoints on (-1, 1)
+    brute = [np.mean(meas.smoothed_heaviside(yk + ak * u[:, None] + bk * u[None, :], gk, kind))
+             for yk, ak, bk, gk in zip(y, a, b, g)]  # fmt: skip
+    np.testing.assert_allclose(value, brute, rtol=0, atol=1e-6)
+    eps = 1e-5
+    fd = (np.asarray(fun(y + eps, a, b, g)[0]).ravel() - np.asarray(fun(y - eps, a, b, g)[0]).ravel()) / (2 * eps)
+    # the differences' own error: truncation eps^2 H''' and rounding 1e-16 G_2 / (a b eps) where the trapezoid
+    # formula takes a b down to 1e-3 a^2 (b = 1e-5 falls to the box formula): 1e-5
+    np.testing.assert_allclose(slope, fd, rtol=0, atol=1e-5)
+    sharp = np.asarray(nw.smoothed_inside_function("erf").map(n)(y, a, b, 1e-9)[0]).ravel()
+    kinks = np.min(np.abs(np.stack([y + sa * a + sb * b for sa in (-1, 1) for sb in (-1, 0, 1)])), axis=0)
+    ok = (kinks > 1e-3) & (a > 1e-3)
+    assert ok.mean() > 0.5
+    np.testing.assert_allclose(sharp[ok], nw.cell_mean("inside", y, a, b)[ok], rtol=0, atol=1e-9)

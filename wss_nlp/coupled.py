@@ -226,6 +226,9 @@ class VelocityMisfitModel:
     # smoothed indicator's reach of every wall within ``margin_mm`` of the start, where their model value is 0
     rows: np.ndarray | None = None
     dropped: int = 0  # candidate voxels left without points (box and k-space alike)
+    # where the smoothed indicator and its derivatives vanish outside (and reach 1 inside) a wall, mm
+    # (meas.heaviside_reach; inf: everywhere)
+    reach_mm: float = np.inf
 
     kept: list = field(default_factory=list)  # callbacks of the graphs built on this model (CasADi's rule)
 
@@ -339,6 +342,7 @@ def velocity_misfit_model(
         float(margin_mm),
         rows,
         int(dropped),
+        float(reach_mm),
     )
 
 
@@ -597,7 +601,9 @@ def velocity_residual(
     with ``F_p`` the exact mean of the profile over the point's cell across the
     wall normal (:func:`wss_nlp.near_wall.cell_mean_function`, at the depth
     ``(1 - rho_p)/(l/S)`` that moves with R) times the angular factor, and
-    ``A_i`` the sum of the cells' exact inside fractions (k-space: both
+    ``A_i`` the sum of the cells' inside fractions, the means of ``H_gamma`` across
+    each cell (:func:`wss_nlp.near_wall.smoothed_inside_function`; sharp, they are
+    piecewise linear in R where a cell's edge is parallel to the wall) (k-space: both
     through the PSF image, ``T^L = t s / (s^2 + s_0^2)`` as above). ``stretch``
     ``S`` (mm per unit of rho: :func:`wss_nlp.near_wall.stretch` of the start's
     map) converts the cells' half-widths to layer units; it is fixed like
@@ -680,7 +686,7 @@ def velocity_residual(
     model_u = t * ratio
     if layered:
         assert stretch is not None  # checked above
-        lay, dlay, area, darea = _layer_points(full, model, rho_wall, stretch, r_in, center_harmonics)
+        lay, dlay, area, darea = _layer_points(full, model, rho_wall, stretch, r_in, gamma, heaviside, center_harmonics)
         t_layer, s_layer = ca.mtimes(agg(lay.T), c_v[basis.size :]), agg(area.T)
         if model.averager is None:
             den_l = ca.sqrt(s_layer * s_layer + s0**2)
@@ -733,7 +739,7 @@ MAX_MARGIN_PASSES = 3
 
 
 def layer_point_classes(model: VelocityMisfitModel, l_mm: float, stretch: float, r_in: float, margin_mm: float):
-    r"""Which formula a near-wall layer's cell mean takes at each point: ``{"band": idx, "far": idx}``.
+    r"""Which formula a near-wall layer's cell means take at each point: ``{"band", "far", "fraction", "whole"}``.
 
     Notes
     -----
@@ -741,17 +747,24 @@ def layer_point_classes(model: VelocityMisfitModel, l_mm: float, stretch: float,
     units: ``l = l_mm``, ``S = stretch``) and its cell reaches ``a + b``
     across the wall normal (:func:`wss_nlp.near_wall.cell_half_widths` over ``l``). A wall that
     moves by ``|dR| <= margin_mm`` changes ``y`` by at most
-    ``|d rho / d R| margin_mm / (l/S)``. Points that stay deeper than
-    ``3 (a + b)`` take the far-inside formula
+    ``|d rho / d R| margin_mm / (l/S)``. The profile's cell mean: points that
+    stay deeper than ``3 (a + b)`` take the far-inside formula
     (:func:`wss_nlp.near_wall.far_cell_mean_function`, within 1e-4 of the
-    trapezoid, as the decoupled fit's :class:`wss_nlp.near_wall.LayerQuadrature`);
-    points whose cells stay wholly outside the wall (``y < -(a + b)``) are
-    zero (no class); the rest (the band) take the full trapezoid mean. A
-    model without a start (``start_gap`` None) puts every point in the band.
+    trapezoid, as the decoupled fit's :class:`wss_nlp.near_wall.LayerQuadrature`)
+    (``"far"``); points whose cells stay wholly outside the wall
+    (``y < -(a + b)``) are zero (no class); the rest (``"band"``) take the full
+    trapezoid mean. The cell's inside fraction, the mean of the smoothed
+    indicator (:func:`wss_nlp.near_wall.smoothed_inside_function`), is 1 or 0
+    beyond its reach ``g`` (``model.reach_mm`` over ``l``): it is evaluated
+    where ``|y| < a + b + g`` may hold (``"fraction"``), 1 at the deeper points
+    (``"whole"``) and 0 farther out. A model without a start
+    (``start_gap`` None) puts every point in the band and the fraction; an
+    indicator of infinite reach every point in the fraction.
     """
     n_pts = model.dist.size
     if model.start_gap is None:
-        return {"band": np.arange(n_pts), "far": np.arange(0)}
+        every, none = np.arange(n_pts), np.arange(0)
+        return {"band": every, "far": none, "fraction": every, "whole": none}
     half_x, half_y = nw.cell_half_widths(model.cell_mm, np.arctan2(model.sin, model.cos))
     reach = (half_x + half_y) / l_mm
     r = model.dist
@@ -760,7 +773,15 @@ def layer_point_classes(model: VelocityMisfitModel, l_mm: float, stretch: float,
     spread = 4 * r**2 / (root * (r_in + root) ** 2) * stretch * margin_mm / l_mm  # |d rho/d R| margin / (l/S)
     far = y - spread > 3 * reach
     outside = y + spread < -reach
-    return {"band": np.flatnonzero(~far & ~outside), "far": np.flatnonzero(far)}
+    smooth = model.reach_mm / l_mm  # inf (arctan indicator): no point is certainly inside or outside
+    whole = y - spread > reach + smooth
+    empty = y + spread < -(reach + smooth)
+    return {
+        "band": np.flatnonzero(~far & ~outside),
+        "far": np.flatnonzero(far),
+        "fraction": np.flatnonzero(~whole & ~empty),
+        "whole": np.flatnonzero(whole),
+    }
 
 
 def _far_mean(family: str, a: np.ndarray, b: np.ndarray):
@@ -772,13 +793,17 @@ def _far_mean(family: str, a: np.ndarray, b: np.ndarray):
     return derivative
 
 
-def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, r_in: float, harmonics=None):
+def _layer_points(
+    basis, model: VelocityMisfitModel, rho, stretch: float, r_in: float, gamma, heaviside: str, harmonics=None
+):
     """The layer columns at the misfit's points and what the voxels integrate them with (CasADi, ``(k, n_pts)``).
 
     Returns ``(lay, dlay, area, darea)``: ``lay_jp = s f_cell(y_p) rho_p^m trig_j(t_p)``
     (``s`` the column scale, ``f_cell`` the profile's exact mean across the
     point's cell at depth ``y_p = (1 - rho_p)/(l/S)``), the cells' inside
-    fractions ``area_p``, and the rho-derivatives of both. Unlike the fit's
+    fractions ``area_p`` with the geometry's smoothed indicator (width ``gamma``
+    mm, kind ``heaviside``: :func:`wss_nlp.near_wall.smoothed_inside_function`,
+    smooth in R as the base basis's ``chi`` is), and the rho-derivatives of both. Unlike the fit's
     :class:`wss_nlp.near_wall.LayerQuadrature`, ``rho^m`` is not capped at 1
     for cells centred outside the wall and no far-inside shortcut is taken
     near it: both would switch as the wall moves.
@@ -801,28 +826,37 @@ def _layer_points(basis, model: VelocityMisfitModel, rho, stretch: float, r_in: 
     y = (1 - rho) / ell
     classes = layer_point_classes(model, ell * stretch, stretch, r_in, model.margin_mm)
     f, df, area, darea = (ca.MX(1, n_pts) for _ in range(4))
-    for kind, idx in classes.items():
+
+    def scatter(idx):  # (n_idx, n_pts) with ones at (k, idx_k): puts a class's values into the row
+        return ca.DM(ca.Sparsity.triplet(idx.size, n_pts, list(range(idx.size)), idx.tolist()), 1.0)
+
+    for kind in ("band", "far"):
+        idx = classes[kind]
         if idx.size == 0:
             continue
-        # (n_idx, n_pts) with ones at (k, idx_k): scatters the class's values into the row
-        put = ca.DM(ca.Sparsity.triplet(idx.size, n_pts, list(range(idx.size)), idx.tolist()), 1.0)
+        put = scatter(idx)
         yk, ak, bk = y[:, idx.tolist()], a_l[:, idx.tolist()], b_l[:, idx.tolist()]
         if kind == "band":
             fk, dfk = nw.cell_mean_function(basis.family, continuous=True).map(idx.size)(yk, ak, bk)
-            ak_, dak = nw.cell_mean_function("inside", continuous=True).map(idx.size)(yk, ak, bk)
-            area += ca.mtimes(ak_, put)
-            darea += ca.mtimes(dak, put)
         elif harmonics is None:  # fixed cells: the far-inside mean and its derivatives by NumPy (elementwise)
             a_k, b_k = half_x[idx] / (ell * stretch), half_y[idx] / (ell * stretch)
             ladder = elementwise.Ladder(idx.size, _far_mean(basis.family, a_k, b_k), "far_mean")
             model.kept.append(ladder)
             fk, dfk = ladder.map(0)(yk), ladder.map(1)(yk)
-            area += ca.DM(np.ones(idx.size)).T @ put
         else:
             fk, dfk = nw.far_cell_mean_function(basis.family).map(idx.size)(yk, ak, bk)
-            area += ca.DM(np.ones(idx.size)).T @ put
         f += ca.mtimes(fk, put)
         df += ca.mtimes(dfk, put)
+    idx = classes["fraction"]
+    if idx.size:
+        put = scatter(idx)
+        yk, ak, bk = y[:, idx.tolist()], a_l[:, idx.tolist()], b_l[:, idx.tolist()]
+        inside = nw.smoothed_inside_function(heaviside).map(idx.size)
+        ak_, dak = inside(yk, ak, bk, gamma / (ell * stretch))
+        area += ca.mtimes(ak_, put)
+        darea += ca.mtimes(dak, put)
+    if classes["whole"].size:
+        area += ca.DM(np.ones(classes["whole"].size)).T @ scatter(classes["whole"])
     top = max(m for m, _ in basis.layer_terms)
     if harmonics is None:
         trig = {(m, k): ca.DM(np.cos(m * t) if k == "cos" else np.sin(m * t)).T for m, k in basis.layer_terms}
@@ -1179,10 +1213,8 @@ def _solve_nlp(nlp: CoupledNLP, geometry_problem: geo.GeometryProblem, r_in: flo
         failed = str(exc)
     if failed and hessian == "gauss-newton":
         # the Gauss-Newton Hessian drops sum r_i hess(r_i), which a near-wall layer (steep in R) can make matter
-        # near the solution: IPOPT then stalls; the exact Hessian converged on a turbulent slice (h = 0.75 mm).
-        # Not on every one: a turbulent slice at h = 1 mm with the fixed beta 5e-8 stalls with both, because a
-        # layer's inside fraction of a cell aligned with the image axes (the box branch of the cell mean) is
-        # piecewise linear in the wall's position: its slope jumps where the cell's edge crosses the wall.
+        # near the solution: IPOPT then stalls; the exact Hessian converged on a turbulent slice (h = 0.75 mm)
+        # while the layer's inside fractions were sharp (see tests/test_coupled.py for a slice where both stalled).
         logger.info(f"{what}: Gauss-Newton Hessian did not converge ({failed}); solving with the exact Hessian")
         hessian = "exact"
         solver, _keep = _ipopt(nlp, hessian, options)

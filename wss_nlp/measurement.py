@@ -134,6 +134,43 @@ def smoothed_heaviside(x, gamma, kind: str = "erf"):
     raise ValueError(f"unknown smoothed Heaviside {kind!r}; choose from {HEAVISIDES}")
 
 
+def heaviside_antiderivatives(x, gamma, kind: str = "erf"):
+    r"""First and second antiderivatives ``(G_1, G_2)`` of :func:`smoothed_heaviside` (CasADi or NumPy).
+
+    Notes
+    -----
+    With :math:`H_\gamma = (1 + \operatorname{erf}(x/\gamma))/2` and :math:`e = e^{-x^2/\gamma^2}`,
+
+    .. math::
+
+        G_1 = x H_\gamma + \frac{\gamma e}{2\sqrt\pi}, \qquad
+        G_2 = \Big(\frac{x^2}{2} + \frac{\gamma^2}{4}\Big) H_\gamma + \frac{\gamma x e}{4\sqrt\pi};
+
+    with :math:`H_\gamma = \arctan(x/\gamma)/\pi + 1/2` and :math:`L = \ln(1 + x^2/\gamma^2)`,
+
+    .. math::
+
+        G_1 = \frac{x}{2} + \frac{x \arctan(x/\gamma) - \gamma L / 2}{\pi}, \qquad
+        G_2 = \frac{x^2}{4} + \frac{(x^2 - \gamma^2) \arctan(x/\gamma)/2 + \gamma x (1 - L)/2}{\pi}.
+
+    ``G_1' = H_gamma``, ``G_2' = G_1``; as ``gamma -> 0`` the erf pair tends to
+    ``(x_+, x_+^2/2 + gamma^2/4 [x > 0])``. Only differences of ``G_1`` and second differences of
+    ``G_2`` are used (box and trapezoid means of ``H_gamma``), so the
+    constants of integration do not matter.
+    """
+    sym = isinstance(x, (ca.SX, ca.MX, ca.DM)) or isinstance(gamma, (ca.SX, ca.MX, ca.DM))
+    exp, atan, log = (ca.exp, ca.atan, ca.log) if sym else (np.exp, np.arctan, np.log)
+    heaviside = smoothed_heaviside(x, gamma, kind)
+    if kind == "erf":
+        e = exp(-((x / gamma) ** 2)) / np.sqrt(np.pi)
+        return x * heaviside + gamma * e / 2, (x * x / 2 + gamma * gamma / 4) * heaviside + gamma * x * e / 4
+    # arctan (smoothed_heaviside has rejected any other kind)
+    at, big_l = atan(x / gamma), log(1 + (x / gamma) ** 2)
+    g1 = x / 2 + (x * at - gamma * big_l / 2) / np.pi
+    g2 = x * x / 4 + ((x * x - gamma * gamma) * at / 2 + gamma * x * (1 - big_l) / 2) / np.pi
+    return g1, g2
+
+
 @dataclass
 class AnnulusModel:
     """Voxel partition used by the magnitude model for a given box [r0, r1].

@@ -48,6 +48,7 @@ import numpy as np
 
 import casadi as ca
 
+from . import measurement as meas
 from .errors import InputError
 
 #: Profile families of the wall layer (see the module notes).
@@ -431,19 +432,56 @@ def cell_mean_function(family: str, continuous: bool = False) -> ca.Function:
     if continuous:  # a and b are fixed per cell; only y moves
         far = ca.SX(0)
         wide = ca.SX(1) if family == "inside" else wide
-    box = wide * (1 - far) * (b < 1e-3 * a)
-    trap = wide * (1 - far) * (1 - box)
-    safe_a, safe_ab = ca.fmax(a, 1e-300), ca.fmax(a * b, 1e-300)
     value = ca.if_else(
-        trap,
-        (f2(y + a + b) - f2(y + a - b) - f2(y - a + b) + f2(y - a - b)) / (4 * safe_ab),
-        ca.if_else(
-            box,
-            (f1(y + a) - f1(y - a)) / (2 * safe_a),
-            ca.if_else(far, point + (a * a + b * b) / 6 * curvature, point),
-        ),
+        wide * (1 - far),
+        _spread_mean(f1, f2, y, a, b),
+        ca.if_else(far, point + (a * a + b * b) / 6 * curvature, point),
     )
     return ca.Function(f"cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)], {"cse": True})
+
+
+def _spread_mean(f1, f2, y, a, b):
+    """The mean of ``F_1'`` over the trapezoid of half-widths ``a >= b`` centred at ``y`` (CasADi SX): the box
+    mean ``(F_1(y+a) - F_1(y-a))/(2a)`` when ``b < 1e-3 a``, else the second differences of ``F_2`` (``F_2' = F_1``)
+    over ``4ab`` (:func:`cell_mean`)."""
+    safe_a, safe_ab = ca.fmax(a, 1e-300), ca.fmax(a * b, 1e-300)
+    return ca.if_else(
+        b < 1e-3 * a,
+        (f1(y + a) - f1(y - a)) / (2 * safe_a),
+        (f2(y + a + b) - f2(y + a - b) - f2(y - a + b) + f2(y - a - b)) / (4 * safe_ab),
+    )
+
+
+@functools.lru_cache(maxsize=4)
+def smoothed_inside_function(heaviside: str = "erf") -> ca.Function:
+    r"""A cell's inside fraction with the geometry's smoothed indicator: ``(y, a, b, g) -> (mean, d mean / d y)``.
+
+    Notes
+    -----
+    The mean of :math:`H_g(y')` (:func:`wss_nlp.measurement.smoothed_heaviside`,
+    width ``g``) over the cell's projection on the wall normal, the
+    trapezoid of half-widths ``a``, ``b`` centred at depth ``y`` (all in
+    layer units), by the box and trapezoid formulas of :func:`cell_mean`
+    with the antiderivatives of :math:`H_g`
+    (:func:`wss_nlp.measurement.heaviside_antiderivatives`); the point value
+    :math:`H_g(y)` for cells narrower than ``1e-3 g`` (exact to ``1e-7``).
+    Smooth in ``y`` for every cell: the sharp fraction's box mean
+    :math:`(y + a)_+ - (y - a)_+` is piecewise linear, and a coupled solve
+    whose wall puts a cell's edge there stalls (a turbulent slice, h = 1 mm,
+    one cell aligned with the image axes). As ``g -> 0`` it is the sharp
+    fraction (``cell_mean("inside", ...)``) of the decoupled fit.
+    """
+    y, a_in, b_in, g = (ca.SX.sym(name) for name in ("y", "a", "b", "g"))
+    a, b = ca.fmax(a_in, b_in), ca.fmin(a_in, b_in)
+
+    def f1(v):
+        return meas.heaviside_antiderivatives(v, g, heaviside)[0]
+
+    def f2(v):
+        return meas.heaviside_antiderivatives(v, g, heaviside)[1]
+
+    value = ca.if_else(a > 1e-3 * g, _spread_mean(f1, f2, y, a, b), meas.smoothed_heaviside(y, g, heaviside))
+    return ca.Function(f"inside_{heaviside}", [y, a_in, b_in, g], [value, ca.jacobian(value, y)], {"cse": True})
 
 
 @functools.lru_cache(maxsize=16)
