@@ -465,7 +465,7 @@ def test_smoothed_inside_fraction_is_the_trapezoid_mean_of_the_smoothed_indicato
     n = 60
     y, a, g = rng.uniform(-6, 6, n), rng.uniform(0, 4, n), rng.uniform(0.5, 3, n)
     b = rng.uniform(0, 4, n) * rng.choice([0.0, 1e-5, 1.0], n)
-    a[:5] = 1e-4 * g[:5]  # narrower than 1e-3 g: the point value
+    a[:5], b[:5] = 1e-7, 0.0  # narrower than NARROW_INSIDE: the point value
     fun = nw.smoothed_inside_function(kind).map(n)
     value, slope = (np.asarray(v).ravel() for v in fun(y, a, b, g))
     u = (np.arange(400) + 0.5) / 400 * 2 - 1  # midpoints on (-1, 1)
@@ -482,3 +482,28 @@ def test_smoothed_inside_fraction_is_the_trapezoid_mean_of_the_smoothed_indicato
     ok = (kinks > 1e-3) & (a > 1e-3)
     assert ok.mean() > 0.5
     np.testing.assert_allclose(sharp[ok], nw.cell_mean("inside", y, a, b)[ok], rtol=0, atol=1e-9)
+
+
+def test_branch_functions_equal_the_all_branch_cell_means_on_their_cells():
+    """The coupled method builds each cell's own formula (cells grouped by spread_branch: point, box, trapezoid)
+    instead of every branch under if_else: same expressions, so values and y-derivatives agree to rounding (1e-14
+    relative to the largest), for the profiles' continuous means and the smoothed inside fraction."""
+    rng = np.random.default_rng(29)
+    n = 400
+    y, a = rng.uniform(-8, 30, n), rng.uniform(0, 5, n)
+    b = rng.uniform(0, 5, n) * rng.choice([0.0, 1e-5, 1.0], n)
+    a[:20] = rng.uniform(0, 0.02, 20)  # narrow against a profile
+    a[20:25], b[20:25] = 1e-7, 0.0  # narrow even against the inside fraction's cancellation
+    cases = [(nw.cell_mean_function(f, continuous=True), nw.NARROW_PROFILE, (), f) for f in nw.FAMILIES]
+    cases.append((nw.smoothed_inside_function("erf"), nw.NARROW_INSIDE, (1.7,), "inside"))
+    for full, narrow, extra, name in cases:
+        branch = nw.spread_branch(a, b, narrow)
+        assert set(branch) == {0, 1, 2}, name  # every branch exercised
+        want = [np.asarray(v).ravel() for v in full.map(n)(y, a, b, *extra)]
+        for k, label in enumerate(nw.BRANCHES):
+            sel = branch == k
+            fun = (nw.cell_mean_function(name, True, label) if name != "inside"
+                   else nw.smoothed_inside_function("erf", label))  # fmt: skip
+            got = [np.asarray(v).ravel() for v in fun.map(int(sel.sum()))(y[sel], a[sel], b[sel], *extra)]
+            for g, w in zip(got, want):
+                np.testing.assert_allclose(g, w[sel], rtol=0, atol=1e-14 * max(1.0, np.max(np.abs(w))))

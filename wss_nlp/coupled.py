@@ -830,33 +830,51 @@ def _layer_points(
     def scatter(idx):  # (n_idx, n_pts) with ones at (k, idx_k): puts a class's values into the row
         return ca.DM(ca.Sparsity.triplet(idx.size, n_pts, list(range(idx.size)), idx.tolist()), 1.0)
 
-    for kind in ("band", "far"):
-        idx = classes[kind]
-        if idx.size == 0:
-            continue
+    def mapped(idx, function_of, narrow, *extra):
+        """A cell-mean function's values and y-derivatives at the points ``idx``, scattered into rows; fixed cells
+        are grouped by the branch their widths select (one formula each instead of every branch's)."""
+        if harmonics is None:
+            branch = nw.spread_branch(half_x[idx], half_y[idx], narrow * ell * stretch)
+            groups = [(idx[branch == k], function_of(name)) for k, name in enumerate(nw.BRANCHES)]
+        else:
+            groups = [(idx, function_of(None))]
+        value, slope = ca.MX(1, n_pts), ca.MX(1, n_pts)
+        for sub, fun in groups:
+            if sub.size:
+                put, cols = scatter(sub), sub.tolist()
+                fk, dfk = fun.map(sub.size)(y[:, cols], a_l[:, cols], b_l[:, cols], *extra)
+                value, slope = value + ca.mtimes(fk, put), slope + ca.mtimes(dfk, put)
+        return value, slope
+
+    if classes["band"].size:
+        f, df = mapped(
+            classes["band"],
+            lambda branch: nw.cell_mean_function(basis.family, continuous=True, branch=branch),
+            nw.NARROW_PROFILE,
+        )
+    idx = classes["far"]
+    if idx.size:
         put = scatter(idx)
-        yk, ak, bk = y[:, idx.tolist()], a_l[:, idx.tolist()], b_l[:, idx.tolist()]
-        if kind == "band":
-            fk, dfk = nw.cell_mean_function(basis.family, continuous=True).map(idx.size)(yk, ak, bk)
-        elif harmonics is None:  # fixed cells: the far-inside mean and its derivatives by NumPy (elementwise)
+        if harmonics is None:  # fixed cells: the far-inside mean and its derivatives by NumPy (elementwise)
             a_k, b_k = half_x[idx] / (ell * stretch), half_y[idx] / (ell * stretch)
             ladder = elementwise.Ladder(idx.size, _far_mean(basis.family, a_k, b_k), "far_mean")
             model.kept.append(ladder)
-            fk, dfk = ladder.map(0)(yk), ladder.map(1)(yk)
+            fk, dfk = ladder.map(0)(y[:, idx.tolist()]), ladder.map(1)(y[:, idx.tolist()])
         else:
-            fk, dfk = nw.far_cell_mean_function(basis.family).map(idx.size)(yk, ak, bk)
-        f += ca.mtimes(fk, put)
-        df += ca.mtimes(dfk, put)
-    idx = classes["fraction"]
-    if idx.size:
-        put = scatter(idx)
-        yk, ak, bk = y[:, idx.tolist()], a_l[:, idx.tolist()], b_l[:, idx.tolist()]
-        inside = nw.smoothed_inside_function(heaviside).map(idx.size)
-        ak_, dak = inside(yk, ak, bk, gamma / (ell * stretch))
-        area += ca.mtimes(ak_, put)
-        darea += ca.mtimes(dak, put)
-    if classes["whole"].size:
-        area += ca.DM(np.ones(classes["whole"].size)).T @ scatter(classes["whole"])
+            fk, dfk = nw.far_cell_mean_function(basis.family).map(idx.size)(
+                y[:, idx.tolist()], a_l[:, idx.tolist()], b_l[:, idx.tolist()]
+            )
+        f, df = f + ca.mtimes(fk, put), df + ca.mtimes(dfk, put)
+    if classes["fraction"].size:
+        area, darea = mapped(
+            classes["fraction"],
+            functools.partial(nw.smoothed_inside_function, heaviside),
+            nw.NARROW_INSIDE,
+            gamma / (ell * stretch),
+        )
+    whole = np.zeros(n_pts)
+    whole[classes["whole"]] = 1.0
+    area = area + ca.DM(whole).T
     top = max(m for m, _ in basis.layer_terms)
     if harmonics is None:
         trig = {(m, k): ca.DM(np.cos(m * t) if k == "cos" else np.sin(m * t)).T for m, k in basis.layer_terms}
