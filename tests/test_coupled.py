@@ -138,6 +138,24 @@ def test_gauss_newton_solver_gradient_and_hessian_from_the_jacobian_blocks(lamin
     np.testing.assert_allclose(hess, hess_ref, rtol=0, atol=1e-11 * np.max(np.abs(hess_ref)))
 
 
+def test_jacobian_stacked_from_its_block_values_equals_the_assembled_one(laminar_coarse):
+    """The sensitivities stack ``J`` in NumPy from its blocks' values (:meth:`CoupledNLP.stack_jacobian`): the
+    same numbers as the graph's :attr:`CoupledNLP.jacobian` (the same products in another order: 1e-13), rows
+    of voxels without points (zero derivatives) included."""
+    _, _, res = laminar_coarse
+    g, v = res.geometry, res.velocity
+    nlp = cpl.build(
+        _problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), v.basis,
+        v.disk_map.r_in, 1e4, g.alpha, v.beta, start=g.coefficients,
+    )  # fmt: skip
+    assert nlp.velocity_model.rows is not None and nlp.velocity_model.rows.size < nlp.velocity_model.index.size
+    x = np.concatenate([g.coefficients, v.coefficients])
+    x = x + np.random.default_rng(6).normal(size=x.size) * 1e-3 * (np.abs(x) + 1e-2)
+    values = ca.Function("blocks", [nlp.x, nlp.gamma], [*nlp.jacobian_blocks(), nlp.jacobian])(x, g.gamma)
+    want = np.asarray(values[-1])
+    np.testing.assert_allclose(nlp.stack_jacobian(values[:-1]), want, rtol=0, atol=1e-13 * np.max(np.abs(want)))
+
+
 def test_objective_gradient_taylor(laminar_coarse):
     """Taylor test of CasADi's gradient of the coupled functional: remainder O(t^2)."""
     _, _, res = laminar_coarse

@@ -470,14 +470,16 @@ def _spread_mean(f1, f2, y, a, b, branch: str | None = None):
     """The mean of ``F_1'`` over the trapezoid of half-widths ``a >= b`` centred at ``y`` (CasADi SX): the box
     mean ``(F_1(y+a) - F_1(y-a))/(2a)`` when ``b < 1e-3 a``, else the second differences of ``F_2`` (``F_2' = F_1``)
     over ``4ab`` (:func:`cell_mean`); ``branch`` ``"box"`` or ``"trapezoid"``: that formula alone."""
-    safe_a, safe_ab = ca.fmax(a, 1e-300), ca.fmax(a * b, 1e-300)
-    box = (f1(y + a) - f1(y - a)) / (2 * safe_a) if branch != "trapezoid" else None
-    trapezoid = (
-        (f2(y + a + b) - f2(y + a - b) - f2(y - a + b) + f2(y - a - b)) / (4 * safe_ab) if branch != "box" else None
-    )
+
+    def box():
+        return (f1(y + a) - f1(y - a)) / (2 * ca.fmax(a, 1e-300))
+
+    def trapezoid():
+        return (f2(y + a + b) - f2(y + a - b) - f2(y - a + b) + f2(y - a - b)) / (4 * ca.fmax(a * b, 1e-300))
+
     if branch is None:
-        return ca.if_else(b < BOX_RATIO * a, box, trapezoid)
-    return box if branch == "box" else trapezoid
+        return ca.if_else(b < BOX_RATIO * a, box(), trapezoid())
+    return box() if branch == "box" else trapezoid()
 
 
 @functools.lru_cache(maxsize=16)

@@ -51,6 +51,7 @@ from . import near_wall as nw
 from . import radius as rad
 from . import velocity as vel
 from . import wss as wss_mod
+from .solver import DenseCall
 from .errors import NoiseEstimationError
 from .parameters.noise import complex_noise_sigma, phase_noise_std
 from .tikhonov import LinearTikhonov
@@ -813,15 +814,20 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
     x = np.concatenate([cres.geometry.coefficients, cres.velocity.coefficients])
     n_x = x.size
     gam = float(nlp.geometry.gamma)
-    second = cpl.residual_curvature(nlp)  # columns of hess(w^T r) along c_R, one sweep each
-    directions = np.eye(n_x)[:, :n_r]
-    grad_f = ca.gradient(nlp.f, nlp.x)
-    fun = ca.Function(
-        "kkt",
-        [nlp.x, nlp.gamma],
-        [nlp.jacobian, grad_f, ca.jtimes(grad_f, nlp.gamma, ca.DM(1.0)), nlp.velocity_error],
-    )
-    fun_res = ca.Function("res", [nlp.x, nlp.gamma], [nlp.residual])
+    # columns of hess(w^T r) along c_R and the mixed column along gamma, one forward-over-reverse sweep each
+    second = cpl.residual_curvature(nlp, with_gamma=True)
+    directions = np.eye(n_x + 1)[:, list(range(n_r)) + [n_x]]
+    # f = |r|^2 + penalty: its gradient 2 J^T r + grad(penalty) from the chain-rule Jacobian (a reverse sweep
+    # through the misfit costs 10x an evaluation of J); d grad / d gamma = 2 (sum_i r_i dr_i/dx dgamma + J^T dr/dgamma)
+    blocks = nlp.jacobian_blocks()
+    outputs = [
+        *blocks,
+        nlp.residual,
+        ca.gradient(nlp.penalty, nlp.x),
+        nlp.velocity_error,
+        ca.jtimes(nlp.residual, nlp.gamma, ca.DM(1.0)),
+    ]
+    fun = DenseCall(ca.Function("kkt", [nlp.x, nlp.gamma], [ca.densify(o) for o in outputs]))
     reg = 2 * nlp.penalty_hessian()
     box = rad.design_matrix(gopt.box_angles(), gopt.n_fourier)
     active = np.flatnonzero(cres.geometry.box_multipliers != 0)
@@ -832,13 +838,14 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
 
     lam, sec = np.zeros(active.size), None
     for it in range(polish_steps + 1):
-        res0 = np.asarray(fun_res(x, gam)).ravel()
-        jac, grad, dgrad_dgam, err_v = (np.asarray(a) for a in fun(x, gam))
+        values = fun(x, gam)
+        jac = nlp.stack_jacobian(values[: len(blocks)])
+        res0, grad_penalty, err_v, d_res = (v.ravel() for v in values[len(blocks) :])
+        grad = 2 * jac.T @ res0 + grad_penalty
         if sec is None:
-            # the second-order term once, at IPOPT's solution (n_r forward-over-reverse sweeps, the costly part):
-            # the polish moves x by about IPOPT's tolerance, which changes this term by as little relative
-            sec = np.asarray(second(x, gam, res0, directions))
-        grad, err_v = grad.ravel(), err_v.ravel()
+            # the second-order terms once, at IPOPT's solution (n_r + 1 forward-over-reverse sweeps, the costly
+            # part): the polish moves x by about IPOPT's tolerance, which changes them by as little relative
+            sec, mixed = np.split(DenseCall(second)(x, gam, res0, directions)[0], [n_r], axis=1)
         hess = hessian(jac, sec)
         kkt = bordered(hess, g_act)
         stationarity = grad + g_act.T @ lam
@@ -875,7 +882,7 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
     ref = nlp.geometry.reference
     dgrad[:n_r, n_m + n_u + 0] = 2 * nlp.geometry.weights * (x[:n_r] - ref)
     dgrad[n_r:, n_m + n_u + 1] = 2 * nlp.weight * nlp.gram @ x[n_r:] / np.pi
-    dgrad[:, n_m + n_u + 2] = dgrad_dgam.ravel()
+    dgrad[:, n_m + n_u + 2] = 2 * (mixed.ravel() + jac.T @ d_res)
     dgrad[:, n_m + n_u + 3 :] = _coupled_centre_derivative(nlp, problem, gopt, x, gam, cres.velocity)
     return CoupledKKT(x, hess, g_act, dgrad, m_index, u_index, polished)
 
@@ -959,8 +966,8 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
         stretch=nlp.stretch,
     )
     grad_v = ca.gradient(nlp.weight * ca.sumsqr(res_v), nlp.x)
-    fun = ca.Function("dcentre", [nlp.x, center], [ca.jtimes(grad_v, center, ca.DM.eye(2))])
-    out = np.asarray(fun(x, np.asarray(problem.center, float)))
+    fun = ca.Function("dcentre", [nlp.x, center], [ca.densify(ca.jtimes(grad_v, center, ca.DM.eye(2)))])
+    out = DenseCall(fun)(x, np.asarray(problem.center, float))[0]
     out[:n_r] += dgrad_geo[:, -2:]
     return out
 
