@@ -138,9 +138,9 @@ def profile_derivatives(family: str, y, order: int) -> np.ndarray:
 
 def far_cell_mean_derivative(family: str, y, a, b, order: int) -> np.ndarray:
     """The ``order``-th ``y``-derivative of :func:`far_cell_mean_function` (NumPy; cells wholly inside the wall,
-    ``a``, ``b`` fixed): ``f^(k)(y) + [max(a, b) > 0.02] (a^2 + b^2)/6 f^(k+2)(y)``."""
+    ``a``, ``b`` fixed): ``f^(k)(y) + [max(a, b) > NARROW_PROFILE] (a^2 + b^2)/6 f^(k+2)(y)``."""
     a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    curvature = np.where(np.maximum(a, b) > 0.02, (a * a + b * b) / 6, 0.0)
+    curvature = np.where(np.maximum(a, b) > NARROW_PROFILE, (a * a + b * b) / 6, 0.0)
     return profile_derivatives(family, y, order) + curvature * profile_derivatives(family, y, order + 2)
 
 
@@ -389,7 +389,7 @@ def cell_mean(family: str, y, a, b, derivative: bool = False, moment: bool = Fal
     else:
         point = np.ones_like(y) if family == "inside" else profile(family, y)
     out = np.where(y > 0, point, 0.0)
-    wide = a > 0.02  # below, the midpoint value is exact to 1e-4 relative
+    wide = a > NARROW_PROFILE  # below, the midpoint value is exact to 1e-4 relative
     if not (derivative or moment or family == "inside"):
         # far inside (y > 3 (a + b)) the trapezoid mean is f + (a^2 + b^2) f''/6 to within 1e-4 relative
         far = wide & (y > 3 * (a + b))
@@ -434,7 +434,7 @@ def cell_mean_function(family: str, continuous: bool = False, branch: str | None
     ``y``, as a wall that moves needs (Newton steps across a switch see a jump).
     ``branch`` (one of :data:`BRANCHES`, with ``continuous=True``) builds that
     formula alone, for cells whose widths select it (:func:`spread_branch`
-    with ``narrow = 0.02``): a third to a half of the instructions.
+    with ``narrow =`` :data:`NARROW_PROFILE`): a third to a half of the instructions.
     """
     y, a_in, b_in = ca.SX.sym("y"), ca.SX.sym("a"), ca.SX.sym("b")
     a, b = ca.fmax(a_in, b_in), ca.fmin(a_in, b_in)
@@ -447,7 +447,7 @@ def cell_mean_function(family: str, continuous: bool = False, branch: str | None
         curvature = ca.if_else(y > 0, second(ca.fmax(y, 0)), 0.0)
     f1 = lambda v: antiderivatives(family, v)[0]  # noqa: E731
     f2 = lambda v: antiderivatives(family, v)[1]  # noqa: E731
-    wide = a > 0.02  # below, the midpoint value is exact to 1e-4 relative
+    wide = a > NARROW_PROFILE  # below, the midpoint value is exact to 1e-4 relative
     far = wide * (y > 3 * (a + b))  # (the area fraction: exactly 1 there, where the trapezoid only rounds to it)
     if continuous:  # a and b are fixed per cell; only y moves
         far = ca.SX(0)
@@ -529,7 +529,7 @@ def far_cell_mean_function(family: str) -> ca.Function:
     y, a_in, b_in = ca.SX.sym("y"), ca.SX.sym("a"), ca.SX.sym("b")
     t = ca.SX.sym("t")
     second = ca.Function("f2", [t], [ca.hessian(profile(family, t), t)[0]])
-    wide = ca.fmax(a_in, b_in) > 0.02
+    wide = ca.fmax(a_in, b_in) > NARROW_PROFILE
     value = profile(family, y) + wide * (a_in * a_in + b_in * b_in) / 6 * second(y)
     return ca.Function(f"far_cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)], {"cse": True})
 
