@@ -435,16 +435,45 @@ def sparse_dm(matrix: np.ndarray) -> ca.DM:
 class _VoxelSums(ca.Callback):
     """A NumPy map of dense inputs to one dense output, for the chain-rule Jacobian of :func:`velocity_residual`.
 
-    Evaluated only: the Jacobian is an output of the NLP (the Gauss-Newton
-    Hessian, the KKT matrix of the sensitivities), never differentiated, so
-    no derivatives are defined (CasADi raises if one is asked for). Keep the
+    ``tangent(inputs, seeds)`` (optional) gives the directional derivative
+    for one set of input seeds (``None``: a zero seed); forward derivatives
+    for ``nfwd`` directions apply it to each (the curvature of the residual
+    is the forward derivative of ``J^T w``, :func:`residual_curvature`). No
+    reverse derivatives: CasADi raises if one is asked for. Keep the
     instance while functions built from it live (``VelocityMisfitModel.kept``).
     """
 
-    def __init__(self, name: str, shapes_in: list, shape_out: tuple, apply):
+    def __init__(self, name: str, shapes_in: list, shape_out: tuple, apply, tangent=None):
         ca.Callback.__init__(self)
-        self.shapes_in, self.shape_out, self.apply = shapes_in, shape_out, apply
+        self.shapes_in, self.shape_out, self.apply, self.tangent = shapes_in, shape_out, apply, tangent
+        self._derived: dict = {}
         self.construct(name, {})
+
+    def has_forward(self, nfwd):
+        return self.tangent is not None
+
+    def get_forward(self, nfwd, name, inames, onames, opts):
+        n_in, (rows, cols) = len(self.shapes_in), self.shape_out
+        if nfwd not in self._derived:
+            tangent = self.tangent
+            assert tangent is not None  # has_forward
+
+            def batched(*args):
+                ins, seeds = args[:n_in], args[n_in:]
+                blocks = []
+                for k in range(nfwd):
+                    part = [
+                        None if d is None else d[:, k * c : (k + 1) * c] for d, (_, c) in zip(seeds, self.shapes_in)
+                    ]
+                    blocks.append(tangent(ins, part))
+                return np.hstack(blocks)
+
+            shapes = self.shapes_in + [(r, c * nfwd) for r, c in self.shapes_in]
+            self._derived[nfwd] = _VoxelSums(f"{self.name()}_fwd{nfwd}", shapes, (rows, cols * nfwd), batched)
+        ins = [ca.MX.sym(f"x{i}", *shape) for i, shape in enumerate(self.shapes_in)]
+        seeds = [ca.MX.sym(f"d{i}", r, c * nfwd) for i, (r, c) in enumerate(self.shapes_in)]
+        out = ca.MX.sym("y", rows, cols)
+        return ca.Function(name, [*ins, out, *seeds], [self._derived[nfwd](*ins, *seeds)], inames, onames, opts)
 
     def get_n_in(self):
         return len(self.shapes_in)
@@ -462,8 +491,12 @@ class _VoxelSums(ca.Callback):
         return True
 
     def eval_buffer(self, arg, res):
-        # column-major buffers: an (r, c) matrix is the transpose of a row-major (c, r) array
-        ins = [np.frombuffer(a, dtype=np.float64).reshape(c, r).T for a, (r, c) in zip(arg, self.shapes_in)]
+        # column-major buffers: an (r, c) matrix is the transpose of a row-major (c, r) array; CasADi passes None
+        # for a structurally zero input (a zero seed)
+        ins = [
+            None if a is None else np.frombuffer(a, dtype=np.float64).reshape(c, r).T
+            for a, (r, c) in zip(arg, self.shapes_in)
+        ]
         out = np.frombuffer(res[0], dtype=np.float64).reshape(self.shape_out[1], self.shape_out[0])
         out[...] = self.apply(*ins).T
         return 0
@@ -488,7 +521,15 @@ def _design_sums(model: VelocityMisfitModel, k: int) -> _VoxelSums:
             sums = point_sums((s[:, :, None] * design[:, None, :]).reshape(n_pts, k * n))
         return np.einsum("ij,ijl->il", w, sums.reshape(n_vox, k, n))
 
-    return _VoxelSums(f"design_sums_{k}", [(n_pts, k), (n_vox, k)], (n_vox, n), apply)
+    def tangent(ins, seeds):  # bilinear in (S, W)
+        out = np.zeros((n_vox, n))
+        if seeds[0] is not None:
+            out += apply(seeds[0], ins[1])
+        if seeds[1] is not None:
+            out += apply(ins[0], seeds[1])
+        return out
+
+    return _VoxelSums(f"design_sums_{k}", [(n_pts, k), (n_vox, k)], (n_vox, n), apply, tangent)
 
 
 def _basis_sums(
@@ -510,27 +551,42 @@ def _basis_sums(
     a_idx, r_idx = np.argmax(pb.select_angular, axis=1), np.argmax(pb.select_radial, axis=1)
     n_pts, n_vox, q2 = ang.shape[1], model.n_rows, model.order**2
     box, point_sums = model.averager is None, _point_sums(model.averager, model.order)
+    n_cols = a_idx.size if transform is None else transform.shape[1]
 
-    def apply(w, arg, rows):
-        radial = cheb @ series.values(arg.ravel(), 0)  # (n_radial, n_pts)
+    def sums(w, arg, d):
+        """``A(diag(w) raw^(d)T)``: voxel sums of the raw functions (``d = 1``: their arg-derivatives)."""
+        radial = cheb @ series.values(arg.ravel(), d)  # (n_radial, n_pts)
         weighted = ang * w
         if box:  # a voxel's points are consecutive: one product-sum of views per function
             # (gathering the (n_raw, n_points) array first took 4x longer: memory traffic, not flops)
             radial, weighted = radial.reshape(radial.shape[0], -1, q2), weighted.reshape(ang.shape[0], -1, q2)
-            sums = np.empty((a_idx.size, n_vox))
+            out = np.empty((a_idx.size, n_vox))
             for j, (a, r) in enumerate(zip(a_idx, r_idx)):
-                np.einsum("vg,vg->v", weighted[a], radial[r], out=sums[j])
+                np.einsum("vg,vg->v", weighted[a], radial[r], out=out[j])
         else:
-            sums = point_sums(np.ascontiguousarray((weighted[a_idx] * radial[r_idx]).T)).T
+            out = point_sums(np.ascontiguousarray((weighted[a_idx] * radial[r_idx]).T)).T
         # (columns, voxels) in row-major order is CasADi's column-major (voxels, columns): the caller's copy
         # into the output buffer is then contiguous
-        out = sums if transform is None else transform.T @ sums
+        return out if transform is None else transform.T @ out
+
+    def apply(w, arg, rows):
+        out = sums(w, arg, 0)
         out *= rows.T
         return out.T
 
+    def tangent(ins, seeds):  # linear in w and rows, through the Chebyshev values in arg
+        (w, arg, rows), (dw, darg, drows) = ins, seeds
+        out = np.zeros((n_cols, n_vox))
+        if drows is not None:
+            out += sums(w, arg, 0) * drows.T
+        if dw is not None:
+            out += sums(dw, arg, 0) * rows.T
+        if darg is not None:
+            out += sums(w * darg, arg, 1) * rows.T
+        return out.T
+
     shapes = [(1, n_pts), (1, n_pts), (n_vox, 1)]
-    n_cols = a_idx.size if transform is None else transform.shape[1]
-    return _VoxelSums("basis_sums", shapes, (n_vox, n_cols), apply)
+    return _VoxelSums("basis_sums", shapes, (n_vox, n_cols), apply, tangent)
 
 
 def velocity_residual(
@@ -1110,26 +1166,44 @@ def gauss_newton_derivatives(nlp: CoupledNLP) -> tuple[ca.MX, ca.MX, operators.B
 
 def residual_curvature(nlp: CoupledNLP, with_gamma: bool = False) -> ca.Function:
     r"""``(x, gamma, w, E) -> (sum_i w_i hess r_i) E``: the second-order term of the residual, along the columns
-    of ``E`` (``n_x x n_r``; the ``c_R`` directions), one forward-over-reverse sweep per column. ``with_gamma``:
+    of ``E`` (``n_x x n_r``; the ``c_R`` directions), one forward sweep per column. ``with_gamma``:
     ``E`` is ``(n_x + 1) x (n_r + 1)``, directions in ``(x, gamma)``, and the last column of the result
     ``sum_i w_i d^2 r_i / dx dgamma`` for a direction ``(0, 1)``.
 
     Notes
     -----
+    ``(sum_i w_i hess r_i) e = d/dt J(x + t e)^T w``: a forward sweep of :func:`jacobian_transpose_times`
+    through the chain-rule Jacobian's blocks (the voxel-sum callbacks give their tangents). That costs what
+    CasADi's forward-over-reverse sweep of ``w^T r`` costs on the laminar phantom and two thirds of it with a
+    near-wall layer, and builds in half the time (``tests/test_coupled.py`` compares the two).
     The residual is linear in ``c_v``, so ``sum_i w_i hess r_i`` vanishes on the ``c_v``-``c_v`` block and its
     ``c_R`` columns give the whole matrix (:func:`curvature_matrix`). One direction's graph is mapped over the
-    ``n_r`` columns (serial): with all directions in one graph CasADi took 18 s to build it and 2 GB at
-    h = 0.3 mm, and the Hessian CasADi's nlpsol generates by itself (a Jacobian of the gradient through the
-    callbacks) exhausted 24 GB on a turbulent slice at h = 1 mm.
+    ``n_r`` columns (serial): all directions in one graph took longer to build than the sweeps take (2 s at
+    h = 0.3 mm) and evaluated no faster; the Hessian CasADi's nlpsol generates by itself (a Jacobian of the
+    gradient through the callbacks) exhausted 24 GB on a turbulent slice at h = 1 mm.
     """
     n_r = nlp.n_r
     weights = ca.MX.sym("w", nlp.residual.numel())
-    grad_w = ca.gradient(ca.dot(weights, nlp.residual), nlp.x)
     # directions in (x, gamma): the last column a sensitivity asks for, sum_i w_i d^2 r_i / dx dgamma
     variables = ca.vertcat(nlp.x, nlp.gamma) if with_gamma else nlp.x
+    grad_w = jacobian_transpose_times(nlp, weights)  # d(w^T r)/dx with w fixed
     direction = ca.MX.sym("direction", variables.numel())
     second = ca.Function("second", [nlp.x, nlp.gamma, weights, direction], [ca.jtimes(grad_w, variables, direction)])
     return second.map("second_columns", "serial", n_r + int(with_gamma), [0, 1, 2], [])
+
+
+def jacobian_transpose_times(nlp: CoupledNLP, w) -> ca.MX:
+    """``J^T w`` from the chain-rule Jacobian's blocks (CasADi; ``w`` a column of residual weights)."""
+    j_m, j_vr, *columns = nlp.jacobian_blocks()
+    n_m = j_m.shape[0]
+    w_m, w_v = w[:n_m], w[n_m:]
+    rows = nlp.velocity_model.rows
+    if rows is not None:  # the voxels without points have zero derivatives
+        w_v = w_v[rows.tolist()]
+    scale = np.sqrt(nlp.weight)
+    g_r = ca.mtimes(j_m.T, w_m) + scale * ca.mtimes(j_vr.T, w_v)
+    g_v = scale * ca.mtimes(ca.DM(nlp.right).T, ca.vertcat(*[ca.mtimes(c.T, w_v) for c in columns]))
+    return ca.vertcat(g_r, g_v)
 
 
 def curvature_matrix(columns, n_r: int):
@@ -1150,7 +1224,7 @@ def _ipopt(nlp: CoupledNLP, hessian: str, options: CoupledOptions):
     (keep them referenced while the solver lives).
 
     The exact Hessian is the Gauss-Newton one plus ``2 sum_i r_i hess r_i`` by :func:`residual_curvature`
-    (one forward-over-reverse sweep per ``c_R`` direction at each point): nlpsol's own exact Hessian of the
+    (one forward sweep of ``J^T r`` per ``c_R`` direction at each point): nlpsol's own exact Hessian of the
     misfit exhausted the memory (24 GB) on a turbulent slice at h = 1 mm.
     """
     extra = dict(WARM_START)

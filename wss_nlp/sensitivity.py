@@ -814,7 +814,7 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
     x = np.concatenate([cres.geometry.coefficients, cres.velocity.coefficients])
     n_x = x.size
     gam = float(nlp.geometry.gamma)
-    # columns of hess(w^T r) along c_R and the mixed column along gamma, one forward-over-reverse sweep each
+    # columns of hess(w^T r) along c_R and the mixed column along gamma, one forward sweep of J^T w each
     second = cpl.residual_curvature(nlp, with_gamma=True)
     directions = np.eye(n_x + 1)[:, list(range(n_r)) + [n_x]]
     # f = |r|^2 + penalty: its gradient 2 J^T r + grad(penalty) from the chain-rule Jacobian (a reverse sweep
@@ -843,7 +843,7 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
         res0, grad_penalty, err_v, d_res = (v.ravel() for v in values[len(blocks) :])
         grad = 2 * jac.T @ res0 + grad_penalty
         if sec is None:
-            # the second-order terms once, at IPOPT's solution (n_r + 1 forward-over-reverse sweeps, the costly
+            # the second-order terms once, at IPOPT's solution (n_r + 1 forward sweeps, the costly
             # part): the polish moves x by about IPOPT's tolerance, which changes them by as little relative
             sec, mixed = np.split(DenseCall(second)(x, gam, res0, directions)[0], [n_r], axis=1)
         hess = hessian(jac, sec)
@@ -903,8 +903,9 @@ def coupled(
     Implicit function theorem on the KKT system of the coupled NLP with the
     exact Hessian ``2 J^T J + 2 sum_i r_i hess r_i + penalty Hessian``: ``J``
     is the chain-rule Jacobian of the residuals, and the second-order term
-    comes from CasADi (forward-over-reverse along the ``c_R`` directions, one
-    direction at a time, at IPOPT's solution; the residuals are linear in ``c_v``). Parameters: the normalized
+    comes from forward sweeps of ``J^T r`` along the ``c_R`` directions and gamma
+    (:func:`wss_nlp.coupled.residual_curvature`, one direction at a time, at
+    IPOPT's solution; the residuals are linear in ``c_v``). Parameters: the normalized
     magnitude (annulus voxels through the geometry misfit and the velocity
     voxels through the precision weights ``|V| m_i^2``), the velocity image,
     alpha, beta, gamma and the centre (geometry part from the per-voxel
