@@ -3,7 +3,9 @@
 import casadi as ca
 import numpy as np
 
-from wss_nlp.solver import EagerObjective, SharedEvaluation, gauss_newton_ipopt, run_nlpsol
+import pytest
+
+from wss_nlp.solver import DenseCall, EagerObjective, SharedEvaluation, gauss_newton_ipopt, run_nlpsol
 
 
 def _toy():
@@ -90,3 +92,22 @@ def test_eager_objective_reads_f_from_the_derivatives_at_accepted_points_and_alo
     assert derivatives.evaluations == 3
     assert value(3) == float(f_only(points[3], p0)) and derivatives.evaluations == 4
     assert objective.eager_evaluations == 3
+
+
+def test_dense_call_equals_casadis_call_in_every_shape_and_reuses_its_buffer():
+    """DenseCall returns the same numbers as CasADi's own call (exactly: the same evaluation), in the outputs'
+    shapes (column-major memory read back correctly for a non-square matrix), at several points through one
+    buffer, with numbers broadcast to an input's entries; outputs with structural zeros are refused."""
+    x, p = ca.MX.sym("x", 3), ca.MX.sym("p", 2, 3)
+    outputs = [ca.mtimes(p, x), ca.densify(ca.reshape(ca.vertcat(x, x) * ca.sum1(x), 2, 3)), ca.mtimes(x, x.T)]
+    fun = ca.Function("f", [x, p], outputs)
+    call = DenseCall(fun)
+    rng = np.random.default_rng(4)
+    for _ in range(3):
+        xv, pv = rng.normal(size=3), rng.normal(size=(2, 3))
+        for got, want in zip(call(xv, pv), fun(xv, pv)):
+            assert got.shape == want.shape and np.array_equal(got, np.asarray(want))
+    got, want = call(xv, 0.5)[0], np.asarray(fun(xv, np.full((2, 3), 0.5))[0])
+    assert np.array_equal(got, want)
+    with pytest.raises(ValueError, match="not dense"):
+        DenseCall(ca.Function("g", [x], [ca.diag(x)]))

@@ -222,13 +222,14 @@ def _rows(fun: ca.Function, *args) -> list[np.ndarray]:
     Evaluated in chunks of :data:`ROW_CHUNK` points (fewer points: their count rounded up to a power of
     two) by one cached ``map`` (building a map for each point count costs about twice its
     evaluation; calling ``fun`` on rows maps implicitly, 15x slower), reading and writing NumPy memory
-    directly (``Function.buffer``: converting the outputs from ``DM`` took a fifth of a band).
+    directly (:class:`wss_nlp.solver.DenseCall`: converting the outputs from ``DM`` took a fifth of a band).
     """
     n = max(np.size(a) for a in args)
     chunk = min(ROW_CHUNK, 1 << max(n - 1, 0).bit_length())
     mapped = _mapped(fun, chunk)
     outs = [np.empty(n) for _ in range(mapped.n_out())]
     dense = all(mapped.sparsity_out(i).is_dense() for i in range(mapped.n_out()))
+    call = DenseCall(mapped) if dense else None
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
         rows: list = []
@@ -239,14 +240,8 @@ def _rows(fun: ca.Function, *args) -> list[np.ndarray]:
             part = np.ravel(a)[start:stop].astype(float)
             # the last chunk is padded with its last value (any finite input would do; the padding is dropped)
             rows.append(np.pad(part, (0, chunk - part.size), mode="edge"))
-        if dense:
-            res = [np.empty(chunk) for _ in outs]
-            buf, run = mapped.buffer()
-            for i, a in enumerate(rows):
-                buf.set_arg(i, memoryview(a))  # type: ignore[call-arg]  # the size comes with the buffer
-            for i, r in enumerate(res):
-                buf.set_res(i, memoryview(r))  # type: ignore[call-arg, arg-type]
-            run()
+        if call is not None:
+            res = [r.ravel() for r in call(*rows)]
         else:  # a structurally zero output: CasADi's own call fills the zeros
             res = [np.asarray(v).ravel() for v in mapped(*[r[None, :] for r in rows])]
         for out, r in zip(outs, res):
