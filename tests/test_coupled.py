@@ -97,12 +97,14 @@ def test_sharp_coupled_operator_is_the_decoupled_one(laminar_coarse):
     assert np.max(np.abs(t_coupled[far])) < 1e-9 * np.max(np.abs(expected))  # T = 0 outside the lumen
 
 
-def _coupled_nlp(res):
-    """The coupled NLP of a decoupled result, velocity weight 1e4 (mm^2/(m/s)^2), its alpha and beta."""
+def _coupled_nlp(res, start: bool = False):
+    """The coupled NLP of a decoupled result, velocity weight 1e4 (mm^2/(m/s)^2), its alpha and beta; with
+    ``start`` its point classes from the result's wall (as a solve builds it; a near-wall layer needs it)."""
     g, v = res.geometry, res.velocity
+    held = {"start": g.coefficients, "stretch": cpl.layer_stretch(v)} if start else {}
     return cpl.build(
         _problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), v.basis,
-        v.disk_map.r_in, 1e4, g.alpha, v.beta,
+        v.disk_map.r_in, 1e4, g.alpha, v.beta, **held,
     )  # fmt: skip
 
 
@@ -144,10 +146,7 @@ def test_jacobian_stacked_from_its_block_values_equals_the_assembled_one(laminar
     of voxels without points (zero derivatives) included."""
     _, _, res = laminar_coarse
     g, v = res.geometry, res.velocity
-    nlp = cpl.build(
-        _problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), v.basis,
-        v.disk_map.r_in, 1e4, g.alpha, v.beta, start=g.coefficients,
-    )  # fmt: skip
+    nlp = _coupled_nlp(res, start=True)
     assert nlp.velocity_model.rows is not None and nlp.velocity_model.rows.size < nlp.velocity_model.index.size
     x = np.concatenate([g.coefficients, v.coefficients])
     x = x + np.random.default_rng(6).normal(size=x.size) * 1e-3 * (np.abs(x) + 1e-2)
@@ -280,10 +279,7 @@ def test_sharp_coupled_operator_with_a_layer_is_the_decoupled_one(turbulent_laye
 def test_chain_rule_jacobian_with_a_layer_equals_casadi_ad(turbulent_layered):
     _, _, res = turbulent_layered
     g, v = res.geometry, res.velocity
-    nlp = cpl.build(
-        _problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), v.basis,
-        v.disk_map.r_in, 1e4, g.alpha, v.beta, start=g.coefficients, stretch=cpl.layer_stretch(v),
-    )  # fmt: skip
+    nlp = _coupled_nlp(res, start=True)
     assert_coupled_jacobian_is_exact(nlp, g, v)
 
 
@@ -428,10 +424,7 @@ def test_curvature_columns_from_the_jacobian_equal_forward_over_reverse_of_the_r
     measured, 1e-11 allowed)."""
     _, _, res = turbulent_layered
     g, v = res.geometry, res.velocity
-    nlp = cpl.build(
-        _problem(res), geo.GeometryOptions(), res.velocity_image, vel.VelocityOptions(), v.basis,
-        v.disk_map.r_in, 1e4, g.alpha, v.beta, start=g.coefficients, stretch=cpl.layer_stretch(v),
-    )  # fmt: skip
+    nlp = _coupled_nlp(res, start=True)
     rng = np.random.default_rng(12)
     x = np.concatenate([g.coefficients, v.coefficients])
     w = rng.normal(size=nlp.residual.numel())
