@@ -87,24 +87,12 @@ def profile(family: str, y):
 
 def profile_derivative(family: str, y) -> np.ndarray:
     """``f'(y)`` of a family (NumPy; the same cut-off at ``y = -1`` as :func:`profile`)."""
-    y = np.maximum(np.asarray(y, dtype=float), -1.0)
-    if family == "wall_law":
-        e11, e3 = np.exp(-y / 11), np.exp(-y / 3)
-        return 1 / (1 + KAPPA * y) + REICHARDT_C * (e11 / 11 - e3 / 11 + y / 33 * e3)
-    if family == "exponential":
-        return np.exp(-y)
-    raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+    return profile_derivatives(family, np.maximum(np.asarray(y, dtype=float), -1.0), 1)
 
 
 def profile_second_derivative(family: str, y) -> np.ndarray:
-    """``f''(y)`` of a family (NumPy), for the curvature correction of cell means far from the wall."""
-    y = np.maximum(np.asarray(y, dtype=float), -1.0)
-    if family == "wall_law":
-        e11, e3 = np.exp(-y / 11), np.exp(-y / 3)
-        return -KAPPA / (1 + KAPPA * y) ** 2 + REICHARDT_C * (-e11 / 121 + 2 * e3 / 33 - y * e3 / 99)
-    if family == "exponential":
-        return -np.exp(-y)
-    raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+    """``f''(y)`` of a family (NumPy; the same cut-off), for the curvature correction of cell means far inside."""
+    return profile_derivatives(family, np.maximum(np.asarray(y, dtype=float), -1.0), 2)
 
 
 def profile_derivatives(family: str, y, order: int) -> np.ndarray:
@@ -468,8 +456,9 @@ def cell_mean_function(family: str, continuous: bool = False, branch: str | None
 
 def _spread_mean(f1, f2, y, a, b, branch: str | None = None):
     """The mean of ``F_1'`` over the trapezoid of half-widths ``a >= b`` centred at ``y`` (CasADi SX): the box
-    mean ``(F_1(y+a) - F_1(y-a))/(2a)`` when ``b < 1e-3 a``, else the second differences of ``F_2`` (``F_2' = F_1``)
-    over ``4ab`` (:func:`cell_mean`); ``branch`` ``"box"`` or ``"trapezoid"``: that formula alone."""
+    mean ``(F_1(y+a) - F_1(y-a))/(2a)`` when ``b <`` :data:`BOX_RATIO` ``a``, else the second differences of
+    ``F_2`` (``F_2' = F_1``) over ``4ab`` (:func:`cell_mean`); ``branch`` ``"box"`` or ``"trapezoid"``: that
+    formula alone."""
 
     def box():
         return (f1(y + a) - f1(y - a)) / (2 * ca.fmax(a, 1e-300))
