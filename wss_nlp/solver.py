@@ -217,12 +217,7 @@ class SharedEvaluation(_DeferredDerivatives, ca.Callback):
             for target, a in zip(self._inputs, arg):
                 target[:] = 0.0 if a is None else np.frombuffer(a, dtype=np.float64)
             if self._run is None:
-                buf, run = self.function.buffer()
-                for i, held in enumerate(self._inputs):
-                    buf.set_arg(i, memoryview(held))  # type: ignore[call-arg, arg-type]  # size: the buffer's
-                for i, r in enumerate(self._outputs):
-                    buf.set_res(i, memoryview(r))  # type: ignore[call-arg, arg-type]
-                self._run = (buf, run)
+                self._run = bound_buffer(self.function, self._inputs, self._outputs)
             self._run[1]()
             self._key = key
             self.evaluations += 1
@@ -320,6 +315,17 @@ class _Deferred(_DeferredDerivatives, ca.Callback):
         return list(out) if isinstance(out, (list, tuple)) else [out]
 
 
+def bound_buffer(function: ca.Function, inputs: list, outputs: list) -> tuple:
+    """``function.buffer()`` reading ``inputs`` and writing ``outputs`` (NumPy arrays of the nonzeros, kept by
+    the caller): ``(buffer, run)``; keep the buffer while ``run`` is used."""
+    buf, run = function.buffer()
+    for i, held in enumerate(inputs):
+        buf.set_arg(i, memoryview(held))  # type: ignore[call-arg]  # the size comes with the buffer
+    for i, r in enumerate(outputs):
+        buf.set_res(i, memoryview(r))  # type: ignore[call-arg]
+    return buf, run
+
+
 class DenseCall:
     """``function``'s outputs as NumPy arrays of the outputs' shapes, evaluated in one persistent buffer.
 
@@ -339,11 +345,7 @@ class DenseCall:
         self.function = function
         self._inputs = [np.empty(function.nnz_in(i)) for i in range(function.n_in())]
         self._outputs = [np.empty(function.nnz_out(i)) for i in range(function.n_out())]
-        self._buffer, self._run = function.buffer()
-        for i, a in enumerate(self._inputs):
-            self._buffer.set_arg(i, memoryview(a))  # type: ignore[call-arg, arg-type]  # the size comes with it
-        for i, r in enumerate(self._outputs):
-            self._buffer.set_res(i, memoryview(r))  # type: ignore[call-arg, arg-type]
+        self._buffer, self._run = bound_buffer(function, self._inputs, self._outputs)
 
     def __call__(self, *args) -> list[np.ndarray]:
         """The outputs at ``args`` (arrays in the inputs' shapes, or numbers for every entry); fresh arrays."""
