@@ -840,11 +840,15 @@ def layer_point_classes(model: VelocityMisfitModel, l_mm: float, stretch: float,
     }
 
 
-def _far_mean(family: str, a: np.ndarray, b: np.ndarray):
-    """``(y, d) ->`` the ``d``-th derivative of the far-inside cell mean of cells ``(a, b)`` (an elementwise ladder)."""
+def _far_mean(family: str, a: np.ndarray, b: np.ndarray, idx: np.ndarray):
+    """``(y, d) ->`` the ``d``-th derivative of the far-inside cell mean of cells ``(a, b)`` at the points ``idx``
+    of the row ``y``, zero at the others (an elementwise ladder over the whole row: slicing the row in the graph
+    and scattering the values back cost more to build and to evaluate than the zeros)."""
 
     def derivative(y: np.ndarray, d: int) -> np.ndarray:
-        return nw.far_cell_mean_derivative(family, y, a, b, d)
+        out = np.zeros(y.size)
+        out[idx] = nw.far_cell_mean_derivative(family, y[idx], a, b, d)
+        return out
 
     return derivative
 
@@ -909,17 +913,16 @@ def _layer_points(
             nw.NARROW_PROFILE,
         )
     idx = classes["far"]
-    if idx.size:
+    if idx.size and harmonics is None:  # fixed cells: the far-inside mean and its derivatives by NumPy (elementwise)
+        a_k, b_k = half_x[idx] / (ell * stretch), half_y[idx] / (ell * stretch)
+        ladder = elementwise.Ladder(n_pts, _far_mean(basis.family, a_k, b_k, idx), "far_mean")
+        model.kept.append(ladder)
+        f, df = f + ladder.map(0)(y), df + ladder.map(1)(y)
+    elif idx.size:
         put = scatter(idx)
-        if harmonics is None:  # fixed cells: the far-inside mean and its derivatives by NumPy (elementwise)
-            a_k, b_k = half_x[idx] / (ell * stretch), half_y[idx] / (ell * stretch)
-            ladder = elementwise.Ladder(idx.size, _far_mean(basis.family, a_k, b_k), "far_mean")
-            model.kept.append(ladder)
-            fk, dfk = ladder.map(0)(y[:, idx.tolist()]), ladder.map(1)(y[:, idx.tolist()])
-        else:
-            fk, dfk = nw.far_cell_mean_function(basis.family).map(idx.size)(
-                y[:, idx.tolist()], a_l[:, idx.tolist()], b_l[:, idx.tolist()]
-            )
+        fk, dfk = nw.far_cell_mean_function(basis.family).map(idx.size)(
+            y[:, idx.tolist()], a_l[:, idx.tolist()], b_l[:, idx.tolist()]
+        )
         f, df = f + ca.mtimes(fk, put), df + ca.mtimes(dfk, put)
     if classes["fraction"].size:
         area, darea = mapped(
@@ -931,18 +934,19 @@ def _layer_points(
     whole = np.zeros(n_pts)
     whole[classes["whole"]] = 1.0
     area = area + ca.DM(whole).T
-    top = max(m for m, _ in basis.layer_terms)
-    if harmonics is None:
-        trig = {(m, k): ca.DM(np.cos(m * t) if k == "cos" else np.sin(m * t)).T for m, k in basis.layer_terms}
+    top, scale = max(m for m, _ in basis.layer_terms), basis.column_scale
+    if harmonics is None:  # the column scale folded into the constant angular factors
+        trig = {(m, k): ca.DM(scale * (np.cos(m * t) if k == "cos" else np.sin(m * t))).T for m, k in basis.layer_terms}
     else:
         hc, hs = rad.harmonics(harmonics[0], harmonics[1], top)
-        trig = {(m, k): hc[m] if k == "cos" else hs[m] for m, k in basis.layer_terms}
-    lay, dlay = [], []
-    for m, kind in basis.layer_terms:
-        power = rho**m
-        dpower = m * rho ** max(m - 1, 0) if m else 0
-        lay.append(basis.column_scale * f * power * trig[m, kind])
-        dlay.append(basis.column_scale * (-df / ell * power + f * dpower) * trig[m, kind])
+        trig = {(m, k): scale * (hc[m] if k == "cos" else hs[m]) for m, k in basis.layer_terms}
+    # f rho^m and its rho-derivative for each order m, shared by its cos and sin columns, by the recurrences
+    # v_m = v_(m-1) rho, s_m = s_(m-1) rho + v_(m-1): each product is an operation on rows of all the points
+    value, slope = [f], [-df / ell]
+    for _ in range(top):
+        value, slope = value + [value[-1] * rho], slope + [slope[-1] * rho + value[-1]]
+    lay = [value[m] * trig[m, kind] for m, kind in basis.layer_terms]
+    dlay = [slope[m] * trig[m, kind] for m, kind in basis.layer_terms]
     return ca.vertcat(*lay), ca.vertcat(*dlay), area, -darea / ell
 
 
