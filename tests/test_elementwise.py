@@ -25,23 +25,40 @@ def test_profile_derivatives_equal_casadi_ad_of_the_profile(family):
         np.testing.assert_allclose(mine, r, rtol=0, atol=1e-13 * np.max(np.abs(r)), err_msg=f"order {k}")
 
 
-def _far(n: int, seed: int):
-    """Far-inside cells: depths 2-300 layer units, half-widths on both sides of the 0.02 threshold."""
+def _cells(formula: str, n: int, seed: int):
+    """Depths and half-widths (layer units) for a cell-mean formula: far inside (2-300, half-widths on both
+    sides of the 0.02 threshold), or across the wall (-1 to 8) for a branch's cells (point: narrower than
+    0.02; box: one side below 1e-3 of the other; trapezoid: both 0.03-2)."""
     rng = np.random.default_rng(seed)
-    y = rng.uniform(2.0, 300.0, n)
-    a, b = rng.uniform(0.0, 0.5, n), rng.uniform(0.0, 0.04, n)
-    return y, a, b
+    if formula == "far":
+        return rng.uniform(2.0, 300.0, n), rng.uniform(0.0, 0.5, n), rng.uniform(0.0, 0.04, n)
+    y, a = rng.uniform(-1.0, 8.0, n), rng.uniform(0.03, 2.0, n)
+    if formula == "point":
+        return y, 0.019 * a / 2.0, rng.uniform(0.0, 0.019, n)
+    return y, a, rng.uniform(0.0, 1e-3, n) * a if formula == "box" else rng.uniform(0.03, 2.0, n)
 
 
+def _sx_and_numpy(family: str, formula: str, a, b):
+    """The SX function of a formula (``(y, a, b) -> (mean, d mean / dy)``) and its NumPy derivatives."""
+    if formula == "far":
+        return nw.far_cell_mean_function(family), lambda y, d: nw.far_cell_mean_derivative(family, y, a, b, d)
+    sx = nw.cell_mean_function(family, continuous=True, branch=formula)
+    return sx, lambda y, d: nw.cell_mean_derivative(family, y, a, b, d, formula)
+
+
+@pytest.mark.parametrize("formula", ("far", *nw.BRANCHES))
 @pytest.mark.parametrize("family", nw.FAMILIES)
-def test_ladder_values_and_derivatives_equal_the_sx_far_cell_mean(family):
-    """D_0, D_1 of the far-inside cell mean equal the SX function's value and y-derivative; through the
-    callbacks, CasADi's gradient (reverse), a forward directional derivative and the Hessian of a weighted sum
-    (forward over reverse, D_2 and D_3) equal those of the SX graph (rounding: 1e-12 relative)."""
+def test_ladder_values_and_derivatives_equal_the_sx_cell_means(family, formula):
+    """D_0, D_1 of a cell mean (the far-inside one, and each branch of the coupled layer's continuous one)
+    equal the SX function's value and y-derivative; through the callbacks, CasADi's gradient (reverse), a
+    forward directional derivative and the Hessian of a weighted sum (forward over reverse, D_2 and D_3) equal
+    those of the SX graph. Tolerance 1e-12 relative to each output's largest value: the trapezoid's second
+    differences of F_2 cancel to about 1e-13 of it, in both codes alike."""
     n = 50
-    y0, a, b = _far(n, 3)
-    ladder = elementwise.Ladder(n, lambda y, d: nw.far_cell_mean_derivative(family, y, a, b, d))
-    sx = nw.far_cell_mean_function(family).map(n)
+    y0, a, b = _cells(formula, n, 3)
+    sx_function, derivative = _sx_and_numpy(family, formula, a, b)
+    ladder = elementwise.Ladder(n, derivative)
+    sx = sx_function.map(n)
     y = ca.MX.sym("y", 1, n)
     w = np.random.default_rng(4).normal(size=n)
     mine_v, mine_d = ladder.map(0)(y), ladder.map(1)(y)

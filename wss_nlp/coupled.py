@@ -840,14 +840,19 @@ def layer_point_classes(model: VelocityMisfitModel, l_mm: float, stretch: float,
     }
 
 
-def _far_mean(family: str, a: np.ndarray, b: np.ndarray, idx: np.ndarray):
-    """``(y, d) ->`` the ``d``-th derivative of the far-inside cell mean of cells ``(a, b)`` at the points ``idx``
-    of the row ``y``, zero at the others (an elementwise ladder over the whole row: slicing the row in the graph
-    and scattering the values back cost more to build and to evaluate than the zeros)."""
+def _profile_means(family: str, groups: list):
+    """``(y, d) ->`` the ``d``-th ``y``-derivative of a layer profile's cell means on a row of points (an
+    elementwise ladder), zero off the groups. ``groups``: ``(points, formula, a, b)`` with the formula
+    ``"far"`` (:func:`wss_nlp.near_wall.far_cell_mean_derivative`) or a branch of
+    :func:`wss_nlp.near_wall.cell_mean_derivative`, and the cells' half-widths in layer units."""
 
     def derivative(y: np.ndarray, d: int) -> np.ndarray:
         out = np.zeros(y.size)
-        out[idx] = nw.far_cell_mean_derivative(family, y[idx], a, b, d)
+        for idx, formula, a, b in groups:
+            if formula == "far":
+                out[idx] = nw.far_cell_mean_derivative(family, y[idx], a, b, d)
+            else:
+                out[idx] = nw.cell_mean_derivative(family, y[idx], a, b, d, formula)
         return out
 
     return derivative
@@ -906,24 +911,32 @@ def _layer_points(
                 value, slope = value + ca.mtimes(fk, put), slope + ca.mtimes(dfk, put)
         return value, slope
 
-    if classes["band"].size:
-        f, df = mapped(
-            classes["band"],
-            lambda branch: nw.cell_mean_function(basis.family, continuous=True, branch=branch),
-            nw.NARROW_PROFILE,
-        )
-    idx = classes["far"]
-    if idx.size and harmonics is None:  # fixed cells: the far-inside mean and its derivatives by NumPy (elementwise)
-        a_k, b_k = half_x[idx] / (ell * stretch), half_y[idx] / (ell * stretch)
-        ladder = elementwise.Ladder(n_pts, _far_mean(basis.family, a_k, b_k, idx), "far_mean")
+    band, far = classes["band"], classes["far"]
+    if harmonics is None and band.size + far.size:
+        # fixed cells: the profile's cell means and their derivatives by NumPy, one elementwise ladder over the
+        # whole row (zero off both classes): CasADi's mapped SX formulas cost about 1 us per point and sliced
+        # rows scattered back cost more to build than the zeros
+        scale = ell * stretch
+        groups = [(far, "far")]
+        branch = nw.spread_branch(half_x[band], half_y[band], nw.NARROW_PROFILE * scale)
+        groups += [(band[branch == k], name) for k, name in enumerate(nw.BRANCHES)]
+        groups = [(sub, name, half_x[sub] / scale, half_y[sub] / scale) for sub, name in groups if sub.size]
+        ladder = elementwise.Ladder(n_pts, _profile_means(basis.family, groups), "profile_means")
         model.kept.append(ladder)
-        f, df = f + ladder.map(0)(y), df + ladder.map(1)(y)
-    elif idx.size:
-        put = scatter(idx)
-        fk, dfk = nw.far_cell_mean_function(basis.family).map(idx.size)(
-            y[:, idx.tolist()], a_l[:, idx.tolist()], b_l[:, idx.tolist()]
-        )
-        f, df = f + ca.mtimes(fk, put), df + ca.mtimes(dfk, put)
+        f, df = ladder.map(0)(y), ladder.map(1)(y)
+    else:
+        if band.size:
+            f, df = mapped(
+                band,
+                lambda branch: nw.cell_mean_function(basis.family, continuous=True, branch=branch),
+                nw.NARROW_PROFILE,
+            )
+        if far.size:
+            put = scatter(far)
+            fk, dfk = nw.far_cell_mean_function(basis.family).map(far.size)(
+                y[:, far.tolist()], a_l[:, far.tolist()], b_l[:, far.tolist()]
+            )
+            f, df = f + ca.mtimes(fk, put), df + ca.mtimes(dfk, put)
     if classes["fraction"].size:
         area, darea = mapped(
             classes["fraction"],

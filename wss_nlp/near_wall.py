@@ -132,6 +132,38 @@ def far_cell_mean_derivative(family: str, y, a, b, order: int) -> np.ndarray:
     return profile_derivatives(family, y, order) + curvature * profile_derivatives(family, y, order + 2)
 
 
+def cell_mean_derivative(family: str, y, a, b, order: int, branch: str) -> np.ndarray:
+    r"""The ``order``-th ``y``-derivative of :func:`cell_mean_function` with ``continuous=True`` and ``branch``
+    (NumPy; cells ``a``, ``b`` fixed, any ``y``).
+
+    Notes
+    -----
+    With :math:`F_0 = f\,1(y > 0)` and :math:`F_1, F_2` its antiderivatives from 0
+    (:func:`antiderivatives`), :math:`F_k^{(d)} = f^{(d-k)} 1(y > 0)` for ``d >= k``
+    (:func:`profile_derivatives`; ``f(0) = 0``, so no jump term), and the
+    branches differentiate term by term: ``point`` :math:`F_0^{(d)}(y)`,
+    ``box`` :math:`(F_1^{(d)}(y+a) - F_1^{(d)}(y-a))/(2a)`, ``trapezoid`` the
+    second differences of :math:`F_2^{(d)}` over ``4ab`` (``a >= b``).
+    """
+    y = np.asarray(y, dtype=float)
+    a, b = (np.asarray(v, dtype=float) for v in np.broadcast_arrays(a, b))
+    a, b = np.maximum(a, b), np.minimum(a, b)
+
+    def term(v, k):  # F_k^(order)(v)
+        if order < k:
+            return antiderivatives(family, v)[k - order - 1]
+        return np.where(v > 0, profile_derivatives(family, np.maximum(v, 0.0), order - k), 0.0)
+
+    if branch == "point":
+        return term(y, 0)
+    if branch == "box":
+        return (term(y + a, 1) - term(y - a, 1)) / (2 * np.maximum(a, 1e-300))
+    if branch == "trapezoid":
+        second = term(y + a + b, 2) - term(y + a - b, 2) - term(y - a + b, 2) + term(y - a - b, 2)
+        return second / (4 * np.maximum(a * b, 1e-300))
+    raise InputError(f"cell_mean_derivative: branch must be one of {BRANCHES}, got {branch!r}")
+
+
 def cell_half_widths(cell_mm, t) -> tuple[np.ndarray, np.ndarray]:
     """Half-widths (mm) of a quadrature cell's projections on the wall normal at polar angle ``t``.
 
