@@ -858,6 +858,23 @@ def _profile_means(family: str, groups: list):
     return derivative
 
 
+def _inside_fractions(groups: list, whole: np.ndarray):
+    """``(y, g, i, j) ->`` the ``(i, j)``-th ``(y, g)``-derivative of the cells' inside fractions with the erf
+    indicator of width ``g`` on a row of points (a :class:`wss_nlp.elementwise.ScaledLadder`): 1 at the points
+    ``whole`` (value only), zero off the groups. ``groups``: ``(points, branch, a, b)``
+    (:func:`wss_nlp.near_wall.smoothed_inside_derivative`), half-widths in layer units."""
+
+    def derivative(y: np.ndarray, g: float, i: int, j: int) -> np.ndarray:
+        out = np.zeros(y.size)
+        if i == j == 0:
+            out[whole] = 1.0
+        for idx, branch, a, b in groups:
+            out[idx] = nw.smoothed_inside_derivative(y[idx], a, b, g, i, j, branch)
+        return out
+
+    return derivative
+
+
 def _layer_points(
     basis, model: VelocityMisfitModel, rho, stretch: float, r_in: float, gamma, heaviside: str, harmonics=None
 ):
@@ -937,16 +954,29 @@ def _layer_points(
                 y[:, far.tolist()], a_l[:, far.tolist()], b_l[:, far.tolist()]
             )
             f, df = f + ca.mtimes(fk, put), df + ca.mtimes(dfk, put)
-    if classes["fraction"].size:
-        area, darea = mapped(
-            classes["fraction"],
-            functools.partial(nw.smoothed_inside_function, heaviside),
-            nw.NARROW_INSIDE,
-            gamma / (ell * stretch),
-        )
-    whole = np.zeros(n_pts)
-    whole[classes["whole"]] = 1.0
-    area = area + ca.DM(whole).T
+    fraction, whole = classes["fraction"], classes["whole"]
+    if harmonics is None and heaviside == "erf":
+        # fixed cells: the inside fractions and their derivatives in y and gamma by NumPy, one ladder over the
+        # whole row (1 for the whole cells), as the profile's above
+        scale = ell * stretch
+        branch = nw.spread_branch(half_x[fraction], half_y[fraction], nw.NARROW_INSIDE * scale)
+        groups = [(fraction[branch == k], name) for k, name in enumerate(nw.BRANCHES)]
+        groups = [(sub, name, half_x[sub] / scale, half_y[sub] / scale) for sub, name in groups if sub.size]
+        inside = elementwise.ScaledLadder(n_pts, _inside_fractions(groups, whole), "inside_fractions")
+        model.kept.append(inside)
+        width = gamma / scale
+        area, darea = inside.map(0, 0)(y, width), inside.map(1, 0)(y, width)
+    else:
+        if fraction.size:
+            area, darea = mapped(
+                fraction,
+                functools.partial(nw.smoothed_inside_function, heaviside),
+                nw.NARROW_INSIDE,
+                gamma / (ell * stretch),
+            )
+        ones = np.zeros(n_pts)
+        ones[whole] = 1.0
+        area = area + ca.DM(ones).T
     top, scale = max(m for m, _ in basis.layer_terms), basis.column_scale
     if harmonics is None:  # the column scale folded into the constant angular factors
         trig = {(m, k): ca.DM(scale * (np.cos(m * t) if k == "cos" else np.sin(m * t))).T for m, k in basis.layer_terms}
