@@ -438,3 +438,21 @@ def test_curvature_columns_from_the_jacobian_equal_forward_over_reverse_of_the_r
     )
     want = np.hstack([np.asarray(ref_fun(x, g.gamma, w, d)) for d in directions.T])
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-11 * np.max(np.abs(want)))
+
+
+def test_inverse_map_ladder_equals_casadi_ad_of_the_closed_form():
+    """The Taylor-series derivatives of the inverse map's radius rho(R) = 2 r / (r_in + sqrt(r_in^2 + 4 (R - r_in)
+    r)) in R (orders 0-4, NumPy) equal CasADi's repeated derivatives of the formula at points from the centre
+    (r = 0) to beyond the wall, to 1e-13 of each order's largest value."""
+    rng = np.random.default_rng(21)
+    r_in, n = 2.0, 400
+    dist, big_r = np.append(rng.uniform(0.0, 14.0, n - 1), 0.0), rng.uniform(2.5, 13.0, n)
+    r_sym, d_sym = ca.SX.sym("R"), ca.SX.sym("r")
+    exprs = [2 * d_sym / (r_in + ca.sqrt(r_in**2 + 4 * (r_sym - r_in) * d_sym))]
+    for _ in range(4):
+        exprs.append(ca.jacobian(exprs[-1], r_sym))
+    ref = ca.Function("ref", [r_sym, d_sym], exprs).map(n)(big_r[None, :], dist[None, :])
+    derivative = cpl._inverse_map_at(dist, r_in)
+    for order, r in enumerate(ref):
+        r = np.asarray(r).ravel()
+        np.testing.assert_allclose(derivative(big_r, order), r, rtol=0, atol=1e-13 * np.max(np.abs(r)))

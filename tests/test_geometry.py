@@ -92,6 +92,30 @@ def test_heaviside_antiderivatives_differentiate_to_the_heaviside(kind):
         np.testing.assert_allclose(sharp2, np.maximum(grid[far], 0) ** 2 / 2, rtol=0, atol=3e-11)
 
 
+@pytest.mark.parametrize("k", [0, 1, 2])
+def test_erf_indicator_derivatives_equal_casadi_ad_in_x_and_gamma(k):
+    """The closed-form mixed derivatives d^i/dx^i d^j/dgamma^j (i + j <= 3) of H_gamma (k = 0) and of its
+    antiderivatives G_1, G_2 (k = 1, 2) equal CasADi's repeated derivatives of the erf formulas, from deep in
+    the tails to 4 widths inside: 1e-13 of each order's largest value (terms cancel where an order crosses 0)."""
+    x, g = ca.SX.sym("x"), ca.SX.sym("g")
+    base = meas.smoothed_heaviside(x, g, "erf") if k == 0 else meas.heaviside_antiderivatives(x, g, "erf")[k - 1]
+    orders = [(i, j) for i in range(4) for j in range(4 - i)]
+    exprs = []
+    for i, j in orders:
+        e = base
+        for _ in range(i):
+            e = ca.jacobian(e, x)
+        for _ in range(j):
+            e = ca.jacobian(e, g)
+        exprs.append(e)
+    grid = np.linspace(-6, 4, 201) * 0.3
+    ref = ca.Function("ref", [x, g], exprs).map(grid.size)(grid[None, :], 0.3)
+    for (i, j), r in zip(orders, ref):
+        r = np.asarray(r).ravel()
+        mine = meas.erf_indicator_derivative(grid, 0.3, k, i, j)
+        np.testing.assert_allclose(mine, r, rtol=0, atol=1e-13 * np.max(np.abs(r)), err_msg=f"order ({i}, {j})")
+
+
 @pytest.mark.parametrize("kind", ["erf", "arctan"])
 def test_newton_hessian_equals_casadi_exact_hessian(laminar_snr25, kind):
     """The chain-rule Hessian 2 (J^T J + sum r_i Hess r_i + alpha W) the "newton" solver passes to IPOPT equals

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import math
 
 import time
 from dataclasses import dataclass, field, replace
@@ -589,6 +590,44 @@ def _basis_sums(
     return _VoxelSums("basis_sums", shapes, (n_vox, n_cols), apply, tangent)
 
 
+def _indicator_at(dist: np.ndarray):
+    """``(R, gamma, i, j) ->`` the ``(i, j)``-th ``(R, gamma)``-derivative of ``H_gamma(R_p - r_p)`` at points at
+    distances ``dist`` from the centre (erf indicator; :class:`wss_nlp.elementwise.ScaledLadder`)."""
+
+    def derivative(big_r: np.ndarray, gamma: float, i: int, j: int) -> np.ndarray:
+        return meas.erf_indicator_derivative(big_r - dist, gamma, 0, i, j)
+
+    return derivative
+
+
+def _inverse_map_at(dist: np.ndarray, r_in: float):
+    r"""``(R, d) ->`` the ``d``-th ``R``-derivative of the inverse map's radius
+    :math:`\rho = 2 r / (r_{in} + \sqrt{r_{in}^2 + 4 (R - r_{in}) r})` at points at distances ``r = dist``
+    (an elementwise :class:`wss_nlp.elementwise.Ladder`).
+
+    Notes
+    -----
+    Taylor coefficients in :math:`\epsilon = R' - R`: :math:`w = \sqrt{s_0 + 4 r \epsilon}` has
+    :math:`w_k = w_0 \binom{1/2}{k} (4 r / s_0)^k` (:math:`s_0 = w_0^2`), the reciprocal of
+    :math:`D = r_{in} + w` follows from :math:`q_0 = 1/D_0`,
+    :math:`q_k = -q_0 \sum_{m=1}^{k} w_m q_{k-m}`, and :math:`\rho^{(d)} = d!\, 2 r q_d`.
+    """
+
+    def derivative(big_r: np.ndarray, d: int) -> np.ndarray:
+        s0 = r_in * r_in + 4 * (big_r - r_in) * dist
+        w0 = np.sqrt(s0)
+        q = [1.0 / (r_in + w0)]
+        if d:
+            ratio, w, binom = 4 * dist / s0, [], 1.0
+            for k in range(1, d + 1):
+                binom *= (0.5 - k + 1) / k
+                w.append(w0 * binom * ratio**k)
+                q.append(-q[0] * sum(w[m - 1] * q[k - m] for m in range(1, k + 1)))
+        return math.factorial(d) * 2 * dist * q[d]
+
+    return derivative
+
+
 def velocity_residual(
     model: VelocityMisfitModel,
     c_r,
@@ -606,11 +645,14 @@ def velocity_residual(
     """Weighted velocity residual ``sqrt(w_i / W) (T_i(R) c_v - u_i)`` on the fixed voxel set (CasADi MX).
 
     With ``jacobian=True`` returns ``(r, dr/dc_R, dr/dc_v, T(R) c_v - u)``;
-    the Jacobian is assembled by the chain rule from CasADi's exact
-    derivatives of the pointwise pieces (``H_gamma'``, ``d rho / d R``,
-    ``d v / d rho``), which costs a few basis evaluations instead of one
-    sweep per unknown (``tests/test_coupled.py`` checks it against
-    ``ca.jacobian``). With ``factored=True`` as well, ``dr/dc_v = C F`` is
+    the Jacobian is assembled by the chain rule from exact derivatives of
+    the pointwise pieces (``H_gamma'``, ``d rho / d R``, ``d v / d rho``),
+    which costs a few basis evaluations instead of one sweep per unknown.
+    At fixed points with the erf indicator the pieces in ``R`` (and a
+    layer's cell means) are NumPy callbacks with closed-form derivatives of
+    every order (:mod:`wss_nlp.elementwise`), else mapped SX functions
+    (``tests/test_coupled.py`` checks the Jacobian against ``ca.jacobian``).
+    With ``factored=True`` as well, ``dr/dc_v = C F`` is
     returned as the column blocks of ``C`` (a tuple: the raw functions'
     columns, then the layer's if any; concatenating them in the graph cost
     20-30 ms at h = 0.3 mm) with the constant ``F`` (NumPy: the basis's
@@ -671,14 +713,6 @@ def velocity_residual(
         raise InputError("velocity_residual: a near-wall layer needs the map's stretch S")
     full, basis = basis, (basis.base if layered else basis)
     n_pts = model.dist.size
-    # pointwise scalar pieces as small SX functions with their exact derivatives, mapped over the points
-    gap, big_r, dist = ca.SX.sym("gap"), ca.SX.sym("R"), ca.SX.sym("r")
-    width = ca.SX.sym("gamma")
-    heav = meas.smoothed_heaviside(gap, width, heaviside)
-    f_chi = ca.Function("chi", [gap, width], [heav, ca.jacobian(heav, gap)]).map(n_pts)
-    rho_expr = 2 * dist / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * dist))
-    f_rho = ca.Function("rho", [big_r, dist], [rho_expr, ca.jacobian(rho_expr, big_r)]).map(n_pts)
-
     pb = polar_basis(basis, np.arctan2(model.sin, model.cos))
     n_cheb = pb.cheb.shape[1]
     if center is None:
@@ -687,7 +721,6 @@ def velocity_residual(
         angular_product = operators.MatrixProduct(pb.angular.T, cols=n_cheb)
         model.kept += [design_product, angular_product]
         r_at = design_product(c_r).T  # (1, n_pts)
-        dist_row = ca.DM(model.dist).T
         center_harmonics = None
     else:
         if jacobian:
@@ -698,8 +731,24 @@ def velocity_residual(
         hc, hs = rad.harmonics(c1, s1, max(m for m, _ in pb.angular_terms))
         ang = ca.vertcat(*[hc[m] if kind == "cos" else hs[m] for m, kind in pb.angular_terms])
         center_harmonics = (c1, s1)
-    chi, dchi = f_chi(r_at - dist_row, gamma)
-    rho, drho = f_rho(r_at, dist_row)
+    if center is None and heaviside == "erf":
+        # the pointwise pieces in R at the fixed points by NumPy (elementwise ladders, every derivative order):
+        # CasADi's mapped SX functions cost 6-7 ms each per evaluation at h = 0.3 mm (27 000 points)
+        dist = np.asarray(model.dist, dtype=float).ravel()
+        indicator = elementwise.ScaledLadder(n_pts, _indicator_at(dist), "indicator")
+        inverse = elementwise.Ladder(n_pts, _inverse_map_at(dist, r_in), "inverse_map")
+        model.kept += [indicator, inverse]
+        chi, dchi = indicator.map(0, 0)(r_at, gamma), indicator.map(1, 0)(r_at, gamma)
+        rho, drho = inverse.map(0)(r_at), inverse.map(1)(r_at)
+    else:  # pointwise scalar pieces as small SX functions with their exact derivatives, mapped over the points
+        gap, big_r, dist_p, width = ca.SX.sym("gap"), ca.SX.sym("R"), ca.SX.sym("r"), ca.SX.sym("gamma")
+        heav = meas.smoothed_heaviside(gap, width, heaviside)
+        f_chi = ca.Function("chi", [gap, width], [heav, ca.jacobian(heav, gap)]).map(n_pts)
+        rho_expr = 2 * dist_p / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * dist_p))
+        f_rho = ca.Function("rho", [big_r, dist_p], [rho_expr, ca.jacobian(rho_expr, big_r)]).map(n_pts)
+        dist_row = ca.DM(model.dist).T if center is None else dist_row
+        chi, dchi = f_chi(r_at - dist_row, gamma)
+        rho, drho = f_rho(r_at, dist_row)
     rho_wall, drho_wall = rho, drho  # the layer needs rho itself (no reflection): its cell means vanish outside
     # basis functions by polar separation, raw_j = radial_j(rho) angular_j(t), with the radial factors in
     # Chebyshev form: the moving points cost dense products with a few rows (see PolarBasis)

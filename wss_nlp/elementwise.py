@@ -1,17 +1,19 @@
-r"""A function of one variable applied at many points inside CasADi graphs, by NumPy, with exact derivatives.
+r"""Functions applied at many points inside CasADi graphs, by NumPy, with exact derivatives of every order.
 
-The coupled velocity misfit (:mod:`wss_nlp.coupled`) evaluates a near-wall
-layer's cell means at every sub-voxel point deep inside the wall, tens of
-thousands of points whose depth moves with the wall. CasADi's mapped SX
-function costs about 0.5 us per point for the law of the wall (a hundred
-instructions and the map's per-call overhead), NumPy's vectorized formulas a
-tenth of that. A :class:`Ladder` holds the maps
+The coupled velocity misfit (:mod:`wss_nlp.coupled`) evaluates pointwise
+pieces at every sub-voxel point, tens of thousands of points that move with
+the wall: the smoothed indicator, the inverse map's radius, a near-wall
+layer's cell means and inside fractions. CasADi's mapped SX functions cost
+0.2-1 us per point (the instructions and the map's per-call overhead: 6-7 ms
+per evaluation for the indicator and for the radius at h = 0.3 mm), NumPy's
+vectorized formulas a fraction of that. A :class:`Ladder` holds the maps
 
 .. math::
 
     D_d : y \mapsto F^{(d)}(y) \quad \text{(elementwise on a row of } n \text{ points)},
 
-given a NumPy function ``derivative(y, d)`` for every order ``d``.
+given a NumPy function ``derivative(y, d)`` for every order ``d``; a
+:class:`ScaledLadder` the mixed derivatives in the row and one scalar (the indicator's width).
 
 Notes
 -----

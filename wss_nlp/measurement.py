@@ -171,6 +171,47 @@ def heaviside_antiderivatives(x, gamma, kind: str = "erf"):
     return g1, g2
 
 
+#: The erf indicator and its antiderivatives in the form ``g^k (P(u) Phi(u) + Q(u) E(u))``, ``u = x/g``: the
+#: coefficients of ``P`` and ``Q`` (lowest degree first) for ``k = 0, 1, 2`` (:func:`erf_indicator_derivative`).
+_ERF_FORMS = (([1.0], [0.0]), ([0.0, 1.0], [0.5]), ([0.25, 0.0, 0.5], [0.0, 0.25]))
+
+
+def erf_indicator_derivative(x, gamma: float, k: int, i: int, j: int) -> np.ndarray:
+    r""":math:`\partial_x^i \partial_\gamma^j` of the erf indicator (``k = 0``, :func:`smoothed_heaviside`) or its
+    ``k``-th antiderivative (``k = 1, 2``, :func:`heaviside_antiderivatives`), NumPy, any orders.
+
+    Notes
+    -----
+    With :math:`u = x/\gamma`, :math:`\Phi = (1 + \operatorname{erf} u)/2` and :math:`E = e^{-u^2}/\sqrt\pi`
+    (:math:`\Phi' = E`, :math:`E' = -2uE`), :math:`H_\gamma = \Phi(u)`, :math:`G_1 = \gamma (u\Phi + E/2)`
+    and :math:`G_2 = \gamma^2 ((u^2/2 + 1/4)\Phi + uE/4)`. Every :math:`\gamma^k (P\Phi + QE)` with
+    polynomials ``P``, ``Q`` has derivatives of the same form,
+
+    .. math::
+
+        \partial_x\, \gamma^k \Psi(u) = \gamma^{k-1} \Psi'(u), \qquad
+        \partial_\gamma\, \gamma^k \Psi(u) = \gamma^{k-1} \big(k \Psi(u) - u \Psi'(u)\big),
+        \qquad \Psi' = P'\Phi + (P + Q' - 2uQ) E,
+
+    so each order is two polynomials.
+    """
+    p, q = (np.polynomial.Polynomial(c) for c in _ERF_FORMS[k])
+    u_poly = np.polynomial.Polynomial([0.0, 1.0])
+
+    def slope(p, q):  # Psi' in the (P, Q) form
+        return p.deriv(), p + q.deriv() - 2 * u_poly * q
+
+    for _ in range(i):
+        p, q = slope(p, q)
+        k -= 1
+    for _ in range(j):
+        dp, dq = slope(p, q)
+        p, q = k * p - u_poly * dp, k * q - u_poly * dq
+        k -= 1
+    u = np.asarray(x, dtype=float) / gamma
+    return gamma**k * (p(u) * 0.5 * (1 + scipy.special.erf(u)) + q(u) * np.exp(-u * u) / np.sqrt(np.pi))
+
+
 @dataclass
 class AnnulusModel:
     """Voxel partition used by the magnitude model for a given box [r0, r1].

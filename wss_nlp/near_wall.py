@@ -45,7 +45,6 @@ from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
-import scipy.special
 
 import casadi as ca
 
@@ -545,62 +544,21 @@ def smoothed_inside_function(heaviside: str = "erf", branch: str | None = None) 
     return ca.Function(name, [y, a_in, b_in, g], [value, ca.jacobian(value, y)], {"cse": True})
 
 
-#: The antiderivatives of the erf indicator in the form ``g^k (P(u) Phi(u) + Q(u) E(u))``, ``u = x/g``, per branch
-#: of a cell's inside fraction: ``(k, P, Q)`` with coefficient lists, lowest degree first
-#: (:func:`smoothed_inside_derivative`).
-_ERF_FORMS = {
-    "point": (0, [1.0], [0.0]),
-    "box": (1, [0.0, 1.0], [0.5]),
-    "trapezoid": (2, [0.25, 0.0, 0.5], [0.0, 0.25]),
-}
-
-
 def smoothed_inside_derivative(y, a, b, g: float, i: int, j: int, branch: str) -> np.ndarray:
     r""":math:`\partial_y^i \partial_g^j` of :func:`smoothed_inside_function` (erf indicator; NumPy; cells ``a``,
-    ``b`` fixed, one width ``g``) for the formula ``branch``.
-
-    Notes
-    -----
-    With :math:`u = x/g`, :math:`\Phi = (1 + \operatorname{erf} u)/2` and :math:`E = e^{-u^2}/\sqrt\pi`
-    (:math:`\Phi' = E`, :math:`E' = -2uE`), the indicator and its antiderivatives
-    (:func:`wss_nlp.measurement.heaviside_antiderivatives`) are :math:`g^k \Psi_k(x/g)` with
-    :math:`\Psi_0 = \Phi`, :math:`\Psi_1 = u\Phi + E/2`,
-    :math:`\Psi_2 = (u^2/2 + 1/4)\Phi + uE/4`. Every such :math:`g^k (P\Phi + QE)` with
-    polynomials ``P``, ``Q`` has derivatives of the same form:
-
-    .. math::
-
-        \partial_x\, g^k \Psi(u) = g^{k-1} \Psi'(u), \qquad
-        \partial_g\, g^k \Psi(u) = g^{k-1} \big(k \Psi(u) - u \Psi'(u)\big),
-        \qquad \Psi' = P'\Phi + (P + Q' - 2uQ) E,
-
-    so each order is two polynomials, and the branches take the differences of
-    :func:`cell_mean_derivative` (``a >= b``).
-    """
-    if branch not in _ERF_FORMS:
+    ``b`` fixed, one width ``g``) for the formula ``branch``: the differences of
+    :func:`cell_mean_derivative` (``a >= b``) of the indicator's derivatives
+    (:func:`wss_nlp.measurement.erf_indicator_derivative`)."""
+    if branch not in BRANCHES:
         raise InputError(f"smoothed_inside_derivative: branch must be one of {BRANCHES}, got {branch!r}")
-    k, p, q = _ERF_FORMS[branch]
-    p, q = np.polynomial.Polynomial(p), np.polynomial.Polynomial(q)
-    u_poly = np.polynomial.Polynomial([0.0, 1.0])
-
-    def slope(p, q):  # Psi' in the (P, Q) form
-        return p.deriv(), p + q.deriv() - 2 * u_poly * q
-
-    for _ in range(i):
-        p, q = slope(p, q)
-        k -= 1
-    for _ in range(j):
-        dp, dq = slope(p, q)
-        p, q = k * p - u_poly * dp, k * q - u_poly * dq
-        k -= 1
-
-    def term(x):
-        u = x / g
-        return g**k * (p(u) * 0.5 * (1 + scipy.special.erf(u)) + q(u) * np.exp(-u * u) / np.sqrt(np.pi))
-
     y = np.asarray(y, dtype=float)
     a, b = (np.asarray(v, dtype=float) for v in np.broadcast_arrays(a, b))
     a, b = np.maximum(a, b), np.minimum(a, b)
+    k = BRANCHES.index(branch)  # the point value, the box mean of G_1, the trapezoid mean of G_2
+
+    def term(x):
+        return meas.erf_indicator_derivative(x, g, k, i, j)
+
     if branch == "point":
         return term(y)
     if branch == "box":
