@@ -343,8 +343,8 @@ def test_wall_law_roots_within_the_margin_give_the_scale_spread_and_the_flag(mon
     passes = []
 
     def with_rival(gap):
-        def planted(score, *args):
-            x, how, rivals = real(score, *args)
+        def planted(score, *args, **kwargs):
+            x, how, rivals = real(score, *args, **kwargs)
             passes.append(args[-1])  # previous: None on the first pass, the root before a dephasing pass
             # a dephasing pass follows the chosen root only: the rival is planted where the scan would find it
             return x, how, ([(score(x)[0] + gap, x + 0.25)] if args[-1] is None else [])
@@ -377,8 +377,8 @@ def test_a_z_regularized_stack_flags_rival_wall_law_scales(monkeypatch):
 
     real = ch._wall_law_scale
 
-    def planted(score, *args):
-        x, how, rivals = real(score, *args)
+    def planted(score, *args, **kwargs):
+        x, how, rivals = real(score, *args, **kwargs)
         return x, how, ([(score(x)[0] + nw.AMBIGUOUS_MARGIN / 2, x + 0.5)] if args[-1] is None else [])
 
     monkeypatch.setattr(ch, "_wall_law_scale", planted)

@@ -28,7 +28,7 @@ and the penalty is :math:`\sum_a \lambda_a y_a^2/\pi` with
 every beta within :data:`PENCIL_DECADES` decades of its reference (farther
 away rounding in :math:`\Lambda` grows like
 :math:`\varepsilon\max(\beta/\beta_r, \beta_r/\beta)`), so the grid
-``1e-2 .. 1e-14`` of the parameter rules costs 4-5 decompositions instead of
+``1e-2 .. 1e-14`` of the parameter rules costs 3 decompositions instead of
 one factorization and one ``m``-column solve per beta (issue 19).
 Units: ``u`` in m/s, ``c`` in m/s, beta dimensionless.
 """
@@ -42,8 +42,9 @@ from .errors import NoiseEstimationError, SolverError
 
 #: Smallest beta of the parameter grids (below it the normal matrix loses definiteness in double precision).
 BETA_MIN = 1e-14
-#: Decades of beta served by one generalized eigendecomposition (accuracy about eps 10^(decades/2), see _groups).
-PENCIL_DECADES = 3
+#: Decades of beta served by one generalized eigendecomposition (accuracy about eps 10^(decades/2) = 2e-13, see
+#: _groups): the grids of the parameter rules take 3 decompositions (5 with 3 decades).
+PENCIL_DECADES = 6
 
 
 class LinearTikhonov:
@@ -108,6 +109,9 @@ class LinearTikhonov:
         so ``d = 1 + (beta - beta_ref) lambda / pi`` has relative errors of
         about ``eps max(beta / beta_ref, beta_ref / beta)``: a reference at
         the band's centre (in log) keeps them near ``eps 10^(decades/2)``.
+        The reference stays at or above ``sqrt(10)`` :data:`BETA_MIN` (the
+        pencil needs ``K + beta_ref G / pi`` positive definite): the lowest
+        band's betas (``BETA_MIN`` to ``1e-12``) are within 1.5 decades of it.
         """
         betas = np.asarray(betas, dtype=float)
         if np.any(betas <= 0):
@@ -115,7 +119,7 @@ class LinearTikhonov:
         band = np.floor(np.log10(betas) / PENCIL_DECADES)
         for b in np.unique(band):
             idx = np.flatnonzero(band == b)
-            ref = 10.0 ** ((b + 0.5) * PENCIL_DECADES)
+            ref = max(10.0 ** ((b + 0.5) * PENCIL_DECADES), np.sqrt(10.0) * BETA_MIN)
             vec, lam = self.pencil(ref)
             d = 1.0 + ((betas[idx] - ref) / np.pi)[:, None] * lam[None, :]
             yield vec, lam, ref, idx, d

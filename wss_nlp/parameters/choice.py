@@ -284,7 +284,13 @@ class PlainCriterion:
 
     def __call__(self, extra: np.ndarray | None = None) -> tuple[float, float, np.ndarray]:
         """The criterion, the minimizing beta and its coefficients (plain ones first, then the extra columns')."""
-        chi2, dof, coef = self.curve(extra)
+        return self._minimum(*self.curve(extra))
+
+    def many(self, extras: list) -> list:
+        """``[self(extra) for extra in extras]``, with one pass over ``T`` for all of them (:meth:`curves`)."""
+        return [self._minimum(*curve) for curve in self.curves(extras)]
+
+    def _minimum(self, chi2, dof, coef) -> tuple[float, float, np.ndarray]:
         crit = self.nu * chi2 + self.log_n * dof
         i = int(np.argmin(crit))
         return float(crit[i]), float(CRITERION_BETAS[i]), coef[i]
@@ -292,23 +298,37 @@ class PlainCriterion:
     def curve(self, extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``chi^2``, dof and coefficients on :data:`CRITERION_BETAS` (a criterion over several problems, the
         frames of a cine slice in :mod:`wss_nlp.womersley`, weighs each with the joint ``ln n``)."""
-        tk = self.plain.tikhonov
         if extra is None:
+            tk = self.plain.tikhonov
             coef, dof = tk.coefficients(CRITERION_BETAS), tk.traces(CRITERION_BETAS)
             return np.sum((coef @ self.tst) * coef, axis=1) - 2 * coef @ self.tsu + self.usu, dof, coef
-        k = extra.shape[1]
-        se = self.inv_var[:, None] * extra
-        # one pass over T for both weightings of the columns: the misfit's (W) and the criterion's (Sigma^-1)
-        both = self.plain.operator.T @ np.hstack([tk.w[:, None] * extra, se])
-        coef, dof = BorderedTikhonov(tk, extra, border=both[:, :k]).coefficients_and_traces(CRITERION_BETAS)
-        c, a = coef[:, :-k], coef[:, -k:]
-        chi2 = (
-            np.sum((c @ self.tst + 2 * a @ both[:, k:].T) * c, axis=1)
-            + np.sum((a @ (extra.T @ se)) * a, axis=1)
-            - 2 * (c @ self.tsu + a @ (se.T @ self.plain.data))
-            + self.usu
-        )
-        return chi2, dof, coef
+        return self.curves([extra])[0]
+
+    def curves(self, extras: list) -> list:
+        r""":meth:`curve` for each of several sets of extra columns.
+
+        The products with ``T`` (``n x m``, the largest array) of every set and of both weightings of its
+        columns, the misfit's ``W`` and the criterion's :math:`\Sigma^{-1}`, are one matrix product: a
+        product with a few columns streams ``T`` from memory for little arithmetic.
+        """
+        tk = self.plain.tikhonov
+        weighted = [(tk.w[:, None] * extra, self.inv_var[:, None] * extra) for extra in extras]
+        both = self.plain.operator.T @ np.hstack([block for pair in weighted for block in pair])
+        out, start = [], 0
+        for extra, (_, se) in zip(extras, weighted):
+            k = extra.shape[1]
+            border, cross = both[:, start : start + k], both[:, start + k : start + 2 * k]
+            start += 2 * k
+            coef, dof = BorderedTikhonov(tk, extra, border=border).coefficients_and_traces(CRITERION_BETAS)
+            c, a = coef[:, :-k], coef[:, -k:]
+            chi2 = (
+                np.sum((c @ self.tst + 2 * a @ cross.T) * c, axis=1)
+                + np.sum((a @ (extra.T @ se)) * a, axis=1)
+                - 2 * (c @ self.tsu + a @ (se.T @ self.plain.data))
+                + self.usu
+            )
+            out.append((chi2, dof, coef))
+        return out
 
 
 def _golden(score, lo: float, hi: float, steps: int = GOLDEN_STEPS) -> float:
@@ -371,14 +391,19 @@ def choose_layer(
 
     scored: dict = {}  # the searches revisit their final scale; the cell means are the expensive part
 
+    def prefetch(family, log_ratios):
+        """Score the scales not scored yet together (one pass over the operator for all their columns)."""
+        todo = list(dict.fromkeys(float(x) for x in log_ratios if (family, float(x)) not in scored))
+        bases = [nw.EnrichedBasis(vp.basis, family, 2.0**x * big_r / stretch) for x in todo]
+        columns = [quad.columns(basis) for basis in bases]
+        for x, basis, cols, (crit, beta, coef) in zip(todo, bases, columns, criterion.many(columns)):
+            tried.append((family, 2.0**x, crit))
+            scored[family, x] = (crit, basis, beta, coef, cols)
+
     def score(family, log_ratio):
         key = (family, float(log_ratio))
         if key not in scored:
-            basis = nw.EnrichedBasis(vp.basis, family, 2.0**log_ratio * big_r / stretch)
-            columns = quad.columns(basis)
-            crit, beta, coef = criterion(columns)
-            tried.append((family, 2.0**log_ratio, crit))
-            scored[key] = (crit, basis, beta, coef, columns)
+            prefetch(family, [log_ratio])
         return scored[key][:4]
 
     previous, chosen_log = None, {}
@@ -398,8 +423,9 @@ def choose_layer(
         if family == "wall_law" and nu_m2_s is not None:
             predicted = None if reynolds is None or reynolds <= 0 else blasius_scale(reynolds)
             x, how, rival_roots = _wall_law_scale(
-                family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted, previous
-            )
+                family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted, previous,
+                prefetch=functools.partial(prefetch, family),
+            )  # fmt: skip
             fitted[family] = how == NO_ROOT  # no root: the BIC's scale
         else:
             x, how, fitted[family], rival_roots = _bic_scale(family_score, lo, hi), "the BIC's", True, []
@@ -557,6 +583,7 @@ def _wall_law_scale(
     n_base: int,
     predicted: float | None = None,
     previous: float | None = None,
+    prefetch=None,
 ) -> tuple[float, str, list]:
     r"""log2(l/R) at which the fitted wall-law layer is self-consistent, and how it was found.
 
@@ -580,8 +607,11 @@ def _wall_law_scale(
     dephasing pass moved its wall a little) is followed locally: probes
     either side of it at widening distances (:data:`LOCAL_STEPS`), and the
     scan only if none brackets a root. Without a root the BIC's scale is
-    used and the record says so. Returns ``(log2 l/R, how, rivals)`` with
-    ``rivals`` the other roots found, ``(criterion, log2 l/R)``, best first.
+    used and the record says so. ``prefetch`` (optional) is given the
+    scales of each scan and of each pair of probes before they are
+    scored one by one (:func:`choose_layer` scores them together). Returns
+    ``(log2 l/R, how, rivals)`` with ``rivals`` the other roots found,
+    ``(criterion, log2 l/R)``, best first.
     """
     memo: dict = {}
 
@@ -594,6 +624,8 @@ def _wall_law_scale(
         return memo[x]
 
     def roots_on(xs):
+        if prefetch is not None:  # the scan's scales at once
+            prefetch(xs)
         vals = [consistency(x) for x in xs]
         found = []
         for i in range(xs.size - 1):
