@@ -83,7 +83,11 @@ class ZernikeWallBasis:
         self._grams: dict = {}
         self.transform = np.eye(len(self.terms))
         gram = self._gram(laplacian=0)
-        self.transform = np.linalg.inv(np.linalg.cholesky(gram)).T
+        # L^-T by triangular solves: upper triangular exactly (a general inverse leaves rounding below the
+        # diagonal), so that products with it can be triangular ones (evaluate)
+        lower = np.linalg.cholesky(gram)
+        self.transform = scipy.linalg.solve_triangular(lower, np.eye(lower.shape[0]), lower=True).T
+        self._transform_f = np.asfortranarray(self.transform)
 
     @property
     def size(self) -> int:
@@ -133,8 +137,13 @@ class ZernikeWallBasis:
             return self.evaluate_raw(x, y) @ self.transform
         raw = self._raw(x, y)
         # one sparse product per function: the (npts, size) array is never formed (forming it and the product
-        # with its transpose took 3x longer; the sums are the same, in the same order)
-        return np.column_stack([np.asarray(average @ f).ravel() for f in raw]) @ self.transform
+        # with its transpose took 3x longer; the sums are the same, in the same order), each into a column of a
+        # column-major array that BLAS's triangular product (trmm) multiplies by the transform in place: half
+        # a general product's work (1.7 against 4.1 ms at 5 900 voxels)
+        out = np.empty((average.shape[0], len(raw)), order="F")
+        for j, f in enumerate(raw):
+            out[:, j] = average @ f
+        return scipy.linalg.blas.dtrmm(1.0, self._transform_f, out, side=1, lower=0, overwrite_b=1)
 
     def evaluate_raw(self, x, y) -> np.ndarray:
         """The unnormalized functions at reference points, ``(npts, size)``: ``evaluate = evaluate_raw @ transform``.
