@@ -122,7 +122,7 @@ def weighted_gram(basis: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def evaluate(coefficients, phi, derivative: int = 0) -> np.ndarray:
-    """``R^(derivative)(phi)`` for numeric coefficients (shape of ``phi`` flattened).
+    r"""``R^(derivative)(phi)`` for numeric coefficients (shape of ``phi`` flattened).
 
     Notes
     -----
