@@ -109,3 +109,22 @@ def test_bordered_problem_equals_the_full_one_solved_directly():
     np.testing.assert_allclose(coef, ref, rtol=0, atol=1e-12 * np.max(np.abs(ref)))
     ref_tr = [np.trace(np.linalg.solve(full.hessian(b), full.normal)) for b in betas]
     np.testing.assert_allclose(traces, ref_tr, rtol=1e-12, atol=1e-11)
+
+
+def test_bordered_normal_equations_equal_the_full_problems():
+    """LinearTikhonov.bordered (the normal matrix by blocks from the plain one's) gives the normal matrix,
+    right-hand side and solutions of the problem formed from [T, E] directly, to rounding (1e-13 relative)."""
+    rng = np.random.default_rng(22)
+    n, m, k = 400, 30, 4
+    op, extra = rng.standard_normal((n, m)), rng.standard_normal((n, k))
+    w, u = rng.uniform(0.2, 1, n), rng.standard_normal(n)
+    root = rng.standard_normal((m + k, m + k))
+    gram = root @ root.T
+    full = LinearTikhonov(np.hstack([op, extra]), w, u, gram)
+    bordered = LinearTikhonov(op, w, u, gram[:m, :m]).bordered(np.hstack([op, extra]), w, gram)
+    scale = np.max(np.abs(full.normal))
+    np.testing.assert_allclose(bordered.normal, full.normal, rtol=0, atol=1e-13 * scale)
+    np.testing.assert_allclose(bordered.rhs, full.rhs, rtol=0, atol=1e-13 * np.max(np.abs(full.rhs)))
+    for beta in (1e-2, 1e-6):
+        ref = full.solve(beta)
+        np.testing.assert_allclose(bordered.solve(beta), ref, rtol=0, atol=1e-11 * np.max(np.abs(ref)))

@@ -35,6 +35,8 @@ Units: ``u`` in m/s, ``c`` in m/s, beta dimensionless.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from ._lazy import scipy
@@ -60,18 +62,38 @@ class LinearTikhonov:
         ``u``, the measured values.
     gram : (m, m) array
         ``G``, the penalty Gram matrix (positive semi-definite).
+    normal : (m, m) array, optional
+        ``K = T^T W T`` when the caller has it (:meth:`bordered`).
     """
 
-    def __init__(self, operator, weights, data, gram):
+    def __init__(self, operator, weights, data, gram, normal=None):
         self.operator = np.asarray(operator, dtype=float)
         self.w = np.asarray(weights, dtype=float) / np.sum(weights)
         self.data = np.asarray(data, dtype=float)
         self.gram = np.asarray(gram, dtype=float)
         self._pencils: dict = {}
-        self.weighted_operator = self.operator * self.w[:, None]
-        root = self.operator * np.sqrt(self.w)[:, None]
-        self.normal = root.T @ root  # K = T^T W T: NumPy's symmetric rank-k update (syrk), half a product's flops
-        self.rhs = self.weighted_operator.T @ self.data  # g = T^T W u
+        if normal is None:
+            root = self.operator * np.sqrt(self.w)[:, None]
+            normal = root.T @ root  # K = T^T W T: NumPy's symmetric rank-k update (syrk), half a product's flops
+        self.normal = np.asarray(normal, dtype=float)
+        self.rhs = self.operator.T @ (self.w * self.data)  # g = T^T W u
+
+    @functools.cached_property
+    def weighted_operator(self) -> np.ndarray:
+        """``W T`` (formed when first used)."""
+        return self.operator * self.w[:, None]
+
+    def bordered(self, operator, weights, gram) -> LinearTikhonov:
+        """The problem with columns appended (``operator`` = ``[T, E]``, the same weights and data) and the
+        penalty ``gram``, its normal matrix by blocks: ``[[K, T^T W E], [E^T W T, E^T W E]]`` from this one's
+        ``K``, products with the ``k`` new columns only (``O(n m k)`` instead of ``O(n m^2)``)."""
+        operator = np.asarray(operator, dtype=float)
+        m = self.normal.shape[0]
+        extra = operator[:, m:]
+        weighted = extra * self.w[:, None]
+        border, corner = self.operator.T @ weighted, extra.T @ weighted
+        normal = np.block([[self.normal, border], [border.T, corner]])
+        return LinearTikhonov(operator, weights, self.data, gram, normal=normal)
 
     def hessian(self, beta: float) -> np.ndarray:
         """``H_beta = K + (beta / pi) G``."""

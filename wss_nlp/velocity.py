@@ -210,7 +210,12 @@ class VelocityProblem:
         """The problem in an enriched basis (:class:`wss_nlp.near_wall.EnrichedBasis`) whose extra voxel means are
         ``columns``: the same voxels, data and map, no re-assembly."""
         operator = np.hstack([self.operator[:, : basis.base.size], columns])
-        return replace(self, operator=operator, gram=basis.laplacian_gram(laplacian_power), basis=basis)
+        gram = basis.laplacian_gram(laplacian_power)
+        enriched = replace(self, operator=operator, gram=gram, basis=basis)
+        if "tikhonov" in self.__dict__ and self.operator.shape[1] == basis.base.size:
+            # the plain normal matrix is formed: border it with the layer's columns instead of forming it again
+            enriched.__dict__["tikhonov"] = self.tikhonov.bordered(operator, self.weights, gram)
+        return enriched
 
     def normal_equations(self, beta: float) -> tuple[np.ndarray, np.ndarray]:
         """``H c = g`` with ``H = T^T W T / A + beta G / pi``, ``g = T^T W u / A``."""
