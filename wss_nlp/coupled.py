@@ -436,45 +436,15 @@ def sparse_dm(matrix: np.ndarray) -> ca.DM:
 class _VoxelSums(ca.Callback):
     """A NumPy map of dense inputs to one dense output, for the chain-rule Jacobian of :func:`velocity_residual`.
 
-    ``tangent(inputs, seeds)`` (optional) gives the directional derivative
-    for one set of input seeds (``None``: a zero seed); forward derivatives
-    for ``nfwd`` directions apply it to each (the curvature of the residual
-    is the forward derivative of ``J^T w``, :func:`residual_curvature`). No
-    reverse derivatives: CasADi raises if one is asked for. Keep the
-    instance while functions built from it live (``VelocityMisfitModel.kept``).
+    No derivatives: nothing differentiates the Jacobian's blocks (the curvature of the residual comes from
+    forward-over-reverse sweeps of the residual itself, :func:`residual_curvature`), and CasADi raises if
+    one is asked for. Keep the instance while functions built from it live (``VelocityMisfitModel.kept``).
     """
 
-    def __init__(self, name: str, shapes_in: list, shape_out: tuple, apply, tangent=None):
+    def __init__(self, name: str, shapes_in: list, shape_out: tuple, apply):
         ca.Callback.__init__(self)
-        self.shapes_in, self.shape_out, self.apply, self.tangent = shapes_in, shape_out, apply, tangent
-        self._derived: dict = {}
+        self.shapes_in, self.shape_out, self.apply = shapes_in, shape_out, apply
         self.construct(name, {})
-
-    def has_forward(self, nfwd):
-        return self.tangent is not None
-
-    def get_forward(self, nfwd, name, inames, onames, opts):
-        n_in, (rows, cols) = len(self.shapes_in), self.shape_out
-        if nfwd not in self._derived:
-            tangent = self.tangent
-            assert tangent is not None  # has_forward
-
-            def batched(*args):
-                ins, seeds = args[:n_in], args[n_in:]
-                blocks = []
-                for k in range(nfwd):
-                    part = [
-                        None if d is None else d[:, k * c : (k + 1) * c] for d, (_, c) in zip(seeds, self.shapes_in)
-                    ]
-                    blocks.append(tangent(ins, part))
-                return np.hstack(blocks)
-
-            shapes = self.shapes_in + [(r, c * nfwd) for r, c in self.shapes_in]
-            self._derived[nfwd] = _VoxelSums(f"{self.name()}_fwd{nfwd}", shapes, (rows, cols * nfwd), batched)
-        ins = [ca.MX.sym(f"x{i}", *shape) for i, shape in enumerate(self.shapes_in)]
-        seeds = [ca.MX.sym(f"d{i}", r, c * nfwd) for i, (r, c) in enumerate(self.shapes_in)]
-        out = ca.MX.sym("y", rows, cols)
-        return ca.Function(name, [*ins, out, *seeds], [self._derived[nfwd](*ins, *seeds)], inames, onames, opts)
 
     def get_n_in(self):
         return len(self.shapes_in)
@@ -522,15 +492,7 @@ def _design_sums(model: VelocityMisfitModel, k: int) -> _VoxelSums:
             sums = point_sums((s[:, :, None] * design[:, None, :]).reshape(n_pts, k * n))
         return np.einsum("ij,ijl->il", w, sums.reshape(n_vox, k, n))
 
-    def tangent(ins, seeds):  # bilinear in (S, W)
-        out = np.zeros((n_vox, n))
-        if seeds[0] is not None:
-            out += apply(seeds[0], ins[1])
-        if seeds[1] is not None:
-            out += apply(ins[0], seeds[1])
-        return out
-
-    return _VoxelSums(f"design_sums_{k}", [(n_pts, k), (n_vox, k)], (n_vox, n), apply, tangent)
+    return _VoxelSums(f"design_sums_{k}", [(n_pts, k), (n_vox, k)], (n_vox, n), apply)
 
 
 def _basis_sums(
@@ -554,9 +516,9 @@ def _basis_sums(
     box, point_sums = model.averager is None, _point_sums(model.averager, model.order)
     n_cols = a_idx.size if transform is None else transform.shape[1]
 
-    def sums(w, arg, d):
-        """``A(diag(w) raw^(d)T)``: voxel sums of the raw functions (``d = 1``: their arg-derivatives)."""
-        radial = cheb @ series.values(arg.ravel(), d)  # (n_radial, n_pts)
+    def sums(w, arg):
+        """``A(diag(w) raw^T)``: voxel sums of the raw functions."""
+        radial = cheb @ series.values(arg.ravel(), 0)  # (n_radial, n_pts)
         weighted = ang * w
         if box:  # a voxel's points are consecutive: one product-sum of views per function
             # (gathering the (n_raw, n_points) array first took 4x longer: memory traffic, not flops)
@@ -571,23 +533,12 @@ def _basis_sums(
         return out if transform is None else transform.T @ out
 
     def apply(w, arg, rows):
-        out = sums(w, arg, 0)
+        out = sums(w, arg)
         out *= rows.T
         return out.T
 
-    def tangent(ins, seeds):  # linear in w and rows, through the Chebyshev values in arg
-        (w, arg, rows), (dw, darg, drows) = ins, seeds
-        out = np.zeros((n_cols, n_vox))
-        if drows is not None:
-            out += sums(w, arg, 0) * drows.T
-        if dw is not None:
-            out += sums(dw, arg, 0) * rows.T
-        if darg is not None:
-            out += sums(w * darg, arg, 1) * rows.T
-        return out.T
-
     shapes = [(1, n_pts), (1, n_pts), (n_vox, 1)]
-    return _VoxelSums("basis_sums", shapes, (n_vox, n_cols), apply, tangent)
+    return _VoxelSums("basis_sums", shapes, (n_vox, n_cols), apply)
 
 
 def _indicator_at(dist: np.ndarray):
@@ -740,6 +691,14 @@ def velocity_residual(
         model.kept += [indicator, inverse]
         chi, dchi = indicator.map(0, 0)(r_at, gamma), indicator.map(1, 0)(r_at, gamma)
         rho, drho = inverse.map(0)(r_at), inverse.map(1)(r_at)
+    elif heaviside == "erf":  # a symbolic centre: the indicator of the symbolic gap, rho by CasADi's operations
+        indicator = elementwise.ScaledLadder(n_pts, _indicator_at(np.zeros(n_pts)), "indicator")
+        model.kept.append(indicator)
+        gap = r_at - dist_row
+        chi, dchi = indicator.map(0, 0)(gap, gamma), indicator.map(1, 0)(gap, gamma)
+        root = ca.sqrt(r_in**2 + 4 * (r_at - r_in) * dist_row)
+        rho = 2 * dist_row / (r_in + root)
+        drho = -4 * dist_row**2 / (root * (r_in + root) ** 2)
     else:  # pointwise scalar pieces as small SX functions with their exact derivatives, mapped over the points
         gap, big_r, dist_p, width = ca.SX.sym("gap"), ca.SX.sym("R"), ca.SX.sym("r"), ca.SX.sym("gamma")
         heav = meas.smoothed_heaviside(gap, width, heaviside)
@@ -1268,10 +1227,11 @@ def residual_curvature(nlp: CoupledNLP, with_gamma: bool = False) -> ca.Function
 
     Notes
     -----
-    ``(sum_i w_i hess r_i) e = d/dt J(x + t e)^T w``: a forward sweep of :func:`jacobian_transpose_times`
-    through the chain-rule Jacobian's blocks (the voxel-sum callbacks give their tangents). That costs what
-    CasADi's forward-over-reverse sweep of ``w^T r`` costs on the laminar phantom and two thirds of it with a
-    near-wall layer, and builds in half the time (``tests/test_coupled.py`` compares the two).
+    ``(sum_i w_i hess r_i) e``: CasADi's forward sweep of the reverse-mode gradient of ``w^T r`` (``w``
+    fixed). Every pointwise piece of the residual at fixed points is a NumPy callback whose derivatives are
+    again callbacks (:mod:`wss_nlp.elementwise`, :mod:`wss_nlp.chebyshev`), so a sweep costs 18-25 ms at
+    h = 0.3 mm, against 41-67 ms for a forward sweep of ``J^T w`` through the chain-rule Jacobian's NumPy sums
+    (used before; ``scripts/bench_coupled_band.py``).
     The residual is linear in ``c_v``, so ``sum_i w_i hess r_i`` vanishes on the ``c_v``-``c_v`` block and its
     ``c_R`` columns give the whole matrix (:func:`curvature_matrix`). One direction's graph is mapped over the
     ``n_r`` columns (serial): all directions in one graph took longer to build than the sweeps take (2 s at
@@ -1282,24 +1242,10 @@ def residual_curvature(nlp: CoupledNLP, with_gamma: bool = False) -> ca.Function
     weights = ca.MX.sym("w", nlp.residual.numel())
     # directions in (x, gamma): the last column a sensitivity asks for, sum_i w_i d^2 r_i / dx dgamma
     variables = ca.vertcat(nlp.x, nlp.gamma) if with_gamma else nlp.x
-    grad_w = jacobian_transpose_times(nlp, weights)  # d(w^T r)/dx with w fixed
+    grad_w = ca.gradient(ca.dot(weights, nlp.residual), nlp.x)  # d(w^T r)/dx with w fixed: a reverse sweep
     direction = ca.MX.sym("direction", variables.numel())
     second = ca.Function("second", [nlp.x, nlp.gamma, weights, direction], [ca.jtimes(grad_w, variables, direction)])
     return second.map("second_columns", "serial", n_r + int(with_gamma), [0, 1, 2], [])
-
-
-def jacobian_transpose_times(nlp: CoupledNLP, w) -> ca.MX:
-    """``J^T w`` from the chain-rule Jacobian's blocks (CasADi; ``w`` a column of residual weights)."""
-    j_m, j_vr, *columns = nlp.jacobian_blocks()
-    n_m = j_m.shape[0]
-    w_m, w_v = w[:n_m], w[n_m:]
-    rows = nlp.velocity_model.rows
-    if rows is not None:  # the voxels without points have zero derivatives
-        w_v = w_v[rows.tolist()]
-    scale = np.sqrt(nlp.weight)
-    g_r = ca.mtimes(j_m.T, w_m) + scale * ca.mtimes(j_vr.T, w_v)
-    g_v = scale * ca.mtimes(ca.DM(nlp.right).T, ca.vertcat(*[ca.mtimes(c.T, w_v) for c in columns]))
-    return ca.vertcat(g_r, g_v)
 
 
 def curvature_matrix(columns, n_r: int):

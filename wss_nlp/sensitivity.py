@@ -809,7 +809,7 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
     x = np.concatenate([cres.geometry.coefficients, cres.velocity.coefficients])
     n_x = x.size
     gam = float(nlp.geometry.gamma)
-    # columns of hess(w^T r) along c_R and the mixed column along gamma, one forward sweep of J^T w each
+    # columns of hess(w^T r) along c_R and the mixed column along gamma, one forward-over-reverse sweep each
     second = cpl.residual_curvature(nlp, with_gamma=True)
     directions = np.eye(n_x + 1)[:, list(range(n_r)) + [n_x]]
     # f = |r|^2 + penalty: its gradient 2 J^T r + grad(penalty) from the chain-rule Jacobian (a reverse sweep
@@ -898,8 +898,8 @@ def coupled(
     Implicit function theorem on the KKT system of the coupled NLP with the
     exact Hessian ``2 J^T J + 2 sum_i r_i hess r_i + penalty Hessian``: ``J``
     is the chain-rule Jacobian of the residuals, and the second-order term
-    comes from forward sweeps of ``J^T r`` along the ``c_R`` directions and gamma
-    (:func:`wss_nlp.coupled.residual_curvature`, one direction at a time, at
+    comes from forward-over-reverse sweeps of ``w^T r`` (``w = r`` held fixed) along the ``c_R`` directions
+    and gamma (:func:`wss_nlp.coupled.residual_curvature`, one direction at a time, at
     IPOPT's solution; the residuals are linear in ``c_v``). Parameters: the normalized
     magnitude (annulus voxels through the geometry misfit and the velocity
     voxels through the precision weights ``|V| m_i^2``), the velocity image,
