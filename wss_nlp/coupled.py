@@ -909,13 +909,17 @@ def _layer_points(
     t = np.arctan2(model.sin, model.cos)
     if harmonics is None:
         half_x, half_y = nw.cell_half_widths(model.cell_mm, t)
-        a_l, b_l = ca.DM(half_x / (ell * stretch)).T, ca.DM(half_y / (ell * stretch)).T
     else:  # the cells' projections on the normal turn with the points' angles about the centre
         half_x, half_y = nw.cell_half_widths(model.cell_mm, 0.0)[0], nw.cell_half_widths(model.cell_mm, np.pi / 2)[1]
         a_l, b_l = half_x * ca.fabs(harmonics[0]) / (ell * stretch), half_y * ca.fabs(harmonics[1]) / (ell * stretch)
     y = (1 - rho) / ell
     classes = layer_point_classes(model, ell * stretch, stretch, r_in, model.margin_mm)
     f, df, area, darea = (ca.MX(1, n_pts) for _ in range(4))
+
+    def widths(idx):  # the cells' half-widths in layer units at the points idx, as CasADi rows
+        if harmonics is None:
+            return ca.DM(half_x[idx] / (ell * stretch)).T, ca.DM(half_y[idx] / (ell * stretch)).T
+        return a_l[:, idx.tolist()], b_l[:, idx.tolist()]
 
     def scatter(idx):  # (n_idx, n_pts) with ones at (k, idx_k): puts a class's values into the row
         return ca.DM(ca.Sparsity.triplet(idx.size, n_pts, list(range(idx.size)), idx.tolist()), 1.0)
@@ -932,7 +936,7 @@ def _layer_points(
         for sub, fun in groups:
             if sub.size:
                 put, cols = scatter(sub), sub.tolist()
-                fk, dfk = fun.map(sub.size)(y[:, cols], a_l[:, cols], b_l[:, cols], *extra)
+                fk, dfk = fun.map(sub.size)(y[:, cols], *widths(sub), *extra)
                 value, slope = value + ca.mtimes(fk, put), slope + ca.mtimes(dfk, put)
         return value, slope
 
@@ -958,9 +962,7 @@ def _layer_points(
             )
         if far.size:
             put = scatter(far)
-            fk, dfk = nw.far_cell_mean_function(basis.family).map(far.size)(
-                y[:, far.tolist()], a_l[:, far.tolist()], b_l[:, far.tolist()]
-            )
+            fk, dfk = nw.far_cell_mean_function(basis.family).map(far.size)(y[:, far.tolist()], *widths(far))
             f, df = f + ca.mtimes(fk, put), df + ca.mtimes(dfk, put)
     fraction, whole = classes["fraction"], classes["whole"]
     if harmonics is None and heaviside == "erf":

@@ -12,6 +12,8 @@
 
 from __future__ import annotations
 
+import functools
+
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -195,6 +197,16 @@ def erf_indicator_derivative(x, gamma: float, k: int, i: int, j: int) -> np.ndar
 
     so each order is two polynomials.
     """
+    power, p, q = _erf_form(k, i, j)
+    u = np.asarray(x, dtype=float) / gamma
+    values = np.polynomial.polynomial.polyval(u, p) * 0.5 * (1 + scipy.special.erf(u))
+    return gamma**power * (values + np.polynomial.polynomial.polyval(u, q) * np.exp(-u * u) / np.sqrt(np.pi))
+
+
+@functools.lru_cache(maxsize=64)
+def _erf_form(k: int, i: int, j: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """``(power, P, Q)`` of :func:`erf_indicator_derivative`'s ``(i, j)``-th derivative of ``G_k`` (coefficients,
+    lowest degree first), derived once per order."""
     p, q = (np.polynomial.Polynomial(c) for c in _ERF_FORMS[k])
     u_poly = np.polynomial.Polynomial([0.0, 1.0])
 
@@ -208,8 +220,7 @@ def erf_indicator_derivative(x, gamma: float, k: int, i: int, j: int) -> np.ndar
         dp, dq = slope(p, q)
         p, q = k * p - u_poly * dp, k * q - u_poly * dq
         k -= 1
-    u = np.asarray(x, dtype=float) / gamma
-    return gamma**k * (p(u) * 0.5 * (1 + scipy.special.erf(u)) + q(u) * np.exp(-u * u) / np.sqrt(np.pi))
+    return k, p.coef, q.coef
 
 
 @dataclass
