@@ -921,6 +921,14 @@ def _layer_points(
             return ca.DM(half_x[idx] / (ell * stretch)).T, ca.DM(half_y[idx] / (ell * stretch)).T
         return a_l[:, idx.tolist()], b_l[:, idx.tolist()]
 
+    def cell_groups(idx, narrow: float, first: list | None = None) -> list:
+        """Fixed cells: the points ``idx`` grouped by the formula their widths select (``near_wall.spread_branch``),
+        after the groups ``first``, as ``(points, formula, a, b)`` with the half-widths in layer units."""
+        scale = ell * stretch
+        branch = nw.spread_branch(half_x[idx], half_y[idx], narrow * scale)
+        named = list(first or []) + [(idx[branch == k], name) for k, name in enumerate(nw.BRANCHES)]
+        return [(sub, name, half_x[sub] / scale, half_y[sub] / scale) for sub, name in named if sub.size]
+
     def scatter(idx):  # (n_idx, n_pts) with ones at (k, idx_k): puts a class's values into the row
         return ca.DM(ca.Sparsity.triplet(idx.size, n_pts, list(range(idx.size)), idx.tolist()), 1.0)
 
@@ -945,11 +953,7 @@ def _layer_points(
         # fixed cells: the profile's cell means and their derivatives by NumPy, one elementwise ladder over the
         # whole row (zero off both classes): CasADi's mapped SX formulas cost about 1 us per point and sliced
         # rows scattered back cost more to build than the zeros
-        scale = ell * stretch
-        groups = [(far, "far")]
-        branch = nw.spread_branch(half_x[band], half_y[band], nw.NARROW_PROFILE * scale)
-        groups += [(band[branch == k], name) for k, name in enumerate(nw.BRANCHES)]
-        groups = [(sub, name, half_x[sub] / scale, half_y[sub] / scale) for sub, name in groups if sub.size]
+        groups = cell_groups(band, nw.NARROW_PROFILE, [(far, "far")])
         ladder = elementwise.Ladder(n_pts, _profile_means(basis.family, groups), "profile_means")
         model.kept.append(ladder)
         f, df = ladder.map(0)(y), ladder.map(1)(y)
@@ -968,13 +972,10 @@ def _layer_points(
     if harmonics is None and heaviside == "erf":
         # fixed cells: the inside fractions and their derivatives in y and gamma by NumPy, one ladder over the
         # whole row (1 for the whole cells), as the profile's above
-        scale = ell * stretch
-        branch = nw.spread_branch(half_x[fraction], half_y[fraction], nw.NARROW_INSIDE * scale)
-        groups = [(fraction[branch == k], name) for k, name in enumerate(nw.BRANCHES)]
-        groups = [(sub, name, half_x[sub] / scale, half_y[sub] / scale) for sub, name in groups if sub.size]
+        groups = cell_groups(fraction, nw.NARROW_INSIDE)
         inside = elementwise.ScaledLadder(n_pts, _inside_fractions(groups, whole), "inside_fractions")
         model.kept.append(inside)
-        width = gamma / scale
+        width = gamma / (ell * stretch)
         area, darea = inside.map(0, 0)(y, width), inside.map(1, 0)(y, width)
     else:
         if fraction.size:
