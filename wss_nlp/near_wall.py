@@ -145,15 +145,22 @@ def cell_mean_derivative(family: str, y, a, b, order: int, branch: str) -> np.nd
     ``box`` :math:`(F_1^{(d)}(y+a) - F_1^{(d)}(y-a))/(2a)`, ``trapezoid`` the
     second differences of :math:`F_2^{(d)}` over ``4ab`` (``a >= b``).
     """
-    y = np.asarray(y, dtype=float)
-    a, b = (np.asarray(v, dtype=float) for v in np.broadcast_arrays(a, b))
-    a, b = np.maximum(a, b), np.minimum(a, b)
 
     def term(v, k):  # F_k^(order)(v)
         if order < k:
             return antiderivatives(family, v)[k - order - 1]
         return np.where(v > 0, profile_derivatives(family, np.maximum(v, 0.0), order - k), 0.0)
 
+    return _branch_mean(term, y, a, b, branch)
+
+
+def _branch_mean(term, y, a, b, branch: str) -> np.ndarray:
+    """A cell's mean by the formula ``branch`` from ``term(v, k)``, the function (``k = 0``) or its ``k``-th
+    antiderivative (or a derivative of them) at ``v``: the point value, the box mean of ``k = 1``, the
+    trapezoid's second differences of ``k = 2`` (half-widths ``a >= b``; NumPy)."""
+    y = np.asarray(y, dtype=float)
+    a, b = (np.asarray(v, dtype=float) for v in np.broadcast_arrays(a, b))
+    a, b = np.maximum(a, b), np.minimum(a, b)
     if branch == "point":
         return term(y, 0)
     if branch == "box":
@@ -161,7 +168,7 @@ def cell_mean_derivative(family: str, y, a, b, order: int, branch: str) -> np.nd
     if branch == "trapezoid":
         second = term(y + a + b, 2) - term(y + a - b, 2) - term(y - a + b, 2) + term(y - a - b, 2)
         return second / (4 * np.maximum(a * b, 1e-300))
-    raise InputError(f"cell_mean_derivative: branch must be one of {BRANCHES}, got {branch!r}")
+    raise InputError(f"a cell mean's branch must be one of {BRANCHES}, got {branch!r}")
 
 
 def cell_half_widths(cell_mm, t) -> tuple[np.ndarray, np.ndarray]:
@@ -546,25 +553,14 @@ def smoothed_inside_function(heaviside: str = "erf", branch: str | None = None) 
 
 def smoothed_inside_derivative(y, a, b, g: float, i: int, j: int, branch: str) -> np.ndarray:
     r""":math:`\partial_y^i \partial_g^j` of :func:`smoothed_inside_function` (erf indicator; NumPy; cells ``a``,
-    ``b`` fixed, one width ``g``) for the formula ``branch``: the differences of
-    :func:`cell_mean_derivative` (``a >= b``) of the indicator's derivatives
-    (:func:`wss_nlp.measurement.erf_indicator_derivative`)."""
-    if branch not in BRANCHES:
-        raise InputError(f"smoothed_inside_derivative: branch must be one of {BRANCHES}, got {branch!r}")
-    y = np.asarray(y, dtype=float)
-    a, b = (np.asarray(v, dtype=float) for v in np.broadcast_arrays(a, b))
-    a, b = np.maximum(a, b), np.minimum(a, b)
-    k = BRANCHES.index(branch)  # the point value, the box mean of G_1, the trapezoid mean of G_2
+    ``b`` fixed, one width ``g``) for the formula ``branch``: the point value, box or trapezoid differences of
+    the indicator's and its antiderivatives' derivatives (:func:`wss_nlp.measurement.erf_indicator_derivative`).
+    """
 
-    def term(x):
+    def term(x, k):
         return meas.erf_indicator_derivative(x, g, k, i, j)
 
-    if branch == "point":
-        return term(y)
-    if branch == "box":
-        return (term(y + a) - term(y - a)) / (2 * np.maximum(a, 1e-300))
-    second = term(y + a + b) - term(y + a - b) - term(y - a + b) + term(y - a - b)
-    return second / (4 * np.maximum(a * b, 1e-300))
+    return _branch_mean(term, y, a, b, branch)
 
 
 @functools.lru_cache(maxsize=16)
