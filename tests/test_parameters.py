@@ -394,3 +394,21 @@ def test_plain_criterion_chi2_equals_the_direct_weighted_misfit():
         direct = np.sum(((coef @ full.T - u) / sigma) ** 2, axis=1)
         np.testing.assert_allclose(chi2, direct, rtol=0, atol=1e-10 * crit.usu)
         assert np.all(np.diff(dof) >= -1e-9)  # more effective parameters as beta falls (the grid descends)
+
+
+def test_plain_criterion_many_equals_one_at_a_time():
+    """PlainCriterion.many (one product with T for several sets of extra columns, as the wall-law scan uses it)
+    gives each set's criterion, beta and coefficients as scoring it alone does, to rounding (1e-12 relative;
+    the product's sums are blocked differently)."""
+    from wss_nlp.velocity import VelocityProblem
+
+    rng = np.random.default_rng(43)
+    n, m, k = 400, 30, 4
+    op, u, sigma = rng.standard_normal((n, m)), rng.standard_normal(n), rng.uniform(0.5, 2.0, n)
+    root = rng.standard_normal((m, m))
+    vp = VelocityProblem(op, rng.uniform(0.2, 1, n), u, None, root @ root.T, None, None, None)
+    crit = ch.PlainCriterion(vp, sigma)
+    extras = [rng.standard_normal((n, k)) for _ in range(3)]
+    for (c1, b1, x1), (c2, b2, x2) in zip(crit.many(extras), [crit(e) for e in extras]):
+        assert c1 == pytest.approx(c2, rel=1e-12) and b1 == b2
+        np.testing.assert_allclose(x1, x2, rtol=0, atol=1e-12 * np.max(np.abs(x2)))
