@@ -142,7 +142,7 @@ class ZernikeWallBasis:
         # a general product's work (1.7 against 4.1 ms at 5 900 voxels)
         out = np.empty((average.shape[0], len(raw)), order="F")
         for j, f in enumerate(raw):
-            out[:, j] = average @ f
+            out[:, j] = np.asarray(average @ f).ravel()
         return scipy.linalg.blas.dtrmm(1.0, self._transform_f, out, side=1, lower=0, overwrite_b=1)
 
     def evaluate_raw(self, x, y) -> np.ndarray:
