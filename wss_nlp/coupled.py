@@ -49,6 +49,7 @@ from . import chebyshev
 from . import elementwise
 from . import geometry as geo
 from . import kspace
+from . import mapping
 from . import measurement as meas
 from . import near_wall as nw
 from . import operators
@@ -462,12 +463,8 @@ class _VoxelSums(ca.Callback):
         return True
 
     def eval_buffer(self, arg, res):
-        # column-major buffers: an (r, c) matrix is the transpose of a row-major (c, r) array; CasADi passes None
-        # for a structurally zero input (a zero seed)
-        ins = [
-            None if a is None else np.frombuffer(a, dtype=np.float64).reshape(c, r).T
-            for a, (r, c) in zip(arg, self.shapes_in)
-        ]
+        # column-major buffers: an (r, c) matrix is the transpose of a row-major (c, r) array
+        ins = [np.frombuffer(a, dtype=np.float64).reshape(c, r).T for a, (r, c) in zip(arg, self.shapes_in)]
         out = np.frombuffer(res[0], dtype=np.float64).reshape(self.shape_out[1], self.shape_out[0])
         out[...] = self.apply(*ins).T
         return 0
@@ -552,8 +549,8 @@ def _indicator_at(dist: np.ndarray):
 
 
 def _inverse_map_at(dist: np.ndarray, r_in: float):
-    r"""``(R, d) ->`` the ``d``-th ``R``-derivative of the inverse map's radius
-    :math:`\rho = 2 r / (r_{in} + \sqrt{r_{in}^2 + 4 (R - r_{in}) r})` at points at distances ``r = dist``
+    r"""``(R, d) ->`` the ``d``-th ``R``-derivative of :func:`wss_nlp.mapping.inverse_radius`,
+    :math:`\rho = 2 r / (r_{in} + \sqrt{r_{in}^2 + 4 (R - r_{in}) r})`, at points at distances ``r = dist``
     (an elementwise :class:`wss_nlp.elementwise.Ladder`).
 
     Notes
@@ -630,7 +627,8 @@ def velocity_residual(
     of the decoupled k-space model, smooth where ringing takes ``s_i``
     through zero.
     ``v_p = v(phi_R^{-1}(x_p))`` uses the closed-form inverse of eq. (trafo)
-    for ``eta = 2``: ``rho = 2 r / (r_in + sqrt(r_in^2 + 4 (R - r_in) r))``.
+    for ``eta = 2``: ``rho = 2 r / (r_in + sqrt(r_in^2 + 4 (R - r_in) r))``
+    (:func:`wss_nlp.mapping.inverse_radius`).
 
     The voxel set (every voxel that can meet an admissible lumen) and the
     weights ``w_i = |V| m_i^2`` do not depend on R; ``W = sum_i w_i``.
@@ -691,24 +689,25 @@ def velocity_residual(
         model.kept += [indicator, inverse]
         chi, dchi = indicator.map(0, 0)(r_at, gamma), indicator.map(1, 0)(r_at, gamma)
         rho, drho = inverse.map(0)(r_at), inverse.map(1)(r_at)
-    elif heaviside == "erf":  # a symbolic centre: the indicator of the symbolic gap, rho by CasADi's operations
-        indicator = elementwise.ScaledLadder(n_pts, _indicator_at(np.zeros(n_pts)), "indicator")
+    elif heaviside == "erf":
+        # a symbolic centre (the residual only): the indicator of the symbolic gap, rho by CasADi's operations
+        indicator = elementwise.ScaledLadder(
+            n_pts, lambda gap, g, i, j: meas.erf_indicator_derivative(gap, g, 0, i, j), "indicator"
+        )
         model.kept.append(indicator)
         gap = r_at - dist_row
         chi, dchi = indicator.map(0, 0)(gap, gamma), indicator.map(1, 0)(gap, gamma)
-        root = ca.sqrt(r_in**2 + 4 * (r_at - r_in) * dist_row)
-        rho = 2 * dist_row / (r_in + root)
-        drho = -4 * dist_row**2 / (root * (r_in + root) ** 2)
+        rho, drho = mapping.inverse_radius(r_at, dist_row, r_in), None  # no chain-rule Jacobian here
     else:  # pointwise scalar pieces as small SX functions with their exact derivatives, mapped over the points
         gap, big_r, dist_p, width = ca.SX.sym("gap"), ca.SX.sym("R"), ca.SX.sym("r"), ca.SX.sym("gamma")
         heav = meas.smoothed_heaviside(gap, width, heaviside)
         f_chi = ca.Function("chi", [gap, width], [heav, ca.jacobian(heav, gap)]).map(n_pts)
-        rho_expr = 2 * dist_p / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * dist_p))
+        rho_expr = mapping.inverse_radius(big_r, dist_p, r_in)
         f_rho = ca.Function("rho", [big_r, dist_p], [rho_expr, ca.jacobian(rho_expr, big_r)]).map(n_pts)
         dist_row = ca.DM(model.dist).T if center is None else dist_row
         chi, dchi = f_chi(r_at - dist_row, gamma)
         rho, drho = f_rho(r_at, dist_row)
-    rho_wall, drho_wall = rho, drho  # the layer needs rho itself (no reflection): its cell means vanish outside
+    rho_wall = rho  # the layer needs rho itself (no reflection): its cell means vanish outside
     # basis functions by polar separation, raw_j = radial_j(rho) angular_j(t), with the radial factors in
     # Chebyshev form: the moving points cost dense products with a few rows (see PolarBasis)
     # Outside the wall (rho > 1) the velocity is continued by odd reflection, v(rho) = -v(2 - rho): C^1 across
@@ -716,7 +715,6 @@ def velocity_residual(
     # their curvature, times chi's tails, makes the functional too stiff for Newton steps (measured).
     sign = ca.if_else(rho <= 1, 1, -1)
     rho_c = ca.fmax(ca.fmin(rho, 2 - rho), 0)
-    drho = drho * (rho < 2)
     arg = 2 * rho_c / RHO_MAX - 1
     series = chebyshev.Family(n_pts, n_cheb)
     model.kept.append(series)
@@ -770,6 +768,7 @@ def velocity_residual(
     # dt/dc_R = A(diag(chi' v + chi v' rho') D) (A the voxel sums or PSF image, D the radius design at the
     # points); a layer adds its own pair. Each side is one NumPy map: CasADi's products with the dense
     # (n_points, 2N+1) and (n_points, n_raw) matrices were loops, and building them took seconds.
+    drho_wall, drho = drho, drho * (rho < 2)  # the reflected argument is constant beyond rho = 2
     point = [dchi, dchi * v + chi * dv * drho]
     voxel = [scale * t * dratio, scale * ratio]
     if layered:  # rho moves with R: d/dc_R through d rho/d R, the columns' own coefficients linearly
@@ -916,11 +915,6 @@ def _layer_points(
     classes = layer_point_classes(model, ell * stretch, stretch, r_in, model.margin_mm)
     f, df, area, darea = (ca.MX(1, n_pts) for _ in range(4))
 
-    def widths(idx):  # the cells' half-widths in layer units at the points idx, as CasADi rows
-        if harmonics is None:
-            return ca.DM(half_x[idx] / (ell * stretch)).T, ca.DM(half_y[idx] / (ell * stretch)).T
-        return a_l[:, idx.tolist()], b_l[:, idx.tolist()]
-
     def cell_groups(idx, narrow: float, first: list | None = None) -> list:
         """Fixed cells: the points ``idx`` grouped by the formula their widths select (``near_wall.spread_branch``),
         after the groups ``first``, as ``(points, formula, a, b)`` with the half-widths in layer units."""
@@ -936,16 +930,14 @@ def _layer_points(
         """A cell-mean function's values and y-derivatives at the points ``idx``, scattered into rows; fixed cells
         are grouped by the branch their widths select (one formula each instead of every branch's)."""
         if harmonics is None:
-            branch = nw.spread_branch(half_x[idx], half_y[idx], narrow * ell * stretch)
-            groups = [(idx[branch == k], function_of(name)) for k, name in enumerate(nw.BRANCHES)]
+            groups = [(sub, function_of(name), ca.DM(a).T, ca.DM(b).T) for sub, name, a, b in cell_groups(idx, narrow)]
         else:
-            groups = [(idx, function_of(None))]
+            groups = [(idx, function_of(None), a_l[:, idx.tolist()], b_l[:, idx.tolist()])]
         value, slope = ca.MX(1, n_pts), ca.MX(1, n_pts)
-        for sub, fun in groups:
-            if sub.size:
-                put, cols = scatter(sub), sub.tolist()
-                fk, dfk = fun.map(sub.size)(y[:, cols], *widths(sub), *extra)
-                value, slope = value + ca.mtimes(fk, put), slope + ca.mtimes(dfk, put)
+        for sub, fun, a_row, b_row in groups:
+            put, cols = scatter(sub), sub.tolist()
+            fk, dfk = fun.map(sub.size)(y[:, cols], a_row, b_row, *extra)
+            value, slope = value + ca.mtimes(fk, put), slope + ca.mtimes(dfk, put)
         return value, slope
 
     band, far = classes["band"], classes["far"]
@@ -966,7 +958,8 @@ def _layer_points(
             )
         if far.size:
             put = scatter(far)
-            fk, dfk = nw.far_cell_mean_function(basis.family).map(far.size)(y[:, far.tolist()], *widths(far))
+            cols = far.tolist()  # a symbolic centre: the fixed cells took the ladder above
+            fk, dfk = nw.far_cell_mean_function(basis.family).map(far.size)(y[:, cols], a_l[:, cols], b_l[:, cols])
             f, df = f + ca.mtimes(fk, put), df + ca.mtimes(dfk, put)
     fraction, whole = classes["fraction"], classes["whole"]
     if harmonics is None and heaviside == "erf":
@@ -1224,7 +1217,7 @@ def gauss_newton_derivatives(nlp: CoupledNLP) -> tuple[ca.MX, ca.MX, operators.B
 
 def residual_curvature(nlp: CoupledNLP, with_gamma: bool = False) -> ca.Function:
     r"""``(x, gamma, w, E) -> (sum_i w_i hess r_i) E``: the second-order term of the residual, along the columns
-    of ``E`` (``n_x x n_r``; the ``c_R`` directions), one forward sweep per column. ``with_gamma``:
+    of ``E`` (``n_x x n_r``; the ``c_R`` directions), one forward-over-reverse sweep per column. ``with_gamma``:
     ``E`` is ``(n_x + 1) x (n_r + 1)``, directions in ``(x, gamma)``, and the last column of the result
     ``sum_i w_i d^2 r_i / dx dgamma`` for a direction ``(0, 1)``.
 
@@ -1232,14 +1225,15 @@ def residual_curvature(nlp: CoupledNLP, with_gamma: bool = False) -> ca.Function
     -----
     ``(sum_i w_i hess r_i) e``: CasADi's forward sweep of the reverse-mode gradient of ``w^T r`` (``w``
     fixed). Every pointwise piece of the residual at fixed points is a NumPy callback whose derivatives are
-    again callbacks (:mod:`wss_nlp.elementwise`, :mod:`wss_nlp.chebyshev`), so a sweep costs 18-25 ms at
+    again callbacks (:mod:`wss_nlp.elementwise`, :mod:`wss_nlp.chebyshev`), so a sweep costs 16-26 ms at
     h = 0.3 mm, against 41-67 ms for a forward sweep of ``J^T w`` through the chain-rule Jacobian's NumPy sums
-    (used before; ``scripts/bench_coupled_band.py``).
+    (the route used while those pieces were mapped SX functions; measured by ``scripts/bench_coupled_band.py``
+    then).
     The residual is linear in ``c_v``, so ``sum_i w_i hess r_i`` vanishes on the ``c_v``-``c_v`` block and its
     ``c_R`` columns give the whole matrix (:func:`curvature_matrix`). One direction's graph is mapped over the
-    ``n_r`` columns (serial): all directions in one graph took longer to build than the sweeps take (2 s at
-    h = 0.3 mm) and evaluated no faster; the Hessian CasADi's nlpsol generates by itself (a Jacobian of the
-    gradient through the callbacks) exhausted 24 GB on a turbulent slice at h = 1 mm.
+    ``n_r`` columns (serial): with all directions in one graph CasADi took 18 s to build it and 2 GB at
+    h = 0.3 mm (while the pointwise pieces were SX functions), and the Hessian CasADi's nlpsol generates by
+    itself (a Jacobian of the gradient through the callbacks) exhausted 24 GB on a turbulent slice at h = 1 mm.
     """
     n_r = nlp.n_r
     weights = ca.MX.sym("w", nlp.residual.numel())
@@ -1269,7 +1263,7 @@ def _ipopt(nlp: CoupledNLP, hessian: str, options: CoupledOptions):
     (keep them referenced while the solver lives).
 
     The exact Hessian is the Gauss-Newton one plus ``2 sum_i r_i hess r_i`` by :func:`residual_curvature`
-    (one forward sweep of ``J^T r`` per ``c_R`` direction at each point): nlpsol's own exact Hessian of the
+    (one forward-over-reverse sweep per ``c_R`` direction at each point): nlpsol's own exact Hessian of the
     misfit exhausted the memory (24 GB) on a turbulent slice at h = 1 mm.
     """
     extra = dict(WARM_START)

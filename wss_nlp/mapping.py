@@ -19,6 +19,14 @@ from . import radius as rad
 from .errors import InputError
 
 
+def inverse_radius(big_r, r, r_in):
+    """The reference radius ``rho`` of points at distance ``r`` from the centre on a ray where the wall is at
+    ``R``, for ``eta = 2``: ``r_in rho + (R - r_in) rho^2 = r`` solved by the stable quadratic formula,
+    ``rho = 2 r / (r_in + sqrt(r_in^2 + 4 (R - r_in) r))`` (NumPy or CasADi)."""
+    sqrt = ca.sqrt if any(isinstance(v, (ca.SX, ca.MX)) for v in (big_r, r, r_in)) else np.sqrt
+    return 2 * r / (r_in + sqrt(r_in**2 + 4 * (big_r - r_in) * r))
+
+
 @dataclass(frozen=True)
 class DiskMap:
     """Parameters of phi_R for one radius function.
@@ -67,8 +75,7 @@ class DiskMap:
         t = np.arctan2(dy, dx)
         big_r = rad.evaluate(self.coefficients, t.ravel()).reshape(t.shape)
         a = big_r - self.r_in
-        # exact for eta = 2, a good start otherwise (stable quadratic formula)
-        rho = 2 * r / (self.r_in + np.sqrt(self.r_in**2 + 4 * a * r))
+        rho = inverse_radius(big_r, r, self.r_in)  # exact for eta = 2, a good start otherwise
         if self.eta != 2:
             for _ in range(50):
                 g = self.r_in * rho + a * rho**self.eta - r

@@ -46,6 +46,7 @@ from ._lazy import scipy
 from . import coupled as cpl
 from . import geometry as geo
 from . import kspace
+from . import mapping
 from . import measurement as meas
 from . import near_wall as nw
 from . import radius as rad
@@ -201,7 +202,7 @@ def polar_pieces() -> ca.Function:
 def inverse_map_pieces() -> ca.Function:
     """Per point: ``rho`` of the inverse map (eta = 2) from ``(r, R, r_in)`` and its three partial derivatives (SX)."""
     r, big_r, r_in = ca.SX.sym("r"), ca.SX.sym("R"), ca.SX.sym("r_in")
-    rho = 2 * r / (r_in + ca.sqrt(r_in**2 + 4 * (big_r - r_in) * r))
+    rho = mapping.inverse_radius(big_r, r, r_in)
     return ca.Function(
         "rho", [r, big_r, r_in], [rho, ca.jacobian(rho, r), ca.jacobian(rho, big_r), ca.jacobian(rho, r_in)]
     )
@@ -838,7 +839,7 @@ def coupled_kkt(cres, problem: geo.GeometryProblem, gopt: geo.GeometryOptions, p
         res0, grad_penalty, err_v, d_res = (v.ravel() for v in values[len(blocks) :])
         grad = 2 * jac.T @ res0 + grad_penalty
         if sec is None:
-            # the second-order terms once, at IPOPT's solution (n_r + 1 forward sweeps, the costly
+            # the second-order terms once, at IPOPT's solution (n_r + 1 forward-over-reverse sweeps, the costly
             # part): the polish moves x by about IPOPT's tolerance, which changes them by as little relative
             sec, mixed = np.split(DenseCall(second)(x, gam, res0, directions)[0], [n_r], axis=1)
         hess = hessian(jac, sec)

@@ -84,10 +84,9 @@ class ZernikeWallBasis:
         self.transform = np.eye(len(self.terms))
         gram = self._gram(laplacian=0)
         # L^-T by triangular solves: upper triangular exactly (a general inverse leaves rounding below the
-        # diagonal), so that products with it can be triangular ones (evaluate)
+        # diagonal), so that products with it can be triangular ones (evaluate); column-major as BLAS takes it
         lower = np.linalg.cholesky(gram)
-        self.transform = scipy.linalg.solve_triangular(lower, np.eye(lower.shape[0]), lower=True).T
-        self._transform_f = np.asfortranarray(self.transform)
+        self.transform = np.asfortranarray(scipy.linalg.solve_triangular(lower, np.eye(lower.shape[0]), lower=True).T)
 
     @property
     def size(self) -> int:
@@ -143,7 +142,7 @@ class ZernikeWallBasis:
         out = np.empty((average.shape[0], len(raw)), order="F")
         for j, f in enumerate(raw):
             out[:, j] = np.asarray(average @ f).ravel()
-        return scipy.linalg.blas.dtrmm(1.0, self._transform_f, out, side=1, lower=0, overwrite_b=1)
+        return scipy.linalg.blas.dtrmm(1.0, self.transform, out, side=1, lower=0, overwrite_b=1)
 
     def evaluate_raw(self, x, y) -> np.ndarray:
         """The unnormalized functions at reference points, ``(npts, size)``: ``evaluate = evaluate_raw @ transform``.
