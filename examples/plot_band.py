@@ -8,8 +8,9 @@ does). The test suite runs the same comparison with 200 draws (``tests/test_sens
 
 import numpy as np
 
-from wss_nlp import phantoms, plotting
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app import plotting
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 clean, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=None, seed=2026)
 rng = np.random.default_rng(2026)

@@ -11,8 +11,9 @@ distance, and they miss. The same slice reconstructed with the default options a
 import numpy as np
 from matplotlib.figure import Figure
 
-from wss_nlp import metrics, phantoms
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_phantom("turbulent", h_mm=1.5, snr=25, seed=2026)
 fig = Figure(figsize=(8, 3.8))

@@ -7,7 +7,9 @@ solution, its harmonics chosen by Schwarz's criterion) ties them together; TAWSS
 
 import numpy as np
 
-from wss_nlp import cine, plotting, pulsatile
+from wss_nlp.pipeline import cine
+from wss_nlp.app import plotting
+from wss_nlp.synthetic import pulsatile
 
 frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=2026, frames=12)
 res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms)

@@ -6,8 +6,9 @@ the default balancing principle on the WSS (the smallest beta whose WSS differs 
 regularized ones by no more than their noise). The figures are those ``wss-nlp analyze --figures`` writes.
 """
 
-from wss_nlp import phantoms, plotting
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app import plotting
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=2027)
 res = reconstruct(acq, ReconstructionOptions(alpha_rule="discrepancy", uncertainty=False))[0]

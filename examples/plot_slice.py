@@ -6,8 +6,10 @@ a basis vanishing on the wall, the WSS from CasADi's exact derivatives, and the 
 sensitivities. The phantom knows its exact wall and WSS, so the errors below are errors, not residuals.
 """
 
-from wss_nlp import metrics, phantoms, plotting
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app import plotting
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=2026)
 res = reconstruct(acq, ReconstructionOptions())[0]

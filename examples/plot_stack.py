@@ -3,13 +3,14 @@
 Six slices 2 mm apart through a tube whose radius shrinks along its axis, reconstructed together: the
 z-regularization ties neighbouring slices' radius and velocity coefficients. The unrolled wall shows the
 radius and the WSS over angle and slice position. Each slice's uncertainty band comes from the whole
-segment's linearization (``wss_nlp.stack_band``: one slice's noise moves its neighbours too).
+segment's linearization (``wss_nlp.uncertainty.stack_band``: one slice's noise moves its neighbours too).
 """
 
 import numpy as np
 
-from wss_nlp import phantoms, plotting
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app import plotting
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_stack("tapered", nz=6, h_mm=1.5, spacing_mm=2.0, snr=25, seed=2026)
 results = reconstruct(acq, ReconstructionOptions())

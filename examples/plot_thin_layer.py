@@ -9,8 +9,10 @@ near-wall voxels against their distance to the wall with the fitted profile.
 
 from dataclasses import replace
 
-from wss_nlp import metrics, phantoms, plotting
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app import plotting
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=25, seed=2026)
 default = ReconstructionOptions(uncertainty=False)

@@ -30,11 +30,12 @@ import numpy as np
 
 from _report import study_parser, write_report
 from wss_nlp.parameters import rules as pr
-from wss_nlp import geometry as geo
-from wss_nlp import metrics, phantoms
-from wss_nlp import velocity as vel
-from wss_nlp import wss
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.models import geometry as geo
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import velocity as vel
+from wss_nlp.models import wss
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_RADIUS = 0.005  # issue: geometry error <= 0.5 % at every h
 TARGET_WSS_LAMINAR = 0.05  # issue: laminar WSS error <= 5 % at every h

@@ -10,7 +10,7 @@ of the same seed (the issue-18 criterion is <= 1.5), the error when the same
 aliased data are unwrapped with the truth instead (``oracle``: isolates the
 unwrapper from the lower velocity noise a lower venc brings), the velocity
 fit's residual / noise (``res/eps``; above 3 the slice is flagged SUSPECT,
-:func:`wss_nlp.plausibility.check_fit`) and the screen's outcome. Writes
+:func:`wss_nlp.pipeline.plausibility.check_fit`) and the screen's outcome. Writes
 ``scripts/results/aliasing.md``.
 
     python scripts/aliasing.py [--seeds 2] [--cases laminar,manufactured,circle,turbulent] [--h 1.5,1.0,0.6]
@@ -23,10 +23,11 @@ import numpy as np
 from dataclasses import replace
 
 from _report import study_parser, write_report
-from wss_nlp import metrics, phantoms
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
 from wss_nlp.errors import InputError
-from wss_nlp.plausibility import ScreenOptions
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline.plausibility import ScreenOptions
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 FRACTIONS = (0.8, 0.6, 0.45, 0.35)
 SEED0 = 300  # seeds 300.. : not used by any test or by the choice of the screen's thresholds

@@ -11,7 +11,7 @@ options otherwise, with the fixed beta 5e-8). Also the cost of the band against 
 
 With ``--stack NZ`` the phantom is a stack of ``NZ`` slices 2 mm apart
 (``--case`` a stack case, e.g. ``curved``) reconstructed with z-regularization
-(default z smoothing); the band of every slice (:mod:`wss_nlp.stack_band`)
+(default z smoothing); the band of every slice (:mod:`wss_nlp.uncertainty.stack_band`)
 against the draws' spread, one row per slice. Writes ``band_stack.md``.
 
     python scripts/band_monte_carlo.py --stack 5 --case curved --h 1.5 --draws 100   (about 15 minutes)
@@ -24,9 +24,9 @@ import sys
 import numpy as np
 
 from _report import write_report
-from wss_nlp import phantoms
-from wss_nlp.plotting import figure_band_check, save_figure
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app.plotting import figure_band_check, save_figure
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_REL = 0.2  # issue: the band agrees with Monte Carlo within 20 %
 TARGET_COST = 3.0  # issue: the full band costs at most 3x one solve
@@ -99,7 +99,7 @@ def stack_rows(args) -> None:
     lines = [
         f"Stack '{args.case}' of {args.stack} slices 2 mm apart, z-regularized (default z smoothing), SNR "
         f"{args.snr:g}, {args.draws} Monte-Carlo draws (seed {args.seed}), beta fixed; band of each slice from "
-        "one draw (wss_nlp.stack_band). Made by `python scripts/band_monte_carlo.py"
+        "one draw (wss_nlp.uncertainty.stack_band). Made by `python scripts/band_monte_carlo.py"
         + "".join(f" {a}" for a in sys.argv[1:])
         + "`.",
         "",

@@ -1,9 +1,9 @@
 #!/usr/bin/env python
 """Cost of a cine slice: 20 frames against one slice, in one run (issue 15 target: within 10x one slice).
 
-The Womersley phantom (``wss_nlp.pulsatile.make_cine``) at h = 1 mm, SNR 25: the median time of one frame
+The Womersley phantom (``wss_nlp.synthetic.pulsatile.make_cine``) at h = 1 mm, SNR 25: the median time of one frame
 reconstructed alone (the single-frame pipeline, default options as cine frames get them: plain basis, with
-the uncertainty band) against ``wss_nlp.cine.reconstruct_cine`` of all frames (the default: frames sharing
+the uncertainty band) against ``wss_nlp.pipeline.cine.reconstruct_cine`` of all frames (the default: frames sharing
 one lumen box and its built solvers, warm starts, then the momentum model's fit and choice), and their
 ratio; also the cine run without the momentum model (``--cine-model independent``). The geometry solver
 cache is cleared before each timing (a user's first series builds them). Writes
@@ -20,9 +20,11 @@ from dataclasses import replace
 import numpy as np
 
 from _report import RESULTS, write_report
-from wss_nlp import cine, pulsatile, womersley
-from wss_nlp import geometry as geo
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import cine
+from wss_nlp.synthetic import pulsatile
+from wss_nlp.models import womersley
+from wss_nlp.models import geometry as geo
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_RATIO = 10.0
 

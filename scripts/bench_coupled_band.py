@@ -6,15 +6,15 @@ Laminar and turbulent (Re_tau 180, near-wall layer) phantoms at h = 0.3 mm, SNR 
 ``--repeat`` evaluations after a warm-up; builds timed once):
 
 * the second-order columns ``(sum_i w_i hess r_i) e_k`` along the radius directions and gamma as the band
-  computes them (:func:`wss_nlp.coupled.residual_curvature`: CasADi's forward-over-reverse sweep of
+  computes them (:func:`wss_nlp.models.coupled.residual_curvature`: CasADi's forward-over-reverse sweep of
   ``w^T r`` per direction; while the indicator, the inverse map and a layer's cell means were mapped SX
   functions, a forward sweep of ``J^T w`` through the chain-rule Jacobian was the faster route, 69 / 119 ms
   per direction against 65 / 189 ms, and the band used it);
 * one evaluation of the KKT polish's outputs (the Jacobian's blocks, the residual, the gradient of the
-  penalty, the velocity error, ``dr / dgamma``) through :class:`wss_nlp.solver.DenseCall`, and the same
+  penalty, the velocity error, ``dr / dgamma``) through :class:`wss_nlp.core.solver.DenseCall`, and the same
   outputs with the assembled Jacobian and CasADi's reverse-mode gradient as before, by CasADi's call;
-* the centre's columns (:func:`wss_nlp.sensitivity._coupled_centre_derivative`, build and evaluation);
-* the whole band (:func:`wss_nlp.sensitivity.coupled`);
+* the centre's columns (:func:`wss_nlp.uncertainty.sensitivity._coupled_centre_derivative`, build and evaluation);
+* the whole band (:func:`wss_nlp.uncertainty.sensitivity.coupled`);
 * whole reconstructions with the band, decoupled and ``--method coupled``, and their ratio (issue 19 asks for
   the coupled method within 3x the decoupled time "with the band too").
 
@@ -31,11 +31,11 @@ import numpy as np
 import casadi as ca
 
 from _report import RESULTS, write_report
-from wss_nlp import coupled as cpl
-from wss_nlp import phantoms
-from wss_nlp import sensitivity as sens
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
-from wss_nlp.solver import DenseCall
+from wss_nlp.models import coupled as cpl
+from wss_nlp.synthetic import phantoms
+from wss_nlp.uncertainty import sensitivity as sens
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.core.solver import DenseCall
 
 
 def median_seconds(run, repeat: int) -> float:

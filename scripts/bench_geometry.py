@@ -28,9 +28,9 @@ import numpy as np
 
 import casadi as ca
 from _report import RESULTS, write_report
-from wss_nlp import geometry as geo
-from wss_nlp import phantoms
-from wss_nlp import preprocess as pp
+from wss_nlp.models import geometry as geo
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import preprocess as pp
 
 TARGET = 30.0  # issue 19: at most 30 evaluation-equivalents per geometry solve
 

@@ -21,9 +21,9 @@ import numpy as np
 
 from _report import RESULTS, write_report
 from bench import fresh
-from wss_nlp import kspace
-from wss_nlp import phantoms as ph
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.models import kspace
+from wss_nlp.synthetic import phantoms as ph
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_RATIO = 2.0
 

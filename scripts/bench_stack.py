@@ -3,7 +3,7 @@
 
 Tapered-tube phantom (``phantoms.make_stack``), h = 1 mm, slices 2 mm apart,
 SNR 25, default options (z smoothing over one slice spacing, dephasing pass on) with the
-uncertainty band (``wss_nlp.stack_band``), timed apart from the solve. One run
+uncertainty band (``wss_nlp.uncertainty.stack_band``), timed apart from the solve. One run
 measures every row, so the ratios (seconds per slice) are comparable.
 Issue 6 targets: Kaczmarz cost linear in the number of slices, 100 slices
 in under 60 s on 2 cores. Writes ``scripts/results/bench_stack.md``.
@@ -16,8 +16,10 @@ import time
 from dataclasses import replace
 
 from _report import RESULTS, write_report
-from wss_nlp import phantoms, pipeline, stack
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.synthetic import phantoms
+from wss_nlp.pipeline import steps as pipeline
+from wss_nlp.models import stack
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_100_S = 60.0  # issue 6: 100 slices at h = 1 mm in under 60 s on 2 cores
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Start-up cost of the command line: ``wss-nlp --help`` and ``import wss_nlp.cli``, medians of repeated runs.
+"""Start-up cost of the command line: ``wss-nlp --help`` and ``import wss_nlp.app.cli``, medians of repeated runs.
 
 Issue 19 target: ``wss-nlp --help`` within 0.5 s. Heavy modules used by one function (scipy.interpolate,
 scipy.optimize) are imported where used; the normal CDF comes from scipy.special instead of scipy.stats.
@@ -38,7 +38,10 @@ def main(argv=None):
     exe = shutil.which("wss-nlp") or sys.exit("wss-nlp is not installed (pip install -e .)")
     rows = [
         ("python -c pass (interpreter floor)", _median_seconds([sys.executable, "-c", "pass"], args.runs)),
-        ("python -c 'import wss_nlp.cli'", _median_seconds([sys.executable, "-c", "import wss_nlp.cli"], args.runs)),
+        (
+            "python -c 'import wss_nlp.app.cli'",
+            _median_seconds([sys.executable, "-c", "import wss_nlp.app.cli"], args.runs),
+        ),
         ("wss-nlp --help", _median_seconds([exe, "--help"], args.runs)),
     ]
     lines = [

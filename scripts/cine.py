@@ -3,19 +3,19 @@
 
 Phantoms:
 
-* ``womersley`` (``wss_nlp.pulsatile.make_cine``): Womersley flow (carotid-like waveform with flow reversal,
+* ``womersley`` (``wss_nlp.synthetic.pulsatile.make_cine``): Womersley flow (carotid-like waveform with flow reversal,
   four harmonics, first harmonic's Womersley number about 15) in a rigid 10 mm pipe, 20 frames over a 1 s
   cycle, one venc for the series;
 * ``distending womersley``: the same flow in a pipe whose radius changes by 10 % over the cycle
   (``make_cine(distension=0.1)``, the rigid profile stretched to the moving wall);
-* ``quasi-steady <case>`` (``wss_nlp.pulsatile.make_quasi_steady_cine``): a steady phantom's profile scaled
+* ``quasi-steady <case>`` (``wss_nlp.synthetic.pulsatile.make_quasi_steady_cine``): a steady phantom's profile scaled
   by the same waveform; not a solution of the momentum balance, so the model choice should keep the
   frames' own fits (false choices of the momentum model show here).
 
 Methods: "independent" (``--cine-model independent``: each frame by the single-frame pipeline, plain basis),
 "temporal prior" (``--cine-model temporal``: the frames' plain fits, each with its own beta on its own wall
-regularized in time, tied by a periodic temporal prior, ``wss_nlp.temporal``, gamma by the BIC) and "default"
-(``--cine-model auto``: the momentum model of ``wss_nlp.womersley`` where the BIC prefers it to both, else the
+regularized in time, tied by a periodic temporal prior, ``wss_nlp.models.temporal``, gamma by the BIC) and "default"
+(``--cine-model auto``: the momentum model of ``wss_nlp.models.womersley`` where the BIC prefers it to both, else the
 prior where it beats the frames' own fits, else those). Errors: the
 largest per-frame mean-WSS error relative to the peak |WSS| of the
 cycle, the TAWSS error (wall mean, relative), the OSI error (wall mean, absolute); "band covers": the share
@@ -36,8 +36,10 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import cine, kspace, pulsatile, womersley
-from wss_nlp.reconstruct import ReconstructionOptions
+from wss_nlp.pipeline import cine
+from wss_nlp.models import kspace, womersley
+from wss_nlp.synthetic import pulsatile
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions
 
 METHODS = {
     "independent": ReconstructionOptions(cine=womersley.CineModelOptions(model="independent")),

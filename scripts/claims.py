@@ -23,11 +23,14 @@ import os
 import numpy as np
 
 from _report import write_report
-from wss_nlp import baselines as bl
-from wss_nlp import geometry as geo
-from wss_nlp import metrics, phantoms, pipeline, stack
-from wss_nlp import velocity as vel
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.models import baselines as bl
+from wss_nlp.models import geometry as geo
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.pipeline import steps as pipeline
+from wss_nlp.models import stack
+from wss_nlp.models import velocity as vel
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 
 def main():

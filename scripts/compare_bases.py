@@ -17,9 +17,10 @@ import os
 import numpy as np
 
 from _report import write_report
-from wss_nlp import geometry as geo
-from wss_nlp import phantoms, velocity as vel, wss
-from wss_nlp import preprocess as pp
+from wss_nlp.models import geometry as geo
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import velocity as vel, wss
+from wss_nlp.models import preprocess as pp
 
 CONFIGS = {
     "zernike deg 20 / order 6, t=2, r_in=0.5 min R (default)": dict(degree=20, angular_order=6, laplacian_power=2),

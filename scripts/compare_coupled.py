@@ -17,9 +17,10 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import metrics, phantoms
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
 from wss_nlp.errors import WssNlpError
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 TARGET_TIME_RATIO = 5.0  # issue: the coupled solve at h = 1 mm takes at most 5x the decoupled time
 

@@ -17,9 +17,9 @@ from dataclasses import replace
 import numpy as np
 
 from _report import RESULTS, write_report
-from wss_nlp import phantoms
-from wss_nlp.coupled import CoupledOptions
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models.coupled import CoupledOptions
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 CASES = ("manufactured", "turbulent550", "entrance", "turbulent-ellipse")
 TOLERANCES = (1e-6, 1e-5, 1e-4, 1e-3)  # the first is the reference

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
-"""Box vs k-space measurement model on phantoms acquired in k-space (``wss_nlp.kspace``).
+"""Box vs k-space measurement model on phantoms acquired in k-space (``wss_nlp.models.kspace``).
 
-Phantoms: ``wss_nlp.phantoms.make_phantom(..., psf=PSF(filter, zero_fill))``: the complex signal on a fine
+Phantoms: ``wss_nlp.synthetic.phantoms.make_phantom(..., psf=PSF(filter, zero_fill))``: the complex signal on a fine
 grid (spacing 25 um, 4-40 points per voxel), FFT, the central ``N = n / F`` frequencies (the scanner's
 asymmetric ``-N/2 <= k < N/2``), the k-space filter, zero-filling to ``n`` and the inverse FFT; complex noise
 added in k-space (std ``1/SNR`` per channel at the acquired resolution before filtering). Two acquisitions:
@@ -24,10 +24,10 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import kspace
-from wss_nlp import phantoms as ph
-from wss_nlp import radius as rad
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.models import kspace
+from wss_nlp.synthetic import phantoms as ph
+from wss_nlp.core import radius as rad
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 SEED0 = 100
 ACQUISITIONS = {"none, F = 1": kspace.PSF("none", (1.0, 1.0)), "hamming, F = 2": kspace.PSF("hamming", (2.0, 2.0))}

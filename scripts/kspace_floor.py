@@ -10,7 +10,7 @@ puts that acquisition beside others that carry the same or more information abou
 - Hamming at h = 3 mm without zero-filling, and Hamming at h = 1.5 mm with F = 2 (the same k-space samples,
   interpolated), both with the k-space model.
 
-SNR as in ``wss_nlp.phantoms``: noise std ``1/SNR`` per channel at the acquired resolution before filtering,
+SNR as in ``wss_nlp.synthetic.phantoms``: noise std ``1/SNR`` per channel at the acquired resolution before filtering,
 so all rows have the same noise per acquired sample. Per row: mean and worst |mean-WSS error| over the
 seeds, radius relative L2 error, and the linearized band's 1-sigma of the mean WSS relative to it (its
 agreement with Monte Carlo is tested in ``tests/test_kspace.py``; for an unbiased estimate the expected
@@ -26,9 +26,10 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import kspace, metrics
-from wss_nlp import phantoms as ph
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.models import kspace
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms as ph
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 SEED0 = 100
 #: (label, reported voxel size in mm, acquisition of the phantom (None: voxel means), model)

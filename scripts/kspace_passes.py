@@ -2,7 +2,7 @@
 """The k-space dephasing passes with and without the first-order prediction that skips a final pass.
 
 A k-space slice repeats its dephasing pass until the wall moves less than ``KSPACE_PASS_TOL`` voxels
-(``wss_nlp.reconstruct``). With ``KSPACE_PASS_PREDICTION`` (the default) a pass whose move the geometry's
+(``wss_nlp.pipeline.reconstruct``). With ``KSPACE_PASS_PREDICTION`` (the default) a pass whose move the geometry's
 first-order response (``IpoptGeometrySolver.response``) predicts below that tolerance is not run; without
 it, it is run and then ends the iteration. Both on the same development slices (seeds 0, 1; not the
 report seeds 100-104 of ``scripts/kspace.py``): three flows, three acquisitions (no filter F = 1, Hamming
@@ -22,9 +22,9 @@ import numpy as np
 
 from _report import study_parser, write_report
 from bench import fresh
-from wss_nlp import kspace
-from wss_nlp import phantoms as ph
-from wss_nlp import reconstruct as rc
+from wss_nlp.models import kspace
+from wss_nlp.synthetic import phantoms as ph
+from wss_nlp.pipeline import reconstruct as rc
 
 ACQUISITIONS = {
     "none, F = 1": kspace.PSF("none", (1.0, 1.0)),

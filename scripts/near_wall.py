@@ -18,9 +18,10 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import metrics, phantoms
-from wss_nlp import velocity as vel
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import velocity as vel
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 CASES = "laminar,circle,fourier,manufactured,entrance,turbulent,turbulent550,turbulent1000,turbulent-ellipse"
 FIRST_SEED = 100

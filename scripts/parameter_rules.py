@@ -28,15 +28,15 @@ import numpy as np
 from _report import study_parser, write_report
 from wss_nlp.parameters import noise as nl
 from wss_nlp.parameters import rules as pr
-from wss_nlp import geometry as geo
-from wss_nlp import measurement as meas
-from wss_nlp import phantoms
-from wss_nlp import preprocess as pp
-from wss_nlp import radius as rad
-from wss_nlp import velocity as vel
-from wss_nlp import wss
-from wss_nlp.reconstruct import ReconstructionOptions
-from wss_nlp.tikhonov import LinearTikhonov
+from wss_nlp.models import geometry as geo
+from wss_nlp.models import measurement as meas
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import preprocess as pp
+from wss_nlp.core import radius as rad
+from wss_nlp.models import velocity as vel
+from wss_nlp.models import wss
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions
+from wss_nlp.core.tikhonov import LinearTikhonov
 
 RULES = ("fixed", "DP tau=1.1", "DP tau=2", "GCV", "L-curve", "balance")
 KAPPA = ReconstructionOptions().kappa_beta

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """4D flow cut by a plane (``wss-nlp import ... --plane``): the reconstruction's errors on the extracted slice.
 
-Phantom: ``wss_nlp.scanner_exports.make_flow_volume``: Poiseuille flow in a tube of radius 6 mm tilted up to
+Phantom: ``wss_nlp.synthetic.scanner_exports.make_flow_volume``: Poiseuille flow in a tube of radius 6 mm tilted up to
 about 30 degrees through a rotated grid of anisotropic voxels, every velocity component measured as a phase
 (complex voxel mean, complex Gaussian noise), two frames (peak 0.8 and 0.4 m/s). Written as NIfTI, imported
 with ``--plane`` through a point on the axis with the axis as normal, reconstructed with default options.
@@ -19,10 +19,10 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import importing, scanner
-from wss_nlp import scanner_exports as se
-from wss_nlp.plane import Plane
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.io import importing, scanner
+from wss_nlp.synthetic import scanner_exports as se
+from wss_nlp.io.plane import Plane
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 
 def main() -> None:

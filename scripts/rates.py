@@ -24,10 +24,10 @@ import numpy as np
 
 from _report import write_report
 from wss_nlp.parameters import rules as pr
-from wss_nlp import geometry as geo
-from wss_nlp import measurement as meas
-from wss_nlp import radius as rad
-from wss_nlp.plotting import figure_rates, save_figure
+from wss_nlp.models import geometry as geo
+from wss_nlp.models import measurement as meas
+from wss_nlp.core import radius as rad
+from wss_nlp.app.plotting import figure_rates, save_figure
 
 N_TRUE, N_FIT, H_MM, R0 = 64, 24, 0.5, 10.0
 

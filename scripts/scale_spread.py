@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The exponential layer's scale: how sharply the data fix it, and the flag when they do not.
 
-On the developing entrance flow (``wss_nlp.phantoms``, the phantom whose layer the exponential family
+On the developing entrance flow (``wss_nlp.synthetic.phantoms``, the phantom whose layer the exponential family
 carries) at h = 1.5, 1.0, 0.6, 0.3 mm, SNR 10 and 25, report seeds 100-102 (development used 0-3), with the
 defaults (band included): the mean-WSS error, the band (one standard deviation of the mean WSS), the
 interval of scales ``l/R`` whose criterion lies within 2 of the chosen scale's (``scale_interval``), the
@@ -21,8 +21,8 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import phantoms
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.synthetic import phantoms
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 FIRST_SEED = 100
 CASE = "entrance"

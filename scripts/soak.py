@@ -26,9 +26,10 @@ import time
 import numpy as np
 
 from _report import RESULTS, write_report
-from wss_nlp import files as wio
-from wss_nlp import metrics, phantoms
-from wss_nlp.cli import main as cli
+from wss_nlp.io import files as wio
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app.cli import main as cli
 
 SLICE_CASES = list(phantoms.CASES) + ["two_vessels"]
 

@@ -18,8 +18,10 @@ from dataclasses import replace
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import metrics, phantoms, stack
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import stack
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 VARIANTS = {
     "independent": stack.StackOptions(z_smoothing_mm=0.0),

@@ -4,9 +4,9 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from wss_nlp import geometry as geo
-from wss_nlp import phantoms
-from wss_nlp import preprocess as pp
+from wss_nlp.models import geometry as geo
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import preprocess as pp
 
 
 def geometry_problem(acq):

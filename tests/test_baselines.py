@@ -1,14 +1,15 @@
-"""Classical baselines (wss_nlp.baselines): segmentation, Oyre and Stalder WSS, file output."""
+"""Classical baselines (wss_nlp.models.baselines): segmentation, Oyre and Stalder WSS, file output."""
 
 import numpy as np
 import pytest
 
-from wss_nlp import baselines as bl
-from wss_nlp import files as wio
-from wss_nlp import metrics, phantoms
-from wss_nlp.cli import main
+from wss_nlp.models import baselines as bl
+from wss_nlp.io import files as wio
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app.cli import main
 from wss_nlp.errors import NoVesselError
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 
 def _run(acq, method):

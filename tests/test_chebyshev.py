@@ -1,9 +1,9 @@
-"""Chebyshev series callbacks (wss_nlp.chebyshev) against CasADi's own recursion, with derivatives."""
+"""Chebyshev series callbacks (wss_nlp.core.chebyshev) against CasADi's own recursion, with derivatives."""
 
 import numpy as np
 
 import casadi as ca
-from wss_nlp import chebyshev
+from wss_nlp.core import chebyshev
 
 # rounding only: sums of K = 7 terms of size O(1) (T_k is bounded by 1 on [-1, 1], its derivatives by k^(2d))
 RTOL = 1e-12

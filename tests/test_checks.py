@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from wss_nlp import checks
+from wss_nlp.core import checks
 
 
 def test_dottest_passes_and_fails():

@@ -8,10 +8,12 @@ import h5py
 import numpy as np
 import pytest
 
-from wss_nlp import cine, files, pulsatile
-from wss_nlp.cli import main
+from wss_nlp.pipeline import cine
+from wss_nlp.io import files
+from wss_nlp.synthetic import pulsatile
+from wss_nlp.app.cli import main
 from wss_nlp.errors import InputError
-from wss_nlp.phantoms import Circle
+from wss_nlp.synthetic.phantoms import Circle
 
 
 @pytest.fixture(scope="module")
@@ -60,14 +62,14 @@ def test_slow_pulsation_is_quasi_steady_poiseuille():
 
 @pytest.fixture(scope="module")
 def elliptic():
-    from wss_nlp.phantoms import Ellipse
+    from wss_nlp.synthetic.phantoms import Ellipse
 
     return pulsatile.EllipticWomersley(Ellipse(a=11.5, b=8.7, angle=0.3, center=(0.2, -0.1)), 3.5e-3)
 
 
 def _series_velocity(flow, x, y, t):
     """The elliptic flow from its series (not the acquisition's table), at time t."""
-    from wss_nlp.phantoms import _local
+    from wss_nlp.synthetic.phantoms import _local
 
     xl, yl = _local(flow.lumen, x, y, flow.lumen.angle)
     r, th = np.hypot(xl, yl), np.arctan2(yl, xl)
@@ -248,7 +250,7 @@ def test_equal_area_radius_of_the_walls():
     """cine.equal_area_radius: sqrt(mean R(phi)^2) per wall, averaged over the walls: a circle's radius, and for
     an ellipse (a, b) = (11.5, 10/1.15) in its polar Fourier form (degree 20) the equal-area radius sqrt(a b) to
     1e-6 relative (the truncation of the Fourier series)."""
-    from wss_nlp import radius as rad
+    from wss_nlp.core import radius as rad
 
     circle = np.zeros(rad.n_coefficients(4))
     circle[0] = 3.0

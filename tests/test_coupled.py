@@ -8,17 +8,18 @@ import json
 import numpy as np
 import pytest
 
-from wss_nlp import checks
-from wss_nlp import coupled as cpl
-from wss_nlp import geometry as geo
-from wss_nlp import measurement as meas
-from wss_nlp import metrics, phantoms
-from wss_nlp import near_wall as nw
-from wss_nlp import velocity as vel
-from wss_nlp.cli import main
+from wss_nlp.core import checks
+from wss_nlp.models import coupled as cpl
+from wss_nlp.models import geometry as geo
+from wss_nlp.models import measurement as meas
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import near_wall as nw
+from wss_nlp.models import velocity as vel
+from wss_nlp.app.cli import main
 from wss_nlp.errors import InputError
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
-from wss_nlp.velocity_basis import make_basis
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.core.velocity_basis import make_basis
 
 from conftest import assert_coupled_jacobian_is_exact
 

@@ -4,8 +4,8 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from wss_nlp import elementwise
-from wss_nlp import near_wall as nw
+from wss_nlp.core import elementwise
+from wss_nlp.models import near_wall as nw
 
 
 @pytest.mark.parametrize("family", nw.FAMILIES)

@@ -10,8 +10,9 @@ h = 1.0 and 0.3 mm, SNR 25.
 
 import pytest
 
-from wss_nlp import metrics, phantoms
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 
 @pytest.mark.parametrize("h", [1.0, 0.3])

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from wss_nlp import files, phantoms
-from wss_nlp.cli import main
+from wss_nlp.io import files
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app.cli import main
 
 meshio = pytest.importorskip("meshio")
 

@@ -6,9 +6,9 @@ import h5py
 import numpy as np
 import pytest
 
-from wss_nlp import files as wio
-from wss_nlp import phantoms
-from wss_nlp.cli import main
+from wss_nlp.io import files as wio
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app.cli import main
 from wss_nlp.errors import InputError
 
 

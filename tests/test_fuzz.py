@@ -26,9 +26,9 @@ import h5py
 import numpy as np
 import pytest
 
-from wss_nlp import files as wio
-from wss_nlp import phantoms
-from wss_nlp.cli import main
+from wss_nlp.io import files as wio
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app.cli import main
 
 FAST = ["--no-uncertainty"]
 
@@ -142,8 +142,8 @@ def _stack_noise_slice(iz):
 
 def _unwrapped_elsewhere(f, rng):
     # velocities already unwrapped by other software: beyond venc, valid with --no-unwrap
-    from wss_nlp import plausibility as pl
-    from wss_nlp import preprocess as pp
+    from wss_nlp.pipeline import plausibility as pl
+    from wss_nlp.models import preprocess as pp
 
     venc = float(f.attrs["venc_m_s"])
     v = venc * f["phase"][()] / np.pi

@@ -3,13 +3,13 @@ import pytest
 
 import casadi as ca
 
-from wss_nlp import geometry as geo
-from wss_nlp import measurement as meas
-from wss_nlp import radius as rad
+from wss_nlp.models import geometry as geo
+from wss_nlp.models import measurement as meas
+from wss_nlp.core import radius as rad
 from wss_nlp.errors import InputError, SolverError
-from wss_nlp import checks
-from wss_nlp import phantoms
-from wss_nlp.solver import ipopt_options, run_nlpsol
+from wss_nlp.core import checks
+from wss_nlp.synthetic import phantoms
+from wss_nlp.core.solver import ipopt_options, run_nlpsol
 
 from conftest import geometry_problem
 
@@ -260,7 +260,7 @@ def test_response_predicts_the_resolve_to_second_order(acquisition):
     of the move at the larger eps (measured 2 %, a 4-7 um move); and it equals sensitivity.geometry_kkt's
     derivative in the magnitude (measured 1e-15 relative). Box and k-space model (Hamming PSF), seed 13
     (not used elsewhere)."""
-    from wss_nlp import kspace
+    from wss_nlp.models import kspace
 
     psf = kspace.PSF("hamming", (1.0, 1.0)) if acquisition == "kspace" else None
     acq, _ = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=13, psf=psf)
@@ -284,7 +284,7 @@ def test_response_predicts_the_resolve_to_second_order(acquisition):
     assert errors[0] < 0.05 * moves[0]
     assert errors[0] / errors[1] == pytest.approx(4.0, rel=0.25)
     # the same derivative from the band's implicit-function theorem (its own graph): equal to rounding
-    from wss_nlp import sensitivity as sens
+    from wss_nlp.uncertainty import sensitivity as sens
 
     dc_dp, annulus = sens.geometry_kkt(problem, opts, g.coefficients, g.alpha, g.gamma, g.box_multipliers)
     predicted = solver.response(g, problem, problem.magnitude + d)

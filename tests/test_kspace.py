@@ -10,19 +10,22 @@ import pytest
 
 import casadi as ca
 
-from wss_nlp import checks, cli, kspace, metrics
-from wss_nlp import coupled as cpl
-from wss_nlp import files as wio
-from wss_nlp import geometry as geo
-from wss_nlp import measurement as meas
-from wss_nlp import phantoms as ph
-from wss_nlp import preprocess as pp
-from wss_nlp import radius as rad
-from wss_nlp import reconstruct as rc
-from wss_nlp import velocity as vel
+from wss_nlp.core import checks
+from wss_nlp.app import cli
+from wss_nlp.models import kspace
+from wss_nlp.analysis import metrics
+from wss_nlp.models import coupled as cpl
+from wss_nlp.io import files as wio
+from wss_nlp.models import geometry as geo
+from wss_nlp.models import measurement as meas
+from wss_nlp.synthetic import phantoms as ph
+from wss_nlp.models import preprocess as pp
+from wss_nlp.core import radius as rad
+from wss_nlp.pipeline import reconstruct as rc
+from wss_nlp.models import velocity as vel
 from wss_nlp.parameters import noise as nl
-from wss_nlp import sensitivity as sens
-from wss_nlp import wss as wss_mod
+from wss_nlp.uncertainty import sensitivity as sens
+from wss_nlp.models import wss as wss_mod
 from wss_nlp.parameters.choice import choose_alpha
 from wss_nlp.errors import InputError
 
@@ -568,7 +571,7 @@ def test_balancing_grams_with_correlated_noise_equal_per_beta_solves():
     """The noise Gram matrix of the balancing principle with correlated noise ``Sigma = D C D`` from the one
     generalized eigendecomposition, against per-beta Cholesky solves with the dense covariance (two
     independent computations; relative 1e-10 of the largest entry, both double-precision solves)."""
-    from wss_nlp.tikhonov import LinearTikhonov
+    from wss_nlp.core.tikhonov import LinearTikhonov
 
     psf = kspace.PSF("hamming", (2.0, 2.0))
     acq, _ = ph.make_phantom("circle", h_mm=1.5, snr=25, seed=43, psf=psf)

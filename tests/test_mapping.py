@@ -3,9 +3,9 @@ import pytest
 
 import casadi as ca
 
-from wss_nlp import radius as rad
+from wss_nlp.core import radius as rad
 from wss_nlp.errors import InputError
-from wss_nlp.mapping import DiskMap, symbolic_forward
+from wss_nlp.core.mapping import DiskMap, symbolic_forward
 
 COEF = np.array([10.0, 0.5, 0.8, -0.3, 0.0, 0.4, 0.2])  # N = 3
 

@@ -8,16 +8,18 @@ import scipy.integrate
 
 import casadi as ca
 
-from wss_nlp import cli, metrics, phantoms
-from wss_nlp import files as wio
-from wss_nlp import measurement as meas
-from wss_nlp import near_wall as nw
-from wss_nlp import velocity as vel
-from wss_nlp import wss as wss_mod
+from wss_nlp.app import cli
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.io import files as wio
+from wss_nlp.models import measurement as meas
+from wss_nlp.models import near_wall as nw
+from wss_nlp.models import velocity as vel
+from wss_nlp.models import wss as wss_mod
 from wss_nlp.errors import InputError
-from wss_nlp.mapping import DiskMap
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
-from wss_nlp.velocity_basis import make_basis
+from wss_nlp.core.mapping import DiskMap
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.core.velocity_basis import make_basis
 
 BASE = make_basis("zernike", 20, 400.0, 6)
 
@@ -141,7 +143,7 @@ def test_noise_free_turbulent_recovery_with_the_wall_law(turbulent550):
     res = reconstruct(acq, opts)[0]
     assert metrics.compare_slice(res, truth).wss_rel_l2 < 0.02
     assert res.near_wall.model == "wall_law" and res.near_wall.criterion.startswith("given")
-    from wss_nlp import plotting
+    from wss_nlp.app import plotting
 
     fig = plotting.figure_near_wall(res, truth)
     assert fig.axes[0].get_title().startswith("near-wall model: wall_law, l = ")
@@ -372,7 +374,7 @@ def test_a_z_regularized_stack_flags_rival_wall_law_scales(monkeypatch):
     do: a rival root planted half an octave from the real one, within the margin, on a two-slice Re_tau 549
     stack (h = 1.5 mm, SNR 25, seed 5): every slice carries the spread (measured 17-19 %, band about 1 % of the
     mean) and the warning."""
-    from wss_nlp import pipeline
+    from wss_nlp.pipeline import steps as pipeline
     from wss_nlp.parameters import choice as ch
 
     real = ch._wall_law_scale

@@ -1,12 +1,12 @@
-"""BLAS-evaluated linear maps inside CasADi graphs (wss_nlp.operators) against CasADi's own products."""
+"""BLAS-evaluated linear maps inside CasADi graphs (wss_nlp.core.operators) against CasADi's own products."""
 
 import numpy as np
 import pytest
 
 import casadi as ca
-from wss_nlp import checks, operators
-from wss_nlp import measurement as meas
-from wss_nlp import radius as rad
+from wss_nlp.core import checks, operators
+from wss_nlp.models import measurement as meas
+from wss_nlp.core import radius as rad
 
 # rounding only: the sums have at most a few hundred terms of size O(1)
 RTOL = 1e-12

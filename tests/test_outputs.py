@@ -4,7 +4,7 @@ import os
 
 import pytest
 
-from wss_nlp import outputs
+from wss_nlp.io import outputs
 from wss_nlp.errors import InputError
 
 

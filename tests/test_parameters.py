@@ -7,9 +7,9 @@ from wss_nlp.parameters import choice as ch
 from wss_nlp.parameters import noise as nl
 
 from wss_nlp.parameters import rules as pr
-from wss_nlp.cli import main
+from wss_nlp.app.cli import main
 from wss_nlp.errors import InputError, NoiseEstimationError
-from wss_nlp.tikhonov import LinearTikhonov
+from wss_nlp.core.tikhonov import LinearTikhonov
 
 
 def test_discrepancy_returns_largest_admissible_parameter():
@@ -137,10 +137,10 @@ def test_balance_beta_on_laminar_phantom_is_close_to_the_oracle():
     other seeds while a rule that over- or under-smooths by 100x (ratios 5-20 here) fails. The issue's absolute
     target (laminar WSS error <= 5 % at SNR 25) is checked as well.
     """
-    from wss_nlp import phantoms
-    from wss_nlp import wss
-    from wss_nlp.reconstruct import BETA_STOP, ReconstructionOptions, reconstruct
-    from wss_nlp import velocity as vel
+    from wss_nlp.synthetic import phantoms
+    from wss_nlp.models import wss
+    from wss_nlp.pipeline.reconstruct import BETA_STOP, ReconstructionOptions, reconstruct
+    from wss_nlp.models import velocity as vel
 
     acq, truth = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=21)
     res = reconstruct(acq, ReconstructionOptions(beta_rule="balance", uncertainty=False, dephasing_correction=False))[0]
@@ -167,9 +167,9 @@ def test_balance_alpha_radius_close_to_the_best_alpha(laminar_snr25):
     lands within a few percent of the best; measured worst over 18 rows x 2 seeds was 1.22x. 1.5x fails a rule
     that over-smooths like the discrepancy principle (alpha ~ 0.03: several times the best radius error).
     """
-    from wss_nlp import geometry as geo
-    from wss_nlp import radius as rad
-    from wss_nlp.reconstruct import ALPHA_STOP, ReconstructionOptions, reconstruct
+    from wss_nlp.models import geometry as geo
+    from wss_nlp.core import radius as rad
+    from wss_nlp.pipeline.reconstruct import ALPHA_STOP, ReconstructionOptions, reconstruct
 
     from conftest import geometry_problem
 
@@ -241,9 +241,9 @@ def test_magnitude_noise_within_20_percent_on_phantoms(case, h, snr, seed):
 
     These two rows were the worst of parameter_rules.md before the wall term was fixed (1.27x, 1.19x).
     """
-    from wss_nlp import measurement as meas
-    from wss_nlp import phantoms
-    from wss_nlp import preprocess as pp
+    from wss_nlp.models import measurement as meas
+    from wss_nlp.synthetic import phantoms
+    from wss_nlp.models import preprocess as pp
 
     from conftest import geometry_problem
 
@@ -262,7 +262,7 @@ def test_magnitude_noise_within_20_percent_on_phantoms(case, h, snr, seed):
 
 def test_noise_free_data_fall_back_to_the_fixed_values_and_say_so(fourier_noise_free):
     """Zero estimated noise: nothing to balance against; the fixed value is used and the result says why."""
-    from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+    from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
     acq, _ = fourier_noise_free  # no noise added: the Rayleigh background is exactly zero, so is epsilon
     res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
@@ -274,8 +274,8 @@ def test_noise_free_data_fall_back_to_the_fixed_values_and_say_so(fourier_noise_
 
 
 def test_a_value_next_to_a_rule_that_ignores_it_is_an_error():
-    from wss_nlp import velocity as vel
-    from wss_nlp.reconstruct import ReconstructionOptions
+    from wss_nlp.models import velocity as vel
+    from wss_nlp.pipeline.reconstruct import ReconstructionOptions
 
     with pytest.raises(InputError, match="beta_rule='fixed'"):
         ReconstructionOptions(velocity=vel.VelocityOptions(beta=1e-7))  # default rule: balance
@@ -317,8 +317,8 @@ def test_bad_rule_is_a_usage_error(tmp_path, capsys):
 
 def test_alpha_discrepancy_same_choice_with_both_geometry_solvers(laminar_snr25):
     """IPOPT (one NLP with alpha as parameter, warm starts) and projected Gauss-Newton walk the same sequence."""
-    from wss_nlp import geometry as geo
-    from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+    from wss_nlp.models import geometry as geo
+    from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
     acq, _ = laminar_snr25
     out = []
@@ -380,7 +380,7 @@ def test_plain_criterion_chi2_equals_the_direct_weighted_misfit():
     """chi^2 of the criterion's quadratic form (plain and with extra columns, through the bordered pencils and
     the one product serving both weightings) equals sum((M c - u)^2 / sigma^2) of its own coefficients, to
     rounding of u^T Sigma^-1 u (1e-10 relative)."""
-    from wss_nlp.velocity import VelocityProblem
+    from wss_nlp.models.velocity import VelocityProblem
 
     rng = np.random.default_rng(41)
     n, m, k = 400, 30, 5
@@ -400,7 +400,7 @@ def test_plain_criterion_many_equals_one_at_a_time():
     """PlainCriterion.many (one product with T for several sets of extra columns, as the wall-law scan uses it)
     gives each set's criterion, beta and coefficients as scoring it alone does, to rounding (1e-12 relative;
     the product's sums are blocked differently)."""
-    from wss_nlp.velocity import VelocityProblem
+    from wss_nlp.models.velocity import VelocityProblem
 
     rng = np.random.default_rng(43)
     n, m, k = 400, 30, 4

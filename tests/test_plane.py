@@ -1,4 +1,4 @@
-"""4D flow cut by a plane (``wss-nlp import ... --plane``, ``wss_nlp.plane``): exact resampling geometry, the
+"""4D flow cut by a plane (``wss-nlp import ... --plane``, ``wss_nlp.io.plane``): exact resampling geometry, the
 nearest-voxel values, the written layout, the docs' accuracy claim on unseen seeds, and refusals."""
 
 import os
@@ -9,13 +9,13 @@ import pytest
 
 pytest.importorskip("nibabel")
 
-from wss_nlp import files, importing  # noqa: E402
-from wss_nlp import scanner_exports as se  # noqa: E402
-from wss_nlp.cli import main  # noqa: E402
+from wss_nlp.io import files, importing  # noqa: E402
+from wss_nlp.synthetic import scanner_exports as se  # noqa: E402
+from wss_nlp.app.cli import main  # noqa: E402
 from wss_nlp.errors import InputError  # noqa: E402
-from wss_nlp.plane import Plane, resample  # noqa: E402
-from wss_nlp.reconstruct import RESAMPLED_NOTE, ReconstructionOptions, reconstruct  # noqa: E402
-from wss_nlp.scanner import ImportOptions  # noqa: E402
+from wss_nlp.io.plane import Plane, resample  # noqa: E402
+from wss_nlp.pipeline.reconstruct import RESAMPLED_NOTE, ReconstructionOptions, reconstruct  # noqa: E402
+from wss_nlp.io.scanner import ImportOptions  # noqa: E402
 
 AFFINE = np.array([[0.9, -0.3, 0.1, -12.0], [0.35, 1.0, 0.0, -15.0], [0.0, 0.1, 1.2, -9.0], [0, 0, 0, 1.0]])
 
@@ -67,7 +67,7 @@ def test_plane_values_are_the_nearest_voxels_projected_velocity(noise_free, tmp_
     assert imp.phase is None and imp.venc_m_s is None  # u . n may exceed each component's venc
     assert imp.slice_spacing_mm == pytest.approx(plane.sampling(vol.affine)[0])
     out = str(tmp_path / "plane.h5")
-    from wss_nlp.scanner import write_import
+    from wss_nlp.io.scanner import write_import
 
     write_import(out, imp)
     with h5py.File(out) as f:
@@ -142,7 +142,8 @@ def test_velocity_data_without_venc_reconstruct_as_well_as_phase_data():
     1 percentage point of the same data with venc plus 1 % (both about 1-4 % off the truth)."""
     from dataclasses import replace
 
-    from wss_nlp import metrics, phantoms
+    from wss_nlp.analysis import metrics
+    from wss_nlp.synthetic import phantoms
 
     for seed in (70, 71):
         acq, truth = phantoms.make_phantom("circle", h_mm=1.83, snr=25, seed=seed, as_phase=False)

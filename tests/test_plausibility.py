@@ -1,4 +1,4 @@
-"""Units, aliasing and several vessels (wss_nlp.plausibility): checked against known answers.
+"""Units, aliasing and several vessels (wss_nlp.pipeline.plausibility): checked against known answers.
 
 Seeds here were not used to choose any threshold of the screen.
 """
@@ -8,10 +8,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from wss_nlp import metrics, phantoms
-from wss_nlp import plausibility as pl
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.pipeline import plausibility as pl
 from wss_nlp.errors import InputError
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 FAST = ReconstructionOptions(uncertainty=False)
 
@@ -134,8 +135,8 @@ def test_a_velocity_fit_that_interpolates_the_noise_is_flagged():
     and its WSS is off by several times the peak, so the slice is SUSPECT; the same frame at beta 1e-6
     is not (the built-in phantoms at their chosen beta: at most 0.11 of the voxels, checked on seven cases at
     h 0.6-1.5 mm and SNR 10/25)."""
-    from wss_nlp import pulsatile
-    from wss_nlp.results import DOF_LIMIT
+    from wss_nlp.synthetic import pulsatile
+    from wss_nlp.pipeline.results import DOF_LIMIT
 
     frames, _ = pulsatile.make_cine(h_mm=1.0, snr=25, seed=4, frames=20, radius_mm=3.0)
     base = ReconstructionOptions(uncertainty=False, beta_rule="fixed")

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
 
-from wss_nlp import preprocess as pp
+from wss_nlp.models import preprocess as pp
 from wss_nlp.errors import LumenTouchesBorderError, NoVesselError
-from wss_nlp.measurement import VoxelGrid
+from wss_nlp.models.measurement import VoxelGrid
 
 
 def _disk_image(n=64, r=10.0, c=(0.0, 0.0), h=0.5, lo=0.2, hi=3.0, sigma=0.05, seed=0):

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from wss_nlp import radius as rad
+from wss_nlp.core import radius as rad
 
 
 def test_design_matrix_matches_series(rng):

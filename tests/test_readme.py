@@ -21,7 +21,8 @@ def test_python_example_runs(tmp_path, monkeypatch, capsys):
 
 
 def test_own_data_example_writes_a_readable_input(tmp_path, monkeypatch):
-    from wss_nlp import files, phantoms
+    from wss_nlp.io import files
+    from wss_nlp.synthetic import phantoms
 
     acq, _ = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=81)
     monkeypatch.chdir(tmp_path)
@@ -36,7 +37,7 @@ def test_own_data_commands_run_on_a_phantom_dicom_folder(tmp_path, monkeypatch):
 
     pytest.importorskip("pydicom")
     pytest.importorskip("meshio")
-    from wss_nlp.cli import main
+    from wss_nlp.app.cli import main
 
     text = README.read_text()
     block = re.search(r"```bash\n(.*?)```", text[text.index("## Your own data") :], re.S).group(1)

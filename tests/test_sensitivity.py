@@ -4,14 +4,14 @@ import h5py
 import numpy as np
 import pytest
 
-from wss_nlp import coupled as cpl
-from wss_nlp import geometry as geo
-from wss_nlp import phantoms
-from wss_nlp import sensitivity as sens
-from wss_nlp import velocity as vel
-from wss_nlp import wss
-from wss_nlp.cli import main
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.models import coupled as cpl
+from wss_nlp.models import geometry as geo
+from wss_nlp.synthetic import phantoms
+from wss_nlp.uncertainty import sensitivity as sens
+from wss_nlp.models import velocity as vel
+from wss_nlp.models import wss
+from wss_nlp.app.cli import main
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 # Re-solves use IPOPT at 1e-13 and Cholesky for the velocity, so central differences with a relative step of
 # 1e-3 (1e-4 mm for the centre) are accurate to ~1e-7; the issue asks for agreement to 1e-4.
@@ -187,7 +187,7 @@ def test_coupled_derivatives_with_a_wall_law_layer_match_resolves():
     """The coupled NLP with the law-of-the-wall layer at a fixed scale (DNS at Re_tau 549, h = 1.5 mm): the IFT
     derivatives of the mean WSS in the centre, the magnitude and the velocity equal central differences
     of re-solves (the layer's cell means move with R through the exact CasADi derivatives of their formula)."""
-    from wss_nlp import near_wall as nw
+    from wss_nlp.models import near_wall as nw
 
     acq, _ = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=25, seed=3)
     opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False, beta_rule="fixed")
@@ -273,7 +273,7 @@ def test_band_agrees_with_monte_carlo():
 
 def test_operator_derivative_dot_test():
     """The hand-written pair dT_k c / dT_k^T y of sens.OperatorDerivative are adjoint, for every direction k."""
-    from wss_nlp import checks
+    from wss_nlp.core import checks
 
     acq, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=91)
     res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
@@ -293,8 +293,8 @@ def _per_voxel_reference(problem, options, coefficients, alpha, gamma):
     rule; an independent computation of the same quantities)."""
     import casadi as ca
 
-    from wss_nlp import measurement as meas
-    from wss_nlp import radius as rad
+    from wss_nlp.models import measurement as meas
+    from wss_nlp.core import radius as rad
 
     n, q = options.n_fourier, geo.quad_order(problem, options)
     n_r = rad.n_coefficients(n)

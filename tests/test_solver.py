@@ -5,7 +5,7 @@ import numpy as np
 
 import pytest
 
-from wss_nlp.solver import DenseCall, EagerObjective, SharedEvaluation, gauss_newton_ipopt, run_nlpsol
+from wss_nlp.core.solver import DenseCall, EagerObjective, SharedEvaluation, gauss_newton_ipopt, run_nlpsol
 
 
 def _toy():

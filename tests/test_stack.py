@@ -1,15 +1,18 @@
-"""Stacks with z-regularization (wss_nlp.stack): coupled vs Kaczmarz, accuracy gain, corrupt slices."""
+"""Stacks with z-regularization (wss_nlp.models.stack): coupled vs Kaczmarz, accuracy gain, corrupt slices."""
 
 import h5py
 import numpy as np
 import pytest
 
-from wss_nlp import files as wio
-from wss_nlp import metrics, phantoms, pipeline, stack
+from wss_nlp.io import files as wio
+from wss_nlp.analysis import metrics
+from wss_nlp.synthetic import phantoms
+from wss_nlp.pipeline import steps as pipeline
+from wss_nlp.models import stack
 from wss_nlp.parameters.choice import segment_beta
-from wss_nlp.cli import main
+from wss_nlp.app.cli import main
 from wss_nlp.errors import InputError
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 FAST = ReconstructionOptions(uncertainty=False, dephasing_correction=False)
 
@@ -84,7 +87,7 @@ def test_velocity_sweeps_solve_the_coupled_normal_equations():
     # Block Gauss-Seidel against a direct dense solve of the same block system (an independent solver).
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=20, seed=2)
     res, info = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", tol=1e-12))
-    from wss_nlp import velocity as vel
+    from wss_nlp.models import velocity as vel
 
     vps = [
         vel.assemble(
@@ -120,7 +123,7 @@ def test_corrupt_slices_are_reported_and_the_rest_solved(tmp_path, capsys):
         m[2, 5, 5] = np.nan  # a corrupt voxel
         m[4] = 1.0  # a slice without a vessel
         f["magnitude"][...] = m
-    from wss_nlp.cli import _write_truth
+    from wss_nlp.app.cli import _write_truth
 
     _write_truth(str(tfile), truth)
     for extra in ([], ["--z-smoothing", "0"]):
@@ -227,8 +230,8 @@ def test_wss_vector_formula_on_the_tapered_swirl():
     # tau_z = 2 mu U / R and (tau_x, tau_y) = 2 mu Omega (-sin, cos); the exact 3D results are axial 2 mu U / R,
     # circumferential 2 mu Omega sqrt(1 + R'^2) and normal part -4 mu U R' / R (the manufactured u_z is not
     # divergence-free).
-    from wss_nlp import radius as rad
-    from wss_nlp import wss
+    from wss_nlp.core import radius as rad
+    from wss_nlp.models import wss
 
     mu, big_r, slope, u, omega = 3.5e-3, 10.0, -0.1, 0.3, 20.0
     phi = rad.uniform_angles(36)
@@ -246,7 +249,7 @@ def test_wss_vector_formula_on_the_tapered_swirl():
 def test_three_components_end_to_end():
     # Noise-free tapered tube with swirl (4D flow): axial and circumferential WSS against the closed forms.
     # beta = 1e-11: the default beta (chosen for through-plane profiles) biases the swirl by about 7 % (README).
-    from wss_nlp import velocity as vel
+    from wss_nlp.models import velocity as vel
 
     acq, truth = phantoms.make_stack("tapered", nz=5, h_mm=1.0, spacing_mm=2.0, snr=None, seed=0, swirl_per_s=20.0)
     opts = ReconstructionOptions(uncertainty=False, velocity=vel.VelocityOptions(beta=1e-11), beta_rule="fixed")
@@ -317,8 +320,8 @@ def test_velocity_solvers_agree_when_slices_carry_near_wall_layers():
     block Gauss-Seidel sweeps, the coupled IPOPT QP and a dense solve of the block system agree (1e-6 relative:
     the sweeps stop at a relative residual of 1e-10, their rounding floor with layer columns is about 3e-12,
     times the blocks' conditioning of about 1e4)."""
-    from wss_nlp import near_wall as nw
-    from wss_nlp import velocity as vel
+    from wss_nlp.models import near_wall as nw
+    from wss_nlp.models import velocity as vel
 
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=20, seed=3)
     res, _ = pipeline.reconstruct_stack(acq, FAST)
@@ -367,12 +370,12 @@ def test_z_regularized_turbulent_stack_takes_the_wall_law_layer_on_every_slice()
 
 def test_weakly_coupled_coupled_stack_is_the_slice_by_slice_coupled_method():
     """The coupled geometry+velocity NLP of a segment (stack.coupled_segment) with a negligible z-weight (l = 1e-4
-    mm for 2 mm spacing) reproduces the coupled method slice by slice (wss_nlp.coupled.solve, its own NLP per
+    mm for 2 mm spacing) reproduces the coupled method slice by slice (wss_nlp.models.coupled.solve, its own NLP per
     slice) with the same velocity weight: radius, velocity and tau to 1e-4 relative (both IPOPT at tol 1e-6 on
     the same functional up to a 1e-9 z-term; observed ~1e-6)."""
     from dataclasses import replace
 
-    from wss_nlp.coupled import CoupledOptions
+    from wss_nlp.models.coupled import CoupledOptions
 
     acq, _ = phantoms.make_stack("curved", nz=3, h_mm=1.5, spacing_mm=2.0, snr=15, seed=12)
     opts = ReconstructionOptions(
@@ -391,14 +394,14 @@ def test_weakly_coupled_coupled_stack_is_the_slice_by_slice_coupled_method():
 
 def test_coupled_stack_is_stationary_for_the_joint_functional():
     """At the coupled stack's solution the gradient of sum_k F_k + kappa C^T (L x W0) C + lambda kappa_v
-    V0^T (L x G0/pi) V0, assembled here from each slice's own coupled NLP (wss_nlp.coupled.build) and the
+    V0^T (L x G0/pi) V0, assembled here from each slice's own coupled NLP (wss_nlp.models.coupled.build) and the
     z-penalties in NumPy, vanishes (box inactive): relative to the slices' own gradients, below 1e-4 (IPOPT tol
     1e-6); without the z-terms it would not (the coupling is real)."""
     import casadi as ca
 
-    from wss_nlp import coupled as cpl
-    from wss_nlp import geometry as geo
-    from wss_nlp import radius as rad
+    from wss_nlp.models import coupled as cpl
+    from wss_nlp.models import geometry as geo
+    from wss_nlp.core import radius as rad
 
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=15, seed=13)
     opts = ReconstructionOptions(method="coupled", uncertainty=False, beta_rule="fixed", dephasing_correction=False)

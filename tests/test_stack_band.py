@@ -1,17 +1,20 @@
-"""The uncertainty band of z-regularized stacks (wss_nlp.stack_band): derivatives against re-solves of the stack,
-the weakly coupled limit against the slice band of wss_nlp.sensitivity (an independent implementation)."""
+"""The uncertainty band of z-regularized stacks (uncertainty.stack_band): derivatives against re-solves of the stack,
+the weakly coupled limit against the slice band of wss_nlp.uncertainty.sensitivity (an independent implementation)."""
 
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from wss_nlp import geometry as geo
-from wss_nlp import phantoms, pipeline, stack, stack_band
-from wss_nlp import radius as rad
-from wss_nlp import velocity as vel
-from wss_nlp import wss as wss_mod
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.models import geometry as geo
+from wss_nlp.synthetic import phantoms
+from wss_nlp.pipeline import steps as pipeline
+from wss_nlp.models import stack
+from wss_nlp.uncertainty import stack_band
+from wss_nlp.core import radius as rad
+from wss_nlp.models import velocity as vel
+from wss_nlp.models import wss as wss_mod
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
 
 # Re-solves at IPOPT tol 1e-13 (geometry) and exact normal equations (velocity); central differences with a step
 # of 1e-4 (normalized magnitude, m/s) are then accurate to ~1e-7 relative, so 1e-4 is far from rounding and far
@@ -159,7 +162,7 @@ def test_cross_slice_responses_match_resolves(segment, data):
 
 def test_weakly_coupled_stack_band_equals_the_slice_band():
     """With a negligible z-weight (l = 1e-4 mm for 2 mm spacing: kappa ~ 1e-9) the segment's band is the band of
-    each slice alone, computed by wss_nlp.sensitivity (its own KKT, anchor re-solve and chain rule) to 1e-6;
+    each slice alone, computed by wss_nlp.uncertainty.sensitivity (its own KKT, anchor re-solve and chain rule) to 1e-6;
     with the real weight the band narrows (the z-penalty pools neighbouring slices)."""
     acq, _ = phantoms.make_stack("curved", nz=3, h_mm=1.5, spacing_mm=2.0, snr=15, seed=8)
     opts = ReconstructionOptions(dephasing_correction=False, beta_rule="fixed")
@@ -175,7 +178,7 @@ def test_weakly_coupled_stack_band_equals_the_slice_band():
 
 def test_turbulent_stack_band_carries_the_wall_law_scale():
     """A turbulent stack (wall-law layer on every slice): the weakly coupled band equals the slice band, which
-    includes the law-of-the-wall scale's response to the noise (wss_nlp.reconstruct.uncertainty), to 1e-6."""
+    includes the law-of-the-wall scale's response to the noise (wss_nlp.pipeline.reconstruct.uncertainty), to 1e-6."""
     acq, _ = phantoms.make_stack("turbulent", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=9)
     opts = ReconstructionOptions(dephasing_correction=False, beta_rule="fixed")
     weak, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
@@ -190,7 +193,7 @@ def test_turbulent_stack_band_carries_the_wall_law_scale():
 @pytest.fixture(scope="module")
 def coupled_segment():
     """A 4-slice segment solved by the coupled method (z order 2), with what a re-solve needs."""
-    from wss_nlp.coupled import CoupledOptions
+    from wss_nlp.models.coupled import CoupledOptions
 
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=15, seed=17)
     opts = ReconstructionOptions(
@@ -250,9 +253,9 @@ def test_coupled_cross_slice_responses_match_resolves(coupled_segment, data):
 
 
 def test_weakly_coupled_coupled_stack_band_equals_the_slice_band():
-    """The coupled method with a negligible z-weight: each slice's segment band equals wss_nlp.sensitivity's
+    """The coupled method with a negligible z-weight: each slice's segment band equals wss_nlp.uncertainty.sensitivity's
     coupled band of the slice alone (its own KKT system, polished by Newton steps) to 1e-6."""
-    from wss_nlp.coupled import CoupledOptions
+    from wss_nlp.models.coupled import CoupledOptions
 
     acq, _ = phantoms.make_stack("curved", nz=3, h_mm=1.5, spacing_mm=2.0, snr=15, seed=12)
     opts = ReconstructionOptions(

@@ -72,8 +72,9 @@ def _cycle(graph: dict):
 
 def test_no_import_cycles():
     graph = {m: _imports(m) for m in MODULES}
-    assert graph["stack"] and graph["reconstruct"]  # the parser sees imports at all
-    assert "parameters.choice" in graph["reconstruct"] and "geometry" in graph["parameters.choice"]  # subpackages too
+    assert graph["models.stack"] and graph["pipeline.reconstruct"]  # the parser sees imports at all
+    # subpackages too
+    assert "parameters.choice" in graph["pipeline.reconstruct"] and "models.geometry" in graph["parameters.choice"]
     assert _cycle(graph) is None, " -> ".join(_cycle(graph))
 
 
@@ -90,7 +91,7 @@ def test_the_command_line_starts_without_scipy():
     """`wss-nlp --help` imports no SciPy module (they cost more than the rest of its start-up; issue 19), and the
     package's stand-in imports one when it is first used, attributes of the package itself too."""
     code = (
-        "import sys; import wss_nlp.cli; from wss_nlp.cli import main; "
+        "import sys; import wss_nlp.app.cli; from wss_nlp.app.cli import main; "
         "assert not [m for m in sys.modules if m.split('.')[0] == 'scipy'], 'scipy imported at start-up'; "
         "from wss_nlp._lazy import scipy; assert scipy.linalg.norm([3.0, 4.0]) == 5.0; "
         "assert 'scipy.linalg' in sys.modules and isinstance(scipy.__version__, str)"
@@ -104,7 +105,7 @@ def test_no_module_shadows_the_standard_library():
 
 def test_blas_threads_limit_is_applied_and_restored():
     threadpoolctl = pytest.importorskip("threadpoolctl")
-    from wss_nlp.reconstruct import blas_threads
+    from wss_nlp.pipeline.reconstruct import blas_threads
 
     def blas():
         return [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]

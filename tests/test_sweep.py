@@ -1,4 +1,4 @@
-"""Parameter sweeps (wss_nlp.sweep): grid expansion, resume, Dask, tables and plots, bad input."""
+"""Parameter sweeps (wss_nlp.app.sweep): grid expansion, resume, Dask, tables and plots, bad input."""
 
 import glob
 import json
@@ -7,10 +7,10 @@ import os
 import numpy as np
 import pytest
 
-from wss_nlp import files as wio
-from wss_nlp import phantoms
-from wss_nlp import sweep
-from wss_nlp.cli import main
+from wss_nlp.io import files as wio
+from wss_nlp.synthetic import phantoms
+from wss_nlp.app import sweep
+from wss_nlp.app.cli import main
 from wss_nlp.errors import InputError
 
 SMALL = """
@@ -175,7 +175,7 @@ def test_local_processes_and_dask_cluster_agree(tmp_path):
 def test_failed_case_is_recorded_and_the_rest_run(tmp_path):
     acq, truth = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=0)
     wio.write_acquisition(tmp_path / "good.h5", acq)
-    from wss_nlp.cli import _write_truth
+    from wss_nlp.app.cli import _write_truth
 
     _write_truth(str(tmp_path / "good_truth.h5"), truth)
     bad = acq.magnitude.copy()
@@ -282,7 +282,7 @@ def test_progress_draws_a_bar_on_a_terminal_and_a_line_per_case_elsewhere():
     log one line per case with its id and status (cases done before count as done)."""
     import io
 
-    from wss_nlp.sweep import Progress
+    from wss_nlp.app.sweep import Progress
 
     class Terminal(io.StringIO):
         def isatty(self):

@@ -5,11 +5,11 @@ import pytest
 import scipy.linalg
 
 from wss_nlp.parameters import rules as pr
-from wss_nlp import phantoms
-from wss_nlp import velocity as vel
-from wss_nlp import wss as wss_mod
-from wss_nlp.reconstruct import ReconstructionOptions, reconstruct
-from wss_nlp.tikhonov import LinearTikhonov
+from wss_nlp.synthetic import phantoms
+from wss_nlp.models import velocity as vel
+from wss_nlp.models import wss as wss_mod
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.core.tikhonov import LinearTikhonov
 
 BETAS = pr.geometric_grid(1e-2, 1e-14)
 
@@ -93,7 +93,7 @@ def test_rank_deficient_normal_matrix():
 def test_bordered_problem_equals_the_full_one_solved_directly():
     """Appended unpenalized columns through the original's pencils: the same coefficients and traces as the full
     problem's Cholesky solves and explicit traces (rounding: 1e-12 relative), on a semi-definite penalty."""
-    from wss_nlp.tikhonov import BorderedTikhonov
+    from wss_nlp.core.tikhonov import BorderedTikhonov
 
     rng = np.random.default_rng(21)
     n, m, k = 300, 40, 5

@@ -1,15 +1,15 @@
 import numpy as np
 import pytest
 
-from wss_nlp import velocity as vel
-from wss_nlp.measurement import VoxelGrid
+from wss_nlp.models import velocity as vel
+from wss_nlp.models.measurement import VoxelGrid
 
 from conftest import geometry_problem
 
 
 @pytest.fixture(scope="module")
 def problem(laminar_snr25):
-    from wss_nlp import geometry as geo
+    from wss_nlp.models import geometry as geo
 
     acq, _ = laminar_snr25
     g = geo.solve(geometry_problem(acq), geo.GeometryOptions())

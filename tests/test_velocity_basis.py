@@ -4,7 +4,7 @@ import pytest
 import casadi as ca
 import scipy.special
 
-from wss_nlp import velocity_basis as vb
+from wss_nlp.core import velocity_basis as vb
 
 
 def _disk_quadrature(nr, nt):
@@ -100,7 +100,7 @@ def test_raw_values_through_the_transform_are_the_values_and_averages_agree():
     the voxel average taken function by function equals averaging the full value array (same sums)."""
     import scipy.sparse
 
-    from wss_nlp import near_wall as nw
+    from wss_nlp.models import near_wall as nw
 
     rng = np.random.default_rng(8)
     rho, t = np.sqrt(rng.uniform(0, 1, 400)), rng.uniform(0, 2 * np.pi, 400)

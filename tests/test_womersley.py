@@ -1,4 +1,4 @@
-"""The momentum model of a cine slice (wss_nlp.womersley): its pieces against closed forms, recovery of exact
+"""The momentum model of a cine slice (wss_nlp.models.womersley): its pieces against closed forms, recovery of exact
 Womersley flow, the BIC choice on flows it does and does not describe, forced choices and the result file.
 
 Seeds 60-69 (the report, scripts/cine.py, uses 0-4; nothing was tuned on these)."""
@@ -12,9 +12,11 @@ import pytest
 import scipy.linalg
 import scipy.special
 
-from wss_nlp import cine, pulsatile, womersley
-from wss_nlp import radius as rad
-from wss_nlp.reconstruct import ReconstructionOptions
+from wss_nlp.pipeline import cine
+from wss_nlp.synthetic import pulsatile
+from wss_nlp.models import womersley
+from wss_nlp.core import radius as rad
+from wss_nlp.pipeline.reconstruct import ReconstructionOptions
 
 
 def _options(model="auto", **kw):
@@ -216,7 +218,7 @@ def test_kspace_acquired_cine_gets_the_momentum_model_through_the_psf():
     momentum model is chosen, every frame lands within 3 % of the peak (measured 1.4 %; at h = 1 mm 1.1 %
     where the frames' own fits miss by about 45 %) and the TAWSS within the issue's 5 % (measured 2.3 %: 3 mm
     acquired voxels)."""
-    from wss_nlp import kspace
+    from wss_nlp.models import kspace
 
     psf = kspace.PSF("hamming", (2.0, 2.0))
     frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=68, frames=8, psf=psf)
@@ -241,9 +243,9 @@ def test_elliptic_pipe_the_circle_profile_along_rays_stays_within_the_goals():
 
 def _prior_problems(n: int, seed: int):
     """n frames of the circle phantom's voxel data on one wall, scaled in time plus noise (sigma 0.01 m/s)."""
-    from wss_nlp import phantoms
-    from wss_nlp import velocity as vel
-    from wss_nlp.reconstruct import reconstruct
+    from wss_nlp.synthetic import phantoms
+    from wss_nlp.models import velocity as vel
+    from wss_nlp.pipeline.reconstruct import reconstruct
 
     acq, _ = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=seed)
     r = reconstruct(acq, _options())[0]
@@ -255,11 +257,11 @@ def _prior_problems(n: int, seed: int):
 
 
 def test_temporal_prior_block_cholesky_equals_a_solve_per_temporal_frequency():
-    """wss_nlp.temporal on one wall with one beta for every frame: the block system's Cholesky solve equals an
+    """wss_nlp.models.temporal on one wall with one beta for every frame: the block system's Cholesky solve equals an
     independent solver, a discrete Fourier transform over the frames and one system per frequency
     (K + beta/pi G + gamma/pi lambda_j G0, lambda_j = (2 - 2 cos(2 pi j / n))^2): to 1e-9 relative, two
     factorizations of well-conditioned (cond < 1e7) systems of one linear problem."""
-    from wss_nlp import temporal
+    from wss_nlp.models import temporal
 
     problems = _prior_problems(6, 69)
     beta, gamma, n = 1e-6, 10.0, len(problems)
@@ -276,11 +278,11 @@ def test_temporal_prior_block_cholesky_equals_a_solve_per_temporal_frequency():
 
 
 def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
-    """wss_nlp.temporal.fit with per-frame betas: the chosen gamma is the smallest criterion it evaluated; at that
+    """models.temporal.fit with per-frame betas: the chosen gamma is the smallest criterion it evaluated; at that
     gamma the coefficients, the smoother's trace tr(H^-1 blockdiag K_k) (from a triangular inverse) and each
     frame's covariance block (H^-1 blockdiag(T^T W S W T) H^-1) equal dense numpy formulas to 1e-8 relative;
     gamma -> 0 gives each frame's own Tikhonov solution back (1e-6: gamma 1e-9 perturbs it by about that)."""
-    from wss_nlp import temporal
+    from wss_nlp.models import temporal
 
     problems = _prior_problems(5, 68)
     n, m = len(problems), problems[0].operator.shape[1]

@@ -5,9 +5,9 @@ import pytest
 
 import casadi as ca
 
-from wss_nlp import radius as rad
-from wss_nlp import wss
-from wss_nlp.mapping import symbolic_forward
+from wss_nlp.core import radius as rad
+from wss_nlp.models import wss
+from wss_nlp.core.mapping import symbolic_forward
 
 COEF = np.array([10.0, 0.8, 0.5, -0.4, 0.3, 0.6, -0.2])  # a lumen in V_3
 CENTER = (1.5, -0.5)
@@ -75,8 +75,8 @@ def test_mean_of_constant_is_constant():
 
 def test_wss_matrix_equals_direct_evaluation(laminar_snr25):
     """tau is linear in the velocity coefficients: A c must equal the direct evaluation."""
-    from wss_nlp import geometry as geo
-    from wss_nlp import velocity as vel
+    from wss_nlp.models import geometry as geo
+    from wss_nlp.models import velocity as vel
 
     from conftest import geometry_problem
 

@@ -144,7 +144,7 @@ def is_volume_file(path) -> bool:
 
 def write_volume(path, vol: VolumeAcquisition) -> None:
     """Write a volume file (atomic: nothing at ``path`` until it is complete)."""
-    from ..files import atomic_h5
+    from .files import atomic_h5
 
     vol.validate()
     with atomic_h5(path) as f:

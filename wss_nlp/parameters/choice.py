@@ -4,8 +4,8 @@
 discrepancy principle (eq. (disc)) or from balancing on the radius;
 :func:`choose_beta` picks beta for the velocity problem (fixed, eq. (disc2),
 GCV, the L-curve or balancing on the WSS); :func:`parse_rule` turns a
-user's word into a rule. Used by single slices (:mod:`wss_nlp.reconstruct`)
-and stacks (:mod:`wss_nlp.stack`) alike.
+user's word into a rule. Used by single slices (:mod:`wss_nlp.pipeline.reconstruct`)
+and stacks (:mod:`wss_nlp.models.stack`) alike.
 """
 
 from __future__ import annotations
@@ -16,22 +16,22 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .. import geometry as geo
-from .. import kspace
-from .. import near_wall as nw
-from .. import radius as rad
-from .. import sensitivity as sens
-from .. import velocity as vel
-from .. import wss as wss_mod
+from ..models import geometry as geo
+from ..models import kspace
+from ..models import near_wall as nw
+from ..core import radius as rad
+from ..uncertainty import sensitivity as sens
+from ..models import velocity as vel
+from ..models import wss as wss_mod
 from ..errors import InputError
-from ..tikhonov import BETA_MIN, BorderedTikhonov
+from ..core.tikhonov import BETA_MIN, BorderedTikhonov
 from . import noise as nl
 from . import rules as pr
 
 if TYPE_CHECKING:
-    from ..reconstruct import ReconstructionOptions
+    from ..pipeline.reconstruct import ReconstructionOptions
 
-#: Smallest beta of the GCV, L-curve, balancing and discrepancy grids (:data:`wss_nlp.tikhonov.BETA_MIN`).
+#: Smallest beta of the GCV, L-curve, balancing and discrepancy grids (:data:`wss_nlp.core.tikhonov.BETA_MIN`).
 BETA_STOP = BETA_MIN
 
 ALPHA_RULES = ("fixed", "discrepancy", "balance")
@@ -76,7 +76,7 @@ def choose_alpha(
     The residual and the noise level are both taken on the annulus voxels
     (see :mod:`wss_nlp.parameters`); each solve starts from the previous one.
     ``start``: radius coefficients near the solution (a neighbouring frame's); a fixed alpha with IPOPT
-    then starts there with a small barrier (:data:`wss_nlp.geometry.WARM_START`).
+    then starts there with a small barrier (:data:`wss_nlp.models.geometry.WARM_START`).
     """
     gopt = options.geometry
     if options.alpha_rule == "fixed":
@@ -134,7 +134,7 @@ def balance_alpha(
     On the grid ``alpha_start 2^-n`` down to :data:`ALPHA_STOP`, each solve
     warm-started from the previous one. The noise part of ``R_alpha`` is
     linearized, ``e_alpha = D (dc/dm) n_m`` with ``dc/dm`` from the implicit
-    function theorem on the KKT system (:func:`wss_nlp.sensitivity.geometry_kkt`,
+    function theorem on the KKT system (:func:`wss_nlp.uncertainty.sensitivity.geometry_kkt`,
     CasADi derivatives, active box rows included) and independent voxel noise
     of standard deviation ``sigma_m = delta / sqrt(|V| n_annulus)`` (the
     per-voxel level behind ``delta``, eq. (disc)). Units: R in mm.
@@ -268,7 +268,7 @@ class PlainCriterion:
     with the plain block formed once (relative rounding about 1e-13 of
     :math:`u^\top\Sigma^{-1}u`, far below the BIC differences that decide); extra
     columns go through the plain problem's pencils
-    (:class:`wss_nlp.tikhonov.BorderedTikhonov`).
+    (:class:`wss_nlp.core.tikhonov.BorderedTikhonov`).
     """
 
     def __init__(self, plain: vel.VelocityProblem, sigma: np.ndarray):
@@ -297,7 +297,7 @@ class PlainCriterion:
 
     def curve(self, extra: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``chi^2``, dof and coefficients on :data:`CRITERION_BETAS` (a criterion over several problems, the
-        frames of a cine slice in :mod:`wss_nlp.womersley`, weighs each with the joint ``ln n``)."""
+        frames of a cine slice in :mod:`wss_nlp.models.womersley`, weighs each with the joint ``ln n``)."""
         if extra is None:
             tk = self.plain.tikhonov
             coef, dof = tk.coefficients(CRITERION_BETAS), tk.traces(CRITERION_BETAS)
@@ -360,7 +360,7 @@ def choose_layer(
     r"""The near-wall model of one slice: the plain basis, or a layer family and scale, by BIC.
 
     With the bulk Reynolds number ``reynolds`` the family is the flow
-    regime's (:func:`wss_nlp.near_wall.regime_family`: the law of the wall
+    regime's (:func:`wss_nlp.models.near_wall.regime_family`: the law of the wall
     for turbulent flow, the exponential layer for laminar flow) and only
     plain-or-layer is left to the BIC, which cannot tell the families apart
     (both fit thin layers about equally well; measured in
@@ -494,7 +494,7 @@ def _scale_spread(score, x_best: float, bracket: tuple, disk_map) -> tuple[tuple
     """The scales the data hardly tell from the chosen one, and how far apart their mean WSS lie.
 
     Returns ``((l_lo/R, l_hi/R), spread)``: the interval of ``log2(l/R)`` about ``x_best`` on which the
-    criterion ``score(x)[0]`` stays within :data:`wss_nlp.near_wall.AMBIGUOUS_MARGIN` of its value at
+    criterion ``score(x)[0]`` stays within :data:`wss_nlp.models.near_wall.AMBIGUOUS_MARGIN` of its value at
     ``x_best`` (each end widened from :data:`SPREAD_RESOLUTION` octaves in doubling steps, then bisected to a
     quarter of its distance from ``x_best``, inside ``bracket``), and
     the range of the mean wall shear stress of the fits at the two ends and at ``x_best`` (each at its own
@@ -708,7 +708,7 @@ def kspace_filter(magnitudes, grid, template: kspace.PSF, options: Reconstructio
     :data:`FILTER_MARGIN` is reported as ambiguous ("none" and "fermi",
     which differ only above 0.9 k_max, are often that close).
     """
-    from .. import preprocess as pp  # here: the parameter rules otherwise work on assembled problems
+    from ..models import preprocess as pp  # here: the parameter rules otherwise work on assembled problems
 
     last: Exception | None = None
     for iz, image in enumerate(magnitudes):

@@ -20,7 +20,7 @@ import numpy as np
 
 from .._lazy import scipy
 from ..errors import NoiseEstimationError
-from ..preprocess import robust_std, where_prefix
+from ..models.preprocess import robust_std, where_prefix
 
 #: Fewest plateau voxels on which a noise level is estimated.
 MIN_PLATEAU_VOXELS = 20

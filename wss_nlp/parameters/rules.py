@@ -3,7 +3,7 @@
 * :func:`discrepancy_search`: ``p = max{p0 2^-n : residual(p) <= tau * noise}``,
   each solve warm-started from the previous one (any problem: a ``solve``
   callable);
-* for the linear velocity problem (a :class:`wss_nlp.tikhonov.LinearTikhonov`):
+* for the linear velocity problem (a :class:`wss_nlp.core.tikhonov.LinearTikhonov`):
   :func:`gcv_curve` (generalized cross-validation, closed form),
   :func:`lcurve_corner` and :func:`balancing_principle` (Lepskii: compare
   the WSS estimates of neighbouring betas with their exact noise
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from ..tikhonov import LinearTikhonov
+from ..core.tikhonov import LinearTikhonov
 
 
 @dataclass
@@ -121,7 +121,7 @@ def gcv_curve(problem: LinearTikhonov, betas):
     matrix ``A_beta = W^{1/2} T H^{-1} T^T W^{1/2}``,
     ``GCV(beta) = n |W^{1/2}(T c_beta - u)|^2 / (n - tr A_beta)^2``,
     ``tr A_beta = tr(H^{-1} T^T W T)``; the whole grid from one generalized
-    eigendecomposition (:meth:`wss_nlp.tikhonov.LinearTikhonov.gcv`).
+    eigendecomposition (:meth:`wss_nlp.core.tikhonov.LinearTikhonov.gcv`).
     Returns ``(gcv, residual_norms, penalties)`` arrays.
     """
     return problem.gcv(betas)
@@ -182,7 +182,7 @@ def balance_grams(problem: LinearTikhonov, betas, functional, sigma_u, correlate
     of standard deviations ``sigma_u``, the noise part of ``S c_j`` is
     ``M_j n`` with ``M_j = S H_j^{-1} T^T W diag(sigma_u)`` and ``n`` standard
     normal, so ``E<e_j, e_k> = tr(M_j M_k^T)``; the whole beta grid from one
-    generalized eigendecomposition (:meth:`wss_nlp.tikhonov.LinearTikhonov.balance_grams`).
+    generalized eigendecomposition (:meth:`wss_nlp.core.tikhonov.LinearTikhonov.balance_grams`).
     Returns ``(gram_estimates, gram_noise, residual_norms)``.
     """
     return problem.balance_grams(betas, functional, sigma_u, correlate)

@@ -1,0 +1,344 @@
+"""NIfTI phase-contrast images in (``wss-nlp import``): a magnitude and a phase (or velocity) file.
+
+Reads ``.nii`` / ``.nii.gz`` files (nibabel, an optional dependency:
+``pip install 'wss-nlp[nifti]'``) with their JSON sidecars where a converter
+(dcm2niix) wrote them, into :class:`~wss_nlp.io.scanner.Image2D` records.
+
+Notes
+-----
+A file holds ``data[i, j, k, t]``; the affine ``A`` maps voxel ``(i, j, k)``
+to millimetres. Image ``k`` of frame ``t`` is ``data[:, :, k, t].T`` (rows
+``j``, columns ``i``, as DICOM converters write them): its row direction is
+``A[:3, 0] / |A[:3, 0]|``, its column direction ``A[:3, 1] / |A[:3, 1]|``, its
+pixel spacing ``[|A[:3, 1]|, |A[:3, 0]|]`` and its first voxel lies at
+``A (0, 0, k, 1)``. Values are scaled by the header's ``scl_slope`` and
+``scl_inter`` (nibabel applies them).
+
+The role of a file comes from its sidecar's ``ImageType`` (``P``/``PHASE``
+against ``M``/``MAGNITUDE``), else from its name (``_ph``, ``phase``, ``vel``
+against ``mag``). The phase values' units come from ``--phase-units``, else
+from the sidecar: Siemens (``Manufacturer``) phase as dcm2niix writes it,
+``[-4096, 4096)`` for ``[-pi, pi)``, or radians when all values lie in
+``[-pi, pi]``. The venc comes from ``--venc`` or the sidecar's Siemens
+``SequenceName`` (``fl2d1_v150in``). Frame times: ``--frame-interval`` or the
+header's fourth pixel dimension when its time unit is ms or s.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from typing import Any
+
+import numpy as np
+
+import logging
+
+from .dicom import PHASE_UNITS, siemens_venc, to_physical
+from ..errors import InputError
+from .plane import Plane, sample, voxel_index
+from .scanner import Image2D
+
+log = logging.getLogger(__name__)
+
+#: Siemens phase as converters store it: this value stands for pi.
+SIEMENS_FULL_SCALE = 4096.0
+
+
+def is_nifti(path: str) -> bool:
+    return str(path).lower().endswith((".nii", ".nii.gz"))
+
+
+def sidecar(path: str) -> dict:
+    """The JSON sidecar next to a NIfTI file (``name.json`` for ``name.nii[.gz]``), or ``{}``."""
+    stem = re.sub(r"\.nii(\.gz)?$", "", str(path), flags=re.IGNORECASE)
+    side = stem + ".json"
+    if not os.path.exists(side):
+        return {}
+    try:
+        with open(side) as fh:
+            data = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{side}: not a readable JSON sidecar ({exc}); fix or remove it") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{side}: a JSON sidecar must hold an object, got {type(data).__name__}")
+    return data
+
+
+def role_of(path: str, meta: dict) -> str:
+    """``"magnitude"`` or ``"phase"`` from the sidecar's ImageType, else the file name; an error if neither says."""
+    tokens = {str(t).strip().upper() for t in meta.get("ImageType", [])}
+    if tokens & {"P", "PHASE", "VELOCITY"}:
+        return "phase"
+    if tokens & {"M", "MAGNITUDE", "MAG"}:
+        return "magnitude"
+    name = os.path.basename(str(path)).lower()
+    if re.search(r"(_ph\b|_ph\.|phase|vel)", name):
+        return "phase"
+    if re.search(r"(mag|_m\.|_m\b)", name):
+        return "magnitude"
+    raise InputError(
+        f"{path}: cannot tell whether this is the magnitude or the phase image: no 'ImageType' in a JSON sidecar; "
+        "put 'mag' or 'phase' in the file name"
+    )
+
+
+def _units(path: str, meta: dict, values: np.ndarray, phase_units: str | None) -> tuple[np.ndarray, str]:
+    units = phase_units
+    peak = float(np.nanmax(np.abs(values))) if values.size else 0.0
+    if units is None:
+        if peak <= np.pi * (1 + 1e-6) and "siemens" in str(meta.get("Manufacturer", "")).lower():
+            units = "rad"
+        elif "siemens" in str(meta.get("Manufacturer", "")).lower():
+            units = "siemens"
+        else:
+            raise InputError(
+                f"{path}: the units of the phase values (up to {peak:.4g}) are not stated (no Siemens sidecar); "
+                "pass --phase-units (" + ", ".join(PHASE_UNITS) + ")"
+            )
+    return to_physical(values, units, SIEMENS_FULL_SCALE, path)
+
+
+def _frame_times(img, path: str, nt: int, frame_interval_ms: float | None) -> list[float | None]:
+    if nt == 1:
+        return [None]
+    if frame_interval_ms is not None:
+        if not frame_interval_ms > 0:
+            raise InputError(f"--frame-interval {frame_interval_ms}: must be > 0 ms")
+        return [k * frame_interval_ms for k in range(nt)]
+    zooms = img.header.get_zooms()
+    unit = img.header.get_xyzt_units()[1]
+    if len(zooms) > 3 and zooms[3] > 0 and unit in ("msec", "sec"):
+        step = float(zooms[3]) * (1000.0 if unit == "sec" else 1.0)
+        return [k * step for k in range(nt)]
+    raise InputError(
+        f"{path}: {nt} frames but the header states no frame interval (pixdim[4] in ms or s); pass --frame-interval MS"
+    )
+
+
+def require_nibabel(what: str = "reading"):
+    """The nibabel module, or an :class:`InputError` saying how to install it."""
+    try:
+        import nibabel
+    except ImportError:
+        raise InputError(f"{what} NIfTI needs nibabel, an optional dependency: pip install 'wss-nlp[nifti]'") from None
+    return nibabel
+
+
+def _load(path: str):
+    """``(image, data (x, y, z, t), sidecar)`` of one NIfTI file."""
+    nibabel = require_nibabel()
+    if not os.path.isfile(path):
+        raise InputError(f"{path}: no such file")
+    try:
+        img: Any = nibabel.load(path)
+        data = np.asarray(img.get_fdata(), dtype=np.float64)
+    except Exception as exc:  # nibabel raises several types for unreadable files
+        raise InputError(f"{path}: not a readable NIfTI file ({type(exc).__name__}: {exc})") from None
+    if data.ndim == 2:
+        data = data[:, :, None]
+    if data.ndim == 3:
+        data = data[..., None]
+    if data.ndim != 4:
+        raise InputError(
+            f"{path}: {data.ndim}D data {data.shape}; expected (x, y, z) or (x, y, z, t) of one image or one "
+            "velocity component (a 4D-flow file per component; see --plane)"
+        )
+    return img, data, sidecar(path)
+
+
+def images_from_file(
+    path: str, phase_units: str | None = None, frame_interval_ms: float | None = None
+) -> list[Image2D]:
+    """The 2D images of one NIfTI file (every slice of every frame)."""
+    img, data, meta = _load(path)
+    role = role_of(path, meta)
+    affine = np.asarray(img.affine, dtype=np.float64)
+    di, dj = (float(np.linalg.norm(affine[:3, c])) for c in (0, 1))
+    if not (di > 0 and dj > 0):
+        raise InputError(f"{path}: the affine has a zero voxel size ({di}, {dj}); fix the header")
+    row_dir, col_dir = affine[:3, 0] / di, affine[:3, 1] / dj
+    values, units = (data, "") if role == "magnitude" else _units(path, meta, data, phase_units)
+    venc = None
+    venc_source = ""
+    if role == "phase" and meta.get("SequenceName"):
+        found = siemens_venc(str(meta["SequenceName"]))
+        if found is not None:
+            if found[1] not in ("in", "through"):
+                raise InputError(
+                    f"{path}: SequenceName {meta['SequenceName']!r} encodes the in-plane direction {found[1]!r}; "
+                    "wss-nlp needs the through-plane velocity, or --venc for this one"
+                )
+            venc, venc_source = found[0], f"sidecar SequenceName {meta['SequenceName']!r}"
+    nt = data.shape[3]
+    times = _frame_times(img, path, nt, frame_interval_ms)
+    series = str(meta.get("SeriesDescription", os.path.basename(path)))
+    out = []
+    for k in range(data.shape[2]):
+        position = (affine @ np.array([0.0, 0.0, k, 1.0]))[:3]
+        for t in range(nt):
+            out.append(
+                Image2D(
+                    where=f"{path} (slice {k}, frame {t})" if nt > 1 or data.shape[2] > 1 else path,
+                    role=role,
+                    pixels=values[:, :, k, t].T.copy(),
+                    units=units,
+                    position=position,
+                    row_dir=row_dir,
+                    col_dir=col_dir,
+                    spacing=(dj, di),
+                    trigger_ms=times[t],
+                    venc_m_s=venc,
+                    venc_source=venc_source,
+                    series=series,
+                    series_uid=str(path),
+                    vendor=str(meta.get("Manufacturer", "")).strip().title(),
+                )
+            )
+    return out
+
+
+_DIRECTION_AXIS = {"rl": "x", "lr": "x", "ap": "y", "pa": "y", "fh": "z", "hf": "z"}
+
+
+def component_of(path: str, meta: dict) -> str | None:
+    """World axis (``x``, ``y``, ``z``) of a velocity component file, from the sidecar or the name, or None."""
+    found = siemens_venc(str(meta.get("SequenceName", "")))
+    if found is not None and found[1] in _DIRECTION_AXIS:
+        return _DIRECTION_AXIS[found[1]]
+    stem = re.sub(r"\.nii(\.gz)?$", "", os.path.basename(str(path)), flags=re.IGNORECASE).lower()
+    m = re.search(r"(?:^|[_\-.])v?([xyz])$", stem)
+    return m.group(1) if m else None
+
+
+def _component_velocity(path: str, meta: dict, data: np.ndarray, phase_units: str | None, venc: float | None):
+    values, units = _units(path, meta, data, phase_units)
+    if units == "m/s":
+        return values
+    found = siemens_venc(str(meta.get("SequenceName", "")))
+    venc = venc if venc is not None else (found[0] if found else None)
+    if venc is None:
+        raise InputError(f"{path}: phase values need the venc to become velocities: pass --venc M_S")
+    return venc * values / np.pi
+
+
+def plane_images(
+    paths, plane: Plane, phase_units: str | None, frame_interval_ms: float | None, venc_m_s: float | None
+) -> list[Image2D]:
+    """A magnitude file and three velocity-component files (4D flow), resampled on ``plane`` (see wss_nlp.io.plane)."""
+    plane.check()
+    loaded = {str(p): _load(str(p)) for p in paths}
+    magnitude: str | None = None
+    components: dict[str, str] = {}
+    for path, (_, _, meta) in loaded.items():
+        axis = component_of(path, meta)
+        if axis is None and role_of(path, meta) == "magnitude":
+            if magnitude is not None:
+                raise InputError(f"{magnitude} and {path}: two magnitude files; pass one")
+            magnitude = path
+        elif axis is None:
+            raise InputError(
+                f"{path}: which velocity component is this? Name it *_vx, *_vy or *_vz (world axes of the "
+                "affine), or give a sidecar SequenceName with the encoding direction (rl, ap, fh)"
+            )
+        elif axis in components:
+            raise InputError(f"{components[axis]} and {path}: two files for the {axis} component")
+        else:
+            components[axis] = path
+    missing = [a for a in "xyz" if a not in components]
+    if magnitude is None or missing:
+        what = "a magnitude file" if magnitude is None else f"the {', '.join(missing)} component(s)"
+        raise InputError(f"--plane needs a magnitude file and three velocity components; {what} missing")
+    img, mag, meta = loaded[magnitude]
+    affine = np.asarray(img.affine, dtype=np.float64)
+    for path in components.values():
+        other = loaded[path]
+        if other[1].shape != mag.shape or not np.allclose(np.asarray(other[0].affine), affine, atol=1e-4):
+            raise InputError(f"{path}: its grid {other[1].shape} or affine differs from {magnitude}'s; resample first")
+    velocity = {
+        a: _component_velocity(p, loaded[p][2], loaded[p][1], phase_units, venc_m_s) for a, p in components.items()
+    }
+    nt = mag.shape[3]
+    times = _frame_times(img, magnitude, nt, frame_interval_ms)
+    centres = plane.centres(affine)
+    e1, e2, n = plane.axes()
+    h = plane.sampling(affine)[0]
+    vendor = str(meta.get("Manufacturer", "")).strip().title()
+    index = voxel_index(affine, centres, mag.shape, magnitude)  # the same points for every frame and component
+    grid_shape = centres.shape[:-1]
+    out = []
+    for t in range(nt):
+        mag_t = sample(mag[..., t], index, plane.order).reshape(grid_shape)
+        u = np.stack([sample(velocity[a][..., t], index, plane.order).reshape(grid_shape) for a in "xyz"], axis=-1)
+        parts = {"magnitude": mag_t, "velocity": u @ n, "velocity_x": u @ e1, "velocity_y": u @ e2}
+        for k in range(centres.shape[0]):
+            for role, values in parts.items():
+                out.append(
+                    Image2D(
+                        where=f"{magnitude} (plane slice {k}, frame {t})",
+                        role=role,
+                        pixels=values[k],
+                        units="" if role == "magnitude" else "m/s",
+                        position=centres[k, 0, 0],
+                        row_dir=e1,
+                        col_dir=e2,
+                        spacing=(h, h),
+                        trigger_ms=times[t],
+                        series=f"{role} on the plane",
+                        series_uid=role,
+                        vendor=vendor,
+                    )
+                )
+    _check_perpendicular(out)
+    return out
+
+
+def _check_perpendicular(images: list[Image2D]) -> None:
+    """Warn when the in-plane velocity in the vessel exceeds the through-plane one (a tilted plane, wrong axes)."""
+    by: dict[str, dict[str, np.ndarray]] = {}
+    for im in images:
+        by.setdefault(im.where, {})[im.role] = im.pixels
+    peak = max(by.values(), key=lambda d: float(np.abs(d["velocity"]).mean()))
+    mag = peak["magnitude"]
+    lumen = mag > 0.5 * (np.percentile(mag, 10) + np.percentile(mag, 99))
+    if lumen.sum() < 4:
+        return
+    through = float(np.median(np.abs(peak["velocity"][lumen])))
+    inplane = float(np.median(np.hypot(peak["velocity_x"][lumen], peak["velocity_y"][lumen])))
+    if inplane > through:
+        log.warning(
+            "in the vessel the in-plane velocity (median %.3g m/s) exceeds the through-plane one (%.3g m/s): the "
+            "plane is not perpendicular to the vessel, or the component files' axes or signs are not the "
+            "affine's world axes; check --plane",
+            inplane,
+            through,
+        )
+
+
+def read_images(
+    paths,
+    phase_units: str | None = None,
+    frame_interval_ms: float | None = None,
+    plane: Plane | None = None,
+    venc_m_s: float | None = None,
+):
+    """Every image of the NIfTI files ``paths`` (or the 4D-flow volumes cut by ``plane``) and a record."""
+    record: dict = {"format": "NIfTI", "paths": [str(p) for p in paths], "files": len(paths)}
+    images: list[Image2D] = []
+    if plane is not None:
+        images = plane_images(paths, plane, phase_units, frame_interval_ms, venc_m_s)
+        record["plane"] = {
+            "point": [float(v) for v in plane.point],
+            "normal": [round(float(v), 6) for v in np.cross(images[0].row_dir, images[0].col_dir)],
+            "fov_mm": plane.fov_mm,
+            "voxel_mm": images[0].spacing[0],
+            "slices": plane.slices,
+            "interpolation": "nearest voxel" if plane.order == 0 else "trilinear",
+        }
+        return images, record
+    for path in paths:
+        if not os.path.isfile(path):
+            raise InputError(f"{path}: no such file")
+        images += images_from_file(path, phase_units, frame_interval_ms)
+    return images, record

@@ -1,0 +1,1 @@
+"""Derivatives of the reconstruction and the linearized uncertainty band (slices, stacks)."""
