@@ -165,7 +165,7 @@ def _grow(core: np.ndarray, mean_magnitude: np.ndarray, grow_voxels: int) -> tup
         return core, {"done": False, "why": "not asked" if grow_voxels <= 0 else "no surroundings to compare"}
     m_out = float(np.median(mean_magnitude[shell]))
     contrast = (m_in - m_out) / m_in
-    info = {"lumen_magnitude": m_in, "surroundings_magnitude": m_out, "contrast": round(contrast, 4)}
+    info: dict = {"lumen_magnitude": m_in, "surroundings_magnitude": m_out, "contrast": round(contrast, 4)}
     if contrast < MIN_CONTRAST:
         info.update(done=False, why=f"magnitude contrast {contrast:.2f} < {MIN_CONTRAST}: the lumen is the PC-MRA mask")
         return core, info
