@@ -827,7 +827,7 @@ def _branches(
 ) -> list[dict]:
     """First-level side branches of the tree ``paths`` off the ``main`` path, where they leave the main lumen."""
     on_main = np.zeros(len(g.dt), bool)
-    on_main[main] = True
+    on_main[paths[0]] = True  # the whole main path (``main`` is trimmed at its ends)
     owner: dict[int, int] = {}  # node -> index of the path it belongs to
     for i, p in enumerate(paths):
         for v in p[:-1] if i else p:
