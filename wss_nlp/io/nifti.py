@@ -2,7 +2,7 @@
 
 Reads ``.nii`` / ``.nii.gz`` files (nibabel, an optional dependency:
 ``pip install 'wss-nlp[nifti]'``) with their JSON sidecars where a converter
-(dcm2niix) wrote them, into :class:`~wss_nlp.io.scanner.Image2D` records.
+(dcm2niix) wrote them, into :class:`~wss_nlp.scanner.Image2D` records.
 
 Notes
 -----
@@ -36,7 +36,7 @@ import numpy as np
 import logging
 
 from .dicom import PHASE_UNITS, siemens_venc, to_physical
-from ..errors import InputError
+from .errors import InputError
 from .plane import Plane, sample, voxel_index
 from .scanner import Image2D
 
@@ -223,12 +223,13 @@ def _component_velocity(path: str, meta: dict, data: np.ndarray, phase_units: st
     return venc * values / np.pi
 
 
-def plane_images(
-    paths, plane: Plane, phase_units: str | None, frame_interval_ms: float | None, venc_m_s: float | None
-) -> list[Image2D]:
-    """A magnitude file and three velocity-component files (4D flow), resampled on ``plane`` (see wss_nlp.io.plane)."""
-    plane.check()
-    loaded = {str(p): _load(str(p)) for p in paths}
+def flow_files(loaded: dict, what: str) -> tuple[str, dict[str, str]]:
+    """The magnitude file and the x, y, z velocity-component files of 4D flow among ``loaded`` (path: :func:`_load`).
+
+    A file is a component when :func:`component_of` names its axis, else the magnitude when :func:`role_of` says so;
+    two magnitude files, a component missing, doubled or not told apart, and grids or affines that differ from the
+    magnitude's are each an :class:`InputError` naming the file (``what`` names the route in the message).
+    """
     magnitude: str | None = None
     components: dict[str, str] = {}
     for path, (_, _, meta) in loaded.items():
@@ -248,14 +249,26 @@ def plane_images(
             components[axis] = path
     missing = [a for a in "xyz" if a not in components]
     if magnitude is None or missing:
-        what = "a magnitude file" if magnitude is None else f"the {', '.join(missing)} component(s)"
-        raise InputError(f"--plane needs a magnitude file and three velocity components; {what} missing")
-    img, mag, meta = loaded[magnitude]
+        absent = "a magnitude file" if magnitude is None else f"the {', '.join(missing)} component(s)"
+        raise InputError(f"{what} needs a magnitude file and three velocity components; {absent} missing")
+    img, mag, _ = loaded[magnitude]
     affine = np.asarray(img.affine, dtype=np.float64)
     for path in components.values():
         other = loaded[path]
         if other[1].shape != mag.shape or not np.allclose(np.asarray(other[0].affine), affine, atol=1e-4):
             raise InputError(f"{path}: its grid {other[1].shape} or affine differs from {magnitude}'s; resample first")
+    return magnitude, components
+
+
+def plane_images(
+    paths, plane: Plane, phase_units: str | None, frame_interval_ms: float | None, venc_m_s: float | None
+) -> list[Image2D]:
+    """A magnitude file and three velocity-component files (4D flow), resampled on ``plane`` (see wss_nlp.plane)."""
+    plane.check()
+    loaded = {str(p): _load(str(p)) for p in paths}
+    magnitude, components = flow_files(loaded, "--plane")
+    img, mag, meta = loaded[magnitude]
+    affine = np.asarray(img.affine, dtype=np.float64)
     velocity = {
         a: _component_velocity(p, loaded[p][2], loaded[p][1], phase_units, venc_m_s) for a, p in components.items()
     }
