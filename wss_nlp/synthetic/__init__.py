@@ -1,0 +1,1 @@
+"""Synthetic data with exact truth: phantoms that the reconstructions are validated on."""
