@@ -77,11 +77,12 @@ def test_wss_equals_finite_differences_of_the_closed_form_field(helix):
         assert np.linalg.norm(vessel.normal(s, phi) - n) <= 1e-9
 
 
-@pytest.mark.parametrize("case", ["arc", "helix", "carotid"])
+@pytest.mark.parametrize("case", ["arc", "helix", "carotid", "bent"])
 def test_the_frame_is_orthonormal_and_rotation_minimizing(case):
     """Central differences (step 1e-4 mm: truncation 1e-8 kappa^3, rounding 1e-12) of the closed-form frame away
-    from the joins (where the curvature jumps): n1' has no n2 part, n_i' = -k_i t, t' = k1 n1 + k2 n2, c' = t."""
-    cl = vs.CASES[case][0]({})[0].centreline
+    from the joins (where the curvature jumps): n1' has no n2 part, n_i' = -k_i t, t' = k1 n1 + k2 n2, c' = t.
+    ``bent``: an arc bending towards 0.4 rad from n1, so both k1 and k2 are nonzero."""
+    cl = _curved_vessel().centreline if case == "bent" else vs.CASES[case][0]({})[0].centreline
     joins = [p.s_hi for p in cl.pieces[:-1]]
     s = np.array([v for v in np.linspace(-20, cl.length + 20, 61) if min(abs(v - j) for j in joins) > 0.01])
     d = 1e-4
@@ -96,7 +97,7 @@ def test_the_frame_is_orthonormal_and_rotation_minimizing(case):
     assert np.max(np.abs(dn2 + f.k2[:, None] * f.tangent)) < 1e-9
     assert np.max(np.abs(dt - f.k1[:, None] * f.n1 - f.k2[:, None] * f.n2)) < 1e-9
     assert np.max(np.abs(dc - f.tangent)) < 1e-8
-    if case != "helix":  # the arc cases bend in a plane: curvature 1/30 mm on the arc, zero on the legs
+    if case != "helix":  # these bend in a plane: curvature 1/30 mm on the arc, zero on the legs
         assert np.isclose(np.max(np.hypot(f.k1, f.k2)), 1 / 30.0) and np.min(np.hypot(f.k1, f.k2)) == 0
     jumps = np.array(joins)
     a, b = cl.frame(jumps - 1e-9), cl.frame(jumps + 1e-9)
