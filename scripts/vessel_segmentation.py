@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 """The lumen from 4D flow data (``wss_nlp.vessel.segmentation``) and its centreline, against the phantom's truth.
 
-Phantom: ``wss_nlp.scanner_exports.make_flow_volume`` (Poiseuille flow in a straight tube tilted up to about 30
+Phantom: ``synthetic.scanner_exports.make_flow_volume`` (Poiseuille flow in a straight tube tilted up to about 30
 degrees through a rotated grid of anisotropic voxels, every component measured as a phase; two frames, peak 0.8
 and 0.4 m/s). Truth: the voxels whose centre lies within R of the axis. For Otsu's PC-MRA mask alone
 (``grow_voxels=0``) and the mask grown by the magnitude (the default): the lumen voxels missed and the voxels
@@ -17,7 +17,7 @@ import sys
 import numpy as np
 
 from _report import study_parser, write_report
-from wss_nlp import scanner_exports as se
+from wss_nlp.synthetic import scanner_exports as se
 from wss_nlp.io.volume import VolumeAcquisition
 from wss_nlp.vessel.centerline import centerline_from_mask
 from wss_nlp.vessel.segmentation import segment_vessel

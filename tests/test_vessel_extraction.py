@@ -115,7 +115,7 @@ def test_the_grown_mask_recovers_the_phantom_lumen():
     centre lies within R of the axis. Otsu's PC-MRA mask alone misses a third or more of them (no-slip: the speed
     vanishes at the wall); grown by the magnitude, under 3 % missing and under 1 % extra (the wall voxels' half-
     lumen level splits at the centre-in test up to noise)."""
-    from wss_nlp import scanner_exports as se
+    from wss_nlp.synthetic import scanner_exports as se
 
     ph = se.make_flow_volume(seed=2, snr=25.0, n=32, radius_mm=6.0, sub=3)
     vol = VolumeAcquisition(np.moveaxis(ph.magnitude, -1, 0), np.moveaxis(ph.velocity, -1, 0), ph.affine,
@@ -133,7 +133,7 @@ def test_a_thin_vessel_at_low_snr_takes_no_background():
     PC-MRA overlap the lumen's; with the background left out by the magnitude first, the mask adds under 2 % of the
     lumen's voxel count from outside (0.3 % seen on seeds 0-4) and misses under 12 % (7-9 % seen); without that
     floor Otsu's threshold falls inside the noise and the mask takes more than the lumen again from outside."""
-    from wss_nlp import scanner_exports as se
+    from wss_nlp.synthetic import scanner_exports as se
 
     ph = se.make_flow_volume(seed=1, snr=10.0, n=24, radius_mm=4.0, voxel_mm=(2.0, 2.2, 1.8), sub=3)
     vol = VolumeAcquisition(np.moveaxis(ph.magnitude, -1, 0), np.moveaxis(ph.velocity, -1, 0), ph.affine,

@@ -11,7 +11,7 @@ import pytest
 
 nibabel = pytest.importorskip("nibabel")
 
-from wss_nlp import scanner_exports as se  # noqa: E402
+from wss_nlp.synthetic import scanner_exports as se  # noqa: E402
 from wss_nlp.errors import InputError  # noqa: E402
 from wss_nlp.io.volume import read_volume, write_volume  # noqa: E402
 from wss_nlp.io.volume_import import DICOM_REFUSAL, read_nifti_volume  # noqa: E402

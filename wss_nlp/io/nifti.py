@@ -36,7 +36,7 @@ import numpy as np
 import logging
 
 from .dicom import PHASE_UNITS, siemens_venc, to_physical
-from .errors import InputError
+from ..errors import InputError
 from .plane import Plane, sample, voxel_index
 from .scanner import Image2D
 

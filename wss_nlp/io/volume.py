@@ -201,19 +201,26 @@ def read_volume(path) -> VolumeAcquisition:
         if affine is None:
             raise InputError(f"{src}: missing attribute 'affine_mm' (4 x 4, voxel index to world mm)")
         venc = number("venc_m_s")
-        if venc is not None and venc.size == 1:
-            venc = np.full(3, float(venc.ravel()[0]))
+        if venc is not None:
+            venc = np.full(3, float(venc.ravel()[0])) if venc.size == 1 else venc.ravel()
+            if venc.size != 3:
+                raise InputError(f"{src}: attribute 'venc_m_s' must have 1 or 3 values, got {venc.size}")
         times = number("trigger_times_ms")
         scalars = {n: number(n, 1) for n in ("viscosity_pa_s", "density_kg_m3", "cardiac_period_ms")}
+    def scalar(name: str) -> float | None:
+        value = scalars[name]
+        return None if value is None else float(value.ravel()[0])
+
     vol = VolumeAcquisition(
-        arrays["volume/magnitude"],
-        arrays["volume/velocity"],
-        affine.reshape(4, 4),
-        None if venc is None else tuple(float(v) for v in venc.ravel()),  # type: ignore[arg-type]
-        *(None if scalars[n] is None else float(scalars[n].ravel()[0]) for n in ("viscosity_pa_s", "density_kg_m3")),
-        None if times is None else times.ravel(),
-        None if scalars["cardiac_period_ms"] is None else float(scalars["cardiac_period_ms"].ravel()[0]),
-        src,  # messages name the file the user gave, not where it was first made
+        magnitude=arrays["volume/magnitude"],
+        velocity=arrays["volume/velocity"],
+        affine_mm=affine.reshape(4, 4),
+        venc_m_s=None if venc is None else (float(venc[0]), float(venc[1]), float(venc[2])),
+        viscosity_pa_s=scalar("viscosity_pa_s"),
+        density_kg_m3=scalar("density_kg_m3"),
+        trigger_times_ms=None if times is None else times.ravel(),
+        cardiac_period_ms=scalar("cardiac_period_ms"),
+        source=src,  # messages name the file the user gave, not where it was first made
     )
     vol.validate()
     return vol

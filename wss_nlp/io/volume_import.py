@@ -1,6 +1,6 @@
 """4D flow NIfTI files in: a magnitude file and three velocity-component files to a :class:`VolumeAcquisition`.
 
-The files are told apart as ``wss-nlp import --plane`` tells them apart (:func:`wss_nlp.nifti.flow_files`): a
+The files are told apart as ``wss-nlp import --plane`` tells them apart (:func:`wss_nlp.io.nifti.flow_files`): a
 component by its sidecar's Siemens ``SequenceName`` encoding direction (``rl``/``lr`` x, ``ap``/``pa`` y,
 ``fh``/``hf`` z) or a name ending ``_vx``, ``_vy``, ``_vz``; the magnitude by its sidecar ``ImageType`` or its
 name (``mag``). Each file holds ``data[i, j, k(, t)]`` with the affine ``A`` (mm) mapping voxel ``(i, j, k)`` to
@@ -8,23 +8,23 @@ world ``(x, y, z)``; the component files hold the velocity along the world axes 
 voxel axes), which is the layout's convention (:mod:`wss_nlp.io.volume`). A converter that writes components
 along the voxel axes, or with the vendor's sign, needs a rotation by the user first (see Notes).
 
-Phase values become velocities as on the 2D route (:func:`wss_nlp.nifti._component_velocity`): values in m/s,
+Phase values become velocities as on the 2D route (:func:`wss_nlp.io.nifti._component_velocity`): values in m/s,
 cm/s, mm/s are scaled; radians or Siemens integers become ``v = venc phase / pi`` with the venc from
 ``venc_m_s`` (one value for all three components or one per component) or the sidecar's ``SequenceName``.
 Frame times: ``frame_interval_ms`` or the header's fourth pixel dimension in ms or s, frame ``k`` at
-``k dt`` (:func:`wss_nlp.nifti._frame_times`).
+``k dt`` (:func:`wss_nlp.io.nifti._frame_times`).
 
 Notes
 -----
 4D flow DICOM is not read; convert with dcm2niix and pass the NIfTI files. Why, from the vendors' conventions as
 the DICOM standard, the converters and their issue trackers describe them:
 
-* What :mod:`wss_nlp.dicom` reads are 2D through-plane series: one phase image per slice and frame, its venc and
+* What :mod:`wss_nlp.io.dicom` reads are 2D through-plane series: one phase image per slice and frame, its venc and
   direction from Siemens's ``SequenceName`` (``_v150in``, and it refuses the in-plane codes), Philips's private
   PC Velocity (2001,101A) (it refuses more than one non-zero direction) or GE's private (0019,10CC). A 4D flow
   export holds three phase series (Siemens: one series per direction, ``_vrl``/``_vap``/``_vfh``; Philips: one
   series with the three directions interleaved, told apart only by private tags; GE: vendor-specific ordering
-  and private scale factors), and :func:`wss_nlp.scanner.assemble` has no notion of a component.
+  and private scale factors), and :func:`wss_nlp.io.scanner.assemble` has no notion of a component.
 * The sign and axis of each component. The encoding direction of a classic image is stated in patient
   coordinates only by the Siemens sequence name (an axis code, not a validated sign convention); Philips and GE
   give no public direction per image, and tools that read their 4D flow (e.g. the vendors' own and research
@@ -32,7 +32,7 @@ the DICOM standard, the converters and their issue trackers describe them:
   image's MR Velocity Encoding Sequence (0018,9197) with Velocity Encoding Direction (0018,9090) states the
   direction per frame in the standard, but whether a vendor fills it correctly for 4D flow cannot be checked
   from the file, and a wrong sign or axis would give a plausible but wrong velocity field: the package never
-  guesses a convention (see :mod:`wss_nlp.dicom`).
+  guesses a convention (see :mod:`wss_nlp.io.dicom`).
 * Phase-encoding polarity, the one other per-axis sign, is missing from Philips DICOM (dcm2niix's documentation
   and issues say so), so not even the acquisition frame's orientation can be fully recovered there.
 
@@ -50,8 +50,8 @@ import os
 
 import numpy as np
 
-from .. import nifti
-from ..dicom import PHASE_UNITS, siemens_venc
+from . import nifti
+from .dicom import PHASE_UNITS, siemens_venc
 from ..errors import InputError
 from .volume import VolumeAcquisition
 
@@ -109,7 +109,7 @@ def read_nifti_volume(
         Velocity encoding (m/s), for all components or per component x, y, z; needed for phase data (radians,
         Siemens integers) unless the sidecar's ``SequenceName`` states it; stored in the result when given or found.
     phase_units : str, optional
-        Units of the component files' values (:data:`wss_nlp.dicom.PHASE_UNITS`) when no sidecar states them.
+        Units of the component files' values (:data:`wss_nlp.io.dicom.PHASE_UNITS`) when no sidecar states them.
     frame_interval_ms : float, optional
         Time between frames (ms) when the header's pixdim[4] does not state it; frame ``k`` is at ``k dt``.
     viscosity_pa_s : float, optional

@@ -19,7 +19,7 @@ no twist about ``t``), computed on the samples by the double-reflection method (
 ``n1 = (N - (N . t) t) / |N - (N . t) t|`` and ``n2 = t x n1``, so ``(t, n1, n2)`` is orthonormal and right-handed
 and its derivatives (:meth:`Centerline.frame_derivative`) are those of these formulas, exact for the
 representation. Rule at ``s = 0``: ``n1(0) = (t(0) x a) / |t(0) x a|`` with ``a`` the world axis least aligned
-with ``t(0)`` (the rule of :meth:`wss_nlp.plane.Plane.axes` for the plane normal to ``t(0)``).
+with ``t(0)`` (the rule of :meth:`wss_nlp.io.plane.Plane.axes` for the plane normal to ``t(0)``).
 
 Coordinates. A point ``x`` has ``(s, r, phi)`` with ``P(s)`` the closest centreline point, ``r = |x - P(s)|`` and
 ``phi`` the angle of ``x - P(s)`` from ``n1`` towards ``n2`` (counter-clockwise about ``t``): ``x = P(s) + r (cos

@@ -288,7 +288,7 @@ def read_mask(path, vol: VolumeAcquisition) -> np.ndarray:
     The file must hold ``(ni, nj, nk)`` (or one frame of it) with the volume's affine (within 1e-4 mm);
     anything else is refused with the reason, as are NaN values and an empty mask.
     """
-    from ..nifti import require_nibabel
+    from ..io.nifti import require_nibabel
 
     nibabel = require_nibabel()
     path = os.fspath(path)
