@@ -206,7 +206,7 @@ def test_bulk_reynolds_number_and_regime():
     vp = vel.assemble(res.grid, res.velocity_image, g.coefficients, g.center, ReconstructionOptions().velocity)
     nu = 3.5e-3 / 1060.0
     assert nw.bulk_reynolds(vp, nu) == pytest.approx(0.2 * 0.02 / nu, rel=0.02)
-    assert nw.regime_family(1211) == "exponential" and nw.regime_family(5300) == "wall_law"
+    assert nw.regime_families(1211) == ("exponential",) and nw.regime_families(5300) == ("wall_law",)
     # the scan's starting point: Blasius's law at the DNS's bulk Reynolds number 5300 gives its Re_tau 180.9 (1 %)
     from wss_nlp.parameters.choice import blasius_scale
 

@@ -359,8 +359,8 @@ def choose_layer(
 ) -> tuple[vel.VelocityProblem, nw.NearWallChoice]:
     r"""The near-wall model of one slice: the plain basis, or a layer family and scale, by BIC.
 
-    With the bulk Reynolds number ``reynolds`` the family is the flow
-    regime's (:func:`wss_nlp.models.near_wall.regime_family`: the law of the wall
+    With the bulk Reynolds number ``reynolds`` the families are the flow
+    regime's (:func:`wss_nlp.models.near_wall.regime_families`: the law of the wall
     for turbulent flow, the exponential layer for laminar flow) and only
     plain-or-layer is left to the BIC, which cannot tell the families apart
     (both fit thin layers about equally well; measured in
@@ -414,13 +414,13 @@ def choose_layer(
         previous = float(np.log2(around.scale_mm / big_r))
         brackets = {around.model: (previous - 0.5, previous + 0.5)}
     else:
-        families = (mode,) if mode != "auto" else nw.FAMILIES if reynolds is None else (nw.regime_family(reynolds),)
+        families = (mode,) if mode != "auto" else nw.FAMILIES if reynolds is None else nw.regime_families(reynolds)
         logs = np.log2(LAYER_RATIOS)
         brackets = {f: (logs[-1], logs[0]) for f in families}
     for family in families:
         lo, hi = brackets[family]
         family_score = functools.partial(score, family)
-        if family == "wall_law" and nu_m2_s is not None:
+        if nw.families.get(family).scale_rule == "consistent" and nu_m2_s is not None:
             predicted = None if reynolds is None or reynolds <= 0 else blasius_scale(reynolds)
             x, how, rival_roots = _wall_law_scale(
                 family_score, lo, hi, big_r, nu_m2_s, vp.basis.size, predicted, previous,
@@ -448,9 +448,9 @@ def choose_layer(
     # a saturating layer that is thinner than the voxels resolve, or that needs no regularization at all, is a
     # velocity jump at the wall; the wall law is exempt: its scale is fixed by u_tau l = nu, not by the data's
     # shape, and on turbulent data its best beta may well be the smallest (the soak's aliased Re_tau 998 runs)
-    exponential = chosen == "exponential"
-    at_floor = exponential and best[chosen][3] <= CRITERION_BETAS[-1] * (1 + 1e-9)
-    thin = exponential and best[chosen][1] < voxel_mm / nw.UNRESOLVED_FRACTION
+    saturating = chosen != "plain" and nw.families.get(chosen).saturating
+    at_floor = saturating and best[chosen][3] <= CRITERION_BETAS[-1] * (1 + 1e-9)
+    thin = saturating and best[chosen][1] < voxel_mm / nw.UNRESOLVED_FRACTION
     if mode == "auto" and (thin or at_floor):
         # a jump at the wall, not a layer: no WSS follows from it; keep the paper's model and flag the slice
         unresolved, chosen = best[chosen][1], "plain"
@@ -485,7 +485,8 @@ def choose_layer(
         beta=best[chosen][3],
         scale_interval=interval,
         scale_wss_spread=spread,
-        consistent=chosen == "wall_law" and not fitted.get(chosen, True),
+        consistent=chosen != "plain" and nw.families.get(chosen).scale_rule == "consistent"
+        and not fitted.get(chosen, True),
     )
     return best[chosen][2], choice
 
