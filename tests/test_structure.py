@@ -105,7 +105,7 @@ def test_no_module_shadows_the_standard_library():
 
 def test_blas_threads_limit_is_applied_and_restored():
     threadpoolctl = pytest.importorskip("threadpoolctl")
-    from wss_nlp.pipeline.reconstruct import blas_threads
+    from wss_nlp.pipeline.driver import blas_threads
 
     def blas():
         return [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]

@@ -12,11 +12,12 @@ import pytest
 import scipy.linalg
 import scipy.special
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.pipeline import cine
 from wss_nlp.synthetic import pulsatile
 from wss_nlp.models import womersley
 from wss_nlp.core import radius as rad
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions
+from wss_nlp.pipeline import ReconstructionOptions
 
 
 def _options(model="auto", **kw):
@@ -83,7 +84,8 @@ def test_noise_free_womersley_flow_is_recovered():
     peak at every frame at h = 1.5 mm (measured 0.22 %: the frames' radii are 0.05 % off and the wall voxels'
     sub-voxel rule integrates the Stokes layer) and the four harmonics the phantom has are found."""
     frames, truth = pulsatile.make_cine(h_mm=1.5, snr=None, seed=60, frames=12)
-    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options("momentum", noise_velocity=0.01))
+    options = _options("momentum", choice=ChoiceOptions(noise_velocity=0.01))
+    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, options)
     s = res.series(0)
     assert s.model.model == "momentum" and s.model.harmonics == 4
     worst, tawss, osi = _errors(s, truth)
@@ -245,7 +247,7 @@ def _prior_problems(n: int, seed: int):
     """n frames of the circle phantom's voxel data on one wall, scaled in time plus noise (sigma 0.01 m/s)."""
     from wss_nlp.synthetic import phantoms
     from wss_nlp.models import velocity as vel
-    from wss_nlp.pipeline.reconstruct import reconstruct
+    from wss_nlp.pipeline import reconstruct
 
     acq, _ = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=seed)
     r = reconstruct(acq, _options())[0]

@@ -24,7 +24,8 @@ from ..core import schema
 from ..errors import InputError, WssNlpError
 from ..models.kspace import AcquisitionOptions
 from ..models.measurement import DEPHASING_THRESHOLD
-from ..pipeline.reconstruct import KSPACE_PASS_TOL, ReconstructionOptions, reconstruct
+from ..pipeline.driver import KSPACE_PASS_TOL, reconstruct
+from ..pipeline.options import ReconstructionOptions
 
 
 def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:

@@ -40,7 +40,8 @@ from ..analysis import metrics as met
 from ..synthetic import phantoms
 from ..core import schema
 from ..errors import InputError, WssNlpError
-from ..pipeline.reconstruct import METHODS, ReconstructionOptions, reconstruct
+from ..pipeline.driver import reconstruct
+from ..pipeline.options import METHODS, ReconstructionOptions
 
 if sys.version_info >= (3, 11):
     import tomllib

@@ -669,7 +669,7 @@ def _write_core(s, r) -> None:
     s.attrs["warnings"] = json.dumps(r.warnings)
     s.attrs["seconds_json"] = json.dumps(r.seconds)
     if getattr(r, "dephasing", None):
-        s.attrs["dephasing_json"] = json.dumps(r.dephasing)
+        s.attrs["dephasing_json"] = json.dumps(r.dephasing.as_dict())
     s.attrs["method"] = getattr(r, "method", "decoupled")
     gg = s.create_group("geometry")
     gg["center_mm"] = np.asarray(g.center, dtype=float)

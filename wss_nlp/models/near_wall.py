@@ -30,7 +30,7 @@ is :math:`\mu S/\ell` times its angular factor, independent of the family):
   displacement-type thickness.
 
 Which model (plain, or a family and a scale on a grid) is chosen from the
-data by :mod:`wss_nlp.parameters.choice` (:func:`wss_nlp.parameters.choice.choose_layer`).
+data by :mod:`wss_nlp.parameters.choice` (:func:`wss_nlp.parameters.layer.choose_layer`).
 
 The columns are separable in :math:`(\rho, \theta)`; the fit integrates
 them across each quadrature cell (:class:`LayerQuadrature`), and the coupled
@@ -761,7 +761,7 @@ def scale_sensitivity(problem, coefficients, beta: float, wss_matrix, nu_m2_s: f
 
     Returns ``(dg_da0, dg_dlog, dtau_dlog)``: the derivatives of
     :math:`g = a_0\, c_s(\ell)\, \ell / \nu - 1` (whose root is the scale,
-    :func:`wss_nlp.parameters.choice._wall_law_scale`) with respect to the m = 0 layer
+    :func:`wss_nlp.parameters.layer._wall_law_scale`) with respect to the m = 0 layer
     coefficient :math:`a_0` and to :math:`\log\ell`, and
     :math:`d\tau/d\log\ell` at fixed data. By the implicit-function
     theorem any data perturbation that moves :math:`a_0` by

@@ -32,7 +32,7 @@ Two solvers of the same problem:
   factorized once, residual = relative residual of the coupled equations).
 
 The velocity basis of each slice is the one a single slice would get: the
-near-wall model (``--near-wall``, :func:`wss_nlp.parameters.choice.layer_model`) is chosen
+near-wall model (``--near-wall``, :func:`wss_nlp.parameters.layer.layer_model`) is chosen
 per slice, and the z-penalty ties the plain basis coefficients only (a layer's
 columns, with their own scale, stay the slice's own).
 
@@ -578,7 +578,7 @@ def supports(options) -> bool:
     alpha).
 
     beta may come from any rule: a segment is fitted with one beta, the
-    median (on a log scale) of its slices' own choices (:func:`wss_nlp.parameters.choice.segment_beta`).
+    median (on a log scale) of its slices' own choices (:func:`wss_nlp.parameters.beta.segment_beta`).
     """
     return options.method in ("decoupled", "coupled") and options.alpha_rule == "fixed"
 

@@ -37,7 +37,7 @@ derivative of :math:`\sigma(x)` at the wall (1/mm; :math:`1/R` on a circle). Pa,
 
 Model choice (:func:`choose`): Schwarz's criterion :math:`\mathrm{BIC} = \nu\chi^2 + \ln(\nu N)\,\mathrm{dof}`
 over all :math:`N` voxel values of the cycle, for the frames' own plain fits (each at its best beta,
-dof the smoother's trace; :class:`wss_nlp.parameters.choice.PlainCriterion`) and for this model with
+dof the smoother's trace; :class:`wss_nlp.parameters.layer.PlainCriterion`) and for this model with
 :math:`K = 0, \dots, K_{\max}` harmonics (dof :math:`2K + 1`); :math:`\nu = 1` for white noise.
 The frames' own fits stay the null hypothesis: the model must win by :data:`EVIDENCE` over them and over
 the temporal prior (:mod:`wss_nlp.models.temporal`), which in turn must win by :data:`EVIDENCE` over the frames' own
@@ -58,7 +58,7 @@ from .._lazy import scipy
 from ..parameters import noise as nl
 from ..core import radius as rad
 from . import velocity as vel
-from ..parameters.choice import PlainCriterion
+from ..parameters.layer import PlainCriterion
 from ..errors import InputError
 from ..pipeline.results import SliceResult
 from ..core.schema import option
@@ -192,7 +192,7 @@ class FrameTerms:
     rhs: np.ndarray  # Phi^T Sigma^-1 u
     usu: float  # u^T Sigma^-1 u
     n_data: int
-    plain_chi2: np.ndarray  # chi^2 of the frame's own plain fit on wss_nlp.parameters.choice.CRITERION_BETAS
+    plain_chi2: np.ndarray  # chi^2 of the frame's own plain fit on wss_nlp.parameters.layer.CRITERION_BETAS
     plain_dof: np.ndarray  # and its effective parameter count
     nu: float  # effective fraction of independent voxels (1 for white noise)
     radius_mm: float  # the radius in Lambda_n (the cycle's, shared by the frames)

@@ -37,7 +37,8 @@ from ..models import temporal, womersley
 from ..models import wss as wss_mod
 from ..errors import InputError, WssNlpError
 from ..io.files import Acquisition, FailedSlice
-from .reconstruct import ReconstructionOptions, blas_threads, reconstruct
+from .driver import blas_threads, reconstruct
+from .options import ReconstructionOptions
 
 log = logging.getLogger(__name__)
 

@@ -53,8 +53,6 @@ from ..core import radius as rad
 from ..models import velocity as vel
 from ..models import wss as wss_mod
 from ..core.solver import DenseCall
-from ..errors import NoiseEstimationError
-from ..parameters.noise import complex_noise_sigma, phase_noise_std
 from ..core.tikhonov import LinearTikhonov
 from ..errors import InputError, SolverError
 
@@ -970,37 +968,3 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
     out = DenseCall(fun)(x, np.asarray(problem.center, float), np.eye(2))[0]
     out[:n_r] += dgrad_geo[:, -2:]
     return out
-
-
-def noise_levels(
-    raw_magnitude: np.ndarray,
-    mask: np.ndarray,
-    m0: float,
-    m1: float,
-    u_index: np.ndarray,
-    venc: float | None,
-    sigma: float | None = None,
-    signal: np.ndarray | None = None,
-) -> tuple[float, np.ndarray, str]:
-    """Per-voxel noise ``(sigma_m, sigma_u[u_index], how)`` from the complex noise level (Appendix B).
-
-    ``sigma`` (per channel, raw units) is estimated from the Rayleigh
-    background when not given.
-    """
-    how = "given"
-    if sigma is None:
-        sigma = complex_noise_sigma(raw_magnitude, mask, signal)
-        how = "Rayleigh background" + (", predicted PSF tails subtracted" if signal is not None else "")
-    if not np.isfinite(sigma) or sigma <= 0:
-        raise NoiseEstimationError(
-            "cannot estimate the complex noise level for the uncertainty band (no background "
-            "in the field of view); pass --noise-sigma"
-        )
-    if venc is None:
-        raise NoiseEstimationError("the uncertainty band needs venc (phase data) to convert phase noise to velocity")
-    sigma_u = phase_noise_std(np.asarray(raw_magnitude, float).ravel()[u_index], sigma, venc)
-    return (
-        float(sigma / (m1 - m0)),
-        sigma_u,
-        f"sigma = {sigma:.4g} ({how}); sigma_m = sigma/(m1-m0), sigma_u,i = venc sigma/(pi |d_i|)",
-    )

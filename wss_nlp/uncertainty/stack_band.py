@@ -366,7 +366,7 @@ def segment_band(
     """The band of every slice of a solved z-regularized segment (see the module notes).
 
     ``zop`` is the segment's z-operator ``L`` (:func:`wss_nlp.models.stack.z_operator`). Each slice's ``sigma_m``
-    and ``sigma_u`` are its noise levels (:func:`wss_nlp.uncertainty.sensitivity.noise_levels`).
+    and ``sigma_u`` are its noise levels (:func:`wss_nlp.parameters.noise.band_noise_levels`).
     """
     lin = linearize(slices, gopt, vopt, viscosity_pa_s, n_phi)
     info_m = [
