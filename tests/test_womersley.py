@@ -16,6 +16,7 @@ from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.pipeline import cine
 from wss_nlp.synthetic import pulsatile
 from wss_nlp.models import womersley
+from wss_nlp.parameters import cycle
 from wss_nlp.core import radius as rad
 from wss_nlp.pipeline import ReconstructionOptions
 
@@ -203,15 +204,15 @@ def test_wall_smoothing_in_time_finds_a_rigid_and_a_moving_wall():
     omega, t = 2 * np.pi, np.arange(20) / 20
     truth = np.tile(np.r_[10.0, 0.3, -0.2, 0.1, 0.05, 0.4, -0.1], (20, 1))
     rigid = truth + 0.02 * rng.standard_normal(truth.shape)
-    walls, choice = womersley.smooth_walls(t, omega, rigid, "auto", 9)
+    walls, choice = cycle.smooth_walls(t, omega, rigid, "auto", 9)
     assert choice.degree == 0 and np.allclose(walls, rigid.mean(axis=0))
     moving = truth.copy()
     moving[:, 0] += 0.5 * np.sin(omega * t)
     noisy = moving + 0.02 * rng.standard_normal(truth.shape)
-    walls, choice = womersley.smooth_walls(t, omega, noisy, "auto", 9)
+    walls, choice = cycle.smooth_walls(t, omega, noisy, "auto", 9)
     assert choice.degree == 1 and np.max(np.abs(walls - moving)) < 0.03
-    assert np.array_equal(womersley.smooth_walls(t, omega, noisy, "frames", 9)[0], noisy)
-    assert np.allclose(womersley.smooth_walls(t, omega, noisy, "shared", 9)[0], noisy.mean(axis=0))
+    assert np.array_equal(cycle.smooth_walls(t, omega, noisy, "frames", 9)[0], noisy)
+    assert np.allclose(cycle.smooth_walls(t, omega, noisy, "shared", 9)[0], noisy.mean(axis=0))
 
 
 def test_kspace_acquired_cine_gets_the_momentum_model_through_the_psf():
@@ -340,9 +341,9 @@ def test_forced_temporal_prior_follows_a_distending_wall():
 
 
 def test_auto_takes_the_temporal_prior_only_with_the_evidence():
-    """womersley.choose on frames whose criteria are set by hand (momentum chi^2 = u^T S^-1 u = 3000 for every
+    """cycle.choose on frames whose criteria are set by hand (momentum chi^2 = u^T S^-1 u = 3000 for every
     harmonic count, the frames' own fits 1000 + ln N 40): the prior is taken exactly when its criterion beats
-    the frames' own fits by womersley.EVIDENCE, and a momentum model that beats both wins over it."""
+    the frames' own fits by cycle.EVIDENCE, and a momentum model that beats both wins over it."""
 
     def terms(usu):
         return [womersley.FrameTerms(k, k / 4, np.array([5.0, 0, 0]), (0.0, 0.0), np.eye(3), np.zeros(3), usu, 100,
@@ -350,11 +351,11 @@ def test_auto_takes_the_temporal_prior_only_with_the_evidence():
 
     opts, omega, nu = womersley.CineModelOptions(), 2 * np.pi, 3.3e-6
     frames = terms(750.0)
-    log_n = womersley.criterion_scale(frames)[1]
+    log_n = cycle.criterion_scale(frames)[1]
     independent = 4 * (250.0 + 10.0 * log_n)
-    choose = womersley.choose
+    choose = cycle.choose
     assert choose(frames, omega, nu, opts, None)[0].model == "independent"  # momentum: 3000 + ln N > independent
-    assert choose(frames, omega, nu, opts, independent - 1.5 * womersley.EVIDENCE)[0].model == "temporal"
-    assert choose(frames, omega, nu, opts, independent - 0.5 * womersley.EVIDENCE)[0].model == "independent"
+    assert choose(frames, omega, nu, opts, independent - 1.5 * cycle.EVIDENCE)[0].model == "temporal"
+    assert choose(frames, omega, nu, opts, independent - 0.5 * cycle.EVIDENCE)[0].model == "independent"
     good = terms(1.0)  # the momentum model explains the data: chi^2 = 4
-    assert choose(good, omega, nu, opts, independent - 1.5 * womersley.EVIDENCE)[0].model == "momentum"
+    assert choose(good, omega, nu, opts, independent - 1.5 * cycle.EVIDENCE)[0].model == "momentum"
