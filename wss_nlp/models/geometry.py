@@ -21,6 +21,7 @@ import numpy as np
 import casadi as ca
 
 from .._lazy import scipy
+from . import acquisition as acq_model
 from . import kspace
 from . import measurement as meas
 from ..core import operators
@@ -158,6 +159,11 @@ class GeometryProblem:
     r_ref: float  # reference (equal-area) radius, mm
     psf: kspace.PSF | None = None  # None: voxel means (box model); else the k-space point-spread function
 
+    @property
+    def measurement(self) -> acq_model.MeasurementModel:
+        """The measurement model of the magnitude (:mod:`wss_nlp.models.acquisition`)."""
+        return acq_model.of(self.psf)
+
     def __post_init__(self):
         if not 0 < self.r0 < self.r1:
             raise InputError(f"geometry box must satisfy 0 < r0 < r1, got r0 = {self.r0} mm, r1 = {self.r1} mm")
@@ -250,28 +256,17 @@ def build_tikhonov(
     c = ca.MX.sym("c", rad.n_coefficients(n))
     alpha = ca.MX.sym("alpha")  # a parameter, so one solver serves a whole alpha sequence
     width = gamma if gamma_symbol is None else gamma_symbol  # a symbol lets callers differentiate in gamma
-    model: meas.AnnulusModel | kspace.KSpaceMagnitudeModel
+    measurement = problem.measurement
+    model = measurement.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma)
     second = None
-    if problem.psf is None:
-        model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
-        if separable_jacobian and second_order:
-            predicted, d_predicted, second = meas.magnitude_model(
-                model, c, width, options.heaviside, jacobian=True, second_order=True
-            )
-        elif separable_jacobian:
-            predicted, d_predicted = meas.magnitude_model(model, c, width, options.heaviside, jacobian=True)
-        else:
-            predicted = meas.magnitude_model(model, c, width, options.heaviside)
+    if separable_jacobian and second_order:
+        predicted, d_predicted, second = measurement.magnitude_model(
+            model, c, width, options.heaviside, jacobian=True, second_order=True
+        )
+    elif separable_jacobian:
+        predicted, d_predicted = measurement.magnitude_model(model, c, width, options.heaviside, jacobian=True)
     else:
-        model = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf)
-        if separable_jacobian and second_order:
-            predicted, d_predicted, second = kspace.magnitude_model(
-                model, c, width, options.heaviside, jacobian=True, second_order=True
-            )
-        elif separable_jacobian:
-            predicted, d_predicted = kspace.magnitude_model(model, c, width, options.heaviside, jacobian=True)
-        else:
-            predicted = kspace.magnitude_model(model, c, width, options.heaviside)
+        predicted = measurement.magnitude_model(model, c, width, options.heaviside)
     m = problem.magnitude.ravel()
     area = problem.grid.voxel_area
     data = ca.MX.sym("m", model.annulus.size) if data_symbol else None
@@ -298,25 +293,18 @@ def _constant_misfit(m: np.ndarray, model, area: float) -> float:
 
 def fitted_voxels(problem: GeometryProblem, options: GeometryOptions) -> np.ndarray:
     """Flat indices of the voxels whose magnitude the functional fits (the annulus, or the k-space window)."""
-    q = quad_order(problem, options)
-    if problem.psf is None:
-        return meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q).annulus
-    gamma = effective_gamma(problem, options)
-    return kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf).annulus
+    q, gamma = quad_order(problem, options), effective_gamma(problem, options)
+    return problem.measurement.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma).annulus
 
 
 def model_image(problem: GeometryProblem, options: GeometryOptions, result: GeometryResult) -> np.ndarray:
     """The forward model's normalized magnitude of ``result`` as an image (0 outside the fitted voxels)."""
     q = quad_order(problem, options)
     out = np.zeros(problem.magnitude.size)
-    if problem.psf is None:
-        model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
-        out[model.inside] = 1.0
-        out[model.annulus] = meas.magnitude_model(model, result.coefficients, result.gamma, options.heaviside)
-    else:
-        ks = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, result.gamma, problem.psf)
-        out[ks.inside] = 1.0
-        out[ks.annulus] = kspace.magnitude_model(ks, result.coefficients, result.gamma, options.heaviside)
+    measurement = problem.measurement
+    model = measurement.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, result.gamma)
+    out[model.inside] = 1.0
+    out[model.annulus] = measurement.magnitude_model(model, result.coefficients, result.gamma, options.heaviside)
     return out.reshape(problem.magnitude.shape)
 
 

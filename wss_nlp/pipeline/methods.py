@@ -54,6 +54,7 @@ class Baseline(Method):
         bad = set(acq.nonfinite_slices())
         out: list = []
         for iz in range(acq.nz):
+            res: bl.BaselineResult | FailedSlice
             try:
                 if iz in bad:
                     raise InputError(f"{acq.source} slice {iz}: the images contain NaN or Inf")

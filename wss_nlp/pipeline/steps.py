@@ -26,6 +26,7 @@ import numpy as np
 
 from ..models import dephasing as deph
 from ..models import geometry as geo
+from ..models import acquisition as acq_model
 from ..models import kspace
 from ..models import preprocess as pp
 from ..models import velocity as vel
@@ -90,7 +91,7 @@ def prepare(
     preferred: it also holds what the data's placement adds).
     """
     where = f"{source} slice {index}"
-    norm, m, lumen = pp.preprocess(raw, grid, where, vessel, clip_upper=psf is None)
+    norm, m, lumen = pp.preprocess(raw, grid, where, vessel, clip_upper=acq_model.of(psf).clip_upper)
     if box is not None:
         lumen = box.apply(lumen)
     nvenc = venc
