@@ -85,7 +85,7 @@ class GeometryOptions:
     schema_group = "geometry (Sec. 2, 7.1)"
 
     n_fourier: int = option(8, "highest harmonic N of the radius R(phi)", cli="--n-fourier", toml=("N", "n_fourier"))
-    alpha: float = 1e-3  # on the command line and in studies through --alpha (ReconstructionOptions.alpha_rule)
+    alpha: float = 1e-3  # on the command line and in studies through --alpha (ReconstructionOptions.choice.alpha_rule)
     sobolev_s: int = option(2, "order s of the H^s penalty", cli="--sobolev", toml=("sobolev",))
     prior: str = option(
         "area",
@@ -482,7 +482,7 @@ class IpoptGeometrySolver:
         tenth of a re-solve). :func:`wss_nlp.uncertainty.sensitivity.geometry_kkt` gives the same derivative (and those
         in every other parameter) from a graph built for the purpose, 8-40x slower (tested equal); this form
         reuses the solver's graph, so the dephasing passes can afford it to see that a further pass would
-        not move the wall (:func:`wss_nlp.pipeline.reconstruct.reconstruct_slice`).
+        not move the wall (:mod:`wss_nlp.pipeline.driver`).
         """
         nlp = self.nlp
         if nlp.curvature is None or np.any(result.box_multipliers != 0):

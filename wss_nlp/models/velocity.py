@@ -103,7 +103,7 @@ class VelocityOptions:
     max_eigenvalue: float = option(
         400.0, "eigenvalue cut-off M of the eigenfunction basis", cli="--max-eigenvalue", toml=("max_eigenvalue",)
     )
-    beta: float = 5e-8  # on the command line and in studies through --beta (ReconstructionOptions.beta_rule)
+    beta: float = 5e-8  # on the command line and in studies through --beta (ReconstructionOptions.choice.beta_rule)
     laplacian_power: int = option(
         2,
         "t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5",

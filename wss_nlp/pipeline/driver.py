@@ -71,7 +71,7 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     ell = options.stack.z_smoothing_mm
     if acq.nz == 1 or ell == 0:
         return False
-    supported = stk.supports(options)
+    supported = methods.of(options).ties_slices
     if ell is not None and not supported:
         raise InputError(
             f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled and coupled methods "
@@ -141,7 +141,7 @@ def reconstruct_stack(acq: Acquisition, options: ReconstructionOptions, stack=No
     from dataclasses import replace
 
     options = replace(options, stack=stack or options.stack)
-    if not stk.supports(options):
+    if not methods.of(options).ties_slices:
         raise InputError(
             f"{acq.source}: the stack's solvers need the decoupled or coupled method, not {options.method!r}"
         )

@@ -6,6 +6,7 @@ import os
 import sys
 import time
 import numpy as np
+from ...pipeline.results import SliceResult
 from ... import __version__
 from ...io import files as wio
 from ...analysis import metrics
@@ -93,7 +94,7 @@ def _demo(args, options, out: str) -> None:
     _warn(results, sys.stderr)
     res = results[0]
     err = metrics.compare_slice(res, truth)
-    if hasattr(res, "velocity"):
+    if isinstance(res, SliceResult):
         solvers = [
             (f"{ch.name} ({ch.rule})", f"{ch.chosen:.3g}")
             for ch in (res.alpha_choice, res.beta_choice)

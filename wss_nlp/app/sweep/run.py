@@ -7,6 +7,7 @@ import os
 import sys
 import tempfile
 import time
+from ...pipeline.results import SliceResult
 from typing import Any
 from dataclasses import dataclass, field
 import numpy as np
@@ -40,7 +41,7 @@ def case_metrics(res, truth) -> dict:
     out.update(
         mean_wss_pa=float(res.wss.mean),
         alpha_used=float(res.geometry.alpha),
-        beta_used=float(res.velocity.beta) if hasattr(res, "velocity") else nan,
+        beta_used=float(res.velocity.beta) if isinstance(res, SliceResult) else nan,
         mean_wss_std_pa=float(getattr(res.wss, "mean_std", nan)),
     )
     if truth is not None:
