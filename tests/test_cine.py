@@ -171,17 +171,23 @@ def test_cli_phantom_to_time_resolved_result(tmp_path, capsys):
 
 
 def test_a_frame_with_nan_fails_by_index_and_is_bridged(tmp_path, capsys):
+    """A frame with NaN fails by index; the momentum model (chosen for these Womersley frames) gives its WSS at its
+    time, within 5 % of the peak of the truth (the model fitted to the other three frames; 8 % is issue 15's
+    goal for frames, the reconstructed frames here come within 1 %), and TAWSS and OSI are computed (one missing
+    frame of four leaves a gap of two spacings, within coverage's three)."""
     frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=51, frames=4)
     frames[2].magnitude[0, 3, 3] = np.nan
     inp, out = tmp_path / "cine.h5", tmp_path / "result.h5"
     files.write_frames(str(inp), frames, truth.times_ms, truth.period_ms)
     assert main(["reconstruct", str(inp), "-o", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "frame(s) [2] failed" in err and "NaN" in err
+    assert "frame(s) [2] failed" in err and "NaN" in err and "momentum model's at their times" in err
     with h5py.File(out) as f:
         g = f["slice_000"]
         assert list(g.attrs["failed_frames"]) == [2]
-        assert np.isnan(g["wss/mean_pa_t"][2]) and np.all(np.isfinite(g["wss/tawss_pa"][()]))
+        tau = truth.tau()
+        assert abs(g["wss/mean_pa_t"][2] - tau[2]) < 0.05 * np.max(np.abs(tau))
+        assert np.all(np.isfinite(g["wss/tawss_pa"][()]))
 
 
 def test_time_resolved_input_errors(tmp_path):

@@ -692,9 +692,9 @@ def cycle_warnings(cine: CineResult, series: list) -> list[str]:
         for k, frame in enumerate(cine.frames):
             items += [(s.index, k, w[len(prefix) :] if w.startswith(prefix) else w) for w in frame[s.index].warnings]
     kinds: dict = {}
-    for iz, k, message in items:
-        key = (k is None, re.sub(r"[-+]?\d[\d.eE+-]*", "#", message))
-        kinds.setdefault(key, (message, []))[1].append((iz, k))
+    for iz, frame_index, message in items:
+        key = (frame_index is None, re.sub(r"[-+]?\d[\d.eE+-]*", "#", message))
+        kinds.setdefault(key, (message, []))[1].append((iz, frame_index))
     out = []
     for (per_slice, _), (message, where) in kinds.items():
         slices = sorted({iz for iz, _ in where})

@@ -90,7 +90,7 @@ class Waveform:
         samples = 4096
         v = self.values(np.arange(samples) / samples)
         coef = np.fft.rfft(v) / samples
-        out = [float(coef[0].real)] + [complex(2 * np.conj(coef[k])) for k in range(1, n + 1)]
+        out = [float(coef[0].real)] + [complex(2 * coef[k]) for k in range(1, n + 1)]  # v = c_0 + 2 Re sum c_k e^
         scale = self.peak_m_s / float(np.max(_bulk(tuple(out), np.arange(samples) / samples)))
         return tuple(scale * c for c in out)
 
