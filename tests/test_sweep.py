@@ -175,7 +175,7 @@ def test_local_processes_and_dask_cluster_agree(tmp_path):
 def test_failed_case_is_recorded_and_the_rest_run(tmp_path):
     acq, truth = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=0)
     wio.write_acquisition(tmp_path / "good.h5", acq)
-    from wss_nlp.app.cli import _write_truth
+    from wss_nlp.app.cli.phantom import _write_truth
 
     _write_truth(str(tmp_path / "good_truth.h5"), truth)
     bad = acq.magnitude.copy()
