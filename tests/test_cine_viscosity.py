@@ -4,6 +4,7 @@ line (analyze, compare, sensitivity, export).
 
 Seeds 70-79 (the report, scripts/cine.py --extra viscosity / waveforms, uses 1000-1004; development 0-4)."""
 
+import copy
 import json
 from types import SimpleNamespace
 
@@ -81,7 +82,8 @@ def test_cell_integrals_along_rays_match_a_fine_quadrature(problem):
     full = inside.all(axis=1)
     got, midpoint = got[near], midpoint[near]
     assert np.max(np.abs(got[full] - exact[full])) <= 5e-4 * scale < np.max(np.abs(midpoint[full] - exact[full])) / 5
-    assert np.max(np.abs(got[~full] - exact[~full])) <= 0.03 * scale < np.max(np.abs(midpoint[~full] - exact[~full])) / 3
+    worst_partial = np.max(np.abs(got[~full] - exact[~full]))
+    assert worst_partial <= 0.03 * scale < np.max(np.abs(midpoint[~full] - exact[~full])) / 3
 
 
 def test_offset_columns_derivatives_taylor(problem):
@@ -170,9 +172,9 @@ def test_phantom_truth_is_independent_of_the_model_and_agrees_with_it():
 
 def test_published_shape_waveforms_have_their_features():
     """16 harmonics of each waveform (pulsatile.WAVEFORMS) reproduce its pulse train within 1 % of the peak, peak
-    bulk velocity as given (sampled: 1e-5); carotid forward all cycle (diastolic flow at least 15 % of the peak), aortic, femoral
-    and brachial reverse (femoral the most, at least 20 % of the peak), and the Womersley numbers at the typical
-    radii span the issue's 3-20 (3.0 brachial to 16.6 aortic)."""
+    bulk velocity as given (sampled: 1e-5); carotid forward all cycle (diastolic flow at least 15 % of the peak),
+    aortic, femoral and brachial reverse (femoral the most, at least 20 % of the peak), and the Womersley numbers
+    at the typical radii span the issue's 3-20 (3.0 brachial to 16.6 aortic)."""
     phase = np.arange(2000) / 2000
     alphas = {}
     for name, w in pulsatile.WAVEFORMS.items():
@@ -250,64 +252,79 @@ def test_the_summary_names_the_cycle_model():
     assert "not computed" in line and "frames' own fits" in line
 
 
-def test_stated_viscosity_30_percent_off_is_found_in_the_data():
-    """h = 1.5 mm, SNR 25, 12 frames, the files stating the viscosity 30 % high (seed 77): with the viscosity fitted
-    (the default) every frame is within 2 % of the peak of the WSS the stated viscosity implies, the fitted
-    kinematic viscosity within 5 % of the truth with the truth inside its 95 % interval, and the stated value
-    flagged; the same frames with the stated viscosity (--cine-viscosity stated) miss by more than 3 %."""
-    frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=77, frames=12, viscosity_error=0.3)
-    options = ReconstructionOptions(uncertainty=False)
+@pytest.fixture(scope="module")
+def stated_high(tmp_path_factory):
+    """One cine slice shared by the tests below (one reconstruction keeps CI cheap): the rigid 10 mm pipe
+    (Womersley number 13.8), 8 frames (the waveform's 4 harmonics; 6 frames would alias them), h = 1.5 mm, SNR
+    25, seed 78, the files stating the viscosity 30 % high; reconstructed with the default options and written
+    as ``wss-nlp reconstruct`` writes it (``cine.write_result``), with the truth file."""
+    folder = tmp_path_factory.mktemp("cine_cli")
+    frames, truth = pulsatile.make_cine(h_mm=1.5, snr=25, seed=78, frames=8, viscosity_error=0.3)
+    options = ReconstructionOptions()
     res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, options)
+    out, truth_path = folder / "r.h5", folder / "t.h5"
+    cine.write_result(str(out), res, options.as_dict())
+    pulsatile.write_truth(str(truth_path), truth)
+    return SimpleNamespace(folder=folder, frames=frames, truth=truth, result=res, out=out, truth_path=truth_path)
+
+
+def test_stated_viscosity_30_percent_off_is_found_in_the_data(stated_high):
+    """The files state the viscosity 30 % high: with the viscosity fitted (the default) every frame is within 2 %
+    of the peak of the WSS the stated viscosity implies (issue 40's goal; measured 1.1 %), TAWSS within 2 % and
+    OSI within 0.02 of the exact integrals over the whole cycle, the fitted kinematic viscosity within 5 % of the
+    truth (measured 0.6 %) with the truth inside its 95 % interval, and the stated value flagged; the same
+    frames' fits with the stated viscosity (the momentum model forced, --cine-viscosity stated) miss by more
+    than 5 % (measured 10 %: the layer 30 % too thick in nu). The full study (3 voxel sizes, 5 viscosity
+    errors, reported seeds) is scripts/cine.py --extra viscosity and test_viscosity_study_targets (slow)."""
+    truth, res = stated_high.truth, stated_high.result
     s = res.series(0)
     ref = truth.reference_tau()
     peak = np.max(np.abs(ref))
+    tawss, osi, _ = truth.cycle_integrals()
     assert s.model.model == "momentum" and np.max(np.abs(s.mean - ref)) < 0.02 * peak
+    assert abs(np.mean(s.tawss) / tawss - 1) < 0.02 and abs(np.mean(s.osi) - osi) < 0.02
     v = s.model.viscosity
     nu_true = truth.viscosity_pa_s / truth.flow.density_kg_m3
     assert abs(v["nu_m2_s"] / nu_true - 1) < 0.05 and v["nu_interval_m2_s"][0] < nu_true < v["nu_interval_m2_s"][1]
-    assert not v["agrees"] and any("viscosity disagreement" in n for n in s.notes)
-    stated = ReconstructionOptions(uncertainty=False, cine=womersley.CineModelOptions(viscosity="stated"))
-    res.models = cine.cycle_models(res, frames, stated, OMEGA, None)
-    assert np.max(np.abs(res.series(0).mean - ref)) > 0.03 * peak
+    assert not v["agrees"] and any("OUTSIDE" in n or "disagree" in n for n in s.notes)
+    stated = ReconstructionOptions(cine=womersley.CineModelOptions(model="momentum", viscosity="stated"))
+    other = copy.copy(res)
+    other.models = cine.cycle_models(res, stated_high.frames, stated, OMEGA, None)
+    assert other.series(0).model.viscosity["mode"] == "stated"
+    assert np.max(np.abs(other.series(0).mean - ref)) > 0.05 * peak
 
 
-@pytest.fixture(scope="module")
-def cine_result(tmp_path_factory):
-    """A cine phantom (8 frames, h = 1.5 mm, seed 78), its truth and result written through the command line (8
-    frames: the phantom's waveform has 4 harmonics, which 6 frames alias)."""
-    folder = tmp_path_factory.mktemp("cine_cli")
-    inp, truth, out = folder / "c.h5", folder / "t.h5", folder / "r.h5"
-    argv = ["phantom", "--case", "womersley", "--frames", "8", "--h", "1.5", "--seed", "78"]
-    assert main([*argv, "-o", str(inp), "--truth", str(truth)]) == 0
-    assert main(["reconstruct", str(inp), "-o", str(out)]) == 0
-    return folder, inp, truth, out
-
-
-def test_analyze_compare_sensitivity_export_read_a_cine_result(cine_result, capsys):
+def test_analyze_compare_sensitivity_export_read_a_cine_result(stated_high, capsys):
     """Through the command line, exit 0: analyze names the cycle model and why (the candidates' criteria, the
-    viscosity the frames imply) and lists every frame's alpha and beta; compare gives the frames' errors, TAWSS,
-    OSI and the fitted viscosity against the truth (this result's frames within 3 % of the peak); sensitivity the
-    momentum model's table; export the wall with TAWSS and OSI."""
-    folder, _, truth, out = cine_result
+    viscosity the frames imply, the stated one flagged) and lists every frame's alpha and beta; compare gives
+    the frames' errors against the WSS the stated viscosity implies (within 2 % of the peak), TAWSS, OSI and
+    the fitted viscosity against the truth (within 5 %, inside its interval); sensitivity the momentum model's
+    table; export the wall with TAWSS and OSI."""
+    folder, out, truth = stated_high.folder, str(stated_high.out), str(stated_high.truth_path)
     capsys.readouterr()
-    assert main(["analyze", str(out), "--figures", str(folder / "figs")]) == 0
+    assert main(["analyze", out, "--figures", str(folder / "figs")]) == 0
     text = capsys.readouterr().out
     assert "velocity over the cycle: the momentum model" in text and "<- chosen" in text
-    assert "the frames imply" in text and text.count("  beta ") >= 1 and "     7 " in text
-    assert main(["compare", str(out), str(truth)]) == 0
+    assert "the frames imply" in text and "OUTSIDE" in text and text.count("  beta ") >= 1 and "     7 " in text
+    assert main(["compare", out, truth]) == 0
     text = capsys.readouterr().out
-    assert "worst frame |mean WSS err| / peak" in text and "fitted kinematic viscosity rel. error" in text
-    worst = float(text.split("worst frame |mean WSS err| / peak")[1].split("%")[0])
-    assert worst < 3.0
-    assert main(["sensitivity", str(out)]) == 0
+    assert "worst frame |mean WSS err| / peak" in text and "stated / true viscosity" in text
+
+    def number(label):  # the table's row: the label, then the value right-aligned
+        return float(text.split(label)[1].split("\n")[0].split()[-1].rstrip("%"))
+
+    assert number("worst frame |mean WSS err| / peak") < 2.0 and abs(number("TAWSS rel. error")) < 2.0
+    assert abs(number("OSI error")) < 0.02 and abs(number("fitted kinematic viscosity rel. error")) < 5.0
+    assert text.split("truth inside its 95 % interval")[1].split("\n")[0].split()[-1] == "yes"
+    assert main(["sensitivity", out]) == 0
     assert "stated viscosity +10 %" in capsys.readouterr().out
     pytest.importorskip("meshio")
-    assert main(["export", str(out), "--vtk", str(folder / "w.vtu")]) == 0
+    assert main(["export", out, "--vtk", str(folder / "w.vtu")]) == 0
 
 
-def test_compare_refuses_a_truth_of_another_layout(cine_result, tmp_path, capsys):
+def test_compare_refuses_a_truth_of_another_layout(stated_high, tmp_path, capsys):
     """A cine result against a single-slice truth: one line naming what is missing, exit 2."""
-    _, _, _, out = cine_result
+    out = stated_high.out
     single, single_truth = tmp_path / "s.h5", tmp_path / "st.h5"
     assert main(["phantom", "--case", "circle", "--h", "1.5", "-o", str(single), "--truth", str(single_truth)]) == 0
     capsys.readouterr()
@@ -316,10 +333,10 @@ def test_compare_refuses_a_truth_of_another_layout(cine_result, tmp_path, capsys
     assert len(err) == 1 and "time-resolved truth" in err[0]
 
 
-def test_read_result_and_records_of_a_cine_result(cine_result):
+def test_read_result_and_records_of_a_cine_result(stated_high):
     """files.read_result gives the per-frame alpha and beta as arrays (they were a TypeError) and the series;
     read_cine_models the model record with the viscosity; read_choices each frame's choices."""
-    _, _, _, out = cine_result
+    out = stated_high.out
     d = files.read_result(out)[0]
     assert d["alpha"].shape == (8,) and d["tau"].shape[0] == 8 and d["time_ms"].shape == (8,)
     rec = files.read_cine_models(out)["slice_000"]

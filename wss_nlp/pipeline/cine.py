@@ -463,7 +463,9 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
             models[iz] = CycleModel(cycle.CineModelChoice("independent", criterion=why))
             continue
         prior = None
-        if len(usable) == len(result.frames) >= 3 and _equally_spaced(result):
+        # the prior only competes in the choice: a forced momentum model does not need it (its criterion costs
+        # as much as the frames' fits)
+        if options.cine.model != "momentum" and len(usable) == len(result.frames) >= 3 and _equally_spaced(result):
             scale, log_n = cycle.criterion_scale(usable)
             prior = temporal.fit(problems, betas, sigmas, scale, log_n)
         data = womersley.CycleData(problems, sigmas, np.array([t.time_s for t in usable]), omega, radius,
