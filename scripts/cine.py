@@ -205,8 +205,9 @@ def viscosity_study(args) -> None:
     stated = ReconstructionOptions(cine=womersley.CineModelOptions(viscosity="stated"))
     lines = viscosity_header(args, f", {args.frames} frames, SNR 25, rigid 10 mm pipe (Womersley number 13.8)")
     t_all = time.perf_counter()
+    errors = VISCOSITY_ERRORS if args.errors is None else tuple(float(v) for v in args.errors.split(","))
     for h in [float(v) for v in args.h.split(",")]:
-        for error in VISCOSITY_ERRORS:
+        for error in errors:
             rows: dict = {"default (fitted)": [], "stated viscosity": []}
             for seed in range(args.first_seed, args.first_seed + args.seeds):
                 frames, truth = pulsatile.make_cine(h_mm=h, snr=25, seed=seed, frames=args.frames,
@@ -220,7 +221,7 @@ def viscosity_study(args) -> None:
                 lines.append(viscosity_row(f"stated {100 * error:+.0f} %", h, name, results))
                 print(lines[-1], flush=True)
     lines += ["", f"({time.perf_counter() - t_all:.0f} s)"]
-    write_report(args.out, "cine_viscosity.md", lines)
+    write_report(args.out, args.name or "cine_viscosity.md", lines)
 
 
 def waveform_study(args) -> None:
@@ -258,6 +259,8 @@ def main() -> None:
         "pipe, or in pipes of radius 3 and 14 mm (first harmonic's Womersley number about 4 and 19), at the "
         "--h and --snr values; writes cine_kspace.md, cine_ellipse.md or cine_alpha.md",
     )
+    p.add_argument("--errors", default=None, help="viscosity study: stated viscosity errors (0,-0.15,...)")
+    p.add_argument("--name", default=None, help="viscosity study: the report's file name (cine_viscosity.md)")
     args = p.parse_args()
     FIRST_SEED[0] = args.first_seed
     if args.extra == "viscosity":
