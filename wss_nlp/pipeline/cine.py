@@ -486,7 +486,8 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
             _prior_wall_shear(model, prior, problems, options.n_phi, mu)
         if fitted is not None:
             period_s = result.period_ms / 1000.0
-            _momentum_wall_shear(model, fitted, result, usable, wall_choice, omega, period_s, options.n_phi, mu)
+            _momentum_wall_shear(model, fitted, result, usable, wall_choice, omega, period_s, options.n_phi, mu,
+                                 fill=fitted.harmonics < k_max)  # fmt: skip
         log.debug("slice %d: %s", iz, model_note(choice))  # the series' note says it (the CLI prints notes once)
         models[iz] = model
     return models
@@ -494,11 +495,16 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
 
 def _momentum_wall_shear(
     model: CycleModel, fitted, result: CineResult, usable: list, wall_choice, omega: float, period_s: float,
-    n_phi: int, mu: float,
+    n_phi: int, mu: float, fill: bool = True,
 ) -> None:  # fmt: skip
     """The momentum model's WSS at every frame (on the walls it was fitted on, moved by its offset; a frame
     without data of its own on the walls' temporal fit at its time) and on :data:`CYCLE_SAMPLES` instants of
-    the whole cycle."""
+    the whole cycle.
+
+    ``fill`` False leaves frames without data of their own NaN (bridged for TAWSS and OSI): the caller's rule
+    is to fill only where the BIC chose fewer harmonics than the frames allow, since a model at that cap may
+    be truncating the waveform (4 frames of the 4-harmonic phantom, one failed: the fill missed by 36 % of the
+    peak), while its value at a frame it was fitted on is still checked by that frame's data."""
     phi = rad.uniform_angles(n_phi)
     used = {t.index: t for t in usable}
     known_t = np.array([t.time_s for t in usable])
@@ -512,12 +518,12 @@ def _momentum_wall_shear(
 
     n_t = len(result.frames)
     times_all = result.times_ms / 1000.0
-    missing = [k for k in range(n_t) if k not in used]
+    missing = [k for k in range(n_t) if k not in used] if fill else []
     filled = dict(zip(missing, walls_at(times_all[missing]))) if missing else {}
     model.tau, model.tau_std = np.full((n_t, n_phi), np.nan), np.full((n_t, n_phi), np.nan)
     model.mean, model.mean_std = np.full(n_t, np.nan), np.full(n_t, np.nan)
     model.walls = np.full((n_t, known.shape[1]), np.nan)
-    for k in range(n_t):
+    for k in sorted(used) + missing:
         wall = np.r_[used[k].coefficients, used[k].center] if k in used else filled[k]
         model.tau[k], model.tau_std[k], model.mean[k], model.mean_std[k] = womersley.shear_at(
             fitted, wall[:n_r], float(times_all[k]), radius, phi, mu
