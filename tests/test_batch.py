@@ -375,3 +375,32 @@ def test_cli_batch_exit_codes_and_messages(tmp_path, capsys):
     assert "cannot read the manifest" in capsys.readouterr().err
     assert main(["batch", ok, "-o", out, "--scheduler", "tcp://a:1", "--cluster", "local"]) == 2
     assert main(["batch", ok, "-o", out, "--job-script"]) == 2
+
+
+def test_summary_and_report_of_flagged_and_failed_exams(tmp_path):
+    """The summary's flags are the records' flags shortened; the report lists the flagged exams with their whole
+    reasons, the failed ones with their errors, and draws only the exams that have the quantity."""
+    from wss_nlp.app.batch.run import summary_rows, write_summary
+    from wss_nlp.pipeline import ReconstructionOptions
+
+    long = "slice 0: SUSPECT: beta reached the end of its range (3e-09) without a balance; the data hold more"
+    records = {
+        "a": {"id": "a", "status": "ok", "metrics": {"kind": "slice", "mean_wss_pa": 0.3, "radius_mm": 9.0},
+              "flags": [long, long, "slice 2 did not converge"], "warnings": [long], "seconds": 1.5},
+        "b": {"id": "b", "status": "ok", "metrics": {"kind": "cine", "mean_wss_pa": 0.2, "tawss_pa": 0.5,
+              "osi_mean": 0.1, "radius_mm": 10.0}, "flags": [], "warnings": [], "seconds": 2.0},
+        "c": {"id": "c", "status": "failed", "error": "c.h5: no such file", "failure": "input", "seconds": 0.01},
+    }  # fmt: skip
+    exams = [batch.Exam(i, (str(tmp_path / f"{i}.h5"),), ReconstructionOptions()) for i in "abc"]
+    rows = summary_rows(exams, records)
+    assert rows[0]["flags"] == "slice 0: SUSPECT: beta reached the end of its range | slice 2 did not converge"
+    assert rows[0]["n_warnings"] == 1 and rows[1]["tawss_pa"] == 0.5 and rows[2]["result_file"] == ""
+    csv_path, _ = write_summary(str(tmp_path), rows)
+    back = batch.read_summary(str(tmp_path))
+    assert back[0]["mean_wss_pa"] == 0.3 and np.isnan(back[0]["tawss_pa"]) and back[2]["n_slices"] is None
+    paths = batch.write_report(str(tmp_path), rows, records)
+    html = open(paths[0]).read()
+    flagged = html.split("<h2>Flagged exams</h2>")[1].split("<h2>")[0]
+    assert "the data hold more" in flagged and ">a</a>" in flagged and ">b</a>" not in flagged
+    assert "c.h5: no such file" in html.split("<h2>Failed exams</h2>")[1].split("<h2>")[0]
+    assert "3 exam(s): 2 ok (1 flagged), 1 failed" in html and os.path.getsize(paths[1]) > 1000

@@ -455,13 +455,13 @@ def save_cine_figures(series, result, folder: str, truth_tau=None) -> list[str]:
     return paths
 
 
-def figure_cohort(values: dict, flagged: dict | None = None):
+def figure_cohort(values: dict, flagged=None):
     """Distributions across the exams of a batch: one panel per quantity, every exam a point over a box plot.
 
     ``values``: ``{label: {exam id: value}}`` (NaN values are left out: a steady exam has no TAWSS); ``flagged``:
     the ids of exams with flags, drawn as open orange circles.
     """
-    flagged = flagged or {}
+    flagged = set(flagged or ())
     panels = [(label, {k: v for k, v in vals.items() if np.isfinite(v)}) for label, vals in values.items()]
     fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
     rng = np.random.default_rng(0)  # the points' sideways jitter, the same in every report

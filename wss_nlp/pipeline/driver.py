@@ -93,6 +93,7 @@ def blas_threads(n: int):
     # limited, so the first reconstruction of a process ran SciPy's BLAS on every core (other rounding than every
     # later one, and than a worker process's: wss-nlp reconstruct --workers must match the serial run bit for bit)
     import scipy.linalg  # noqa: F401
+
     return threadpool_limits(limits=n, user_api="blas")
 
 
