@@ -89,9 +89,9 @@ def blas_threads(n: int):
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - threadpoolctl is a dependency; tolerate its absence
         return contextlib.nullcontext()
-    # SciPy brings a BLAS of its own, loaded with its first import; a library loaded inside the context is not
-    # limited, so the first reconstruction of a process ran SciPy's BLAS on every core (other rounding than every
-    # later one, and than a worker process's: wss-nlp reconstruct --workers must match the serial run bit for bit)
+    # threadpoolctl limits only the libraries already loaded: SciPy ships its own OpenBLAS, loaded on the
+    # first import of scipy.linalg, which would otherwise run the first solve of a process unlimited (and
+    # with other rounding than every later one)
     import scipy.linalg  # noqa: F401
 
     return threadpool_limits(limits=n, user_api="blas")
