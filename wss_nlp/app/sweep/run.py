@@ -103,6 +103,14 @@ def run_case(params: dict, base_dir: str = ".") -> tuple[dict, bytes | None]:
 
 
 # ------------------------------------------------------------------ running
+
+
+def _case_in(base_dir: str, params: dict) -> tuple[dict, bytes | None]:
+    """:func:`run_case` with the study's folder bound first (a picklable task for the executor); ``run_case`` is
+    looked up when the task runs, as ``run_case(params, base_dir)``."""
+    return run_case(params, base_dir)
+
+
 def _done(cases_dir: str, cid: str, retry_failed: bool) -> dict | None:
     """The finished record of a case, or None if it has to run (missing, unreadable or, if asked, failed)."""
     path = os.path.join(cases_dir, cid + ".json")
@@ -146,7 +154,7 @@ def run_study(
     progress = Progress(len(cases), stream, skipped=len(cases) - len(pending))
     workers = workers or os.cpu_count() or 1
     where = executor.backend(workers=min(workers, max(len(pending), 1)), scheduler=scheduler)
-    task = functools.partial(run_case, base_dir=study.base_dir)
+    task = functools.partial(_case_in, study.base_dir)
     results = executor.results(where, task, pending, keys=[f"wss-nlp-{case_id(p)}" for p in pending])
     for record, blob in results:
         cid = record["id"]
