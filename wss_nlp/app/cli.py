@@ -396,6 +396,11 @@ def cmd_analyze(args) -> int:
             print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
     for name, rec in wio.read_dephasing(args.result).items():
         print(f"{name}: {_dephasing_text(rec)}")
+    from ..models import surround  # hook (issue 39): surround model and background phase offset
+
+    for name, rec in surround.read_tissue(args.result).items():
+        for line in surround.report_lines(rec):
+            print(f"{name}: {line}")
     if args.figures:
         from .plotting import save_parameter_figures
 

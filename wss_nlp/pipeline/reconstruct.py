@@ -26,6 +26,7 @@ from ..models import near_wall as nw
 from . import steps as pipeline
 from . import plausibility as plaus
 from ..models import preprocess as pp
+from ..models import surround
 from ..core import radius as rad
 from ..uncertainty import sensitivity as sens
 from ..models import stack as stk
@@ -112,6 +113,7 @@ class ReconstructionOptions:
     screen: plaus.ScreenOptions = field(default_factory=plaus.ScreenOptions)  # vessel choice, unwrapping
     acquisition: kspace.AcquisitionOptions = field(default_factory=kspace.AcquisitionOptions)  # box or k-space PSF
     cine: womersley.CineModelOptions = field(default_factory=womersley.CineModelOptions)  # frames tied in time
+    tissue: surround.TissueOptions = field(default_factory=surround.TissueOptions)  # surround model, offset (#39)
     n_phi: int = option(360, "angles at which tau is reported, >= 360", cli="--n-phi", toml=("n_phi",), group=WSS_GROUP)
     viscosity_pa_s: float | None = option(
         None,
@@ -308,9 +310,11 @@ def reconstruct_slice(
     t = {}
     t0 = time.perf_counter()
     data = pipeline.prepare(
-        magnitude, velocity_image, grid, index, source, options.screen.vessel, psf, venc, noise_venc, box
+        magnitude, velocity_image, grid, index, source, options.screen.vessel, psf, venc, noise_venc, box,
+        options.tissue,
     )
     where, norm, m, lumen = data.where, data.norm, data.magnitude, data.lumen
+    velocity_image = data.velocity  # hook (issue 39): the offset-corrected velocity of prepare
     t["preprocess"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -407,7 +411,7 @@ def reconstruct_slice(
     dep["min_factor"] = float(np.min(factors, initial=1.0)) if factors is not None else 1.0
     if not np.all(np.isfinite(w.tau)):
         raise WssNlpError(f"{where}: wall shear stress is not finite; the reconstruction is unusable")
-    notes, sensitivity, pending = list(notes_deph), None, None
+    notes, sensitivity, pending = list(notes_deph) + surround.notes(lumen.tissue), None, None  # hook (issue 39)
     band_inputs = (problem, g, vp, v, w, data, lumen, viscosity_pa_s, options, cres, near)
     if options.uncertainty and defer_band:
         pending = functools.partial(uncertainty, *band_inputs)

@@ -31,6 +31,7 @@ from ..models import geometry as geo
 from ..models import kspace
 from ..models import near_wall as nw
 from ..models import preprocess as pp
+from ..models import surround
 from ..uncertainty import sensitivity as sens
 from ..uncertainty import stack_band
 from ..models import velocity as vel
@@ -100,15 +101,20 @@ def prepare(
     venc: float | None = None,
     noise_venc: float | None = None,
     box: pp.LumenBox | None = None,
+    tissue: surround.TissueOptions | None = None,
 ) -> SliceData:
     """Preprocess one slice (:func:`wss_nlp.models.preprocess.preprocess`) into its :class:`SliceData`.
 
     ``box`` replaces the lumen's own origin and radius box (cine frames). ``noise_venc`` sets the velocity
     noise when there is no ``venc`` and the lumen has no plateau to measure it on (the plateau's level is
-    preferred: it also holds what the data's placement adds).
+    preferred: it also holds what the data's placement adds). ``tissue``: the surround model and the offset
+    correction (:func:`wss_nlp.models.surround.preprocess`; None: their defaults).
     """
     where = f"{source} slice {index}"
-    norm, m, lumen = pp.preprocess(raw, grid, where, vessel, clip_upper=psf is None)
+    # hook (issue 39): the surround model, flow-aware lumen and background offset correction; the velocity the
+    # fits use comes back with the offset removed and the partial-volume voxels' lumen phase, and the raw
+    # magnitude with the magnitude that carries that phase (the noise estimates' |d_i|)
+    norm, m, lumen, velocity, raw = surround.preprocess(raw, velocity, grid, where, vessel, venc, psf, tissue)
     if box is not None:
         lumen = box.apply(lumen)
     nvenc = venc
@@ -265,7 +271,7 @@ class StackRun:
                     raise InputError(f"{acq.source} slice {iz}: the images contain NaN or Inf")
                 self.prepared[iz] = prepare(
                     acq.magnitude[iz], velocity[iz], acq.grid, iz, acq.source, options.screen.vessel, psf,
-                    acq.venc_m_s, acq.noise_venc_m_s,
+                    acq.venc_m_s, acq.noise_venc_m_s, tissue=options.tissue,
                 )  # fmt: skip
             except WssNlpError as exc:
                 failed[iz] = str(exc)
@@ -522,6 +528,7 @@ class StackRun:
             p = self.prepared[k]
             dep = {"min_factor": float(np.min(factors[i], initial=1.0)) if factors[i] is not None else 1.0}
             notes = [deph.UNEXPLAINED_NOTE] if k in self.unexplained else []
+            notes += surround.notes(p.lumen.tissue)  # hook (issue 39)
             notes += [band_note] if band_note else []
             if bands is not None and (scale_note := nw.scale_ambiguity_note(near, w.mean, w.mean_std)):
                 notes.append(scale_note)
