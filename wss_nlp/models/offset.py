@@ -38,6 +38,8 @@ MSAC_BAND, MSAC_DRAWS = 3.0, 200
 MIN_SECTORS = 6
 #: An offset beyond this fraction of the venc at the vessel is no eddy current: refused, flagged.
 MAX_OFFSET_FRACTION = 0.1
+#: How the order is chosen: "aic" (``chi^2 + 2 k``) or "bic" (``chi^2 + k ln n``).
+CRITERION = "aic"
 #: Voxels of dilation around each flowing region kept out of the static mask (partial volume, wall).
 FLOW_MARGIN = 2
 
@@ -141,7 +143,7 @@ def fit_offset(
         a = design(x[inl], p)
         c = _wls(a, y[inl], w[inl])
         chi2 = float(np.sum(((y[inl] - a @ c) / s[inl]) ** 2))
-        bic[p] = chi2 + a.shape[1] * np.log(n_in)
+        bic[p] = chi2 + a.shape[1] * (np.log(n_in) if CRITERION == "bic" else 2.0)
         coefs[p] = (c, chi2 / max(n_in - a.shape[1], 1))
     order = min(bic, key=lambda p: bic[p])
     return OffsetFit(order, coefs[order][0], centre, scale, inl, bic, coefs[order][1])

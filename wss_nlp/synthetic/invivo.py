@@ -29,7 +29,7 @@ Development seeds (:data:`DEV_SEEDS`) tune; the tables use :data:`REPORTED_SEEDS
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -283,12 +283,12 @@ def _scene(case: str, rng: np.random.Generator, h_mm: float, surround: bool, off
     )
 
 
-def voxel_means(scene: Scene, grid: VoxelGrid, venc: float):
+def voxel_means(scene: Scene, grid: VoxelGrid, venc: float, max_points: int = MAX_POINTS):
     """Voxel means of the complex signal, of the main vessel's velocity, and the static and flowing fractions.
 
-    The midpoint rule with points at most :data:`SPACING_MM` apart (at most :data:`MAX_POINTS` per axis).
+    The midpoint rule with points at most :data:`SPACING_MM` apart (at most ``max_points`` per axis).
     """
-    n_sub = int(np.clip(np.ceil(grid.h / SPACING_MM), 4, MAX_POINTS))
+    n_sub = int(np.clip(np.ceil(grid.h / SPACING_MM), 4, max_points))
     t = (np.arange(n_sub) + 0.5) / n_sub - 0.5
     ox, oy = (v.ravel() for v in np.meshgrid(t * grid.dx, t * grid.dy))
     xc, yc = grid.centers()
@@ -321,6 +321,7 @@ def make_invivo(
     surround: bool = True,
     offset_pct: float = 2.0,
     offset_family: str | None = None,
+    max_points: int = MAX_POINTS,
 ) -> tuple[Acquisition, InvivoTruth]:
     """Seeded in-vivo-like phantom: ``(acquisition, truth)`` of one slice in a 64 x 64 mm view.
 
@@ -339,6 +340,9 @@ def make_invivo(
         False: the same vessel alone in air (the reference), same grid, shift and noise seed.
     offset_pct : float
         The eddy-current offset at the vessel's centre in percent of the venc (0: none).
+    max_points : int
+        Most midpoint-rule points per voxel axis (tests use fewer: a faster, coarser voxel mean; the truth's
+        fractions are the same rule's).
     """
     if not h_mm > 0:
         raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
@@ -350,7 +354,7 @@ def make_invivo(
     n = int(np.ceil(VIEW_MM / h_mm))
     origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
-    signal, u_mean, static, flowing = voxel_means(scene, grid, scene.venc)
+    signal, u_mean, static, flowing = voxel_means(scene, grid, scene.venc, max_points)
     if snr is not None:
         signal = complex_noise(signal, 1.0 / snr, rng)
     name = f"invivo-{case}" if surround else f"air-{case}"
@@ -397,8 +401,14 @@ INVIVO_CASES = {
 }
 
 
-def make_case(name: str, h_mm: float = 1.0, snr: float | None = 25.0, seed: int = REPORTED_SEEDS[0]):
+def make_case(
+    name: str, h_mm: float = 1.0, snr: float | None = 25.0, seed: int = REPORTED_SEEDS[0], max_points: int = MAX_POINTS
+):
     """``make_invivo`` by a case name of :data:`INVIVO_CASES` (the demo's and ``wss-nlp phantom``'s entry)."""
     if name not in INVIVO_CASES:
         raise InputError(f"unknown in-vivo phantom case {name!r}; choose from {', '.join(INVIVO_CASES)}")
-    return make_invivo(INVIVO_CASES[name][0], h_mm=h_mm, snr=snr, seed=seed)
+    acq, truth = make_invivo(INVIVO_CASES[name][0], h_mm=h_mm, snr=snr, seed=seed, max_points=max_points)
+    acq = replace(acq, source=f"phantom:{name}")
+    truth.name = name
+    truth.parameters["case"] = name
+    return acq, truth
