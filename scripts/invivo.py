@@ -27,6 +27,7 @@ import numpy as np
 
 from _report import RESULTS, write_report
 from wss_nlp.analysis import metrics
+from wss_nlp.errors import WssNlpError
 from wss_nlp.models import offset as off
 from wss_nlp.models.surround import TissueOptions
 from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
@@ -63,11 +64,29 @@ def residual_offset(res, truth, venc: float) -> tuple[float, float, str]:
     return 100 * at_c / venc, 100 * rms / venc, ""
 
 
+_PHANTOMS: dict = {}
+
+
+def phantom(case, h, seed, surround):
+    """The phantom, built once per study (the variants reconstruct the same data)."""
+    key = (case, h, seed, surround)
+    if key not in _PHANTOMS:
+        _PHANTOMS.clear()  # keep one air-tissue pair at a time
+        _PHANTOMS[key] = invivo.make_invivo(case, h, seed=seed, surround=surround)
+    return _PHANTOMS[key]
+
+
 def run(case, h, seed, surround, tissue):
-    acq, truth = invivo.make_invivo(case, h, seed=seed, surround=surround)
+    acq, truth = phantom(case, h, seed, surround)
     opts = ReconstructionOptions(uncertainty=False, tissue=tissue)
     t0 = time.perf_counter()
-    res = reconstruct(acq, opts)[0]
+    try:
+        res = reconstruct(acq, opts)[0]
+    except WssNlpError as exc:  # Appendix B may find no vessel in tissue: a failure is a result too
+        nan = float("nan")
+        return {"case": case, "h_mm": h, "seed": seed, "data": "tissue" if surround else "air", "radius_pct": nan,
+                "wss_pct": nan, "mean_wss_pct": nan, "seconds": time.perf_counter() - t0, "notes": f"FAILED: {exc}",
+                "surround": "", "offset_centre_pct": nan, "offset_rms_pct": nan, "offset_reason": "failed"}  # fmt: skip
     e = metrics.compare_slice(res, truth)
     row = {
         "case": case, "h_mm": h, "seed": seed, "data": "tissue" if surround else "air",
@@ -98,6 +117,7 @@ def main() -> None:
         for h in hs:
             for seed in seeds:
                 rows.append(run(case, h, seed, False, TissueOptions()))
+                _PHANTOMS.clear()
                 rows.append(run(case, h, seed, True, TissueOptions()))
                 if args.components:
                     for name, t in VARIANTS.items():
@@ -181,10 +201,12 @@ def table(rows, comp, seeds, which) -> list[str]:
                     if v == "default":
                         sel = [r for r in rows if r["case"] == case and r["h_mm"] == h and r["data"] == "tissue"]
                     if sel:
+                        ok = [r for r in sel if np.isfinite(r["radius_pct"])]
+                        failed = f" ({len(sel) - len(ok)} of {len(sel)} failed)" if len(ok) < len(sel) else ""
                         lines.append(
-                            f"| {case} | {h:g} | {v} | {np.mean([r['radius_pct'] for r in sel]):.2f} | "
-                            f"{np.mean([r['wss_pct'] for r in sel]):.2f} | "
-                            f"{np.mean([r['mean_wss_pct'] for r in sel]):+.2f} |"
+                            f"| {case} | {h:g} | {v}{failed} | {np.mean([r['radius_pct'] for r in ok]):.2f} | "
+                            f"{np.mean([r['wss_pct'] for r in ok]):.2f} | "
+                            f"{np.mean([r['mean_wss_pct'] for r in ok]):+.2f} |"
                         )
     return lines
 

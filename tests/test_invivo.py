@@ -55,7 +55,9 @@ def test_offset_removed_at_the_vessel_end_to_end():
     assert abs(true - rec["at_vessel_m_s"]) / acq.venc_m_s < 0.003
     assert res.lumen.tissue["surround"]["kind"] == "tissue"
     # --no-offset-correction: recorded as switched off, no note
-    off = reconstruct(acq, ReconstructionOptions(uncertainty=False, tissue=surround.TissueOptions(offset_correction=False)))
+    off = reconstruct(
+        acq, ReconstructionOptions(uncertainty=False, tissue=surround.TissueOptions(offset_correction=False))
+    )
     assert not off[0].lumen.tissue["offset"]["applied"] and not any("offset" in n for n in off[0].notes)
 
 
@@ -63,3 +65,23 @@ def test_make_case_names():
     assert set(invivo.INVIVO_CASES) == {"invivo", "invivo-turbulent"}
     acq, t = invivo.make_case("invivo", h_mm=1.5, seed=invivo.DEV_SEEDS[0], max_points=FAST)
     assert acq.source == "phantom:invivo" and t.parameters["case"] == "invivo"
+
+
+def test_cli_records_and_analyze_reports_the_offset(tmp_path, capsys):
+    from wss_nlp.app import cli
+    from wss_nlp.io import files as wio
+
+    acq, t = invivo.make_case("invivo", h_mm=1.5, seed=invivo.DEV_SEEDS[3], max_points=FAST)
+    src, out = str(tmp_path / "in.h5"), str(tmp_path / "r.h5")
+    wio.write_acquisition(src, acq)
+    assert cli.main(["reconstruct", src, "-o", out, "--no-uncertainty"]) == 0
+    rec = surround.read_tissue(out)["slice_000"]
+    assert rec["offset"]["applied"] and rec["surround"]["kind"] == "tissue"
+    capsys.readouterr()
+    assert cli.main(["analyze", out]) == 0
+    text = capsys.readouterr().out
+    assert "background phase offset: removed" in text and "surround model: tissue" in text
+    assert "not a vessel (fat?)" in text
+    off = str(tmp_path / "off.h5")
+    assert cli.main(["reconstruct", src, "-o", off, "--no-uncertainty", "--no-offset-correction"]) == 0
+    assert not surround.read_tissue(off)["slice_000"]["offset"]["applied"]

@@ -44,9 +44,7 @@ def test_off_is_appendix_b():
     from wss_nlp.models import preprocess as pp
 
     norm, m, lumen = pp.preprocess(acq.magnitude[0], acq.grid, "x")
-    n2, m2, l2, u2, raw2 = surround.preprocess(
-        acq.magnitude[0], acq.velocity_images()[0], acq.grid, "x", options=OFF
-    )
+    n2, m2, l2, u2, raw2 = surround.preprocess(acq.magnitude[0], acq.velocity_images()[0], acq.grid, "x", options=OFF)
     assert n2 == norm and np.array_equal(m, m2) and np.array_equal(lumen.mask, l2.mask) and l2.tissue is None
     assert np.array_equal(u2, acq.velocity_images()[0]) and np.array_equal(raw2, acq.magnitude[0])
 

@@ -164,7 +164,8 @@ def flowing_regions(m: np.ndarray, raw: np.ndarray, velocity: np.ndarray, venc: 
     if not speeds:
         return Regions(labels, [], [], speeds)
     scale = venc if venc is not None else max(speeds.values())
-    flowing, static = [], []
+    flowing: list[int] = []
+    static: list[int] = []
     for j, s in speeds.items():
         mag = float(np.median(raw[labels == j]))
         noise = (scale if venc is not None else 1.0) * sigma / (np.pi * max(mag, 1e-300)) if np.isfinite(sigma) else 0
@@ -427,7 +428,9 @@ def fraction_image(grid: VoxelGrid, center, coefficients, order: int = WALL_QUAD
     return out.reshape(grid.shape)
 
 
-def fit_wall(raw, lum, b_far, f, center, coefficients, grid: VoxelGrid, near: np.ndarray) -> tuple[float, float, dict]:
+def fit_wall(
+    raw, lum, b_far, f, center, coefficients, grid: VoxelGrid, near: np.ndarray, force: bool = False
+) -> tuple[float, float, dict]:
     """Level ``w`` and thickness ``t`` of a wall ring about the lumen ``R`` from the voxels ``near`` it.
 
     Notes
@@ -435,14 +438,15 @@ def fit_wall(raw, lum, b_far, f, center, coefficients, grid: VoxelGrid, near: np
     A voxel holds lumen (fraction ``f``), wall (``F_t - f``, ``F_t`` the fraction within ``R + t``) and the
     outside beyond (``1 - F_t``): ``raw = l f + w (F_t - f) + b (1 - F_t)``. For each ``t`` of
     :data:`WALL_GRID_MM` the level ``w`` is linear least squares; the thickness with the smallest BIC
-    (``n ln(RSS/n) + k ln n``, ``k = 2``) is taken if it beats the model without a wall ring (``k = 0``).
+    (``n ln(RSS/n) + k ln n``, ``k = 2``) is taken if it beats the model without a wall ring (``k = 0``), or
+    in any case with ``force`` (the first rounds: a wall misplaced by the model without one hides the ring).
     Returns ``(w, t, table)``; ``(nan, 0, table)`` without a wall.
     """
     sel = near.ravel()
     y = (raw - lum * f - b_far * (1 - f)).ravel()[sel]  # what the lumen and the far outside leave
     n = int(sel.sum())
     table = {"0": float(n * np.log(max(np.mean(y**2), 1e-300)))}
-    best = (table["0"], float("nan"), 0.0)
+    best = (np.inf if force else table["0"], float("nan"), 0.0)
     c = np.array(coefficients, dtype=float)
     for t in WALL_GRID_MM:
         ct = c.copy()
@@ -462,7 +466,13 @@ def fit_wall(raw, lum, b_far, f, center, coefficients, grid: VoxelGrid, near: np
 
 
 def fractions(
-    raw: np.ndarray, model: SurroundModel, lumen_mask: np.ndarray, grid: VoxelGrid, wall_fraction=None, speed=None
+    raw: np.ndarray,
+    model: SurroundModel,
+    lumen_mask: np.ndarray,
+    grid: VoxelGrid,
+    wall_fraction=None,
+    speed=None,
+    theta=None,
 ):
     """``(f, static)``: the data's lumen fraction near the lumen and the static signal in each voxel (raw units).
 
@@ -470,19 +480,29 @@ def fractions(
     ``R + t`` of the current wall) ``f = (raw - w F_t - b (1 - F_t)) / (l - w)``, the static signal being
     ``w (F_t - f) + b (1 - F_t)``. ``f`` is 0 beyond the outside ring (no voxel there is fitted) and is
     truncated only to [-0.5, 1.5] (a truncation at 0 would turn texture into a positive bias).
+
+    ``theta`` (rad, per voxel: the lumen part's phase relative to the static tissue's) corrects the mixing
+    for the phase: the voxel's magnitude is ``|l f e^{i theta} + s|``, not ``l f + s``, so the magnitude the
+    linear forms use is ``raw + (l f + s) - |l f e^{i theta} + s|`` at the current ``f`` (two fixed-point
+    steps). Near-wall speeds of a flat (turbulent) profile reach a radian of phase in the partial-volume voxels.
     """
     lum, b = model.levels(grid, speed)
     d_out, _ = _distances(lumen_mask)
-    if wall_fraction is None or not np.isfinite(model.wall_level):
-        lum = np.maximum(lum, b + 1e-6)
-        f = (raw - b) / (lum - b)
-        static = b * (1 - np.clip(f, 0.0, 1.0))
-    else:
-        w, ft = model.wall_level, wall_fraction
-        lw = np.maximum(lum - w, 1e-6)
-        f = (raw - w * ft - b * (1 - ft)) / lw
-        fc = np.clip(f, 0.0, 1.0)
-        static = w * np.clip(ft - fc, 0.0, None) + b * (1 - ft)
+    data = np.asarray(raw, float)
+    for _ in range(1 if theta is None else 3):
+        if wall_fraction is None or not np.isfinite(model.wall_level):
+            lum = np.maximum(lum, b + 1e-6)
+            f = (data - b) / (lum - b)
+            static = b * (1 - np.clip(f, 0.0, 1.0))
+        else:
+            w, ft = model.wall_level, wall_fraction
+            lw = np.maximum(lum - w, 1e-6)
+            f = (data - w * ft - b * (1 - ft)) / lw
+            fc = np.clip(f, 0.0, 1.0)
+            static = w * np.clip(ft - fc, 0.0, None) + b * (1 - ft)
+        if theta is not None:
+            part = lum * np.clip(f, 0.0, 1.0)
+            data = raw + (part + static) - np.abs(part * np.exp(1j * theta) + static)
     f = np.where(d_out < ring_start(grid.h) + max(3.0, RING_MM / grid.h), f, 0.0)
     return np.clip(f, -0.5, 1.5), static
 
@@ -493,28 +513,35 @@ PV_MIN_FRACTION = 0.25
 PV_MAX_GAIN = 3.0
 
 
-def lumen_velocity(raw, velocity, f, static, near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def lumen_velocity(raw, velocity, f, static, near: np.ndarray, venc: float | None = None):
     """The lumen's own velocity in the partial-volume voxels ``near``: the measured one undiluted.
 
     Notes
     -----
-    The voxel's complex signal ``d = l f e^{i theta} + b (1 - f)`` (offset removed: static tissue at phase 0)
-    has, to first order in the small near-wall phases, the phase ``theta l f / |d|``: the static signal
-    (``static``, :func:`fractions`: ``b (1 - f)`` or with the wall ring) dilutes the lumen's velocity by
-    ``(|d| - static) / |d|``. The measured velocity is divided by that
-    factor where ``f`` >= :data:`PV_MIN_FRACTION`, the gain capped at :data:`PV_MAX_GAIN` (the exact
-    ``arg(d - b (1 - f))`` turns noise into random phases where the lumen's part is small).
+    The voxel's complex signal is ``d = l f e^{i theta} + s`` with ``s`` the static signal (``static``,
+    :func:`fractions`; offset removed: static tissue at phase 0), so the lumen's phase is
+    ``theta = arg(d - s)``, ``d = raw e^{i pi u / venc}``; without a venc, the first-order form
+    ``u |d| / (|d| - s)``. Applied where ``f`` >= :data:`PV_MIN_FRACTION`, the result limited to
+    :data:`PV_MAX_GAIN` times the measured value (where the lumen's part is small, ``d - s`` is mostly noise).
 
-    Returns ``(u, carrier)``: the velocity and the magnitude that carries its phase, ``|d| / gain``, which
-    sets the phase noise ``venc sigma / (pi carrier)`` (:func:`wss_nlp.parameters.noise.phase_noise_std`).
+    Returns ``(u, carrier)``: the velocity and the magnitude that carries its phase, ``|d - s|`` (at least
+    ``|d| / PV_MAX_GAIN``), which sets the phase noise ``venc sigma / (pi carrier)``
+    (:func:`wss_nlp.parameters.noise.phase_noise_std`).
     """
     u = np.array(velocity, dtype=float, copy=True)
     carrier = np.array(raw, dtype=float, copy=True)
     sel = near & (f >= PV_MIN_FRACTION) & (f < 1.0)
-    lumen_part = raw[sel] - np.clip(static, 0.0, None)[sel]
-    gain = np.clip(raw[sel] / np.maximum(lumen_part, 1e-12), 1.0, PV_MAX_GAIN)
-    u[sel] = u[sel] * gain
-    carrier[sel] = raw[sel] / gain
+    s = np.clip(static, 0.0, None)[sel]
+    if venc is not None:
+        d = raw[sel] * np.exp(1j * np.pi * u[sel] / venc) - s
+        new = venc * np.angle(d) / np.pi
+        part = np.abs(d)
+    else:
+        part = np.maximum(raw[sel] - s, 1e-12)
+        new = u[sel] * raw[sel] / part
+    cap = PV_MAX_GAIN * np.abs(u[sel])
+    u[sel] = np.clip(new, -cap, cap)
+    carrier[sel] = np.maximum(part, raw[sel] / PV_MAX_GAIN)
     return u, carrier
 
 
@@ -538,16 +565,18 @@ def _peaks(raw: np.ndarray, velocity: np.ndarray, venc, source: str) -> pp.Norma
         return norm
 
 
-def screen_preprocess(raw, velocity, grid: VoxelGrid, source: str = "", vessel=None, venc=None):
+def screen_preprocess(raw, velocity, grid: VoxelGrid, source: str = "", vessel=None, venc=None, clip_upper=True):
     """Appendix B's preprocessing with the flow-aware lumen (the plausibility screen's call): ``(norm, m, lumen)``.
 
     ``lumen.tissue["static_bright"]`` lists the bright regions that do not flow (fat), which are not
-    "other vessels".
+    "other vessels". ``velocity`` may be a cine series' ``(T, ny, nx)`` of one slice: a region flows if it
+    flows in some frame (:func:`flowing_regions`).
     """
     norm = _peaks(np.asarray(raw, float), np.asarray(velocity, float), venc, source)
-    m = pp.normalize_magnitude(raw, norm)
+    m = pp.normalize_magnitude(raw, norm, clip_upper)
     lumen0 = pp.find_lumen(m, grid, source, vessel)
-    sigma = lumen_noise_sigma(np.asarray(raw, float), lumen0.mask, velocity, venc)
+    v2 = velocity if np.ndim(velocity) == 2 else None  # a cine series' (T, ny, nx): no plateau high-pass of it
+    sigma = lumen_noise_sigma(np.asarray(raw, float), lumen0.mask, v2, venc)
     lumen, regions = flow_aware_lumen(m, np.asarray(raw, float), velocity, grid, source, vessel, venc, sigma)
     return norm, m, replace(lumen, tissue={"static_bright": _static_summary(regions, grid)})
 
@@ -561,6 +590,7 @@ def preprocess(
     venc: float | None = None,
     psf=None,
     options: TissueOptions | None = None,
+    near=None,
 ):
     """The preprocessing of one slice with the surround model and the offset correction.
 
@@ -577,7 +607,9 @@ def preprocess(
        magnitude (``lumen.signal``, :func:`wss_nlp.parameters.noise.complex_noise_sigma`), so their
        complex noise is the lumen plateau's.
 
-    ``lumen.tissue`` records all of it (``tissue_json`` in the result file, ``wss-nlp analyze``).
+    ``near`` (x, y in mm; a cine series' shared box centre): without ``vessel``, the flowing region there is the
+    lumen (a frame of slow flow need not find its vessel among the fast ones). ``lumen.tissue`` records all of it
+    (``tissue_json`` in the result file, ``wss-nlp analyze``).
     A k-space acquisition (``psf``) keeps the two-level model (its PSF tails are modelled there).
     """
     options = options or TissueOptions()
@@ -592,6 +624,11 @@ def preprocess(
     lumen0 = pp.find_lumen(m, grid, source, vessel)
     sigma = lumen_noise_sigma(raw, lumen0.mask, u, venc)
     lumen, regions = flow_aware_lumen(m, raw, u, grid, source, vessel, venc, sigma)
+    if vessel is None and near is not None:
+        try:
+            lumen = replace(flow_aware_lumen(m, raw, u, grid, source, near, venc, sigma)[0], chosen_by=lumen.chosen_by)
+        except NoVesselError:  # nothing bright at the box centre: the frame's own choice stands
+            pass
     record: dict = {"static_bright": _static_summary(regions, grid), "sigma_lumen_plateau": sigma}
     flowing = regions.mask(regions.flowing) | lumen.mask
     if options.offset_correction:
@@ -625,7 +662,9 @@ def preprocess(
     # the wall ring: a preliminary geometry (default options) gives the voxels' fractions, they the wall's
     # level and thickness, those the data of the next geometry (a fixed point; WALL_ROUNDS solves)
     near = (d_out < ring_start(grid.h)) & ~(d_in >= 2)
-    speed = np.abs(lumen_velocity(raw, u, f, static, near)[0])
+    u_l = lumen_velocity(raw, u, f, static, near, venc)[0]
+    speed = np.abs(u_l)
+    theta = None if venc is None else np.where(near, np.pi * u_l / venc, 0.0)  # the lumen part's own phase
     lum, b_far = model.levels(grid, speed)
     from . import geometry as geo  # here: the geometry module is heavy and only this branch needs it
 
@@ -633,16 +672,18 @@ def preprocess(
     problem = geo.GeometryProblem(grid, f, new.center, new.r0, new.r1, new.r_area)
     try:
         coef = geo.solve(problem, gopt).coefficients
-        for _ in range(WALL_ROUNDS):
+        for k in range(WALL_ROUNDS):
             frac = fraction_image(grid, new.center, coef)
-            w, t, table = fit_wall(raw, lum, b_far, frac, new.center, coef, grid, near)
+            w, t, table = fit_wall(raw, lum, b_far, frac, new.center, coef, grid, near, force=k < WALL_ROUNDS - 1)
             model = replace(model, wall_level=w, wall_mm=t, wall_bic=table)
             if not np.isfinite(w):
                 break
             ct = np.array(coef, dtype=float)
             ct[0] += t
-            f, static = fractions(raw, model, lumen.mask, grid, fraction_image(grid, new.center, ct), speed)
-            speed = np.abs(lumen_velocity(raw, u, f, static, near)[0])
+            f, static = fractions(raw, model, lumen.mask, grid, fraction_image(grid, new.center, ct), speed, theta)
+            u_l = lumen_velocity(raw, u, f, static, near, venc)[0]
+            speed = np.abs(u_l)
+            theta = None if venc is None else np.where(near, np.pi * u_l / venc, 0.0)
             lum, b_far = model.levels(grid, speed)
             before, coef = coef, geo.solve(replace(problem, magnitude=f), gopt, x0=coef).coefficients
             if abs(coef[0] - before[0]) < WALL_TOL * grid.h:
@@ -650,7 +691,7 @@ def preprocess(
     except Exception as exc:  # noqa: BLE001 - a failed preliminary solve leaves the model without a wall ring
         logger.info(f"{source}: no wall ring fitted ({exc})")
     record["surround"] = model.as_dict()
-    u, carrier = lumen_velocity(raw, u, f, static, near)
+    u, carrier = lumen_velocity(raw, u, f, static, near, venc)
     signal = np.where(raw > NOISE_FLOOR * sigma, np.sqrt(np.maximum(raw**2 - 2 * sigma**2, 0.0)), 0.0)
     lumen = replace(
         new, others=lumen.others, others_mask=lumen.others_mask, chosen_by=lumen.chosen_by, signal=signal,

@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..models import preprocess as pp
+from ..models import surround
 from ..core import radius as rad
 from ..models import temporal, womersley
 from ..models import wss as wss_mod
@@ -236,12 +237,21 @@ def shared_boxes(frames: list[Acquisition], options: ReconstructionOptions) -> d
     boxes = {}
     for iz in range(ref.nz):
         lumens = []
+        # hook (issue 39): a region is a vessel if it flows in some frame (fat never does)
+        speed = None if options.tissue.off else np.stack([np.asarray(f.velocity_images()[iz], float) for f in frames])
         for frame in frames:
             image = frame.magnitude[iz]
             if not np.all(np.isfinite(image)):
                 continue
             try:
-                lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, psf is None)[2])
+                if speed is None:
+                    lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, psf is None)[2])
+                else:
+                    lumens.append(
+                        surround.screen_preprocess(
+                            image, speed, frame.grid, "", options.screen.vessel, frame.venc_m_s, psf is None
+                        )[2]
+                    )
             except WssNlpError:
                 continue
         if lumens:

@@ -312,7 +312,7 @@ def reconstruct_slice(
     data = pipeline.prepare(
         magnitude, velocity_image, grid, index, source, options.screen.vessel, psf, venc, noise_venc, box,
         options.tissue,
-    )
+    )  # fmt: skip
     where, norm, m, lumen = data.where, data.norm, data.magnitude, data.lumen
     velocity_image = data.velocity  # hook (issue 39): the offset-corrected velocity of prepare
     t["preprocess"] = time.perf_counter() - t0

@@ -114,7 +114,8 @@ def prepare(
     # hook (issue 39): the surround model, flow-aware lumen and background offset correction; the velocity the
     # fits use comes back with the offset removed and the partial-volume voxels' lumen phase, and the raw
     # magnitude with the magnitude that carries that phase (the noise estimates' |d_i|)
-    norm, m, lumen, velocity, raw = surround.preprocess(raw, velocity, grid, where, vessel, venc, psf, tissue)
+    near = None if box is None else box.center  # cine: the series' vessel, also in a frame of slow flow
+    norm, m, lumen, velocity, raw = surround.preprocess(raw, velocity, grid, where, vessel, venc, psf, tissue, near)
     if box is not None:
         lumen = box.apply(lumen)
     nvenc = venc
