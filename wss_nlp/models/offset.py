@@ -40,6 +40,9 @@ MIN_SECTORS = 6
 MAX_OFFSET_FRACTION = 0.1
 #: How the order is chosen: "aic" (``chi^2 + 2 k``) or "bic" (``chi^2 + k ln n``).
 CRITERION = "aic"
+#: The offset at the vessel counts as uncertain (a note) when its standard deviation exceeds this fraction of the
+#: venc: three deviations then exceed the 0.3 % of the venc that moves a WSS by a few tenths of a point (issue 39).
+MAX_STD_FRACTION = 0.001
 #: Voxels of dilation around each flowing region kept out of the static mask (partial volume, wall).
 FLOW_MARGIN = 2
 
@@ -74,11 +77,19 @@ class OffsetFit:
     inliers: np.ndarray  # bool over the static voxels given
     bic: dict = field(default_factory=dict)  # order -> BIC on the inliers
     chi2_per_dof: float = float("nan")
+    covariance: np.ndarray | None = None  # of the coefficients, (m/s)^2
 
     def __call__(self, points_mm: np.ndarray) -> np.ndarray:
         """The offset at points ``(n, ndim)`` in mm."""
         x = (np.atleast_2d(points_mm) - self.centre) / self.scale
         return design(x, self.order) @ self.coefficients
+
+    def std(self, points_mm: np.ndarray) -> np.ndarray:
+        """Standard deviation of the fitted offset at points (m/s), from the noise of the static voxels."""
+        if self.covariance is None:
+            return np.full(np.atleast_2d(points_mm).shape[0], np.nan)
+        a = design((np.atleast_2d(points_mm) - self.centre) / self.scale, self.order)
+        return np.sqrt(np.einsum("ij,jk,ik->i", a, self.covariance, a))
 
 
 def _wls(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -146,7 +157,11 @@ def fit_offset(
         bic[p] = chi2 + a.shape[1] * (np.log(n_in) if CRITERION == "bic" else 2.0)
         coefs[p] = (c, chi2 / max(n_in - a.shape[1], 1))
     order = min(bic, key=lambda p: bic[p])
-    return OffsetFit(order, coefs[order][0], centre, scale, inl, bic, coefs[order][1])
+    a = design(x[inl], order)
+    # covariance of the weighted least squares, scaled by chi^2/dof where the residual exceeds the noise (texture
+    # of the offset the polynomial does not hold counts as noise then)
+    cov = np.linalg.pinv(a.T @ (a * w[inl][:, None])) * max(1.0, coefs[order][1])
+    return OffsetFit(order, coefs[order][0], centre, scale, inl, bic, coefs[order][1], cov)
 
 
 def static_mask(
@@ -181,6 +196,8 @@ class OffsetRecord:
     scale_mm: float = float("nan")
     at_vessel_m_s: float = float("nan")  # the fitted offset at the vessel's centre
     at_vessel_fraction_of_venc: float = float("nan")
+    at_vessel_std_m_s: float = float("nan")  # its standard deviation from the static voxels' noise
+    uncertain: bool = False  # applied, but the value at the vessel is uncertain beyond MAX_STD_FRACTION of venc
     static_voxels: int = 0  # the static mask's size
     inlier_voxels: int = 0  # MSAC's consensus
     sectors: int = 0  # of 8 around the vessel with static tissue
@@ -245,6 +262,7 @@ def correct(
     noise = vscale * sigma / (np.pi * mag[static])
     fit = fit_offset(pts, v[static], noise, seed=seed)
     at_vessel = float(fit(np.asarray(vessel_mm, float)[None, :])[0])
+    rec.at_vessel_std_m_s = float(fit.std(np.asarray(vessel_mm, float)[None, :])[0])
     rec.order, rec.coefficients = fit.order, [float(c) for c in fit.coefficients]
     rec.centre_mm, rec.scale_mm = [float(c) for c in fit.centre], fit.scale
     rec.at_vessel_m_s, rec.inlier_voxels = at_vessel, int(fit.inliers.sum())
@@ -260,6 +278,7 @@ def correct(
     full = np.stack([c.ravel() for c in coords], axis=1)
     offset = fit(full).reshape(v.shape)
     rec.applied = True
+    rec.uncertain = venc is not None and rec.at_vessel_std_m_s > MAX_STD_FRACTION * venc
     inl = np.zeros_like(static)
     inl[static] = fit.inliers
     return v - offset, rec, inl

@@ -5,26 +5,27 @@ data are two-level (a tube in air or in a uniform bath), wrong in a patient, whe
 in textured tissue, beside fat and other vessels, and its own signal varies (inflow, coil shading). This
 module generalizes the model of a voxel to
 
-    raw_i = l(x_i) f_i + b(x_i) (1 - f_i),   so   f_i = (raw_i - b(x_i)) / (l(x_i) - b(x_i)),
+    d_i = l_i f_i e^{i theta_i} + s_i,   s_i = w (F_t,i - f_i) + b(x_i) (1 - F_t,i),
 
-with ``f_i`` the lumen's volume fraction (what :mod:`wss_nlp.models.geometry` fits), ``l`` a smooth lumen
-level (a low-order polynomial fitted on the voxels fully inside, extrapolated one voxel to the wall: inflow
-and shading are not read as a wall displacement) and ``b`` the outside level (a low-order polynomial fitted
-on a ring of voxels fully outside, robust to fat and texture, plus the level of the ring nearest the wall,
-where the vessel wall is: :func:`fit_surround`). Orders are chosen by BIC. The model is chosen from the
-data: where the outside ring is noise (air) or one level within the noise, the two-level model stays and
-nothing changes (:attr:`SurroundModel.kind` "two-level").
+with ``f_i`` the lumen's volume fraction (what :mod:`wss_nlp.models.geometry` fits), ``theta_i`` the lumen part's
+phase relative to the static tissue's, ``l`` a smooth lumen level (a low-order polynomial fitted on the voxels
+fully inside, with a term proportional to the speed where BIC takes it: inflow and coil shading are not read
+as a wall displacement), ``w`` and ``t`` the level and thickness of a wall ring (``F_t`` the fraction within
+``R + t``; :func:`fit_wall`, a fixed point with preliminary geometry solves) and ``b`` the outside level (a
+low-order polynomial on a ring of voxels 2.5-6.5 mm outside, fat and texture trimmed; :func:`fit_surround`).
+The data the geometry fits are then ``f_i`` (:func:`fractions`). The model is chosen from the data: where the
+outside ring is noise (air) or one level within the noise, the two-level model stays and nothing changes
+(:attr:`SurroundModel.kind` "two-level").
 
-With the surround model the complex signal of a partial-volume voxel mixes the lumen's phase with the static
-tissue's: ``d_i = l f_i e^{i theta_i} + b (1 - f_i)``, so the measured velocity is diluted towards 0;
-:func:`lumen_velocity` takes the lumen's phase back, ``theta_i = arg(d_i - b (1 - f_i))``. The background
-noise is no longer Rayleigh: the complex noise comes from the lumen plateau (:func:`lumen_noise_sigma`).
+In tissue the partial-volume voxels' phase mixes the lumen's with the static signal's, so the measured velocity
+is diluted towards 0: :func:`lumen_velocity` takes the lumen's phase back, ``theta_i = arg(d_i - s_i)``. The
+background noise is no longer Rayleigh: the complex noise comes from the lumen plateau (:func:`lumen_noise_sigma`).
 
 Lumen detection asks the velocity which bright regions flow (:func:`flowing_regions`): fat is bright and
 static, and is neither the vessel nor "another vessel in view".
 
 :func:`preprocess` is the one call of :func:`wss_nlp.pipeline.steps.prepare`; :func:`screen_preprocess`
-serves the plausibility screen.
+serves the plausibility screen and the cine series' shared box.
 """
 
 from __future__ import annotations
@@ -54,6 +55,9 @@ NOISE_FLOOR = 3.0
 #: One outside level within the noise: residual deviation at most this many noise deviations (a uniform bath: 1;
 #: tissue measured 1.4-1.7 on the development seeds at h = 1.5 mm, where the voxels average the texture).
 UNIFORM_SPREAD = 1.2
+#: Where Appendix B refuses the histogram for its contrast, a flowing region must be this coherent to stand in:
+#: the median of its velocity's 4-neighbour high-pass below this fraction of its median speed.
+COHERENCE = 0.3
 #: Highest total degree of the lumen and outside level polynomials.
 LEVEL_ORDER = 2
 #: Width of the outside ring in mm (at least three voxels).
@@ -347,14 +351,14 @@ def fit_surround(
 ) -> SurroundModel:
     """Choose and fit the model of what surrounds the lumen (see the module notes).
 
-    The outside ring: voxels between :data:`OUTSIDE_FROM` voxels and that plus ``max(3, RING_MM / h)``
-    voxels from the lumen, less ``exclude`` (other vessels, dilated). Two-level when the ring's mean is
-    below :data:`NOISE_FLOOR` sigma (air) or when BIC takes a constant and the ring's spread about it is at
-    most :data:`UNIFORM_SPREAD` sigma (a uniform bath). Otherwise: the lumen level ``l`` on the voxels at
-    least two voxels inside, the outside polynomial ``b_far`` on the ring (outliers beyond 3 MAD trimmed:
-    fat, texture), both of total degree <= :data:`LEVEL_ORDER` by BIC; ``wall_level`` is the trimmed mean of
-    ``raw - b_far`` on the ring's first voxel layer, extrapolated to the partial-volume voxels (the vessel
-    wall sits there).
+    The outside ring: voxels between :func:`ring_start` voxels (past the partial-volume voxels and a wall of
+    up to :data:`WALL_MAX_MM`) and that plus ``max(3, RING_MM / h)`` voxels from the lumen, less ``exclude``
+    (other vessels, dilated). Two-level when the ring's mean is below :data:`NOISE_FLOOR` sigma (air) or when
+    BIC takes a constant and the ring's spread about it is at most :data:`UNIFORM_SPREAD` sigma (a uniform
+    bath). Otherwise: the lumen level ``l`` on the voxels at least two voxels inside (:func:`_lumen_level`:
+    degree and inflow term ``kappa |u|`` by BIC, ``speed`` the measured ``|u|``), the outside polynomial
+    ``b_far`` on the ring (outliers beyond 3 MAD trimmed: fat, texture), of total degree <= :data:`LEVEL_ORDER`
+    by BIC. The wall ring is fitted later (:func:`fit_wall`), once a preliminary wall is known.
     """
     h = grid.h
     d_out, d_in = _distances(lumen.mask)
@@ -513,14 +517,15 @@ PV_MIN_FRACTION = 0.25
 PV_MAX_GAIN = 3.0
 
 
-def lumen_velocity(raw, velocity, f, static, near: np.ndarray, venc: float | None = None):
+def lumen_velocity(raw, velocity, f, static, near: np.ndarray, venc: float | None = None, static_u=None):
     """The lumen's own velocity in the partial-volume voxels ``near``: the measured one undiluted.
 
     Notes
     -----
-    The voxel's complex signal is ``d = l f e^{i theta} + s`` with ``s`` the static signal (``static``,
-    :func:`fractions`; offset removed: static tissue at phase 0), so the lumen's phase is
-    ``theta = arg(d - s)``, ``d = raw e^{i pi u / venc}``; without a venc, the first-order form
+    The voxel's complex signal is ``d = l f e^{i theta} + s e^{i pi o / venc}`` with ``s`` the static signal
+    (``static``, :func:`fractions`) at the static tissue's velocity ``o`` (``static_u``: the offset where it was
+    not subtracted, else 0), so the lumen's phase is ``theta = arg(d - s e^{i pi o / venc})``,
+    ``d = raw e^{i pi u / venc}``; without a venc, the first-order form
     ``u |d| / (|d| - s)``. Applied where ``f`` >= :data:`PV_MIN_FRACTION`, the result limited to
     :data:`PV_MAX_GAIN` times the measured value (where the lumen's part is small, ``d - s`` is mostly noise).
 
@@ -533,7 +538,8 @@ def lumen_velocity(raw, velocity, f, static, near: np.ndarray, venc: float | Non
     sel = near & (f >= PV_MIN_FRACTION) & (f < 1.0)
     s = np.clip(static, 0.0, None)[sel]
     if venc is not None:
-        d = raw[sel] * np.exp(1j * np.pi * u[sel] / venc) - s
+        rot = 1.0 if static_u is None else np.exp(1j * np.pi * np.asarray(static_u)[sel] / venc)
+        d = raw[sel] * np.exp(1j * np.pi * u[sel] / venc) - s * rot
         new = venc * np.angle(d) / np.pi
         part = np.abs(d)
     else:
@@ -560,7 +566,15 @@ def _peaks(raw: np.ndarray, velocity: np.ndarray, venc, source: str) -> pp.Norma
         low, high = vals[vals <= thr], vals[vals > thr]
         norm = pp.Normalization(pp._peak(low, bins), pp._peak(high, bins), thr, pp.robust_std(low))
         m = pp.normalize_magnitude(raw, norm)
-        if not norm.m1 > norm.m0 or not flowing_regions(m, raw, velocity, venc, float("nan")).flowing:
+        regions = flowing_regions(m, raw, velocity, venc, float("nan"))
+        # a vessel's velocity is smooth: its 4-neighbour high-pass is small against its speed (pure noise's
+        # phases give a high-pass as large as the speeds themselves)
+        hp = np.abs(_highpass(velocity)) if velocity.ndim == 2 else None
+        coherent = [
+            j for j in regions.flowing
+            if hp is not None and np.median(hp[regions.labels == j]) < COHERENCE * regions.speeds[j]
+        ]  # fmt: skip
+        if not norm.m1 > norm.m0 or venc is None or not coherent:
             raise
         return norm
 
@@ -631,15 +645,18 @@ def preprocess(
             pass
     record: dict = {"static_bright": _static_summary(regions, grid), "sigma_lumen_plateau": sigma}
     flowing = regions.mask(regions.flowing) | lumen.mask
+    # the offset is fitted in any case: with --no-offset-correction it is not subtracted, but the static tissue's
+    # phase is still what the partial-volume voxels' lumen phase is measured against (lumen_velocity)
+    fitted, rec, _ = off.correct(
+        u, raw, (grid.dy, grid.dx), (grid.origin_mm[1], grid.origin_mm[0]), sigma, flowing,
+        (lumen.center[1], lumen.center[0]), lumen.r_area, venc,
+    )  # fmt: skip
+    static_u = u - fitted  # the static tissue's velocity offset (0 where not fitted)
     if options.offset_correction:
-        ny, nx = raw.shape
-        u, rec, _ = off.correct(
-            u, raw, (grid.dy, grid.dx), (grid.origin_mm[1], grid.origin_mm[0]), sigma, flowing,
-            (lumen.center[1], lumen.center[0]), lumen.r_area, venc,
-        )  # fmt: skip
-        record["offset"] = rec.as_dict()
+        u, static_u = fitted, np.zeros_like(u)
     else:
-        record["offset"] = off.OffsetRecord(False, "switched off (--no-offset-correction)").as_dict()
+        rec.applied, rec.uncertain, rec.reason = False, False, "switched off (--no-offset-correction)"
+    record["offset"] = rec.as_dict()
     if options.surround == "two-level" or psf is not None:
         why = "--surround two-level" if psf is None else "k-space acquisition (its PSF tails are modelled)"
         record["surround"] = SurroundModel("two-level", why, sigma).as_dict()
@@ -662,9 +679,9 @@ def preprocess(
     # the wall ring: a preliminary geometry (default options) gives the voxels' fractions, they the wall's
     # level and thickness, those the data of the next geometry (a fixed point; WALL_ROUNDS solves)
     near = (d_out < ring_start(grid.h)) & ~(d_in >= 2)
-    u_l = lumen_velocity(raw, u, f, static, near, venc)[0]
+    u_l = lumen_velocity(raw, u, f, static, near, venc, static_u)[0]
     speed = np.abs(u_l)
-    theta = None if venc is None else np.where(near, np.pi * u_l / venc, 0.0)  # the lumen part's own phase
+    theta = None if venc is None else np.where(near, np.pi * (u_l - static_u) / venc, 0.0)  # lumen vs static
     lum, b_far = model.levels(grid, speed)
     from . import geometry as geo  # here: the geometry module is heavy and only this branch needs it
 
@@ -681,9 +698,9 @@ def preprocess(
             ct = np.array(coef, dtype=float)
             ct[0] += t
             f, static = fractions(raw, model, lumen.mask, grid, fraction_image(grid, new.center, ct), speed, theta)
-            u_l = lumen_velocity(raw, u, f, static, near, venc)[0]
+            u_l = lumen_velocity(raw, u, f, static, near, venc, static_u)[0]
             speed = np.abs(u_l)
-            theta = None if venc is None else np.where(near, np.pi * u_l / venc, 0.0)
+            theta = None if venc is None else np.where(near, np.pi * (u_l - static_u) / venc, 0.0)
             lum, b_far = model.levels(grid, speed)
             before, coef = coef, geo.solve(replace(problem, magnitude=f), gopt, x0=coef).coefficients
             if abs(coef[0] - before[0]) < WALL_TOL * grid.h:
@@ -691,7 +708,7 @@ def preprocess(
     except Exception as exc:  # noqa: BLE001 - a failed preliminary solve leaves the model without a wall ring
         logger.info(f"{source}: no wall ring fitted ({exc})")
     record["surround"] = model.as_dict()
-    u, carrier = lumen_velocity(raw, u, f, static, near, venc)
+    u, carrier = lumen_velocity(raw, u, f, static, near, venc, static_u)
     signal = np.where(raw > NOISE_FLOOR * sigma, np.sqrt(np.maximum(raw**2 - 2 * sigma**2, 0.0)), 0.0)
     lumen = replace(
         new, others=lumen.others, others_mask=lumen.others_mask, chosen_by=lumen.chosen_by, signal=signal,
@@ -713,6 +730,13 @@ def notes(record: dict | None) -> list[str]:
     o = record.get("offset")
     if o and not o["applied"] and not o["reason"].startswith(_QUIET):
         out.append(f"background phase offset not corrected: {o['reason']}")
+    if o and o["applied"] and o.get("uncertain"):
+        pct = 100 * o["at_vessel_std_m_s"] / (o["at_vessel_m_s"] / o["at_vessel_fraction_of_venc"])
+        out.append(
+            f"background phase offset removed, but its value at the vessel is uncertain by {pct:.2g} % of the venc "
+            f"(1 std, > {100 * off.MAX_STD_FRACTION:g} %: too little or too noisy static tissue to pin it down); "
+            "the WSS may carry a residual offset"
+        )
     sm = record.get("surround")
     if sm:
         model = SurroundModel(**{k: (tuple(v) if k == "centre_mm" else v) for k, v in sm.items()})  # type: ignore[arg-type]
