@@ -225,6 +225,7 @@ def correct(
     venc: float | None,
     velocity_std: np.ndarray | None = None,
     seed: int = 0,
+    floor_sigma: float | None = None,
 ) -> tuple[np.ndarray, OffsetRecord, np.ndarray]:
     """Fit the background offset on static tissue and subtract it everywhere: ``(velocity, record, static)``.
 
@@ -238,7 +239,10 @@ def correct(
     """
     v = np.asarray(velocity, float)
     mag = np.asarray(magnitude, float)
-    static = static_mask(mag, sigma, flowing, velocity_std, None if venc is None else 0.05 * venc)
+    # signal above SIGNAL_MIN of the frame noise (``floor_sigma``; a series' mean passes sigma / sqrt(T) as the
+    # noise of its phases, but a dark voxel's phase is no better for being averaged)
+    floor = sigma if floor_sigma is None else floor_sigma
+    static = static_mask(mag, floor, flowing, velocity_std, None if venc is None else 0.05 * venc)
     n_static = int(static.sum())
     if n_static == 0:
         return v, OffsetRecord(False, "no static tissue in view (the background is noise)"), static
@@ -282,3 +286,37 @@ def correct(
     inl = np.zeros_like(static)
     inl[static] = fit.inliers
     return v - offset, rec, inl
+
+
+def correct_series(
+    velocities: np.ndarray,
+    magnitudes: np.ndarray,
+    spacing,
+    origin,
+    sigma: float,
+    flowing: np.ndarray,
+    vessel_mm,
+    vessel_radius_mm: float,
+    venc: float | None,
+    seed: int = 0,
+) -> tuple[np.ndarray, OffsetRecord, np.ndarray]:
+    """One offset for a cine series (or any repeated acquisition of one slice or volume): ``(velocities, record,
+    static)``.
+
+    The gradient waveforms, and with them the eddy currents, repeat in every frame: the offset is the same, so
+    it is fitted once to the frames' mean velocity (its noise ``sqrt(T)`` times smaller) on the static tissue
+    that is also still in time (temporal standard deviation at most 5 % of the venc: a vessel pulses, tissue
+    does not; :func:`static_mask`) and subtracted from every frame. ``velocities`` and ``magnitudes``:
+    ``(T, ...)``; the rest as :func:`correct` for one frame's shape.
+    """
+    v = np.asarray(velocities, float)
+    mag = np.asarray(magnitudes, float)
+    t = v.shape[0]
+    mean_v, mean_m, std_v = v.mean(axis=0), mag.mean(axis=0), v.std(axis=0)
+    # the mean's noise is the frame noise over sqrt(T): the same as one frame of sigma / sqrt(T)
+    fixed, rec, static = correct(
+        mean_v, mean_m, spacing, origin, sigma / np.sqrt(t), flowing, vessel_mm, vessel_radius_mm, venc,
+        velocity_std=std_v, seed=seed, floor_sigma=sigma,
+    )  # fmt: skip
+    offset = mean_v - fixed
+    return v - offset[None], rec, static

@@ -12,7 +12,8 @@ phase relative to the static tissue's, ``l`` a smooth lumen level (a low-order p
 fully inside, with a term proportional to the speed where BIC takes it: inflow and coil shading are not read
 as a wall displacement), ``w`` and ``t`` the level and thickness of a wall ring (``F_t`` the fraction within
 ``R + t``; :func:`fit_wall`, a fixed point with preliminary geometry solves) and ``b`` the outside level (a
-low-order polynomial on a ring of voxels 2.5-6.5 mm outside, fat and texture trimmed; :func:`fit_surround`).
+low-order polynomial on a ring of voxels from 2.5 mm (two voxels at least) 4 mm (three voxels at least)
+outwards, fat and texture trimmed; :func:`fit_surround`).
 The data the geometry fits are then ``f_i`` (:func:`fractions`). The model is chosen from the data: where the
 outside ring is noise (air) or one level within the noise, the two-level model stays and nothing changes
 (:attr:`SurroundModel.kind` "two-level").
