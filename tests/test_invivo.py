@@ -54,6 +54,15 @@ def test_offset_removed_at_the_vessel_end_to_end():
     # issue 39: a 2 % venc offset removed to <= 0.3 % of the venc at the vessel
     assert abs(true - rec["at_vessel_m_s"]) / acq.venc_m_s < 0.003
     assert res.lumen.tissue["surround"]["kind"] == "tissue"
+    from wss_nlp.app import plotting
+
+    fig = plotting.figure_offset(res, acq.magnitude[0])  # the static mask and the removed offset in % of venc
+    img = fig.axes[1].images[0].get_array()
+    xc, yc = acq.grid.centers()
+    # the image is the record's polynomial: at the voxel nearest the vessel centre it is the recorded value, in %
+    iy, ix = np.unravel_index(np.argmin(np.hypot(xc - res.lumen.center[0], yc - res.lumen.center[1])), xc.shape)
+    assert abs(img[iy, ix] - 100 * rec["at_vessel_fraction_of_venc"]) < 0.05  # within a voxel of the centre
+    assert len(plotting.figure_surround(res, acq.magnitude[0]).axes) >= 2
     # --no-offset-correction: recorded as switched off, no note
     off = reconstruct(
         acq, ReconstructionOptions(uncertainty=False, tissue=surround.TissueOptions(offset_correction=False))

@@ -461,7 +461,10 @@ def figure_surround(res, raw):
     from ..models import surround
 
     outside, _ = surround.model_images(res.lumen.tissue or {}, res.grid)
-    fig, ax = _subplots(1, 2, figsize=(10, 4.5))
+    if outside is not None:  # shown where it was fitted and used: up to the outer edge of the outside ring
+        outside = np.where(surround.model_reach(res.lumen.mask, res.grid), outside, np.nan)
+    fig, ax = _subplots(1, 2, figsize=(11, 4.5))
+    fig.set_layout_engine("constrained")
     im = _image(ax[0], raw, res.grid, cmap="gray")
     _contour(ax[0], res, color="r", lw=1)
     fig.colorbar(im, ax=ax[0], label="magnitude (raw)")
@@ -473,7 +476,13 @@ def figure_surround(res, raw):
         im = _image(ax[1], outside, res.grid, cmap="viridis")
         _contour(ax[1], res, color="w", lw=1)
         fig.colorbar(im, ax=ax[1], label="outside level (raw)")
-        ax[1].set_title("fitted outside level")
+        sm = (res.lumen.tissue or {}).get("surround", {})
+        wall = (
+            f"; wall ring {sm['wall_mm']:g} mm at {sm['wall_level']:.2f}"
+            if np.isfinite(sm.get("wall_level", np.nan))
+            else ""
+        )
+        ax[1].set_title("fitted outside level" + wall)
     for a in ax:
         a.set_xlabel("x [mm]")
         a.set_ylabel("y [mm]")
@@ -489,7 +498,8 @@ def figure_offset(res, raw):
     _, offset = surround.model_images(rec, res.grid)
     sigma = rec.get("sigma_lumen_plateau", float("nan"))
     static = off.static_mask(raw, sigma, res.lumen.noise_mask) if np.isfinite(sigma) else np.zeros_like(raw, bool)
-    fig, ax = _subplots(1, 2, figsize=(10, 4.5))
+    fig, ax = _subplots(1, 2, figsize=(11, 4.5))
+    fig.set_layout_engine("constrained")
     _image(ax[0], static.astype(float), res.grid, cmap="gray")
     _contour(ax[0], res, color="r", lw=1)
     ax[0].set_title(f"static tissue ({int(static.sum())} voxels)")

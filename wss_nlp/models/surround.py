@@ -806,3 +806,9 @@ def model_images(record: dict, grid: VoxelGrid) -> tuple[np.ndarray | None, np.n
         yy, xx = off.coordinates(grid.shape, (grid.dy, grid.dx), (grid.origin_mm[1], grid.origin_mm[0]))
         offset = fit(np.stack([yy.ravel(), xx.ravel()], axis=1)).reshape(grid.shape)
     return outside, offset
+
+
+def model_reach(lumen_mask: np.ndarray, grid: VoxelGrid) -> np.ndarray:
+    """The voxels the surround model describes: up to the outer edge of the outside ring."""
+    d_out, _ = _distances(lumen_mask)
+    return d_out < ring_start(grid.h) + max(3.0, RING_MM / grid.h)
