@@ -1,6 +1,8 @@
 """The surround model (wss_nlp.models.surround): two-level data give today's results exactly, the lumen fraction
 is recovered in tissue, fat is not a vessel, the noise comes from the lumen plateau."""
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -49,10 +51,16 @@ def test_off_is_appendix_b():
     assert np.array_equal(u2, acq.velocity_images()[0]) and np.array_equal(raw2, acq.magnitude[0])
 
 
+@functools.lru_cache(maxsize=1)
+def _noise_free_tissue():
+    """The laminar vessel in tissue without noise (built once for the tests that share it)."""
+    return invivo.make_invivo("laminar", 1.0, snr=None, seed=invivo.DEV_SEEDS[1], max_points=12)
+
+
 def test_noise_free_lumen_fraction_and_wall_in_tissue():
     # the laminar vessel in tissue without noise (wall 1.2 mm, texture, shading, inflow, offset): the normalized
     # magnitude must follow the true lumen fraction where Appendix B's is biased by the wall and the tissue
-    acq, truth = invivo.make_invivo("laminar", 1.0, snr=None, seed=invivo.DEV_SEEDS[1], max_points=16)
+    acq, truth = _noise_free_tissue()
     raw, u = acq.magnitude[0], acq.velocity_images()[0]
     _, m, lumen, _, _ = surround.preprocess(raw, u, acq.grid, "x", None, acq.venc_m_s)
     _, m_old, _, _, _ = surround.preprocess(raw, u, acq.grid, "x", None, acq.venc_m_s, options=OFF)
@@ -68,7 +76,7 @@ def test_noise_free_lumen_fraction_and_wall_in_tissue():
 
 
 def test_noise_free_radius_in_tissue():
-    acq, truth = invivo.make_invivo("laminar", 1.0, snr=None, seed=invivo.DEV_SEEDS[1], max_points=16)
+    acq, truth = _noise_free_tissue()
     res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
     phi = rad.uniform_angles(180)
     dr = res.geometry.radius(phi) - truth.radius_about(res.geometry.center, phi)
