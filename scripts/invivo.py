@@ -30,7 +30,7 @@ from wss_nlp.analysis import metrics
 from wss_nlp.errors import WssNlpError
 from wss_nlp.models import offset as off
 from wss_nlp.models.surround import TissueOptions
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 from wss_nlp.synthetic import invivo
 
 WSS_FACTOR, WSS_POINTS, LAMINAR_WORST = 1.3, 1.0, 5.0  # issue 39, in percent points

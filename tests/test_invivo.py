@@ -3,7 +3,7 @@
 import numpy as np
 
 from wss_nlp.models import surround
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 from wss_nlp.synthetic import invivo
 
 FAST = 12  # midpoint points per voxel axis: enough for these checks, 10x faster than the tables' 40

@@ -11,7 +11,7 @@ from wss_nlp.models import geometry as geo
 from wss_nlp.models import surround
 from wss_nlp.models.measurement import VoxelGrid
 from wss_nlp.pipeline import plausibility as plaus
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 from wss_nlp.synthetic import invivo, phantoms
 
 OFF = surround.TissueOptions(surround="two-level", offset_correction=False)

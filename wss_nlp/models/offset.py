@@ -165,17 +165,24 @@ def fit_offset(
 
 
 def static_mask(
-    magnitude: np.ndarray, sigma: float, flowing: np.ndarray, velocity_std: np.ndarray | None = None, std_max=None
+    magnitude: np.ndarray,
+    sigma: float,
+    flowing: np.ndarray,
+    velocity_std: np.ndarray | None = None,
+    std_max=None,
+    margin: int = FLOW_MARGIN,
 ) -> np.ndarray:
-    """Voxels of static tissue: signal above :data:`SIGNAL_MIN` sigma, :data:`FLOW_MARGIN` voxels from any flow.
+    """Voxels of static tissue: signal above :data:`SIGNAL_MIN` sigma, ``margin`` voxels from any flow.
 
     ``velocity_std`` (cine: the temporal standard deviation of each voxel's velocity) keeps out voxels that
-    vary by more than ``std_max`` over the cycle. Any number of dimensions.
+    vary by more than ``std_max`` over the cycle. ``margin`` (default :data:`FLOW_MARGIN`) grows with the
+    acquisition's blur: a zero-filled k-space image carries a vessel's signal, and its phase, further out
+    (:attr:`wss_nlp.models.acquisition.MeasurementModel.blur_voxels`). Any number of dimensions.
     """
     mag = np.asarray(magnitude, float)
     keep = mag > SIGNAL_MIN * sigma
     if flowing is not None and np.any(flowing):
-        keep &= ~scipy.ndimage.binary_dilation(flowing, iterations=FLOW_MARGIN)
+        keep &= ~scipy.ndimage.binary_dilation(flowing, iterations=margin)
     if velocity_std is not None and std_max is not None:
         keep &= np.asarray(velocity_std) <= std_max
     # the outermost voxels of the view carry wrap-around and edge artefacts on scanners: left out
@@ -226,6 +233,7 @@ def correct(
     velocity_std: np.ndarray | None = None,
     seed: int = 0,
     floor_sigma: float | None = None,
+    margin: int = FLOW_MARGIN,
 ) -> tuple[np.ndarray, OffsetRecord, np.ndarray]:
     """Fit the background offset on static tissue and subtract it everywhere: ``(velocity, record, static)``.
 
@@ -235,14 +243,15 @@ def correct(
     every region with flow. The correction is refused, with its reason in the record, when the static
     tissue has fewer than :data:`MIN_STATIC_VOXELS` voxels, does not surround the vessel (fewer than
     :data:`MIN_SECTORS` of 8 sectors out to 4 vessel radii) or the offset at the vessel exceeds
-    :data:`MAX_OFFSET_FRACTION` of the venc. ``static`` is the static mask (the fit's inliers).
+    :data:`MAX_OFFSET_FRACTION` of the venc. ``static`` is the static mask (the fit's inliers); ``margin``: the
+    static tissue's distance from flow in voxels (:func:`static_mask`).
     """
     v = np.asarray(velocity, float)
     mag = np.asarray(magnitude, float)
     # signal above SIGNAL_MIN of the frame noise (``floor_sigma``; a series' mean passes sigma / sqrt(T) as the
     # noise of its phases, but a dark voxel's phase is no better for being averaged)
     floor = sigma if floor_sigma is None else floor_sigma
-    static = static_mask(mag, floor, flowing, velocity_std, None if venc is None else 0.05 * venc)
+    static = static_mask(mag, floor, flowing, velocity_std, None if venc is None else 0.05 * venc, margin)
     n_static = int(static.sum())
     if n_static == 0:
         return v, OffsetRecord(False, "no static tissue in view (the background is noise)"), static

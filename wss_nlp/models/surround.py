@@ -39,6 +39,7 @@ import numpy as np
 from .._lazy import scipy
 from ..core.schema import option
 from ..errors import InputError, NoVesselError
+from . import acquisition as acq_model
 from . import offset as off
 from . import preprocess as pp
 from .measurement import VoxelGrid
@@ -105,7 +106,9 @@ def _highpass(a: np.ndarray) -> np.ndarray:
     return a - 0.25 * (np.roll(a, 1, 0) + np.roll(a, -1, 0) + np.roll(a, 1, 1) + np.roll(a, -1, 1))
 
 
-def lumen_noise_sigma(raw: np.ndarray, lumen_mask: np.ndarray, velocity=None, venc: float | None = None) -> float:
+def lumen_noise_sigma(
+    raw: np.ndarray, lumen_mask: np.ndarray, velocity=None, venc: float | None = None, highpass_variance: float = 1.25
+) -> float:
     """Complex noise per channel from the lumen plateau (two voxels inside), NaN without one.
 
     Notes
@@ -115,7 +118,8 @@ def lumen_noise_sigma(raw: np.ndarray, lumen_mask: np.ndarray, velocity=None, ve
     At the lumen's SNR the magnitude's noise is Gaussian with the channels' sigma and, with ``venc``, the
     phase's is ``sigma / |d|``: both samples are pooled, ``r_m`` and ``pi |d| r_u / venc``. The deviation is
     the standard deviation after trimming beyond 3.5 robust deviations (1.4826 MAD), more efficient than the
-    MAD itself on the 50-100 plateau voxels of a coarse slice.
+    MAD itself on the 50-100 plateau voxels of a coarse slice. ``highpass_variance``: the 1.25 for correlated
+    noise (a k-space PSF: :meth:`wss_nlp.models.acquisition.MeasurementModel.highpass_noise_variance`).
     """
     inner = scipy.ndimage.binary_erosion(lumen_mask, iterations=2)
     if inner.sum() < 20:
@@ -128,7 +132,7 @@ def lumen_noise_sigma(raw: np.ndarray, lumen_mask: np.ndarray, velocity=None, ve
         r = r - np.median(r)
         s0 = pp.robust_std(r)
         out.append(r[np.abs(r) < 3.5 * max(s0, 1e-300)])
-    return float(np.sqrt(np.mean(np.concatenate(out) ** 2) / 1.25))
+    return float(np.sqrt(np.mean(np.concatenate(out) ** 2) / highpass_variance))
 
 
 # ------------------------------------------------------------------ which bright regions flow
@@ -605,7 +609,7 @@ def preprocess(
     source: str,
     vessel=None,
     venc: float | None = None,
-    psf=None,
+    measurement: acq_model.MeasurementModel | None = None,
     options: TissueOptions | None = None,
     near=None,
 ):
@@ -627,10 +631,13 @@ def preprocess(
     ``near`` (x, y in mm; a cine series' shared box centre): without ``vessel``, the flowing region there is the
     lumen (a frame of slow flow need not find its vessel among the fast ones). ``lumen.tissue`` records all of it
     (``tissue_json`` in the result file, ``wss-nlp analyze``).
-    A k-space acquisition (``psf``) keeps the two-level model (its PSF tails are modelled there).
+    ``measurement``: the acquisition's measurement model (:mod:`wss_nlp.models.acquisition`; None: voxel
+    means); one whose :attr:`~wss_nlp.models.acquisition.MeasurementModel.two_level_only` says why (a k-space
+    acquisition: its PSF tails are modelled with two levels) keeps the two-level model.
     """
     options = options or TissueOptions()
-    clip_upper = psf is None
+    measurement = measurement or acq_model.VoxelMeans()
+    clip_upper = measurement.clip_upper
     if options.off:
         norm, m, lumen = pp.preprocess(raw, grid, source, vessel, clip_upper)
         return norm, m, lumen, np.asarray(velocity, float), np.asarray(raw, float)
@@ -639,7 +646,7 @@ def preprocess(
     norm = _peaks(raw, u, venc, source)
     m = pp.normalize_magnitude(raw, norm, clip_upper)
     lumen0 = pp.find_lumen(m, grid, source, vessel)
-    sigma = lumen_noise_sigma(raw, lumen0.mask, u, venc)
+    sigma = lumen_noise_sigma(raw, lumen0.mask, u, venc, measurement.highpass_noise_variance(grid.shape))
     lumen, regions = flow_aware_lumen(m, raw, u, grid, source, vessel, venc, sigma)
     if vessel is None and near is not None:
         try:
@@ -653,6 +660,7 @@ def preprocess(
     fitted, rec, _ = off.correct(
         u, raw, (grid.dy, grid.dx), (grid.origin_mm[1], grid.origin_mm[0]), sigma, flowing,
         (lumen.center[1], lumen.center[0]), lumen.r_area, venc,
+        margin=int(np.ceil(off.FLOW_MARGIN * measurement.blur_voxels)),
     )  # fmt: skip
     static_u = u - fitted  # the static tissue's velocity offset (0 where not fitted)
     if options.offset_correction:
@@ -660,8 +668,8 @@ def preprocess(
     else:
         rec.applied, rec.uncertain, rec.reason = False, False, "switched off (--no-offset-correction)"
     record["offset"] = rec.as_dict()
-    if options.surround == "two-level" or psf is not None:
-        why = "--surround two-level" if psf is None else "k-space acquisition (its PSF tails are modelled)"
+    if options.surround == "two-level" or measurement.two_level_only:
+        why = measurement.two_level_only or "--surround two-level"
         record["surround"] = SurroundModel("two-level", why, sigma).as_dict()
         return norm, m, replace(lumen, tissue=record), u, raw
     exclude = scipy.ndimage.binary_dilation(flowing & ~lumen.mask, iterations=2)
