@@ -76,21 +76,28 @@ def test_make_case_names():
     assert acq.source == "phantom:invivo" and t.parameters["case"] == "invivo"
 
 
-def test_cli_records_and_analyze_reports_the_offset(tmp_path, capsys):
-    from wss_nlp.app import cli
-    from wss_nlp.io import files as wio
+def test_demo_records_the_offset_and_analyze_reports_it(tmp_path, capsys, monkeypatch):
+    # the demo's in-vivo case end to end: its result records the offset and the surround model, it writes the
+    # two tissue figures, analyze reports both and the fat; --no-offset-correction leaves the offset in
+    import functools
+    import os
 
-    acq, t = invivo.make_case("invivo", h_mm=1.5, seed=invivo.DEV_SEEDS[3], max_points=FAST)
-    src, out = str(tmp_path / "in.h5"), str(tmp_path / "r.h5")
-    wio.write_acquisition(src, acq)
-    assert cli.main(["reconstruct", src, "-o", out, "--no-uncertainty"]) == 0
-    rec = surround.read_tissue(out)["slice_000"]
+    from wss_nlp.app import cli
+
+    monkeypatch.setattr(invivo, "make_case", functools.partial(invivo.make_case, max_points=FAST))
+    out = tmp_path / "demo"
+    args = ["demo", "--case", "invivo", "--h", "1.5", "--seed", str(invivo.DEV_SEEDS[3]), "--no-uncertainty"]
+    assert cli.main([*args, "-o", str(out)]) == 0
+    assert {"surround.png", "offset.png"} <= set(os.listdir(out))
+    rec = surround.read_tissue(str(out / "result.h5"))["slice_000"]
     assert rec["offset"]["applied"] and rec["surround"]["kind"] == "tissue"
     capsys.readouterr()
-    assert cli.main(["analyze", out]) == 0
+    assert cli.main(["analyze", str(out / "result.h5")]) == 0
     text = capsys.readouterr().out
     assert "background phase offset: removed" in text and "surround model: tissue" in text
     assert "not a vessel (fat?)" in text
     off = str(tmp_path / "off.h5")
-    assert cli.main(["reconstruct", src, "-o", off, "--no-uncertainty", "--no-offset-correction"]) == 0
+    assert (
+        cli.main(["reconstruct", str(out / "input.h5"), "-o", off, "--no-uncertainty", "--no-offset-correction"]) == 0
+    )
     assert not surround.read_tissue(off)["slice_000"]["offset"]["applied"]

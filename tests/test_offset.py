@@ -145,3 +145,24 @@ def test_series_fits_one_offset_to_the_frames_mean():
     # deviations (about 1-3e-4 m/s by the order chosen), itself a tenth of a percent of the venc at most
     assert abs(rec.at_vessel_m_s - 0.01) < 3 * rec.at_vessel_std_m_s and rec.at_vessel_std_m_s < 0.001 * venc
     assert np.allclose(out - series, (out - series)[0][None])  # the same offset subtracted from every frame
+
+
+def test_offset_the_static_tissue_cannot_tell_under_the_vessel_is_flagged():
+    # a bump of the offset (0.6 % of the venc, 10 mm wide) centred under the lumen, on top of the linear field:
+    # the static tissue outside the lumen's hole sees only its flanks, and the cubic the fit takes leaves about
+    # 0.34 % of the venc at the vessel. Noise-free, so the noise std is ~0 and only the order spread (the value's
+    # change with one order more) can flag it; the same slice without the bump is not flagged.
+    mag, u, lumen, _, offset, venc, h = _scene(vein=False)
+    n = mag.shape[0]
+    y, x = np.mgrid[0:n, 0:n] * h - (n - 1) * h / 2
+    bump = 0.006 * venc * np.exp(-((x - 4) ** 2 + (y + 3) ** 2) / (2 * 10.0**2))
+    args = ((h, h), (-(n - 1) * h / 2,) * 2, 0.002, lumen, (0.0, 0.0), 8.0, venc)
+    _, rec, _ = off.correct(u + bump, mag, *args)
+    left = 0.01 + 0.006 * venc * np.exp(-25 / 200) - rec.at_vessel_m_s  # true minus fitted at the vessel (0, 0)
+    assert abs(left) > 0.003 * venc  # the case the flag is for: more than 0.3 % of the venc left (0.34 %)
+    assert rec.applied and rec.uncertain
+    assert rec.at_vessel_order_spread_m_s > off.MAX_STD_FRACTION * venc > rec.at_vessel_std_m_s
+    assert "order" in surround.notes({"offset": rec.as_dict()})[0]
+    _, plain, _ = off.correct(u, mag, *args)
+    # the linear field is in every order's span: one order more changes the value at the vessel by rounding only
+    assert plain.applied and not plain.uncertain and plain.at_vessel_order_spread_m_s < 1e-9

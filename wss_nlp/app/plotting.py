@@ -455,6 +455,23 @@ def save_cine_figures(series, result, folder: str, truth_tau=None) -> list[str]:
     return paths
 
 
+def save_tissue_figures(res, raw, folder, prefix: str = "") -> list[str]:
+    """Write ``surround.png`` (:func:`figure_surround`) and ``offset.png`` (:func:`figure_offset`) of a slice the
+    surround model or the offset correction looked at (``res.lumen.tissue``; none otherwise); returns the paths.
+
+    ``raw``: the slice's measured magnitude (the result keeps the magnitude the geometry fitted)."""
+    rec = getattr(getattr(res, "lumen", None), "tissue", None) or {}
+    sm, o = rec.get("surround") or {}, rec.get("offset") or {}
+    paths = []
+    if sm.get("kind") == "tissue" or o.get("static_voxels", 0) > 0:
+        os.makedirs(folder, exist_ok=True)
+        for name, make in (("surround.png", figure_surround), ("offset.png", figure_offset)):
+            path = os.path.join(folder, prefix + name)
+            save_figure(make(res, np.asarray(raw, float)), path)
+            paths.append(path)
+    return paths
+
+
 def figure_surround(res, raw):
     """Vessel in tissue: the raw magnitude with the wall, and the fitted outside level (issue 39).
 

@@ -78,11 +78,26 @@ class OffsetFit:
     bic: dict = field(default_factory=dict)  # order -> BIC on the inliers
     chi2_per_dof: float = float("nan")
     covariance: np.ndarray | None = None  # of the coefficients, (m/s)^2
+    alternatives: dict = field(default_factory=dict)  # order -> coefficients of the orders fitted on the inliers
 
     def __call__(self, points_mm: np.ndarray) -> np.ndarray:
         """The offset at points ``(n, ndim)`` in mm."""
         x = (np.atleast_2d(points_mm) - self.centre) / self.scale
         return design(x, self.order) @ self.coefficients
+
+    def order_spread(self, points_mm: np.ndarray) -> np.ndarray:
+        """The change of the offset at points (m/s) with one order more than the chosen one (0 where that order
+        was not fitted: too few static voxels).
+
+        A field the polynomials hold (degree <= the chosen one) gives the same value at one order more, up to
+        the noise; a field they do not hold (a non-polynomial eddy-current pattern that varies under the vessel,
+        where no static tissue sees it) gives a value that depends on the order: the interpolation into the
+        vessel is then a guess, whatever the noise says."""
+        x = (np.atleast_2d(points_mm) - self.centre) / self.scale
+        q = self.order + 1
+        if q not in self.alternatives:
+            return np.zeros(x.shape[0])
+        return np.abs(design(x, q) @ self.alternatives[q] - design(x, self.order) @ self.coefficients)
 
     def std(self, points_mm: np.ndarray) -> np.ndarray:
         """Standard deviation of the fitted offset at points (m/s), from the noise of the static voxels."""
@@ -157,11 +172,17 @@ def fit_offset(
         bic[p] = chi2 + a.shape[1] * (np.log(n_in) if CRITERION == "bic" else 2.0)
         coefs[p] = (c, chi2 / max(n_in - a.shape[1], 1))
     order = min(bic, key=lambda p: bic[p])
+    alternatives = {p: c for p, (c, _) in coefs.items()}
+    # one order more than the choice, also past max_order where the consensus supports it: a check of the
+    # interpolation into the vessel (OffsetFit.order_spread), never chosen
+    check = order + 1
+    if check not in alternatives and n_in >= MIN_PER_COEFFICIENT * len(monomials(ndim, check)):
+        alternatives[check] = _wls(design(x[inl], check), y[inl], w[inl])
     a = design(x[inl], order)
     # covariance of the weighted least squares, scaled by chi^2/dof where the residual exceeds the noise (texture
     # of the offset the polynomial does not hold counts as noise then)
     cov = np.linalg.pinv(a.T @ (a * w[inl][:, None])) * max(1.0, coefs[order][1])
-    return OffsetFit(order, coefs[order][0], centre, scale, inl, bic, coefs[order][1], cov)
+    return OffsetFit(order, coefs[order][0], centre, scale, inl, bic, coefs[order][1], cov, alternatives)
 
 
 def static_mask(
@@ -204,7 +225,10 @@ class OffsetRecord:
     at_vessel_m_s: float = float("nan")  # the fitted offset at the vessel's centre
     at_vessel_fraction_of_venc: float = float("nan")
     at_vessel_std_m_s: float = float("nan")  # its standard deviation from the static voxels' noise
-    uncertain: bool = False  # applied, but the value at the vessel is uncertain beyond MAX_STD_FRACTION of venc
+    at_vessel_order_spread_m_s: float = float("nan")  # its change with one order more or less (OffsetFit.order_spread)
+    # applied, but the value at the vessel is uncertain beyond MAX_STD_FRACTION of the venc: by the noise (std) or
+    # by the model (order spread)
+    uncertain: bool = False
     static_voxels: int = 0  # the static mask's size
     inlier_voxels: int = 0  # MSAC's consensus
     sectors: int = 0  # of 8 around the vessel with static tissue
@@ -276,6 +300,7 @@ def correct(
     fit = fit_offset(pts, v[static], noise, seed=seed)
     at_vessel = float(fit(np.asarray(vessel_mm, float)[None, :])[0])
     rec.at_vessel_std_m_s = float(fit.std(np.asarray(vessel_mm, float)[None, :])[0])
+    rec.at_vessel_order_spread_m_s = float(fit.order_spread(np.asarray(vessel_mm, float)[None, :])[0])
     rec.order, rec.coefficients = fit.order, [float(c) for c in fit.coefficients]
     rec.centre_mm, rec.scale_mm = [float(c) for c in fit.centre], fit.scale
     rec.at_vessel_m_s, rec.inlier_voxels = at_vessel, int(fit.inliers.sum())
@@ -291,7 +316,8 @@ def correct(
     full = np.stack([c.ravel() for c in coords], axis=1)
     offset = fit(full).reshape(v.shape)
     rec.applied = True
-    rec.uncertain = venc is not None and rec.at_vessel_std_m_s > MAX_STD_FRACTION * venc
+    spread = max(rec.at_vessel_std_m_s, rec.at_vessel_order_spread_m_s)
+    rec.uncertain = venc is not None and spread > MAX_STD_FRACTION * venc
     inl = np.zeros_like(static)
     inl[static] = fit.inliers
     return v - offset, rec, inl

@@ -746,11 +746,19 @@ def notes(record: dict | None) -> list[str]:
     if o and not o["applied"] and not o["reason"].startswith(_QUIET):
         out.append(f"background phase offset not corrected: {o['reason']}")
     if o and o["applied"] and o.get("uncertain"):
-        pct = 100 * o["at_vessel_std_m_s"] / (o["at_vessel_m_s"] / o["at_vessel_fraction_of_venc"])
+        venc = o["at_vessel_m_s"] / o["at_vessel_fraction_of_venc"]
+        std = 100 * o["at_vessel_std_m_s"] / venc
+        spread = 100 * o.get("at_vessel_order_spread_m_s", 0.0) / venc
+        why = (
+            f"by {std:.2g} % of the venc (1 std, > {100 * off.MAX_STD_FRACTION:g} %: too little or too noisy static "
+            "tissue to pin it down)"
+            if std >= spread
+            else f"by {spread:.2g} % of the venc (its change with the polynomial's order, > "
+            f"{100 * off.MAX_STD_FRACTION:g} %: the static tissue does not tell the offset under the vessel)"
+        )
         out.append(
-            f"background phase offset removed, but its value at the vessel is uncertain by {pct:.2g} % of the venc "
-            f"(1 std, > {100 * off.MAX_STD_FRACTION:g} %: too little or too noisy static tissue to pin it down); "
-            "the WSS may carry a residual offset"
+            f"background phase offset removed, but its value at the vessel is uncertain {why}; the WSS may carry a "
+            "residual offset"
         )
     sm = record.get("surround")
     if sm:
