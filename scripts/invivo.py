@@ -14,7 +14,11 @@ no offset correction) and with each part alone, to show what each part does.
 Writes ``scripts/results/invivo.md`` (and ``invivo.csv``). The band (``--no-uncertainty``) does not change
 the estimates and is skipped to keep the study short.
 
+``--offset-only`` makes only the offset table, from the preprocessing (the offset is fitted before any solve):
+``scripts/results/invivo_offset.md``.
+
     python scripts/invivo.py [--seeds reported|dev] [--h 1.5,1.0,0.6] [--cases laminar,turbulent] [--components]
+    python scripts/invivo.py --offset-only
 """
 
 import argparse
