@@ -536,6 +536,7 @@ def figure_offset(res, raw):
     for a in ax:
         a.set_xlabel("x [mm]")
         a.set_ylabel("y [mm]")
+    return fig
 
 
 def figure_cohort(values: dict, flagged=None):
