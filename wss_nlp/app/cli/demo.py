@@ -72,7 +72,7 @@ def _demo_cine(args, options, out: str) -> None:
     ]
     print()
     print(_error_table(rows))
-    figs = save_cine_figures([series], result, out, truth_tau=tau)
+    figs = save_cine_figures([series], result, out, truth_tau=tau, fmt=args.figure_format, dpi=args.dpi)
     print()
     print("figures: " + ", ".join(os.path.basename(f) for f in figs))
 
@@ -113,6 +113,6 @@ def _demo(args, options, out: str) -> None:
     print(_error_table(rows))
     from ..plotting import save_figures
 
-    figs = save_figures(res, out, truth=truth)
+    figs = save_figures(res, out, truth=truth, fmt=args.figure_format, dpi=args.dpi)
     print()
     print("figures: " + ", ".join(os.path.basename(f) for f in figs))

@@ -8,6 +8,7 @@ from ... import __version__
 from ...synthetic import phantoms
 from ...core import schema
 from ...models.kspace import AcquisitionOptions
+from ..plotting import DEFAULT_DPI, FIGURE_FORMATS
 from .demo import cmd_demo
 from .exchange import cmd_export, cmd_import
 from .phantom import cmd_phantom
@@ -15,6 +16,22 @@ from .reconstruct import cmd_reconstruct
 from .report import cmd_analyze, cmd_compare, cmd_sensitivity
 from .studies import cmd_plot, cmd_sweep, cmd_table
 from .arguments import _add_reconstruction_arguments, options_from_args  # noqa: F401
+
+
+def _add_figure_arguments(p: argparse.ArgumentParser) -> None:
+    """``--figure-format`` and ``--dpi`` of a command that writes figures (:mod:`wss_nlp.app.plotting`)."""
+    p.add_argument(
+        "--figure-format",
+        choices=FIGURE_FORMATS,
+        default="png",
+        help="file format of the figures: png, or pdf/svg (vector) for papers (default %(default)s)",
+    )
+    p.add_argument(
+        "--dpi",
+        type=float,
+        default=DEFAULT_DPI,
+        help="resolution in dots per inch of PNG figures and of the images inside PDF/SVG (default %(default)g)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -41,6 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none (default %(default)g)")
     d.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     d.add_argument("-o", "--output-dir", default="wss_nlp_demo", help="output folder (default %(default)s)")
+    _add_figure_arguments(d)
     _add_reconstruction_arguments(d)
     d.set_defaults(func=cmd_demo)
 
@@ -51,7 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("input", help='input HDF5 file (format: docs, "File formats")')
     r.add_argument("-o", "--output", required=True, help="result HDF5 file")
-    r.add_argument("--figures", default=None, help="folder for PNG figures of every slice")
+    r.add_argument("--figures", default=None, help="folder for the figures of every slice (--figure-format, --dpi)")
+    _add_figure_arguments(r)
     _add_reconstruction_arguments(r)
     r.set_defaults(func=cmd_reconstruct)
 
@@ -118,7 +137,8 @@ def build_parser() -> argparse.ArgumentParser:
         "analyze", help="how alpha, beta, the near-wall model and the dephasing passes were chosen (tables, curves)"
     )
     a.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
-    a.add_argument("--figures", default=None, help="folder for residual-vs-parameter PNGs")
+    a.add_argument("--figures", default=None, help="folder for residual-vs-parameter figures (--figure-format, --dpi)")
+    _add_figure_arguments(a)
     a.set_defaults(func=cmd_analyze)
 
     se = sub.add_parser("sensitivity", help="which parameters and which noise the mean WSS is most sensitive to")
@@ -168,7 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--panels", default=None, help="one panel per value of this parameter, e.g. case")
     pl.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="fix other parameters")
     pl.add_argument("--logx", action="store_true", help="logarithmic x axis")
-    pl.add_argument("-o", "--output", default=None, help="PNG file (default OUTDIR/Y_vs_X.png)")
+    pl.add_argument(
+        "-o", "--output", default=None, help="figure file, its extension the format (default OUTDIR/Y_vs_X.FORMAT)"
+    )
+    _add_figure_arguments(pl)
     pl.set_defaults(func=cmd_plot)
 
     ex = sub.add_parser(

@@ -66,7 +66,7 @@ def _reconstruct_cine(args, options) -> int:
         if staged.path:
             from ..plotting import save_cine_figures
 
-            save_cine_figures(series, result, staged.path)
+            save_cine_figures(series, result, staged.path, fmt=args.figure_format, dpi=args.dpi)
         staged.commit()
     for k, frame in enumerate(result.frames):
         for r in frame:
@@ -102,7 +102,7 @@ def cmd_reconstruct(args) -> int:
     results = reconstruct(acq, options, progress=_progress(sys.stderr))
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
-            _slice_figures(results, acq, staged.path)
+            _slice_figures(results, acq, staged.path, args.figure_format, args.dpi)
         extra = {} if acq.slice_spacing_mm is None else {"slice_spacing_mm": float(acq.slice_spacing_mm)}
         wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv], extra_attrs=extra)
         staged.commit()
@@ -127,11 +127,11 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
-def _slice_figures(results, acq, folder: str) -> None:
+def _slice_figures(results, acq, folder: str, fmt: str = "png", dpi: float | None = None) -> None:
     from ..plotting import figure_stack, save_figure, save_figures
 
     for r in results:
         if not isinstance(r, wio.FailedSlice):
-            save_figures(r, folder, prefix=f"slice_{r.index:03d}_")
+            save_figures(r, folder, prefix=f"slice_{r.index:03d}_", fmt=fmt, dpi=dpi)
     if len(results) > 1:
-        save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, "stack_wall_maps.png"))
+        save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, f"stack_wall_maps.{fmt}"), dpi)

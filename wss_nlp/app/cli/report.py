@@ -90,7 +90,7 @@ def cmd_analyze(args) -> int:
         from ..plotting import save_parameter_figures
 
         with outputs.StagedFolder(args.figures) as staged:
-            save_parameter_figures(choices, str(staged.path))
+            save_parameter_figures(choices, str(staged.path), fmt=args.figure_format, dpi=args.dpi)
             paths = staged.commit()
         print(f"{len(paths)} figure(s) in {args.figures}")
     return 0
