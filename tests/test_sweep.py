@@ -124,7 +124,7 @@ def test_sweep_resumes_after_interruption(tmp_path, monkeypatch):
         calls.append(params)
         return real(params, base_dir)
 
-    monkeypatch.setattr(sweep, "run_case", interrupted)
+    monkeypatch.setattr(sweep.run, "run_case", interrupted)
     with pytest.raises(KeyboardInterrupt):
         sweep.run_study(s, out, workers=1)
     assert not os.path.exists(os.path.join(out, "results.csv"))  # no table from a partial run
@@ -135,7 +135,7 @@ def test_sweep_resumes_after_interruption(tmp_path, monkeypatch):
     os.remove(first[:-5] + ".h5")
 
     calls.clear()
-    monkeypatch.setattr(sweep, "run_case", lambda p, b=".": (calls.append(p), real(p, b))[1])
+    monkeypatch.setattr(sweep.run, "run_case", lambda p, b=".": (calls.append(p), real(p, b))[1])
     summary = sweep.run_study(s, out, workers=1)
     assert summary.ran == len(calls) == 12 - 4 and summary.skipped == 4
     assert not glob.glob(os.path.join(out, "cases", "*.part"))
