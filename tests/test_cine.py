@@ -203,7 +203,7 @@ def test_time_resolved_input_errors(tmp_path):
 def test_export_of_a_time_resolved_result_carries_tawss_and_osi(tmp_path):
     meshio = pytest.importorskip("meshio")
     inp, out, vtu = tmp_path / "c.h5", tmp_path / "r.h5", tmp_path / "wall.vtu"
-    assert main(["phantom", "--case", "womersley", "--frames", "4", "--h", "1.5", "--seed", "53", "-o", str(inp)]) == 0
+    assert main(["phantom", "--case", "cine", "--frames", "4", "--h", "1.5", "--seed", "53", "-o", str(inp)]) == 0
     assert main(["reconstruct", str(inp), "-o", str(out)]) == 0
     assert main(["export", str(out), "--vtk", str(vtu)]) == 0
     mesh = meshio.read(vtu)

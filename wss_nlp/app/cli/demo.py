@@ -88,7 +88,7 @@ def _demo(args, options, out: str) -> None:
     wio.write_acquisition(in_path, acq)
     _write_truth(truth_path, truth)
     t0 = time.perf_counter()
-    results = reconstruct(wio.read_acquisition(in_path), options, progress=_progress(sys.stdout))
+    results = reconstruct(wio.read_acquisition(in_path), options, progress=_progress(sys.stdout, args.quiet))
     seconds = time.perf_counter() - t0
     wio.write_result(res_path, results, options.as_dict(), argv=["wss-nlp", *args.argv])
     _warn(results, sys.stderr)

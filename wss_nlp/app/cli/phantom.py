@@ -48,7 +48,7 @@ def _phantom_cine(args) -> int:
     from ...synthetic import pulsatile
 
     if args.dicom or args.nifti or args.stack:
-        raise InputError("--case womersley writes a time-resolved HDF5 input only (no --dicom, --nifti, --stack)")
+        raise InputError("--case cine writes a time-resolved HDF5 input only (no --dicom, --nifti, --stack)")
     if args.pipe_radius is not None and not args.pipe_radius > 0:
         raise InputError(f"--pipe-radius must be > 0 mm, got {args.pipe_radius}")
     snr = None if args.snr <= 0 else args.snr
@@ -96,12 +96,12 @@ def cmd_phantom(args) -> int:
     outputs.check_outputs(
         files={"-o": args.output, "--truth": args.truth}, folders={"--dicom": args.dicom, "--nifti": args.nifti}
     )
-    if args.case == "womersley":
+    if args.case == "cine":
         return _phantom_cine(args)
     cine_only = [f for f, v in (("--distension", args.distension), ("--shape", args.shape),
                                 ("--pipe-radius", args.pipe_radius)) if v is not None]  # fmt: skip
     if cine_only:
-        raise InputError(f"{', '.join(cine_only)}: only for --case womersley (the cine phantom)")
+        raise InputError(f"{', '.join(cine_only)}: only for --case cine (the time-resolved phantom)")
     snr = None if args.snr <= 0 else args.snr
     psf = _phantom_psf(args)
     truth: phantoms.Truth | phantoms.StackTruth
@@ -154,9 +154,9 @@ def cmd_phantom(args) -> int:
                 ),
             )
             if dcm.path:
-                scanner_exports.write_dicom(dcm.path, scan, args.vendor)
+                written_dicom = scanner_exports.write_dicom(dcm.path, scan, args.vendor)
             if nii.path:
-                scanner_exports.write_nifti(nii.path, scan)
+                written_nifti = scanner_exports.write_nifti(nii.path, scan)
         wio.write_acquisition(args.output, acq)
         if args.truth:
             try:
@@ -173,4 +173,14 @@ def cmd_phantom(args) -> int:
     if args.truth:
         means = [t.mean_wss for t in getattr(truth, "slices", [truth])]
         print(f"wrote {args.truth}: exact radius and WSS (mean {min(means):.5g}-{max(means):.5g} Pa)")
+    if args.dicom:
+        kind = "one enhanced multi-frame file" if args.vendor == "enhanced" else f"{len(written_dicom)} files"
+        print(
+            f"wrote {args.dicom}: the same images as DICOM, {args.vendor} convention, {kind} "
+            f"(read back: wss-nlp import {args.dicom} -o FILE.h5)"
+        )
+    if args.nifti:
+        names = ", ".join(os.path.basename(p) for p in written_nifti)
+        print(f"wrote {args.nifti}: the same images as NIfTI with JSON sidecars: {names} "
+              f"(read back: wss-nlp import {args.nifti} -o FILE.h5)")  # fmt: skip
     return 0

@@ -12,10 +12,13 @@ from ...pipeline.driver import reconstruct
 from .arguments import options_from_args
 
 
-def _progress(stream):
+def _progress(stream, quiet: bool = False):
+    """Per-slice progress lines on ``stream``; none with ``--quiet``."""
     t0 = time.perf_counter()
 
     def report(done, total, res):
+        if quiet:
+            return
         if isinstance(res, wio.FailedSlice):
             stream.write(f"  slice {done}/{total}: FAILED ({res.reason})\n")
             stream.flush()
@@ -30,9 +33,27 @@ def _progress(stream):
 
 
 def _warn(results, stream) -> None:
-    for r in results:
-        for msg in r.warnings:
-            stream.write(f"wss-nlp: warning: {msg}\n")
+    _warn_once([(None, msg) for r in results for msg in r.warnings], stream)
+
+
+def _warn_once(warnings, stream, what: str = "frame") -> None:
+    """Each distinct warning once, in first-seen order, with where and how often it came.
+
+    ``warnings``: ``(where, message)`` pairs, ``where`` a frame (or slice) number or None. A message that
+    every frame of a cine series repeats is one line naming the frames, not one line per frame.
+    """
+    seen: dict[str, list] = {}
+    for where, msg in warnings:
+        seen.setdefault(msg, []).append(where)
+    for msg, places in seen.items():
+        numbered = [p for p in places if p is not None]
+        if not numbered:
+            note = "" if len(places) == 1 else f" ({len(places)} times)"
+        elif len(numbered) == 1:
+            note = f" ({what} {numbered[0]})"
+        else:
+            note = f" ({len(numbered)} {what}s: {', '.join(map(str, numbered))})"
+        stream.write(f"wss-nlp: warning: {msg}{note}\n")
 
 
 def _is_time_resolved(path: str) -> bool:
@@ -57,6 +78,8 @@ def _reconstruct_cine(args, options) -> int:
     )
 
     def progress(done, total, seconds):
+        if args.quiet:
+            return
         sys.stderr.write(f"  frame {done}/{total}: {seconds:.1f} s elapsed\n")
         sys.stderr.flush()
 
@@ -68,13 +91,9 @@ def _reconstruct_cine(args, options) -> int:
 
             save_cine_figures(series, result, staged.path, fmt=args.figure_format, dpi=args.dpi)
         staged.commit()
-    for k, frame in enumerate(result.frames):
-        for r in frame:
-            for msg in r.warnings:
-                sys.stderr.write(f"wss-nlp: warning: frame {k}: {msg}\n")
+    _warn_once([(k, msg) for k, frame in enumerate(result.frames) for r in frame for msg in r.warnings], sys.stderr)
+    _warn_once([(s.index, note) for s in series for note in s.notes], sys.stderr, what="slice")
     for s in series:
-        for note in s.notes:
-            sys.stderr.write(f"wss-nlp: warning: slice {s.index}: {note}\n")
         print(
             f"slice {s.index}: time-averaged WSS {s.time_average_mean:.4g} Pa, TAWSS {np.mean(s.tawss):.4g} Pa "
             f"(wall mean), OSI {np.min(s.osi):.3f}-{np.max(s.osi):.3f}, peak mean WSS {np.max(s.mean):.4g} Pa at "
@@ -94,12 +113,13 @@ def cmd_reconstruct(args) -> int:
     if _is_time_resolved(args.input):
         return _reconstruct_cine(args, options)
     acq = wio.read_acquisition(args.input)
-    print(
-        f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
-        f"h = {acq.grid.h:g} mm",
-        file=sys.stderr,
-    )
-    results = reconstruct(acq, options, progress=_progress(sys.stderr))
+    if not args.quiet:
+        print(
+            f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
+            f"h = {acq.grid.h:g} mm",
+            file=sys.stderr,
+        )
+    results = reconstruct(acq, options, progress=_progress(sys.stderr, args.quiet))
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
             _slice_figures(results, acq, staged.path, args.figure_format, args.dpi)

@@ -52,7 +52,7 @@ def cmd_compare(args) -> int:
 
 def cmd_analyze(args) -> int:
     outputs.check_outputs(folders={"--figures": args.figures}, inputs=[args.result])
-    choices = wio.read_choices(args.result)
+    choices = _one_slice(wio.read_choices(args.result), args)
     for name, per in choices.items():
         print(f"{name}:")
         if not per:
@@ -77,14 +77,14 @@ def cmd_analyze(args) -> int:
                     mark = "  <- chosen" if p == ch.chosen else ""
                     crit = f" {ch.criterion[i]:12.4g}" if ch.criterion.size else ""
                     print(f"    {p:12.4g} {ch.residuals[i]:12.4g}{crit}{mark}")
-    for name, rec in wio.read_near_wall(args.result).items():
+    for name, rec in _one_slice(wio.read_near_wall(args.result), args).items():
         print(f"{name}: near-wall model '{rec['model']}'" + _layer_text(rec))
         print(f"    {rec['criterion']}")
         for model, value in sorted(rec["values"].items(), key=lambda kv: kv[1]):
             print(f"    {model:>12}: {value:12.2f}" + ("  <- chosen" if model == rec["model"] else ""))
         if rec["ambiguous"]:
             print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
-    for name, rec in wio.read_dephasing(args.result).items():
+    for name, rec in _one_slice(wio.read_dephasing(args.result), args).items():
         print(f"{name}: {_dephasing_text(rec)}")
     if args.figures:
         from ..plotting import save_parameter_figures
@@ -94,6 +94,24 @@ def cmd_analyze(args) -> int:
             paths = staged.commit()
         print(f"{len(paths)} figure(s) in {args.figures}")
     return 0
+
+
+def _one_slice(per_slice: dict, args) -> dict:
+    """The records of slice ``--slice K`` alone (every slice without it); a K the file lacks is bad input."""
+    if getattr(args, "slice", None) is None:
+        return per_slice
+    import h5py
+
+    with h5py.File(args.result, "r") as f:
+        names = sorted(k for k in f if k.startswith("slice_"))
+    name = f"slice_{args.slice:03d}"
+    if name not in names:
+        raise InputError(
+            f"{args.result}: no slice {args.slice} (--slice); the file has slices 0 to {len(names) - 1}"
+            if names
+            else f"{args.result}: no slices in this file (--slice)"
+        )
+    return {k: v for k, v in per_slice.items() if k == name}
 
 
 def _dephasing_text(rec: dict) -> str:
