@@ -4,6 +4,8 @@ result layout of shared/spec/data-format.md, a failed frame bridged, and the CLI
 import functools
 import json
 
+from xml.etree import ElementTree
+
 import h5py
 import numpy as np
 import pytest
@@ -216,6 +218,17 @@ def test_export_of_a_time_resolved_result_carries_tawss_and_osi(tmp_path):
         assert np.allclose(mesh.point_data["tau_pa"], mean)
         walls = [g["frames"][k]["wss/wall_x_mm"][()] for k in g["frames"]]
         assert np.allclose(mesh.points[:, 0], np.mean(walls, axis=0))
+        # the time series: one mesh per frame with that frame's wall and WSS, at its trigger time
+        pvd = tmp_path / "wall.pvd"
+        assert main(["export", str(out), "--vtk", str(pvd)]) == 0
+        sets = ElementTree.parse(pvd).getroot().findall("./Collection/DataSet")
+        assert [float(s.get("timestep")) for s in sets] == pytest.approx(g["wss/time_ms"][()], rel=1e-6)
+        for k, s in enumerate(sets):
+            frame = meshio.read(tmp_path / s.get("file"))
+            assert np.allclose(frame.points[:, 0], g["frames"][f"frame_{k:03d}"]["wss/wall_x_mm"][()])
+            assert np.allclose(frame.points[:, 1], g["frames"][f"frame_{k:03d}"]["wss/wall_y_mm"][()])
+            assert np.allclose(frame.point_data["tau_pa"], g["wss/tau_pa"][k])
+            assert frame.cells_dict["line"].shape == (g["wss/phi"].size, 2)
 
 
 def test_demo_cine_prints_the_cycle_against_the_truth(tmp_path, capsys):

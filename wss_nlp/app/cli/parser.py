@@ -43,7 +43,7 @@ EXAMPLES = {
     "sweep": ["wss-nlp sweep problems/resolution.toml --workers 2"],
     "table": ["wss-nlp table runs/resolution --rows h --cols method --metric wss_err"],
     "plot": ["wss-nlp plot runs/resolution --x h --y wss_err --by method --figure-format svg"],
-    "export": ["wss-nlp export out.h5 --vtk wall.vtu"],
+    "export": ["wss-nlp export out.h5 --vtk wall.vtu", "wss-nlp export cine_out.h5 --vtk wall.pvd"],
     "import": [
         "wss-nlp import dicom_folder/ -o in.h5",
         "wss-nlp import mag.nii.gz phase.nii.gz -o in.h5",
@@ -296,10 +296,14 @@ def build_parser() -> argparse.ArgumentParser:
         "export",
         help="the reconstructed wall with its WSS as a VTK file for ParaView",
         description="A slice becomes a polyline, a stack the wall surface; point data tau_pa (and tau_std_pa, "
-        "wss_vector_pa where present).",
+        "wss_vector_pa, tawss_pa and osi where present). Imported data (DICOM, NIfTI, planes of 4D flow) are placed "
+        "in the scanner's world frame, so the wall overlays the images in ParaView; field data world_frame and "
+        "length_unit_mm. A cine result: its cycle average (.vtu/.vtk) or its frames as a time series (.pvd).",
     )
     ex.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
-    ex.add_argument("--vtk", required=True, help="output file: .vtu (VTK XML) or .vtk (legacy)")
+    ex.add_argument(
+        "--vtk", required=True, help="output file: .vtu (VTK XML), .vtk (legacy) or .pvd (cine: a time series)"
+    )
     ex.add_argument(
         "--slice-spacing",
         type=float,

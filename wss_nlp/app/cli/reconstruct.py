@@ -56,6 +56,18 @@ def _warn_once(warnings, stream, what: str = "frame") -> None:
         stream.write(f"wss-nlp: warning: {msg}{note}\n")
 
 
+def _input_frame(path: str) -> dict:
+    """The input's attributes a result keeps so that ``export`` places the wall in the scanner's world frame.
+
+    ``import_json`` (the import record: directions and first slice position, :mod:`wss_nlp.io.export`) and
+    ``slice_spacing_mm``, where the input has them.
+    """
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return {k: f.attrs[k] for k in ("import_json", "slice_spacing_mm") if k in f.attrs}
+
+
 def _is_time_resolved(path: str) -> bool:
     import h5py
 
@@ -86,6 +98,11 @@ def _reconstruct_cine(args, options) -> int:
     result = cine.reconstruct_cine(frames, times, period, options, progress=progress)
     with outputs.StagedFolder(args.figures) as staged:
         series = cine.write_result(args.output, result, options.as_dict(), argv=["wss-nlp", *args.argv])
+        import h5py
+
+        with h5py.File(args.output, "a") as f:  # the input's frame, for export in world coordinates
+            for k, v in _input_frame(args.input).items():
+                f.attrs[k] = v
         if staged.path:
             from ..plotting import save_cine_figures
 
@@ -123,7 +140,9 @@ def cmd_reconstruct(args) -> int:
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
             _slice_figures(results, acq, staged.path, args.figure_format, args.dpi)
-        extra = {} if acq.slice_spacing_mm is None else {"slice_spacing_mm": float(acq.slice_spacing_mm)}
+        extra = {k: v for k, v in _input_frame(args.input).items() if k == "import_json"}
+        if acq.slice_spacing_mm is not None:
+            extra["slice_spacing_mm"] = float(acq.slice_spacing_mm)
         wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv], extra_attrs=extra)
         staged.commit()
     _warn(results, sys.stderr)
