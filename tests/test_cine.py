@@ -238,6 +238,16 @@ def test_demo_cine_prints_the_cycle_against_the_truth(tmp_path, capsys):
     assert (tmp_path / "demo" / "cine_slice_000.png").exists()
     frames, times, _ = files.read_frames(str(tmp_path / "demo" / "input.h5"))
     assert len(frames) == times.size == 20
+    # `compare` on the demo's files (the result and truth files, not the objects in memory) prints the same numbers
+    assert main(["compare", str(tmp_path / "demo" / "result.h5"), str(tmp_path / "demo" / "truth.h5")]) == 0
+    again = capsys.readouterr().out
+
+    def rows(text):
+        return {line[:34].strip(): line[34:].strip() for line in text.splitlines() if len(line) > 34}
+
+    keys = ["TAWSS reconstructed [Pa]", "TAWSS true [Pa]", "TAWSS rel. error", "OSI reconstructed (wall mean)",
+            "OSI true", "worst frame error / peak WSS"]  # fmt: skip
+    assert {k: rows(again)[k] for k in keys} == {k: rows(out)[k] for k in keys}
 
 
 def test_phantom_cli_writes_breathing_elliptic_and_small_pipes_and_refuses_what_does_not_apply(tmp_path, capsys):

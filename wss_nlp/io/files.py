@@ -731,7 +731,7 @@ def read_sensitivity(path) -> dict:
     """``{slice name: {"names", "d_mean", "d_tau", "mean_std_*", "h_mm", "alpha", "beta", "gamma", "mean_pa"}}``."""
     out = {}
     with _open_result(str(path)) as f:
-        for name in sorted(k for k in f if k.startswith("slice_")):
+        for name in _record_groups(f):  # a cine result: every frame's
             s = f[name]
             if "sensitivity" not in s:
                 continue
@@ -801,16 +801,27 @@ def read_result(path) -> list[dict]:
     return out
 
 
+def _record_groups(f) -> list[str]:
+    """The groups holding one fit's records: ``slice_NNN``, or ``slice_NNN/frames/frame_MMM`` in a cine result."""
+    names = sorted(k for k in f if k.startswith("slice_"))
+    if "trigger_times_ms" not in f.attrs:
+        return names
+    return [f"{n}/frames/{k}" for n in names if "frames" in f[n] for k in sorted(f[n]["frames"])]
+
+
 def read_choices(path) -> dict:
     """``{slice name: {"alpha": ParameterChoice, "beta": ParameterChoice}}`` from a result file."""
     import h5py
 
     from ..parameters.rules import ParameterChoice
 
-    read_result(path)  # validates the file and its slices
+    with h5py.File(path, "r") as f:
+        cine = "trigger_times_ms" in f.attrs
+    if not cine:
+        read_result(path)  # validates the file and its slices
     out: dict = {}
     with h5py.File(path, "r") as f:
-        for name in sorted(k for k in f if k.startswith("slice_")):
+        for name in _record_groups(f):
             out[name] = {}
             for which in ("alpha", "beta"):
                 key = f"{name}/analysis/{which}"
@@ -845,7 +856,7 @@ def read_dephasing(path) -> dict:
 
     out = {}
     with h5py.File(path, "r") as f:
-        for name in sorted(k for k in f if k.startswith("slice_")):
+        for name in _record_groups(f):
             attrs = f[name].attrs
             if "dephasing_json" in attrs:
                 rec = json.loads(attrs["dephasing_json"])
@@ -867,12 +878,16 @@ _OLD_DEPHASING_KEYS = {"passes": "dephasing_passes", "min_factor": "min_dephasin
 
 
 def read_near_wall(path) -> dict:
-    """``{slice name: dict}``: the near-wall model record of each slice that has one (``near_wall_json``)."""
+    """``{slice name: dict}``: the near-wall model record of each slice that has one (``near_wall_json``).
+
+    In a time-resolved result the names are the frames' groups, ``slice_NNN/frames/frame_MMM`` (also for
+    :func:`read_choices` and :func:`read_dephasing`).
+    """
     import h5py
 
     with h5py.File(path, "r") as f:
         return {
             name: json.loads(f[name].attrs["near_wall_json"])
-            for name in sorted(k for k in f if k.startswith("slice_"))
+            for name in _record_groups(f)
             if "near_wall_json" in f[name].attrs
         }

@@ -31,6 +31,12 @@ def _errors_rows(err: metrics.Errors):
 
 
 def cmd_compare(args) -> int:
+    import h5py
+
+    with h5py.File(args.result, "r") as f:
+        cine = "trigger_times_ms" in f.attrs
+    if cine:
+        return _compare_cine(args)
     truths = metrics.TruthTable.all_from_file(args.truth)
     rec = wio.read_result(args.result)
     if len(truths) > 1 and len(truths) != len(rec):
@@ -47,6 +53,45 @@ def cmd_compare(args) -> int:
         )
         print(f"{d['name']} against {args.truth}:")
         print(_error_table(_errors_rows(err)))
+    return 0
+
+
+def _compare_cine(args) -> int:
+    """A time-resolved result against the truth of ``phantom --case cine`` (the same cycle): per slice, the mean
+    WSS of every frame, TAWSS and OSI (wall means) and the mean radius of every frame."""
+    import h5py
+
+    with h5py.File(args.truth, "r") as f:
+        if "trigger_times_ms" not in f.attrs or "slice_000" not in f:
+            raise InputError(f"{args.truth}: not a time-resolved truth file (wss-nlp phantom --case cine --truth)")
+        t = f["slice_000"]
+        truth = {k: t[k][()] for k in ("wss/mean_pa_t", "wss/tawss_pa", "wss/osi", "geometry/radius_mm")}
+        truth_times = f.attrs["trigger_times_ms"][()]
+    with h5py.File(args.result, "r") as f:
+        times = f.attrs["trigger_times_ms"][()]
+        if times.shape != truth_times.shape or not np.allclose(times, truth_times):
+            raise InputError(f"{args.truth}: its trigger times differ from {args.result}'s; not the same cycle")
+        for name in sorted(k for k in f if k.startswith("slice_")):
+            g = f[name]
+            mean = g["wss/mean_pa_t"][()]
+            peak = float(np.max(np.abs(truth["wss/mean_pa_t"])))
+            ta, ta_true = float(np.nanmean(g["wss/tawss_pa"][()])), float(np.mean(truth["wss/tawss_pa"]))
+            radius = g["geometry/radius_mm"][()].mean(axis=-1)
+            radius_true = truth["geometry/radius_mm"].mean(axis=-1)
+            rows = [
+                ("TAWSS reconstructed [Pa]", f"{ta:.4g}"),
+                ("TAWSS true [Pa]", f"{ta_true:.4g}"),
+                ("TAWSS rel. error", f"{100 * (ta / ta_true - 1):+.1f}%"),
+                ("OSI reconstructed (wall mean)", f"{np.nanmean(g['wss/osi'][()]):.3f}"),
+                ("OSI true", f"{np.mean(truth['wss/osi']):.3f}"),
+                (
+                    "worst frame error / peak WSS",
+                    f"{100 * np.nanmax(np.abs(mean - truth['wss/mean_pa_t'])) / peak:.1f}%",
+                ),
+                ("worst frame mean radius error", f"{100 * np.nanmax(np.abs(radius / radius_true - 1)):.2f}%"),
+            ]
+            print(f"{name} against {args.truth} ({times.size} frames):")
+            print(_error_table(rows))
     return 0
 
 
@@ -111,7 +156,7 @@ def _one_slice(per_slice: dict, args) -> dict:
             if names
             else f"{args.result}: no slices in this file (--slice)"
         )
-    return {k: v for k, v in per_slice.items() if k == name}
+    return {k: v for k, v in per_slice.items() if k == name or k.startswith(name + "/")}  # a cine slice's frames
 
 
 def _dephasing_text(rec: dict) -> str:
@@ -165,10 +210,28 @@ def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
     return sorted(rows, key=lambda r: -abs(r[1]))
 
 
+def _why_no_sensitivity(path: str) -> str:
+    import json
+
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        options = json.loads(f.attrs.get("options_json", "{}"))
+        slices = sum(k.startswith("slice_") for k in f)
+        cine = "trigger_times_ms" in f.attrs
+    if options.get("uncertainty") is False:
+        return "reconstruct without --no-uncertainty"
+    if cine:
+        return "a time-resolved result keeps none (its WSS band over the cycle is wss/tau_std_pa)"
+    if slices > 1:
+        return "they are recorded for single slices; a stack's slices, solved together, have none"
+    return "this method records none"
+
+
 def cmd_sensitivity(args) -> int:
     recs = wio.read_sensitivity(args.result)
     if not recs:
-        raise InputError(f"{args.result}: no sensitivity records; reconstruct without --no-uncertainty")
+        raise InputError(f"{args.result}: no sensitivity records; {_why_no_sensitivity(args.result)}")
     for name, rec in recs.items():
         print(f"{name}: mean WSS {rec['mean_pa']:.4g} Pa +- {rec['mean_std_pa']:.2g} Pa (1 std, linearized)")
         print(f"  {'what changes':<26} {'mean WSS change [Pa]':>22} {'relative':>10}")
