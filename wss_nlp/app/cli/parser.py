@@ -37,6 +37,8 @@ EXAMPLES = {
         "wss-nlp phantom --case laminar -o in.h5 --truth truth.h5",
         "wss-nlp phantom --case cine --frames 12 -o cine.h5 --truth cine_truth.h5",
         "wss-nlp phantom --stack tapered --nz 5 -o stack.h5 --dicom dicom/ --nifti nifti/",
+        "wss-nlp phantom --case cine --frames 12 -o cine.h5 --dicom cine_dicom/",
+        "wss-nlp phantom --volume --nifti flow4d/",
     ],
     "analyze": ["wss-nlp analyze out.h5", "wss-nlp analyze out.h5 --slice 3 --figures choice_figs"],
     "sensitivity": ["wss-nlp sensitivity out.h5"],
@@ -66,7 +68,7 @@ DESCRIPTIONS = {
     "and H1, velocity error, mean and pointwise WSS error, per slice (or per frame for cine).",
     "phantom": "Write a synthetic acquisition with its exact truth: one slice (--case), a stack of slices "
     "(--stack) or a time-resolved cine series (--case cine), as an HDF5 input file and optionally as the DICOM "
-    "or NIfTI files a scanner would export.",
+    "or NIfTI files a scanner would export; or a 4D-flow volume as NIfTI files (--volume).",
 }
 
 
@@ -213,7 +215,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="stack: add in-plane velocity components (4D flow) of a swirl with this rate in 1/s",
     )
-    ph.add_argument("-o", "--output", required=True, help="input file to write")
+    ph.add_argument("-o", "--output", default=None, help="input file to write (every phantom but --volume)")
+    ph.add_argument(
+        "--volume",
+        action="store_true",
+        help="a 4D-flow volume instead (a tilted tube, three velocity components, two frames) as NIfTI files into "
+        "--nifti FOLDER, for 'wss-nlp import FOLDER --plane ...' (the plane through the tube is printed)",
+    )
     ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
     ph.add_argument(
         "--dicom", default=None, metavar="FOLDER", help="also write the images as DICOM files (for 'wss-nlp import')"

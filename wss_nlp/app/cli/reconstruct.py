@@ -83,11 +83,12 @@ def _reconstruct_cine(args, options) -> int:
 
     frames, times, period = wio.read_frames(args.input)
     acq = frames[0]
-    print(
-        f"{args.input}: {len(frames)} frames over {period:g} ms, {acq.nz} slice(s) of {acq.magnitude.shape[2]} x "
-        f"{acq.magnitude.shape[1]} voxels, h = {acq.grid.h:g} mm",
-        file=sys.stderr,
-    )
+    if not args.quiet:
+        print(
+            f"{args.input}: {len(frames)} frames over {period:g} ms, {acq.nz} slice(s) of {acq.magnitude.shape[2]} x "
+            f"{acq.magnitude.shape[1]} voxels, h = {acq.grid.h:g} mm",
+            file=sys.stderr,
+        )
 
     def progress(done, total, seconds):
         if args.quiet:
