@@ -247,7 +247,9 @@ def frame_meshes(path: str):
         times = np.asarray(f[names[0]]["wss/time_ms"][()], dtype=float)
         out = []
         for t, time_ms in enumerate(times):
-            points, lines, tau = [], [], []
+            points: list[np.ndarray] = []
+            lines: list[np.ndarray] = []
+            tau: list[np.ndarray] = []
             for k, name in enumerate(names):
                 g = f[name]
                 wall = g["frames"].get(f"frame_{t:03d}")  # cine.write_result's name; absent: the frame failed

@@ -100,7 +100,7 @@ def _phantom_volume(args) -> int:
     snr = None if args.snr <= 0 else args.snr
     volume = scanner_exports.make_flow_volume(seed=args.seed, snr=snr)
     with outputs.StagedFolder(args.nifti) as nii:
-        written = scanner_exports.write_flow_volume(nii.path, volume)
+        written = scanner_exports.write_flow_volume(str(nii.path), volume)
         nii.commit()
     p, a = volume.center, volume.axis
     fov = round(4.4 * volume.radius_mm)  # the lumen and a margin of 1.2 radii each side, inside the volume
