@@ -4,6 +4,7 @@ NIfTI folders, what ``phantom --dicom/--nifti`` wrote, enhanced DICOM named as s
 
 import io
 import shlex
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -165,3 +166,27 @@ def test_cine_phantom_as_dicom_and_nifti_imports_back_to_the_same_frames(tmp_pat
             assert np.max(np.abs(b.velocity_images() - a.velocity_images())) <= 1.01 * venc / 4096, folder
             shape = np.abs(b.magnitude / np.max(b.magnitude) - a.magnitude / np.max(a.magnitude))
             assert np.max(shape) <= 1.01 / 4095, folder
+
+
+def test_progress_is_a_bar_on_a_terminal_and_a_line_per_slice_in_a_log():
+    from wss_nlp.app.cli.reconstruct import _progress
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    res = SimpleNamespace(converged=True, wss=SimpleNamespace(mean=0.25))
+    log, tty = io.StringIO(), Terminal()
+    for stream in (log, tty):
+        report = _progress(stream)
+        report(1, 2, res)
+        report(2, 2, res)
+    assert [line.split(", ")[0] for line in log.getvalue().splitlines()] == [
+        "  slice 1/2: mean WSS 0.25 Pa",
+        "  slice 2/2: mean WSS 0.25 Pa",
+    ]
+    bar = tty.getvalue()
+    assert "\r" in bar and "2/2" in bar and ("slice/s" in bar or "s/slice" in bar)  # tqdm's bar, redrawn in place
+    quiet = io.StringIO()
+    _progress(quiet, quiet=True)(1, 1, res)
+    assert quiet.getvalue() == ""

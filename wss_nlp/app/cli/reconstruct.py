@@ -13,20 +13,30 @@ from .arguments import options_from_args
 
 
 def _progress(stream, quiet: bool = False):
-    """Per-slice progress lines on ``stream``; none with ``--quiet``."""
+    """Per-slice progress on ``stream``: a tqdm bar on a terminal, a line per slice otherwise (logs, CI, tests);
+    nothing with ``--quiet``."""
     t0 = time.perf_counter()
+    bar = None
 
     def report(done, total, res):
+        nonlocal bar
         if quiet:
             return
-        if isinstance(res, wio.FailedSlice):
-            stream.write(f"  slice {done}/{total}: FAILED ({res.reason})\n")
-            stream.flush()
+        failed = isinstance(res, wio.FailedSlice)
+        flag = "" if failed or res.converged else "  [NOT CONVERGED]"
+        text = f"FAILED ({res.reason})" if failed else f"mean WSS {res.wss.mean:.4g} Pa"
+        if hasattr(stream, "isatty") and stream.isatty():
+            if bar is None:
+                from tqdm import tqdm
+
+                bar = tqdm(total=total, file=stream, unit="slice", dynamic_ncols=True)
+            bar.set_postfix_str(f"slice {done}: {text}{flag}", refresh=False)
+            bar.update(done - bar.n)
+            if done >= total:
+                bar.close()
             return
-        flag = "" if res.converged else "  [NOT CONVERGED]"
-        stream.write(
-            f"  slice {done}/{total}: mean WSS {res.wss.mean:.4g} Pa, {time.perf_counter() - t0:.1f} s elapsed{flag}\n"
-        )
+        elapsed = "" if failed else f", {time.perf_counter() - t0:.1f} s elapsed"
+        stream.write(f"  slice {done}/{total}: {text}{elapsed}{flag}\n")
         stream.flush()
 
     return report
