@@ -75,27 +75,30 @@ def all_figures(slice_result):
     return figs
 
 
-def test_each_format_is_written_readable_and_at_the_asked_resolution(slice_result, all_figures, tmp_path):
+def test_each_format_is_written_readable_and_at_the_asked_resolution(slice_result, all_figures, tmp_path, monkeypatch):
     res, truth = slice_result
-    dpi = 30  # small: the test reads the pixels back, it does not look at them
+    # save_figures over the figures already drawn (drawing them again would double this test's time)
+    made = {name: (lambda r, t=None, fig=all_figures[name]: fig) for name in plotting.FIGURES}
+    monkeypatch.setattr(plotting, "FIGURES", made)
+    dpi = 20  # small: the test reads the pixels back, it does not look at them
     paths = plotting.save_figures(res, tmp_path / "png", truth, prefix="slice_000_", fmt="png", dpi=dpi)
-    assert [os.path.basename(p) for p in paths] == [f"slice_000_{n}.png" for n in plotting.FIGURES]
-    for fmt in ("pdf", "svg"):  # the vector formats: the geometry figure is enough (same writer)
+    assert [os.path.basename(p) for p in paths] == [f"slice_000_{n}.png" for n in made]
+    for fmt in ("pdf", "svg"):  # the vector formats: one figure is enough (the same writer)
         os.makedirs(tmp_path / fmt)
-        plotting.write_figure(all_figures["fig1_2_geometry"], str(tmp_path / fmt / f"slice_000_fig1_2_geometry.{fmt}"))
+        plotting.write_figure(all_figures["fig5_wss"], str(tmp_path / fmt / f"slice_000_fig5_wss.{fmt}"))
     assert not [p for p in tmp_path.rglob("*.part")]
-    # fig1_2 is 11 x 4.6 inches: PNG pixels = inches x dpi; PDF and SVG sizes in points (72 per inch)
+    # fig1_2 is 11 x 4.6 inches, fig5 8 x 4.2: PNG pixels = inches x dpi; PDF and SVG sizes in points (72 per inch)
     png = tmp_path / "png" / "slice_000_fig1_2_geometry.png"
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert image.imread(png).shape[:2] == (round(4.6 * dpi), round(11 * dpi))
-    pdf = (tmp_path / "pdf" / "slice_000_fig1_2_geometry.pdf").read_bytes()
+    pdf = (tmp_path / "pdf" / "slice_000_fig5_wss.pdf").read_bytes()
     assert pdf.startswith(b"%PDF-") and pdf.rstrip().endswith(b"%%EOF")
     box = [float(v) for v in re.search(rb"/MediaBox \[\s*([\d.\s]+)\]", pdf).group(1).split()]
-    assert box == pytest.approx([0, 0, 11 * 72, 4.6 * 72])
+    assert box == pytest.approx([0, 0, 8 * 72, 4.2 * 72])
     assert b"/CreationDate" not in pdf  # no date: the same figure gives the same file
-    svg_path = tmp_path / "svg" / "slice_000_fig1_2_geometry.svg"
+    svg_path = tmp_path / "svg" / "slice_000_fig5_wss.svg"
     root = ElementTree.parse(svg_path).getroot()
-    assert root.tag.endswith("svg") and root.get("width") == "792pt"
+    assert root.tag.endswith("svg") and root.get("width") == "576pt"
     assert "<dc:date>" not in svg_path.read_text()
 
 
