@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 from ... import __version__
-from ...synthetic import phantoms
+from ...synthetic import invivo, phantoms
 from ...core import schema
 from ...models.kspace import AcquisitionOptions
 from ..plotting import DEFAULT_DPI, FIGURE_FORMATS
@@ -147,7 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     d.add_argument(
         "--case",
-        choices=[*phantoms.CASES, "cine"],
+        choices=[*phantoms.CASES, *invivo.INVIVO_CASES, "cine"],
         type=_case_name,
         default="laminar",
         help="phantom (default %(default)s; the cases are listed below)",
@@ -374,7 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_compare)
 
     cases = {
-        "demo": _case_list(phantoms.CASES, {"cine": _CINE_TEXT}),
+        "demo": _case_list({**phantoms.CASES, **invivo.INVIVO_CASES}, {"cine": _CINE_TEXT}),
         "phantom": _case_list(phantoms.CASES, {"cine": _CINE_TEXT})
         + "\n\nstacks (--stack):\n"
         + _case_list(phantoms.STACK_CASES),

@@ -184,11 +184,13 @@ def cmd_reconstruct(args) -> int:
 
 
 def _slice_figures(results, acq, folder: str, fmt: str = "png", dpi: float | None = None) -> None:
-    from ..plotting import figure_stack, save_figure, save_figures
+    from ..plotting import figure_stack, save_figure, save_figures, save_tissue_figures
 
     for r in results:
         if not isinstance(r, wio.FailedSlice):
-            save_figures(r, folder, prefix=f"slice_{r.index:03d}_", fmt=fmt, dpi=dpi)
+            prefix = f"slice_{r.index:03d}_"
+            save_figures(r, folder, prefix=prefix, fmt=fmt, dpi=dpi)
+            save_tissue_figures(r, acq.magnitude[r.index], folder, prefix=prefix, fmt=fmt, dpi=dpi)
     if len(results) > 1:
         save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, f"stack_wall_maps.{fmt}"), dpi)
 
