@@ -132,7 +132,9 @@ def cmd_analyze(args) -> int:
             print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
     for name, rec in _one_slice(wio.read_dephasing(args.result), args).items():
         print(f"{name}: {_dephasing_text(rec)}")
-    for name, rec in surround.read_tissue(args.result).items():  # the surround model, the phase offset (issue 39)
+    for name, rec in _one_slice(
+        surround.read_tissue(args.result), args
+    ).items():  # the surround model, the phase offset (issue 39)
         for line in surround.report_lines(rec):
             print(f"{name}: {line}")
     if args.figures:
