@@ -4,6 +4,8 @@ result layout of shared/spec/data-format.md, a failed frame bridged, and the CLI
 import functools
 import json
 
+from xml.etree import ElementTree
+
 import h5py
 import numpy as np
 import pytest
@@ -210,7 +212,7 @@ def test_time_resolved_input_errors(tmp_path):
 def test_export_of_a_time_resolved_result_carries_tawss_and_osi(tmp_path):
     meshio = pytest.importorskip("meshio")
     inp, out, vtu = tmp_path / "c.h5", tmp_path / "r.h5", tmp_path / "wall.vtu"
-    assert main(["phantom", "--case", "womersley", "--frames", "4", "--h", "1.5", "--seed", "53", "-o", str(inp)]) == 0
+    assert main(["phantom", "--case", "cine", "--frames", "4", "--h", "1.5", "--seed", "53", "-o", str(inp)]) == 0
     assert main(["reconstruct", str(inp), "-o", str(out)]) == 0
     assert main(["export", str(out), "--vtk", str(vtu)]) == 0
     mesh = meshio.read(vtu)
@@ -223,6 +225,17 @@ def test_export_of_a_time_resolved_result_carries_tawss_and_osi(tmp_path):
         assert np.allclose(mesh.point_data["tau_pa"], mean)
         walls = [g["frames"][k]["wss/wall_x_mm"][()] for k in g["frames"]]
         assert np.allclose(mesh.points[:, 0], np.mean(walls, axis=0))
+        # the time series: one mesh per frame with that frame's wall and WSS, at its trigger time
+        pvd = tmp_path / "wall.pvd"
+        assert main(["export", str(out), "--vtk", str(pvd)]) == 0
+        sets = ElementTree.parse(pvd).getroot().findall("./Collection/DataSet")
+        assert [float(s.get("timestep")) for s in sets] == pytest.approx(g["wss/time_ms"][()], rel=1e-6)
+        for k, s in enumerate(sets):
+            frame = meshio.read(tmp_path / s.get("file"))
+            assert np.allclose(frame.points[:, 0], g["frames"][f"frame_{k:03d}"]["wss/wall_x_mm"][()])
+            assert np.allclose(frame.points[:, 1], g["frames"][f"frame_{k:03d}"]["wss/wall_y_mm"][()])
+            assert np.allclose(frame.point_data["tau_pa"], g["wss/tau_pa"][k])
+            assert frame.cells_dict["line"].shape == (g["wss/phi"].size, 2)
 
 
 def test_demo_cine_prints_the_cycle_against_the_truth(tmp_path, capsys):
@@ -232,6 +245,30 @@ def test_demo_cine_prints_the_cycle_against_the_truth(tmp_path, capsys):
     assert (tmp_path / "demo" / "cine_slice_000.png").exists()
     frames, times, _ = files.read_frames(str(tmp_path / "demo" / "input.h5"))
     assert len(frames) == times.size == 20
+    # `compare` on the demo's files (the result and truth files, not the objects in memory) prints the same numbers
+    assert main(["compare", str(tmp_path / "demo" / "result.h5"), str(tmp_path / "demo" / "truth.h5")]) == 0
+    again = capsys.readouterr().out
+
+    def rows(text):
+        return {line[:34].strip(): line[34:].strip() for line in text.splitlines() if len(line) > 34}
+
+    def percent(text):
+        return float(text.rstrip("%"))
+
+    demo, cmp = rows(out), rows(again)
+    # the same errors from the files as from memory: the demo prints one decimal of a percent, compare two
+    # (0.055 points of rounding together), and the demo's truth is the analytic cycle where compare reads the truth
+    # file's wall samples (a few hundredths of a point apart): 0.1 points
+    pairs = [("TAWSS rel. error", "TAWSS rel. error (wall mean)"),
+             ("worst frame error / peak WSS", "worst frame |mean WSS err| / peak")]  # fmt: skip
+    for d, c in pairs:
+        assert abs(percent(demo[d]) - percent(cmp[c])) <= 0.1, (d, demo[d], cmp[c])
+    assert (
+        abs(
+            float(demo["OSI reconstructed (wall mean)"]) - float(demo["OSI true"]) - float(cmp["OSI error (wall mean)"])
+        )
+        <= 1e-3
+    )
 
 
 def test_phantom_cli_writes_breathing_elliptic_and_small_pipes_and_refuses_what_does_not_apply(tmp_path, capsys):

@@ -358,7 +358,7 @@ MUTATIONS = {
 @pytest.mark.parametrize("name", sorted(MUTATIONS))
 def test_mutated_headers_give_one_line_or_a_file(name, phantom, tmp_path, capsys):
     """Every phase file of a Siemens export mutated one way: exit 0 with a readable input, or exit 2 with one
-    line naming a file; never an internal error (exit 1) or a half-written output."""
+    line naming a file; never an internal error (exit 3) or a half-written output."""
     import pydicom
 
     folder = _siemens(tmp_path, phantom[0])

@@ -71,9 +71,16 @@ def _names() -> list[str]:
 
 
 def on_config(config, **kwargs):
-    """A "Gallery" section in the navigation, one page per example (written by :func:`on_pre_build`)."""
+    """A "Gallery" section near the top of the navigation (after "Getting started"), one page per example.
+
+    The pages are written by :func:`on_pre_build`; the section goes right after the first entries a new
+    user reads, not after the API reference.
+    """
     pages = [f"gallery/{name}.md" for name in _names()]
-    config["nav"].append({"Gallery": ["gallery/index.md", *pages]})
+    nav = config["nav"]
+    keys = [next(iter(item)) if isinstance(item, dict) else None for item in nav]
+    at = keys.index("Getting started") + 1 if "Getting started" in keys else min(1, len(nav))
+    nav.insert(at, {"Gallery": ["gallery/index.md", *pages]})
     return config
 
 
@@ -86,6 +93,8 @@ def on_pre_build(config, **kwargs):
         "Each example runs at a small size when the documentation is built; its printed",
         "numbers and figures below are from that run. The scripts are in `examples/`.",
         "",
+        "| | example |",
+        "|---|---|",
     ]
     for name in names:
         path = os.path.join(EXAMPLES, name + ".py")
@@ -99,7 +108,15 @@ def on_pre_build(config, **kwargs):
             images.append(image)
         with open(os.path.join(OUT, name + ".md"), "w", encoding="utf-8") as fh:
             fh.write(_page(name, source, printed, images, seconds))
-        title = (ast.get_docstring(ast.parse(source)) or name).partition("\n")[0].strip()
-        index.append(f"- [{title}]({name}.md)")
+        doc = ast.get_docstring(ast.parse(source)) or name
+        title, _, text = doc.partition("\n")
+        first = " ".join(text.strip().split("\n\n")[0].split())  # the text's first sentence, on one line
+        first = first.split(". ")[0].rstrip(".") + "." if first else ""
+        thumb = ""
+        if figures:  # the first figure, small: the thumbnail
+            thumb = f"thumb_{name}.png"
+            figures[0].savefig(os.path.join(OUT, thumb), dpi=30)
+            thumb = f"[![{title.strip()}]({thumb})]({name}.md)"
+        index.append(f"| {thumb} | **[{title.strip()}]({name}.md)**<br>{first.replace('|', '&#124;')} |")
     with open(os.path.join(OUT, "index.md"), "w", encoding="utf-8") as fh:
         fh.write("\n".join(index) + "\n")

@@ -10,6 +10,14 @@
 Figures are :class:`matplotlib.figure.Figure` objects made without pyplot:
 the user's backend is never changed, no global figure registry fills up,
 and they display in notebooks and save anywhere (``fig.savefig``).
+
+Publication defaults: every colourbar is labelled with its quantity and unit, angles are in degrees
+on every axis, and every mark drawn is named by a legend entry or a colourbar. The writers
+(:func:`save_figures`, :func:`save_cine_figures`, :func:`save_figure`, :func:`save_parameter_figures`)
+take the file format (``png``, ``pdf`` or ``svg``, :data:`FIGURE_FORMATS`) and the resolution in dots
+per inch (:data:`DEFAULT_DPI`; for PDF and SVG it sets the resolution of the embedded images only); the
+command line passes ``--figure-format`` and ``--dpi``. PDF and SVG files carry no creation date, so the
+same figure gives the same bytes.
 """
 
 from __future__ import annotations
@@ -17,14 +25,58 @@ from __future__ import annotations
 import os
 
 import numpy as np
+from ..errors import InputError
 from ..pipeline.results import SliceResult
 from ..models.baselines import BaselineResult
 from ..io.files import FailedSlice
-from matplotlib.figure import Figure
+
+
+#: File formats the writers produce (the file name's extension).
+FIGURE_FORMATS = ("png", "pdf", "svg")
+#: Resolution of PNG figures (and of the images embedded in PDF and SVG), dots per inch.
+DEFAULT_DPI = 150.0
+#: Ticks of an angle axis, degrees.
+ANGLE_TICKS = (0, 90, 180, 270, 360)
+
+
+def _format(fmt: str) -> str:
+    fmt = str(fmt).lower().lstrip(".")
+    if fmt not in FIGURE_FORMATS:
+        raise InputError(f"figure format {fmt!r} is not one of {', '.join(FIGURE_FORMATS)} (--figure-format)")
+    return fmt
+
+
+def _dpi(dpi) -> float:
+    dpi = DEFAULT_DPI if dpi is None else float(dpi)
+    if not np.isfinite(dpi) or not 10 <= dpi <= 2400:
+        raise InputError(f"--dpi must lie in [10, 2400] dots per inch; got {dpi:g}")
+    return dpi
+
+
+def write_figure(fig, path: str, dpi: float | None = None) -> str:
+    """Write ``fig`` to ``path`` in the format its extension names (png, pdf, svg); returns the path.
+
+    The file appears complete or not at all (written under a temporary name, then moved); PDF and SVG
+    files carry no creation date, so that a figure drawn twice gives the same file.
+    """
+    fmt = _format(os.path.splitext(path)[1] or "png")
+    metadata = {"png": {}, "pdf": {"CreationDate": None}, "svg": {"Date": None}}[fmt]
+    tmp = path + ".part"  # never a half-written figure under the final name
+    fig.savefig(tmp, format=fmt, dpi=_dpi(dpi), metadata=metadata)
+    os.replace(tmp, path)
+    return path
+
+
+def _angle_axis(ax, label: str = r"wall angle $\varphi$ [deg]") -> None:
+    ax.set_xlabel(label)
+    ax.set_xlim(0, 360)
+    ax.set_xticks(ANGLE_TICKS)
 
 
 def _subplots(*args, figsize, **kwargs):
     """``Figure.subplots`` on a figure of its own (what ``pyplot.subplots`` does, without pyplot's state)."""
+    from matplotlib.figure import Figure  # here: the command line imports this module for its constants alone
+
     fig = Figure(figsize=figsize)
     return fig, fig.subplots(*args, **kwargs)
 
@@ -57,25 +109,34 @@ def figure_geometry(res, truth=None):
             lw=1,
             label="true wall",
         )
-    ax.plot(*res.geometry.center, "+", color="tab:red")
+    ax.plot(*res.geometry.center, "+", color="tab:red", ms=9, label=r"centre of $R(\varphi)$")
     ax.set(xlabel="x [mm]", ylabel="y [mm]", title=f"normalized magnitude, h = {res.grid.h:g} mm")
     ax.legend(loc="lower right", fontsize=8)
-    fig.colorbar(im, ax=ax, shrink=0.8)
+    fig.colorbar(im, ax=ax, shrink=0.8, label="normalized magnitude [-]")
     ax = axes[1]
-    ax.plot(phi, res.geometry.radius(phi), color="tab:red", label=r"$R_\alpha^\delta$ (reconstructed)")
+    deg = np.degrees(phi)
+    r = res.geometry.radius(phi)
+    ax.plot(deg, r, color="tab:red", label=r"$R_\alpha^\delta$ (reconstructed)")
     if truth is not None:
-        ax.plot(phi, rt, "--", color="tab:blue", label=r"$R^\dagger$ (true, about the same centre)")
+        ax.plot(deg, rt, "--", color="tab:blue", label=r"$R^\dagger$ (true, about the same centre)")
+    pad = 0.3 * (r.max() - r.min()) + 0.2
+    low, high = r.min() - pad, r.max() + pad
     baseline = isinstance(res, BaselineResult)
     if not baseline:
-        ax.axhspan(*res.geometry.box, color="0.92", zorder=0, label="box [r0, r1]")
-    r = res.geometry.radius(phi)
-    pad = 0.3 * (r.max() - r.min()) + 0.2
+        # the box r0 <= R <= r1 as its two bounds (a shaded band would fill the axis: the box is wide on purpose)
+        r0, r1 = res.geometry.box
+        shown = [b for b in (r0, r1) if low <= b <= high]
+        for b in shown:
+            ax.axhline(b, color="0.45", lw=0.9, ls=(0, (4, 3)))
+        note = "" if len(shown) == 2 else (" (outside the view)" if not shown else " (one outside the view)")
+        ax.plot([], [], color="0.45", lw=0.9, ls=(0, (4, 3)), label=f"box bounds r0 = {r0:.3g}, r1 = {r1:.3g} mm{note}")
     title = (
         f"segmented wall ({res.method}: 50 % magnitude contour)"
         if baseline
         else rf"radius function, $\alpha$ = {res.geometry.alpha:g}"
     )
-    ax.set(xlabel=r"$\varphi$ [rad]", ylabel="R [mm]", ylim=(r.min() - pad, r.max() + pad), title=title)
+    _angle_axis(ax)
+    ax.set(ylabel="R [mm]", ylim=(low, high), title=title)
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
@@ -88,14 +149,15 @@ def figure_velocity_data(res):
     lim = np.max(np.abs(raw))
     im = _image(axes[0], raw, res.grid, cmap="RdBu_r", vmin=-lim, vmax=lim)
     axes[0].set(title="velocity raw data [m/s]", xlabel="x [mm]", ylabel="y [mm]")
-    fig.colorbar(im, ax=axes[0], shrink=0.8)
+    fig.colorbar(im, ax=axes[0], shrink=0.8, label="through-plane velocity [m/s]")
     used = np.full(raw.size, np.nan)
     used[res.velocity.voxel_index] = raw.ravel()[res.velocity.voxel_index]
     used = used.reshape(raw.shape)
     im = _image(axes[1], used, res.grid, cmap="viridis")
-    _contour(axes[1], res, color="w", lw=0.8)
+    _contour(axes[1], res, color="w", lw=0.8, label="reconstructed wall")
     axes[1].set(title=r"truncated data ($|V_i \cap \Omega| > 0$) [m/s]", xlabel="x [mm]")
-    fig.colorbar(im, ax=axes[1], shrink=0.8)
+    axes[1].legend(loc="lower right", fontsize=8, facecolor="0.6")
+    fig.colorbar(im, ax=axes[1], shrink=0.8, label="through-plane velocity [m/s]")
     fig.tight_layout()
     return fig
 
@@ -112,12 +174,12 @@ def figure_velocity(res, truth=None):
         vmax = max(vmax, float(np.max(true)))
         im = _image(axes[0, 1], true, res.grid, cmap="viridis", vmin=0, vmax=vmax)
         axes[0, 1].set(title="true velocity [m/s]", xlabel="x [mm]")
-        fig.colorbar(im, ax=axes[0, 1], shrink=0.8)
+        fig.colorbar(im, ax=axes[0, 1], shrink=0.8, label="through-plane velocity [m/s]")
     im = _image(axes[0, 0], rec, res.grid, cmap="viridis", vmin=0, vmax=vmax)
     axes[0, 0].set(
         title=rf"reconstructed velocity [m/s], $\beta$ = {res.velocity.beta:g}", xlabel="x [mm]", ylabel="y [mm]"
     )
-    fig.colorbar(im, ax=axes[0, 0], shrink=0.8)
+    fig.colorbar(im, ax=axes[0, 0], shrink=0.8, label="through-plane velocity [m/s]")
     fig.tight_layout()
     return fig
 
@@ -126,21 +188,19 @@ def figure_wss(res, truth=None):
     """Fig. 5: WSS against angle with its arc-length mean."""
     fig, ax = _subplots(figsize=(8, 4.2))
     w = res.wss
-    ax.plot(w.phi, w.tau, color="tab:red", lw=1.2, label=r"$\tau$ reconstructed")
+    deg = np.degrees(w.phi)
+    ax.plot(deg, w.tau, color="tab:red", lw=1.2, label=r"$\tau$ reconstructed")
     ax.axhline(w.mean, color="tab:red", ls=":", label=rf"mean {w.mean:.4g} Pa")
     std = getattr(w, "tau_std", None)
     if std is not None:
-        ax.fill_between(w.phi, w.tau - 2 * std, w.tau + 2 * std, color="tab:red", alpha=0.2, label=r"$\pm 2\sigma$")
+        band = r"$\pm 2\sigma$ (linearized band, data noise)"
+        ax.fill_between(deg, w.tau - 2 * std, w.tau + 2 * std, color="tab:red", alpha=0.2, label=band)
     if truth is not None:
         tt = truth.wss_at_points(w.wall_x, w.wall_y)
-        ax.plot(w.phi, tt, color="tab:blue", lw=1.2, label=r"$\tau^\dagger$ true")
+        ax.plot(deg, tt, color="tab:blue", lw=1.2, label=r"$\tau^\dagger$ true")
         ax.axhline(truth.mean_wss, color="tab:blue", ls=":", label=f"true mean {truth.mean_wss:.4g} Pa")
-    ax.set(
-        xlabel=r"$\varphi$ [rad]",
-        ylabel=r"$\tau$ [Pa]",
-        xlim=(0, 2 * np.pi),
-        title=f"wall shear stress ({getattr(res, 'method', 'decoupled')})",
-    )
+    _angle_axis(ax)
+    ax.set(ylabel=r"$\tau$ [Pa]", title=f"wall shear stress ({getattr(res, 'method', 'decoupled')})")
     lo = min(0.0, float(np.min(w.tau)))
     ax.set_ylim(lo, 1.25 * max(float(np.max(w.tau)), truth.mean_wss if truth is not None else 0))
     ax.legend(fontsize=8, ncol=2, loc="lower right")
@@ -152,10 +212,11 @@ def figure_near_wall(res, truth=None):
     """Near-wall data against the distance to the wall, with the fitted profile: why the WSS came out as it did.
 
     Dots: measured velocity of each lumen voxel against the distance of its
-    centre to the reconstructed wall (negative: centre outside; marker area
-    ~ partial volume); circles: the fit's voxel means; line: the fitted
-    velocity along the wall normal, averaged over the angle (and the true one
-    for a phantom). Drawn for slices reconstructed with ``--near-wall``.
+    centre to the reconstructed wall (negative: centre outside), coloured by the
+    voxel's fraction inside the lumen (a labelled colourbar; all dots one size);
+    circles: the fit's voxel means; line: the fitted velocity along the wall
+    normal, averaged over the angle (and the true one for a phantom). Drawn for
+    slices reconstructed with ``--near-wall``.
     """
     near = getattr(res, "near_wall", None)
     if near is None or not isinstance(res, SliceResult):
@@ -168,8 +229,19 @@ def figure_near_wall(res, truth=None):
     sel = dist < reach
     fig, ax = _subplots(figsize=(7.5, 4.4))
     measured = res.velocity_image.ravel()[v.voxel_index]
-    ax.scatter(dist[sel], measured[sel], s=30 * v.voxel_fraction[sel], color="0.35", label="measured voxels")
-    ax.scatter(dist[sel], v.fitted[sel], s=14, facecolors="none", edgecolors="tab:red", label="fitted voxel means")
+    dots = ax.scatter(
+        dist[sel],
+        measured[sel],
+        s=16,
+        c=v.voxel_fraction[sel],
+        cmap="viridis",
+        vmin=0.0,
+        vmax=1.0,
+        linewidths=0,
+        label="measured voxels (colour: fraction inside the lumen)",
+    )
+    fig.colorbar(dots, ax=ax, label=r"voxel fraction inside the lumen $|V_i \cap \Omega| / |V_i|$ [-]")
+    ax.scatter(dist[sel], v.fitted[sel], s=28, facecolors="none", edgecolors="tab:red", label="fitted voxel means")
     d = np.linspace(0, reach, 400)
     angles = np.linspace(0, 2 * np.pi, 73)[:-1]
     big_r = g.radius(angles)
@@ -182,7 +254,7 @@ def figure_near_wall(res, truth=None):
     if near.model != "plain":
         title += f", l = {near.scale_mm * 1000:.3g} um"
         ax.axvline(near.scale_mm, color="tab:green", ls=":", lw=1, label="layer scale l")
-    ax.axvline(0, color="k", lw=0.6)
+    ax.axvline(0, color="k", lw=0.6, label="reconstructed wall (distance 0)")
     ax.set(xlabel="distance of the voxel centre to the wall [mm]", ylabel="velocity [m/s]", title=title)
     ax.set_xlim(-grid.h, reach)
     ax.legend(fontsize=8, loc="lower right")
@@ -190,17 +262,22 @@ def figure_near_wall(res, truth=None):
     return fig
 
 
+#: The figures of one slice: file name (without its extension) -> figure function.
 FIGURES = {
-    "fig1_2_geometry.png": figure_geometry,
-    "fig3_velocity_data.png": lambda res, truth=None: figure_velocity_data(res),
-    "fig4_velocity.png": figure_velocity,
-    "fig5_wss.png": figure_wss,
-    "fig6_near_wall.png": figure_near_wall,
+    "fig1_2_geometry": figure_geometry,
+    "fig3_velocity_data": lambda res, truth=None: figure_velocity_data(res),
+    "fig4_velocity": figure_velocity,
+    "fig5_wss": figure_wss,
+    "fig6_near_wall": figure_near_wall,
 }
 
 
-def save_figures(res, folder, truth=None, prefix: str = "") -> list[str]:
-    """Write all figures of one slice into ``folder``; returns the paths."""
+def save_figures(res, folder, truth=None, prefix: str = "", fmt: str = "png", dpi: float | None = None) -> list[str]:
+    """Write all figures of one slice into ``folder`` as ``PREFIX + name + "." + fmt``; returns the paths.
+
+    ``fmt``: one of :data:`FIGURE_FORMATS`; ``dpi``: dots per inch (default :data:`DEFAULT_DPI`).
+    """
+    fmt, dpi = _format(fmt), _dpi(dpi)
     os.makedirs(folder, exist_ok=True)
     paths = []
     # classical baselines have a wall and a WSS but no velocity model
@@ -210,9 +287,7 @@ def save_figures(res, folder, truth=None, prefix: str = "") -> list[str]:
         fig = make(res, truth)
         if fig is None:  # a figure that does not apply to this slice
             continue
-        path = os.path.join(folder, prefix + name)
-        fig.savefig(path, dpi=110)
-        paths.append(path)
+        paths.append(write_figure(fig, os.path.join(folder, f"{prefix}{name}.{fmt}"), dpi))
     return paths
 
 
@@ -255,8 +330,9 @@ def figure_parameter_choice(choice):
     return fig
 
 
-def save_parameter_figures(choices: dict, folder: str) -> list[str]:
-    """One PNG per slice and parameter with a search to show."""
+def save_parameter_figures(choices: dict, folder: str, fmt: str = "png", dpi: float | None = None) -> list[str]:
+    """One figure per slice and parameter with a search to show (``fmt``, ``dpi`` as for :func:`save_figures`)."""
+    fmt, dpi = _format(fmt), _dpi(dpi)
     os.makedirs(folder, exist_ok=True)
     paths = []
     for slice_name, per in choices.items():
@@ -264,46 +340,40 @@ def save_parameter_figures(choices: dict, folder: str) -> list[str]:
             if ch.rule == "fixed":
                 continue
             fig = figure_parameter_choice(ch)
-            path = os.path.join(folder, f"{slice_name}_{ch.name}_{ch.rule}.png")
-            fig.savefig(path, dpi=110)
-            paths.append(path)
+            paths.append(write_figure(fig, os.path.join(folder, f"{slice_name}_{ch.name}_{ch.rule}.{fmt}"), dpi))
     return paths
 
 
 def figure_band_check(phi, linearized, sampled, n_draws: int):
     """Linearized WSS standard deviation against a Monte-Carlo estimate, per angle."""
     fig, ax = _subplots(figsize=(8, 3.8))
-    ax.plot(phi, sampled, color="tab:gray", lw=1.2, label=f"Monte Carlo ({n_draws} noise draws)")
-    ax.plot(phi, linearized, color="tab:red", lw=1.2, ls="--", label="linearized (CasADi sensitivities)")
-    ax.set(
-        xlabel=r"$\varphi$ [rad]",
-        ylabel=r"std of $\tau$ [Pa]",
-        xlim=(0, 2 * np.pi),
-        ylim=(0, None),
-        title="uncertainty band: linearization vs sampling",
-    )
+    deg = np.degrees(phi)
+    ax.plot(deg, sampled, color="tab:gray", lw=1.2, label=f"Monte Carlo ({n_draws} noise draws)")
+    ax.plot(deg, linearized, color="tab:red", lw=1.2, ls="--", label="linearized (CasADi sensitivities)")
+    _angle_axis(ax)
+    ax.set(ylabel=r"std of $\tau$ [Pa]", ylim=(0, None), title="uncertainty band: linearization vs sampling")
     ax.legend(fontsize=8)
     fig.tight_layout()
     return fig
 
 
-def save_figure(fig, path: str, dpi: int = 120) -> str:
-    """Write one figure as PNG (``dpi``: dots per inch; thumbnails take fewer)."""
+def save_figure(fig, path: str, dpi: float | None = None) -> str:
+    """Write one figure in the format the path's extension names (png, pdf, svg), making its folder.
+
+    ``dpi``: dots per inch (default :data:`DEFAULT_DPI`; thumbnails take fewer).
+    """
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = path + ".part.png"  # never a half-written figure under the final name
-    fig.savefig(tmp, dpi=dpi)
-    os.replace(tmp, path)
-    return path
+    return write_figure(fig, path, dpi)
 
 
 def figure_rates(deltas, curves: dict):
     """Log-log error against noise level, one panel per Sobolev index r; ``curves[(k, rule)]`` is (n_delta, 3)."""
     fig, axes = _subplots(1, 3, figsize=(12, 3.8))
     for r, ax in enumerate(axes):
-        for (k, rule), errs in curves.items():
+        for i, ((k, rule), errs) in enumerate(curves.items()):
             ax.loglog(deltas, errs[:, r], "o-" if rule == "a priori" else "s--", label=f"k = {k}, {rule}")
             ref = errs[-1, r] * (np.asarray(deltas) / deltas[-1]) ** (1 - r / k)
-            ax.loglog(deltas, ref, ":", color="gray", lw=0.8)
+            ax.loglog(deltas, ref, ":", color="gray", lw=0.8, label="rate 1 - r/k (reference)" if i == 0 else None)
         ax.set(
             xlabel=r"noise level $\delta$",
             ylabel=rf"$\|R_\alpha - R\|_{{H^{r}}}$",
@@ -358,7 +428,7 @@ def figure_sweep(
         if logx:
             ax.set_xscale("log")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        ax.legend(fontsize=8, title="mean, bars: 1 sd over seeds", title_fontsize=8)
     if title and panels:
         fig.suptitle(title)
     fig.tight_layout()
@@ -395,7 +465,8 @@ def figure_stack(results, spacing_mm: float):
             np.ma.masked_invalid(data), origin="lower", aspect="auto", extent=extent, cmap=cmap, interpolation="nearest"
         )
         fig.colorbar(im, ax=ax, label=label)
-        ax.set(xlabel=r"angle $\varphi$ [deg] (unrolled wall)", title=label)
+        _angle_axis(ax, r"wall angle $\varphi$ [deg] (unrolled wall)")
+        ax.set(title=label)
     axes[0].set_ylabel("z [mm] (slice position)")
     failed = [i for i in range(n) if isinstance(results[i], FailedSlice)]
     if failed:
@@ -416,7 +487,8 @@ def figure_cine(series, times_ms, truth_tau=None):
     lim = np.nanmax(np.abs(series.tau))
     im.set_clim(-lim, lim)
     fig.colorbar(im, ax=ax, label="WSS [Pa]")
-    ax.set(xlabel="wall angle phi [deg]", ylabel="time after trigger [ms]", title="WSS(t, phi)")
+    _angle_axis(ax)
+    ax.set(ylabel="time after trigger [ms]", title=r"WSS(t, $\varphi$)")
     ax = axes[1]
     model = getattr(series, "model", None)
     which = "momentum model" if model is not None and model.model == "momentum" else "frames' own fits"
@@ -429,45 +501,53 @@ def figure_cine(series, times_ms, truth_tau=None):
         ax.plot(np.asarray(times_ms)[series.failed], np.zeros(int(series.failed.sum())), "rx", label="failed frame")
     if truth_tau is not None:
         ax.plot(times_ms, truth_tau, "k--", label="truth")
-    ax.axhline(0.0, color="0.7", lw=0.8)
+    ax.axhline(0.0, color="0.7", lw=0.8, label="0 Pa (below: reversed flow)")
     ax.set(xlabel="time after trigger [ms]", ylabel="mean WSS [Pa]", title="mean WSS over the cycle")
     ax.legend(fontsize=8)
     ax = axes[2]
     ax.plot(deg, series.tawss, label="TAWSS [Pa]")
-    ax.set(xlabel="wall angle phi [deg]", ylabel="TAWSS [Pa]", title="TAWSS and OSI around the wall")
+    _angle_axis(ax)
+    ax.set(ylabel="TAWSS [Pa]", title="TAWSS and OSI around the wall")
     finite = series.tawss[np.isfinite(series.tawss)]
     if finite.size:  # from zero: a per-mille ripple must not fill the axis as if it were a pattern
         ax.set_ylim(0.0, 1.1 * max(float(finite.max()), 1e-12))
     twin = ax.twinx()
-    twin.plot(deg, series.osi, color="C3", label="OSI")
+    twin.plot(deg, series.osi, color="C3", label="OSI [-]")
     twin.set_ylim(0, 0.5)
-    twin.set_ylabel("OSI", color="C3")
+    twin.set_ylabel("OSI [-]", color="C3")
+    handles = ax.get_legend_handles_labels()[0] + twin.get_legend_handles_labels()[0]
+    ax.legend(handles=handles, fontsize=8, loc="lower right")
     fig.tight_layout()
     return fig
 
 
-def save_cine_figures(series, result, folder: str, truth_tau=None) -> list[str]:
-    """``cine_slice_NNN.png`` for every slice of a cine reconstruction; returns the paths."""
+def save_cine_figures(
+    series, result, folder: str, truth_tau=None, fmt: str = "png", dpi: float | None = None
+) -> list[str]:
+    """``cine_slice_NNN.<fmt>`` for every slice of a cine reconstruction; returns the paths."""
+    fmt, dpi = _format(fmt), _dpi(dpi)
     paths = []
     for s in series:
         fig = figure_cine(s, result.times_ms, truth_tau)
-        paths.append(save_figure(fig, os.path.join(folder, f"cine_slice_{s.index:03d}.png")))
+        paths.append(save_figure(fig, os.path.join(folder, f"cine_slice_{s.index:03d}.{fmt}"), dpi))
     return paths
 
 
-def save_tissue_figures(res, raw, folder, prefix: str = "") -> list[str]:
-    """Write ``surround.png`` (:func:`figure_surround`) and ``offset.png`` (:func:`figure_offset`) of a slice the
-    surround model or the offset correction looked at (``res.lumen.tissue``; none otherwise); returns the paths.
+def save_tissue_figures(res, raw, folder, prefix: str = "", fmt: str = "png", dpi: float | None = None) -> list[str]:
+    """Write ``surround.<fmt>`` (:func:`figure_surround`) and ``offset.<fmt>`` (:func:`figure_offset`) of a slice
+    the surround model or the offset correction looked at (``res.lumen.tissue``; none otherwise); returns the paths.
 
-    ``raw``: the slice's measured magnitude (the result keeps the magnitude the geometry fitted)."""
+    ``raw``: the slice's measured magnitude (the result keeps the magnitude the geometry fitted); ``fmt``, ``dpi``
+    as for :func:`save_figures`."""
+    fmt, dpi = _format(fmt), _dpi(dpi)
     rec = getattr(getattr(res, "lumen", None), "tissue", None) or {}
     sm, o = rec.get("surround") or {}, rec.get("offset") or {}
     paths = []
     if sm.get("kind") == "tissue" or o.get("static_voxels", 0) > 0:
         os.makedirs(folder, exist_ok=True)
-        for name, make in (("surround.png", figure_surround), ("offset.png", figure_offset)):
-            path = os.path.join(folder, prefix + name)
-            save_figure(make(res, np.asarray(raw, float)), path)
+        for name, make in (("surround", figure_surround), ("offset", figure_offset)):
+            path = os.path.join(folder, f"{prefix}{name}.{fmt}")
+            save_figure(make(res, np.asarray(raw, float)), path, dpi)
             paths.append(path)
     return paths
 

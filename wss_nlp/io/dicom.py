@@ -419,6 +419,7 @@ def read_images(paths, phase_units: str | None = None) -> tuple[list[Image2D], d
     images: list[Image2D] = []
     skipped: list[str] = []
     not_dicom: list[str] = []
+    enhanced = 0  # enhanced multi-frame files among them: the summary names the kind, not only the manufacturer
     for path in files:
         try:
             ds = pydicom.dcmread(path)
@@ -431,6 +432,7 @@ def read_images(paths, phase_units: str | None = None) -> tuple[list[Image2D], d
             skipped.append(f"{path} (no image)")
             continue
         found = images_from_dataset(ds, path, phase_units)
+        enhanced += bool(found) and "PerFrameFunctionalGroupsSequence" in ds
         if not found:
             skipped.append(f"{path} (Image Type {list(getattr(ds, 'ImageType', []))}: neither magnitude nor phase)")
         images += found
@@ -443,5 +445,6 @@ def read_images(paths, phase_units: str | None = None) -> tuple[list[Image2D], d
             f"{', '.join(map(str, paths))}: no DICOM magnitude or phase images found"
             + (f" ({len(files)} files; e.g. {skipped[0]})" if skipped else f" ({len(files)} files)")
         )
-    record = {"format": "DICOM", "paths": [str(p) for p in paths], "files": len(files), "skipped": skipped[:20]}
+    kind = "DICOM" if not enhanced else "DICOM enhanced multi-frame" if enhanced == len(files) else "DICOM (mixed)"
+    record = {"format": kind, "paths": [str(p) for p in paths], "files": len(files), "skipped": skipped[:20]}
     return images, record

@@ -929,7 +929,11 @@ _OLD_DEPHASING_KEYS = {"passes": "dephasing_passes", "min_factor": "min_dephasin
 
 
 def read_near_wall(path) -> dict:
-    """``{slice name: dict}``: the near-wall model record of each slice that has one (``near_wall_json``)."""
+    """``{slice name: dict}``: the near-wall model record of each slice that has one (``near_wall_json``).
+
+    In a time-resolved result the names are the frames' records, ``slice_NNN/frame_MMM`` (also for
+    :func:`read_choices` and :func:`read_dephasing`).
+    """
     import h5py
 
     with h5py.File(path, "r") as f:

@@ -6,6 +6,8 @@ assembly into slices and frames and the writing in :mod:`wss_nlp.io.scanner`.
 
 from __future__ import annotations
 
+import os
+
 from . import dicom, nifti
 from ..errors import InputError
 from .plane import Plane
@@ -25,7 +27,8 @@ def import_paths(
     ----------
     paths : list of str
         DICOM files or folders (searched recursively), or NIfTI files
-        (``.nii``, ``.nii.gz``), not both.
+        (``.nii``, ``.nii.gz``) or folders holding them (a dcm2niix output
+        folder: its NIfTI files are read, the JSON sidecars beside them), not both.
     options : ImportOptions
         Venc, viscosity, density and the through-plane sign the user supplies.
     phase_units : str, optional
@@ -38,7 +41,7 @@ def import_paths(
         by this plane (:mod:`wss_nlp.io.plane`).
     """
     options = options or ImportOptions()
-    paths = [str(p) for p in paths]
+    paths = [q for p in paths for q in _nifti_folder(str(p))]
     if not paths:
         raise InputError("import: name the DICOM folder(s)/files or the NIfTI files to read")
     if phase_units is not None and phase_units not in dicom.PHASE_UNITS:
@@ -55,3 +58,14 @@ def import_paths(
             raise InputError("--frame-interval applies to NIfTI only; DICOM states the trigger times (0018,1060)")
         images, record = dicom.read_images(paths, phase_units)
     return assemble(images, options, record)
+
+
+def _nifti_folder(path: str) -> list[str]:
+    """The NIfTI files directly inside folder ``path`` (sorted), or ``[path]`` for a file or a folder without any.
+
+    A folder without NIfTI files stays a DICOM folder (searched recursively by the DICOM reader).
+    """
+    if not os.path.isdir(path):
+        return [path]
+    found = sorted(os.path.join(path, n) for n in os.listdir(path) if n.lower().endswith((".nii", ".nii.gz")))
+    return found or [path]

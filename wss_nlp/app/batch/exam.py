@@ -204,6 +204,11 @@ def _slices(path, shown, options, result_path, argv, stage, figures) -> dict:
     acq.source = shown
     results = reconstruct(acq, options)
     extra = {} if acq.slice_spacing_mm is None else {"slice_spacing_mm": float(acq.slice_spacing_mm)}
+    import h5py
+
+    with h5py.File(path, "r") as f:  # the import record: wall.vtu in the scanner's world frame (io.export)
+        if "import_json" in f.attrs:
+            extra["import_json"] = f.attrs["import_json"]
     wio.write_result(result_path, results, options.as_dict(), argv=argv, extra_attrs=extra)
     ok = [r for r in results if not isinstance(r, wio.FailedSlice)]
     failed = [r for r in results if isinstance(r, wio.FailedSlice)]

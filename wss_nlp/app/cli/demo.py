@@ -72,7 +72,7 @@ def _demo_cine(args, options, out: str) -> None:
     ]
     print()
     print(_error_table(rows))
-    figs = save_cine_figures([series], result, out, truth_tau=tau)
+    figs = save_cine_figures([series], result, out, truth_tau=tau, fmt=args.figure_format, dpi=args.dpi)
     print()
     print("figures: " + ", ".join(os.path.basename(f) for f in figs))
 
@@ -93,7 +93,7 @@ def _demo(args, options, out: str) -> None:
     wio.write_acquisition(in_path, acq)
     _write_truth(truth_path, truth)
     t0 = time.perf_counter()
-    results = reconstruct(wio.read_acquisition(in_path), options, progress=_progress(sys.stdout))
+    results = reconstruct(wio.read_acquisition(in_path), options, progress=_progress(sys.stdout, args.quiet))
     seconds = time.perf_counter() - t0
     wio.write_result(res_path, results, options.as_dict(), argv=["wss-nlp", *args.argv])
     _warn(results, sys.stderr)
@@ -118,6 +118,9 @@ def _demo(args, options, out: str) -> None:
     print(_error_table(rows))
     from ..plotting import save_figures, save_tissue_figures
 
-    figs = save_figures(res, out, truth=truth) + save_tissue_figures(res, acq.magnitude[0], out)
+    fmt, dpi = args.figure_format, args.dpi
+    figs = save_figures(res, out, truth=truth, fmt=fmt, dpi=dpi) + save_tissue_figures(
+        res, acq.magnitude[0], out, fmt=fmt, dpi=dpi
+    )
     print()
     print("figures: " + ", ".join(os.path.basename(f) for f in figs))

@@ -12,8 +12,11 @@ from ...errors import InputError
 def cmd_export(args) -> int:
     from ...io import export
 
-    if not args.vtk.endswith((".vtu", ".vtk")):
-        raise InputError(f"--vtk {args.vtk}: name a .vtu (VTK XML) or .vtk (legacy VTK) file")
+    if not args.vtk.endswith((".vtu", ".vtk", ".pvd")):
+        raise InputError(
+            f"--vtk {args.vtk}: name a .vtu (VTK XML), .vtk (legacy VTK) or .pvd (a cine result's frames as a "
+            "time series) file"
+        )
     outputs.check_outputs(files={"--vtk": args.vtk}, inputs=[args.result])
     print(f"wrote {export.write_vtk(args.result, args.vtk, args.slice_spacing)}")
     return 0

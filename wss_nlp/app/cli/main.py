@@ -1,4 +1,8 @@
-"""``wss-nlp``'s entry point: parse, dispatch, turn errors into one line and an exit code, show the library's log."""
+"""``wss-nlp``'s entry point: parse, dispatch, turn errors into one line and an exit code, show the library's log.
+
+Exit codes (:data:`wss_nlp.app.cli.parser.EXIT_CODES`): 0 success, 1 a solver failed, 2 bad input (including a
+file system that refused), 3 internal error. A closed pipe (``wss-nlp analyze out.h5 | head``) ends quietly with 0.
+"""
 
 from __future__ import annotations
 
@@ -10,16 +14,25 @@ from .parser import build_parser
 
 
 def main(argv=None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        return _main(list(sys.argv[1:] if argv is None else argv))
+    except BrokenPipeError:  # the reader went away (| head): what it read is all it wanted
+        _silence_stdout()
+        return 0
+
+
+def _main(argv: list[str]) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # argparse: --help (0) or usage error (2)
         return int(exc.code or 0)
     args.argv = argv
-    _show_library_log()
+    _show_library_log(logging.WARNING if args.quiet else logging.DEBUG if args.verbose else logging.INFO)
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:
+        raise  # main's: not a file system error
     except WssNlpError as exc:
         print(f"wss-nlp: error: {_one_line(exc)}", file=sys.stderr)
         return exc.exit_code
@@ -37,7 +50,7 @@ def main(argv=None) -> int:
             "command line (WSS_NLP_DEBUG=1 shows the traceback)",
             file=sys.stderr,
         )
-        return 1
+        return 3
 
 
 class _StderrHandler(logging.StreamHandler):
@@ -52,14 +65,26 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
-def _show_library_log() -> None:
-    """The library's INFO messages (stages of long solves) on stderr, indented under the progress lines."""
+def _silence_stdout() -> None:
+    """Point stdout at the null device, so that the interpreter's final flush does not fail on the closed pipe."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # stdout replaced by an object without a descriptor (tests, notebooks)
+        pass
+
+
+def _show_library_log(level: int = logging.INFO) -> None:
+    """The library's messages (INFO: stages of long solves) on stderr, indented under the progress lines.
+
+    ``--quiet`` raises the level to WARNING, ``--verbose`` lowers it to DEBUG.
+    """
     logger = logging.getLogger("wss_nlp")
     if not any(isinstance(h, _StderrHandler) for h in logger.handlers):  # main() may run many times in a process
         handler = _StderrHandler()
         handler.setFormatter(logging.Formatter("  %(message)s"))
         logger.addHandler(handler)
-    logger.setLevel(logging.INFO)
+    logger.setLevel(level)
 
 
 def _one_line(exc: BaseException) -> str:

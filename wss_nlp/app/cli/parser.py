@@ -8,6 +8,7 @@ from ... import __version__
 from ...synthetic import invivo, phantoms
 from ...core import schema
 from ...models.kspace import AcquisitionOptions
+from ..plotting import DEFAULT_DPI, FIGURE_FORMATS
 from .batch import cmd_batch
 from .demo import cmd_demo
 from .exchange import add_import_arguments, cmd_export, cmd_import
@@ -18,13 +19,125 @@ from .studies import cmd_plot, cmd_sweep, cmd_table
 from .arguments import _add_reconstruction_arguments, options_from_args  # noqa: F401
 
 
+#: Exit codes of ``wss-nlp`` (the top-level help and the docs' command-line page show them).
+EXIT_CODES = {
+    0: "success",
+    1: "a solver failed (no result could be computed from these data)",
+    2: "bad input: a file, an option or a value (the message names it and the fix)",
+    3: "internal error (a bug: please report it; WSS_NLP_DEBUG=1 shows the traceback)",
+}
+
+#: Examples shown under every subcommand's help (``wss-nlp SUBCOMMAND --help``); the newcomer test runs them in spirit.
+EXAMPLES = {
+    "demo": ["wss-nlp demo", "wss-nlp demo --case cine -o cine_demo", "wss-nlp demo --figure-format pdf --dpi 300"],
+    "reconstruct": [
+        "wss-nlp reconstruct in.h5 -o out.h5 --figures figs",
+        "wss-nlp reconstruct stack.h5 -o out.h5 --method coupled",
+    ],
+    "phantom": [
+        "wss-nlp phantom --case laminar -o in.h5 --truth truth.h5",
+        "wss-nlp phantom --case cine --frames 12 -o cine.h5 --truth cine_truth.h5",
+        "wss-nlp phantom --stack tapered --nz 5 -o stack.h5 --dicom dicom/ --nifti nifti/",
+        "wss-nlp phantom --case cine --frames 12 -o cine.h5 --dicom cine_dicom/",
+        "wss-nlp phantom --volume --nifti flow4d/",
+    ],
+    "analyze": ["wss-nlp analyze out.h5", "wss-nlp analyze out.h5 --slice 3 --figures choice_figs"],
+    "sensitivity": ["wss-nlp sensitivity out.h5"],
+    "sweep": ["wss-nlp sweep problems/resolution.toml --workers 2"],
+    "batch": ["wss-nlp batch exams.csv -o cohort/ --workers 2", "wss-nlp batch exams.toml -o cohort/ --cluster local"],
+    "table": ["wss-nlp table runs/resolution --rows h --cols method --metric wss_err"],
+    "plot": ["wss-nlp plot runs/resolution --x h --y wss_err --by method --figure-format svg"],
+    "export": ["wss-nlp export out.h5 --vtk wall.vtu", "wss-nlp export cine_out.h5 --vtk wall.pvd"],
+    "import": [
+        "wss-nlp import dicom_folder/ -o in.h5",
+        "wss-nlp import mag.nii.gz phase.nii.gz -o in.h5",
+        "wss-nlp import nifti_folder/ -o in.h5",
+    ],
+    "compare": ["wss-nlp compare out.h5 truth.h5"],
+}
+
+#: Descriptions of the subcommands that have no longer one where they are declared.
+DESCRIPTIONS = {
+    "analyze": "Show how each slice's regularization parameters (alpha for the wall, beta for the velocity), its "
+    "near-wall model and its dephasing passes were chosen: the rule, the noise level it used, the residual and "
+    "criterion at every parameter tried and the chosen one; optionally the residual-against-parameter figures.",
+    "sensitivity": "Rank what moves each slice's mean WSS: the derivative of the mean WSS with respect to every "
+    "regularization and model parameter, and the share of its variance each data group (magnitude, velocity) "
+    "contributes, from the linearized band stored in the result file.",
+    "plot": "Draw a metric against a parameter from a sweep's results.csv (mean over seeds, bars one standard "
+    "deviation), one line per --by value and one panel per --panels value.",
+    "compare": "Errors of a result file against the truth file of the phantom it came from: radius error in L2 "
+    "and H1, velocity error, mean and pointwise WSS error, per slice (or per frame for cine).",
+    "phantom": "Write a synthetic acquisition with its exact truth: one slice (--case), a stack of slices "
+    "(--stack) or a time-resolved cine series (--case cine), as an HDF5 input file and optionally as the DICOM "
+    "or NIfTI files a scanner would export; or a 4D-flow volume as NIfTI files (--volume).",
+}
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Wraps descriptions as usual, keeps the examples' and the case lists' line breaks."""
+
+    def _fill_text(self, text, width, indent):
+        if "\n" in text:
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+def _case_name(value: str) -> str:
+    """``womersley``, the cine phantom's name before 0.2, is kept as an alias of ``cine``."""
+    return "cine" if value == "womersley" else value
+
+
+def _case_list(cases: dict, extra: dict | None = None) -> str:
+    rows = {name: text for name, (_, text) in cases.items()} | (extra or {})
+    width = max(map(len, rows))
+    return "\n".join(f"  {name:<{width}}  {text}" for name, text in rows.items())
+
+
+_CINE_TEXT = "Womersley flow over one cycle, time-resolved (alias: womersley); the cine options below"
+
+
+def _add_verbosity_arguments(p: argparse.ArgumentParser, default) -> None:
+    """``-q/--quiet`` (warnings and errors only) and ``-v/--verbose`` (the library's debug log)."""
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        default=default,
+        help="no progress or information, only warnings and results",
+    )
+    group.add_argument(
+        "-v", "--verbose", action="store_true", default=default, help="also the library's debug messages"
+    )
+
+
+def _add_figure_arguments(p: argparse.ArgumentParser) -> None:
+    """``--figure-format`` and ``--dpi`` of a command that writes figures (:mod:`wss_nlp.app.plotting`)."""
+    p.add_argument(
+        "--figure-format",
+        choices=FIGURE_FORMATS,
+        default="png",
+        help="file format of the figures: png, or pdf/svg (vector) for papers (default %(default)s)",
+    )
+    p.add_argument(
+        "--dpi",
+        type=float,
+        default=DEFAULT_DPI,
+        help="resolution in dots per inch of PNG figures and of the images inside PDF/SVG (default %(default)g)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="wss-nlp",
         description="Vessel geometry, velocity and wall shear stress from phase-contrast MRI "
         "(Egger & Teschner), with every Tikhonov problem posed in CasADi.",
+        epilog="exit codes:\n" + "\n".join(f"  {code}  {text}" for code, text in EXIT_CODES.items()),
+        formatter_class=_HelpFormatter,
     )
     p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    _add_verbosity_arguments(p, False)
     sub = p.add_subparsers(dest="command", required=True)
 
     d = sub.add_parser(
@@ -35,14 +148,15 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument(
         "--case",
         choices=[*phantoms.CASES, *invivo.INVIVO_CASES, "cine"],
+        type=_case_name,
         default="laminar",
-        help="phantom (default %(default)s); cine: Womersley flow over a cycle, TAWSS and OSI; invivo, "
-        "invivo-turbulent: the vessel in tissue (wall, fat, other vessels, a 2 %% venc phase offset)",
+        help="phantom (default %(default)s; the cases are listed below)",
     )
     d.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
     d.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none (default %(default)g)")
     d.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
     d.add_argument("-o", "--output-dir", default="wss_nlp_demo", help="output folder (default %(default)s)")
+    _add_figure_arguments(d)
     _add_reconstruction_arguments(d)
     d.set_defaults(func=cmd_demo)
 
@@ -53,7 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     r.add_argument("input", help='input HDF5 file (format: docs, "File formats")')
     r.add_argument("-o", "--output", required=True, help="result HDF5 file")
-    r.add_argument("--figures", default=None, help="folder for PNG figures of every slice")
+    r.add_argument("--figures", default=None, help="folder for the figures of every slice (--figure-format, --dpi)")
+    _add_figure_arguments(r)
     r.add_argument(
         "--workers",
         type=int,
@@ -67,30 +182,31 @@ def build_parser() -> argparse.ArgumentParser:
     ph = sub.add_parser("phantom", help="write a synthetic acquisition (and its truth)")
     ph.add_argument(
         "--case",
-        choices=[*phantoms.CASES, "womersley"],
+        choices=[*phantoms.CASES, "cine"],
+        type=_case_name,
         default="laminar",
-        help="womersley: a time-resolved (cine) phantom, Womersley flow over one cycle (--frames)",
+        help="one slice's phantom, or cine (default %(default)s; the cases are listed below)",
     )
-    ph.add_argument("--frames", type=int, default=20, help="womersley: frames over the cycle (default %(default)s)")
+    ph.add_argument("--frames", type=int, default=20, help="cine: frames over the cycle (default %(default)s)")
     ph.add_argument(
         "--distension",
         type=float,
         default=None,
         metavar="EPS",
-        help="womersley: the pipe breathes, radius R0 (1 + EPS sin(omega t)), EPS in [0, 0.3) (default 0: rigid)",
+        help="cine: the pipe breathes, radius R0 (1 + EPS sin(omega t)), EPS in [0, 0.3) (default 0: rigid)",
     )
     ph.add_argument(
         "--shape",
         choices=("circle", "ellipse"),
         default=None,
-        help="womersley: circular pipe, or elliptic (aspect 1.32, same area, its exact pulsatile flow; rigid)",
+        help="cine: circular pipe, or elliptic (aspect 1.32, same area, its exact pulsatile flow; rigid)",
     )
     ph.add_argument(
         "--pipe-radius",
         type=float,
         default=None,
         metavar="MM",
-        help="womersley: pipe radius in mm (default 10: first harmonic's Womersley number about 14)",
+        help="cine: pipe radius in mm (default 10: first harmonic's Womersley number about 14)",
     )
     ph.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
     ph.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none")
@@ -108,7 +224,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="stack: add in-plane velocity components (4D flow) of a swirl with this rate in 1/s",
     )
-    ph.add_argument("-o", "--output", required=True, help="input file to write")
+    ph.add_argument("-o", "--output", default=None, help="input file to write (every phantom but --volume)")
+    ph.add_argument(
+        "--volume",
+        action="store_true",
+        help="a 4D-flow volume instead (a tilted tube, three velocity components, two frames) as NIfTI files into "
+        "--nifti FOLDER, for 'wss-nlp import FOLDER --plane ...' (the plane through the tube is printed)",
+    )
     ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
     ph.add_argument(
         "--dicom", default=None, metavar="FOLDER", help="also write the images as DICOM files (for 'wss-nlp import')"
@@ -127,7 +249,11 @@ def build_parser() -> argparse.ArgumentParser:
         "analyze", help="how alpha, beta, the near-wall model and the dephasing passes were chosen (tables, curves)"
     )
     a.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
-    a.add_argument("--figures", default=None, help="folder for residual-vs-parameter PNGs")
+    a.add_argument(
+        "--slice", type=int, default=None, metavar="K", help="only slice K (default: every slice; 0 is the first)"
+    )
+    a.add_argument("--figures", default=None, help="folder for residual-vs-parameter figures (--figure-format, --dpi)")
+    _add_figure_arguments(a)
     a.set_defaults(func=cmd_analyze)
 
     se = sub.add_parser("sensitivity", help="which parameters and which noise the mean WSS is most sensitive to")
@@ -203,17 +329,24 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--panels", default=None, help="one panel per value of this parameter, e.g. case")
     pl.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="fix other parameters")
     pl.add_argument("--logx", action="store_true", help="logarithmic x axis")
-    pl.add_argument("-o", "--output", default=None, help="PNG file (default OUTDIR/Y_vs_X.png)")
+    pl.add_argument(
+        "-o", "--output", default=None, help="figure file, its extension the format (default OUTDIR/Y_vs_X.FORMAT)"
+    )
+    _add_figure_arguments(pl)
     pl.set_defaults(func=cmd_plot)
 
     ex = sub.add_parser(
         "export",
         help="the reconstructed wall with its WSS as a VTK file for ParaView",
         description="A slice becomes a polyline, a stack the wall surface; point data tau_pa (and tau_std_pa, "
-        "wss_vector_pa where present).",
+        "wss_vector_pa, tawss_pa and osi where present). Imported data (DICOM, NIfTI, planes of 4D flow) are placed "
+        "in the scanner's world frame, so the wall overlays the images in ParaView; field data world_frame and "
+        "length_unit_mm. A cine result: its cycle average (.vtu/.vtk) or its frames as a time series (.pvd).",
     )
     ex.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
-    ex.add_argument("--vtk", required=True, help="output file: .vtu (VTK XML) or .vtk (legacy)")
+    ex.add_argument(
+        "--vtk", required=True, help="output file: .vtu (VTK XML), .vtk (legacy) or .pvd (cine: a time series)"
+    )
     ex.add_argument(
         "--slice-spacing",
         type=float,
@@ -236,7 +369,22 @@ def build_parser() -> argparse.ArgumentParser:
     im.set_defaults(func=cmd_import)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")
-    c.add_argument("result")
-    c.add_argument("truth")
+    c.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
+    c.add_argument("truth", help="truth file written by 'wss-nlp phantom --truth'")
     c.set_defaults(func=cmd_compare)
+
+    cases = {
+        "demo": _case_list({**phantoms.CASES, **invivo.INVIVO_CASES}, {"cine": _CINE_TEXT}),
+        "phantom": _case_list(phantoms.CASES, {"cine": _CINE_TEXT})
+        + "\n\nstacks (--stack):\n"
+        + _case_list(phantoms.STACK_CASES),
+    }
+    for name, sp in sub.choices.items():
+        sp.formatter_class = _HelpFormatter
+        sp.description = sp.description or DESCRIPTIONS.get(name)
+        epilog = "examples:\n" + "\n".join(f"  {e}" for e in EXAMPLES[name])
+        if name in cases:
+            epilog = f"cases (--case):\n{cases[name]}\n\n{epilog}"
+        sp.epilog = epilog
+        _add_verbosity_arguments(sp, argparse.SUPPRESS)  # also after the subcommand: wss-nlp reconstruct -q ...
     return p

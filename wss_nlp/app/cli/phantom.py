@@ -44,11 +44,85 @@ def _write_truth(path, truth) -> None:
 
 
 # ------------------------------------------------------------------ commands
+def _scanner_exports(args, frames, dicom_folder, nifti_folder, peak: float, times_ms=None, period_ms=None):
+    """The images of ``frames`` (one acquisition, or a cine series' frames) as a scanner exports them.
+
+    DICOM in ``args.vendor``'s convention into ``dicom_folder`` and NIfTI with dcm2niix-style sidecars into
+    ``nifti_folder`` (either may be None); returns the two lists of files written.
+    """
+    if not (dicom_folder or nifti_folder):
+        return [], []
+    from ...synthetic import scanner_exports
+
+    acq = frames[0]
+    scan = scanner_exports.Scan(
+        np.stack([a.magnitude for a in frames]),
+        np.stack([a.velocity_images() for a in frames]),
+        float(acq.venc_m_s or 1.25 * peak),
+        acq.voxel_size_mm,
+        acq.origin_mm,
+        slice_spacing_mm=acq.slice_spacing_mm or 1.0,
+        trigger_times_ms=None if times_ms is None else tuple(float(t) for t in times_ms),
+        cardiac_period_ms=period_ms,
+        acquired_matrix=None
+        if acq.acquired_voxel_size_mm is None
+        else tuple(  # type: ignore[arg-type]
+            int(round(n * v / a))
+            for n, v, a in zip(acq.magnitude.shape[1:], acq.voxel_size_mm, acq.acquired_voxel_size_mm)
+        ),
+    )
+    dicom = scanner_exports.write_dicom(dicom_folder, scan, args.vendor) if dicom_folder else []
+    interval = None if times_ms is None or len(times_ms) < 2 else float(np.median(np.diff(times_ms)))
+    nifti = scanner_exports.write_nifti(nifti_folder, scan, interval) if nifti_folder else []
+    return dicom, nifti
+
+
+def _report_exports(args, written_dicom, written_nifti) -> None:
+    """One line per scanner export: what was written and how to read it back."""
+    if args.dicom:
+        kind = "one enhanced multi-frame file" if args.vendor == "enhanced" else f"{len(written_dicom)} files"
+        print(
+            f"wrote {args.dicom}: the same images as DICOM, {args.vendor} convention, {kind} "
+            f"(read back: wss-nlp import {args.dicom} -o FILE.h5)"
+        )
+    if args.nifti:
+        names = ", ".join(os.path.basename(p) for p in written_nifti)
+        print(f"wrote {args.nifti}: the same images as NIfTI with JSON sidecars: {names} "
+              f"(read back: wss-nlp import {args.nifti} -o FILE.h5)")  # fmt: skip
+
+
+def _phantom_volume(args) -> int:
+    """A 4D-flow volume (a tilted tube, three velocity components, two frames) as NIfTI files, and its truth."""
+    from ...synthetic import scanner_exports
+
+    if not args.nifti or args.dicom or args.stack or args.case != "laminar":
+        raise InputError("--volume writes NIfTI files only: give --nifti FOLDER (no --dicom, --stack or --case)")
+    snr = None if args.snr <= 0 else args.snr
+    volume = scanner_exports.make_flow_volume(seed=args.seed, snr=snr)
+    with outputs.StagedFolder(args.nifti) as nii:
+        written = scanner_exports.write_flow_volume(str(nii.path), volume)
+        nii.commit()
+    p, a = volume.center, volume.axis
+    fov = round(4.4 * volume.radius_mm)  # the lumen and a margin of 1.2 radii each side, inside the volume
+    n = volume.magnitude.shape
+    print(
+        f"wrote {args.nifti}: a 4D-flow volume as NIfTI ({', '.join(os.path.basename(f) for f in written)}): "
+        f"{n[0]} x {n[1]} x {n[2]} voxels, {n[3]} frames, a tube of radius {volume.radius_mm:g} mm, SNR {args.snr:g}, "
+        f"seed {args.seed}; exact WSS per frame " + ", ".join(f"{volume.wss_pa(it):.4g}" for it in range(n[3])) + " Pa"
+    )
+    print(
+        "cut it perpendicular to the tube: wss-nlp import "
+        f"{args.nifti} -o plane.h5 --plane {p[0]:.4f} {p[1]:.4f} {p[2]:.4f} {a[0]:.5f} {a[1]:.5f} {a[2]:.5f} "
+        f"--plane-fov {fov:g} --phase-units m/s --viscosity {volume.viscosity_pa_s:g}"
+    )
+    return 0
+
+
 def _phantom_cine(args) -> int:
     from ...synthetic import pulsatile
 
-    if args.dicom or args.nifti or args.stack:
-        raise InputError("--case womersley writes a time-resolved HDF5 input only (no --dicom, --nifti, --stack)")
+    if args.stack:
+        raise InputError("--case cine is one time-resolved slice; --stack does not apply")
     if args.pipe_radius is not None and not args.pipe_radius > 0:
         raise InputError(f"--pipe-radius must be > 0 mm, got {args.pipe_radius}")
     snr = None if args.snr <= 0 else args.snr
@@ -57,13 +131,19 @@ def _phantom_cine(args) -> int:
         h_mm=args.h, snr=snr, seed=args.seed, frames=args.frames, venc=args.venc, psf=_phantom_psf(args),
         distension=args.distension or 0.0, shape=args.shape or "circle", **radius,
     )  # fmt: skip
-    wio.write_frames(args.output, frames, truth.times_ms, truth.period_ms)
-    if args.truth:
-        try:
-            pulsatile.write_truth(args.truth, truth)
-        except BaseException:
-            os.remove(args.output)  # the pair is written whole or not at all
-            raise
+    with outputs.StagedFolder(args.dicom) as dcm, outputs.StagedFolder(args.nifti) as nii:
+        written_dicom, written_nifti = _scanner_exports(  # the frames carry their venc: no peak needed
+            args, frames, dcm.path, nii.path, 1.0, truth.times_ms, truth.period_ms
+        )
+        wio.write_frames(args.output, frames, truth.times_ms, truth.period_ms)
+        if args.truth:
+            try:
+                pulsatile.write_truth(args.truth, truth)
+            except BaseException:
+                os.remove(args.output)  # the pair is written whole or not at all
+                raise
+        dcm.commit()
+        nii.commit()
     acq = frames[0]
     print(
         f"wrote {args.output}: {truth.frames[0].name} (Womersley number {truth.flow.womersley(1):.1f}), "
@@ -73,6 +153,7 @@ def _phantom_cine(args) -> int:
     if args.truth:
         tau = truth.tau()
         print(f"wrote {args.truth}: exact WSS over the cycle ({tau.min():.3g} to {tau.max():.3g} Pa)")
+    _report_exports(args, written_dicom, written_nifti)
     return 0
 
 
@@ -96,12 +177,16 @@ def cmd_phantom(args) -> int:
     outputs.check_outputs(
         files={"-o": args.output, "--truth": args.truth}, folders={"--dicom": args.dicom, "--nifti": args.nifti}
     )
-    if args.case == "womersley":
+    if args.volume:
+        return _phantom_volume(args)
+    if args.output is None:
+        raise InputError("phantom: name the input file to write (-o FILE.h5)")
+    if args.case == "cine":
         return _phantom_cine(args)
     cine_only = [f for f, v in (("--distension", args.distension), ("--shape", args.shape),
                                 ("--pipe-radius", args.pipe_radius)) if v is not None]  # fmt: skip
     if cine_only:
-        raise InputError(f"{', '.join(cine_only)}: only for --case womersley (the cine phantom)")
+        raise InputError(f"{', '.join(cine_only)}: only for --case cine (the time-resolved phantom)")
     snr = None if args.snr <= 0 else args.snr
     psf = _phantom_psf(args)
     truth: phantoms.Truth | phantoms.StackTruth
@@ -136,27 +221,7 @@ def cmd_phantom(args) -> int:
             file=sys.stderr,
         )
     with outputs.StagedFolder(args.dicom) as dcm, outputs.StagedFolder(args.nifti) as nii:
-        if dcm.path or nii.path:  # the same images as a scanner exports them, for trying 'wss-nlp import'
-            from ...synthetic import scanner_exports
-
-            scan = scanner_exports.Scan(
-                acq.magnitude,
-                acq.velocity_images(),
-                float(acq.venc_m_s or 1.25 * peak),
-                acq.voxel_size_mm,
-                acq.origin_mm,
-                slice_spacing_mm=acq.slice_spacing_mm or 1.0,
-                acquired_matrix=None
-                if acq.acquired_voxel_size_mm is None
-                else tuple(  # type: ignore[arg-type]
-                    int(round(n * v / a))
-                    for n, v, a in zip(acq.magnitude.shape[1:], acq.voxel_size_mm, acq.acquired_voxel_size_mm)
-                ),
-            )
-            if dcm.path:
-                scanner_exports.write_dicom(dcm.path, scan, args.vendor)
-            if nii.path:
-                scanner_exports.write_nifti(nii.path, scan)
+        written_dicom, written_nifti = _scanner_exports(args, [acq], dcm.path, nii.path, peak)
         wio.write_acquisition(args.output, acq)
         if args.truth:
             try:
@@ -173,4 +238,5 @@ def cmd_phantom(args) -> int:
     if args.truth:
         means = [t.mean_wss for t in getattr(truth, "slices", [truth])]
         print(f"wrote {args.truth}: exact radius and WSS (mean {min(means):.5g}-{max(means):.5g} Pa)")
+    _report_exports(args, written_dicom, written_nifti)
     return 0

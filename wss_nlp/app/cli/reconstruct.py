@@ -14,18 +14,31 @@ from ...pipeline.driver import reconstruct, segments_in_parallel, stack_applies
 from .arguments import options_from_args
 
 
-def _progress(stream):
+def _progress(stream, quiet: bool = False):
+    """Per-slice progress on ``stream``: a tqdm bar on a terminal, a line per slice otherwise (logs, CI, tests);
+    nothing with ``--quiet``."""
     t0 = time.perf_counter()
+    bar = None
 
     def report(done, total, res):
-        if isinstance(res, wio.FailedSlice):
-            stream.write(f"  slice {done}/{total}: FAILED ({res.reason})\n")
-            stream.flush()
+        nonlocal bar
+        if quiet:
             return
-        flag = "" if res.converged else "  [NOT CONVERGED]"
-        stream.write(
-            f"  slice {done}/{total}: mean WSS {res.wss.mean:.4g} Pa, {time.perf_counter() - t0:.1f} s elapsed{flag}\n"
-        )
+        failed = isinstance(res, wio.FailedSlice)
+        flag = "" if failed or res.converged else "  [NOT CONVERGED]"
+        text = f"FAILED ({res.reason})" if failed else f"mean WSS {res.wss.mean:.4g} Pa"
+        if hasattr(stream, "isatty") and stream.isatty():
+            if bar is None:
+                from tqdm import tqdm
+
+                bar = tqdm(total=total, file=stream, unit="slice", dynamic_ncols=True)
+            bar.set_postfix_str(f"slice {done}: {text}{flag}", refresh=False)
+            bar.update(done - bar.n)
+            if done >= total:
+                bar.close()
+            return
+        elapsed = "" if failed else f", {time.perf_counter() - t0:.1f} s elapsed"
+        stream.write(f"  slice {done}/{total}: {text}{elapsed}{flag}\n")
         stream.flush()
 
     return report
@@ -71,6 +84,18 @@ def _cycle_summary(s, times) -> str:
             f"cycle: {how}")  # fmt: skip
 
 
+def _input_frame(path: str) -> dict:
+    """The input's attributes a result keeps so that ``export`` places the wall in the scanner's world frame.
+
+    ``import_json`` (the import record: directions and first slice position, :mod:`wss_nlp.io.export`) and
+    ``slice_spacing_mm``, where the input has them.
+    """
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        return {k: f.attrs[k] for k in ("import_json", "slice_spacing_mm") if k in f.attrs}
+
+
 def _is_time_resolved(path: str) -> bool:
     import h5py
 
@@ -86,13 +111,16 @@ def _reconstruct_cine(args, options) -> int:
 
     frames, times, period = wio.read_frames(args.input)
     acq = frames[0]
-    print(
-        f"{args.input}: {len(frames)} frames over {period:g} ms, {acq.nz} slice(s) of {acq.magnitude.shape[2]} x "
-        f"{acq.magnitude.shape[1]} voxels, h = {acq.grid.h:g} mm",
-        file=sys.stderr,
-    )
+    if not args.quiet:
+        print(
+            f"{args.input}: {len(frames)} frames over {period:g} ms, {acq.nz} slice(s) of {acq.magnitude.shape[2]} x "
+            f"{acq.magnitude.shape[1]} voxels, h = {acq.grid.h:g} mm",
+            file=sys.stderr,
+        )
 
     def progress(done, total, seconds):
+        if args.quiet:
+            return
         sys.stderr.write(f"  frame {done}/{total}: {seconds:.1f} s elapsed\n")
         sys.stderr.flush()
 
@@ -101,10 +129,15 @@ def _reconstruct_cine(args, options) -> int:
         result = cine.reconstruct_cine(frames, times, period, options, progress=progress)
     with outputs.StagedFolder(args.figures) as staged:
         series = cine.write_result(args.output, result, options.as_dict(), argv=["wss-nlp", *args.argv])
+        import h5py
+
+        with h5py.File(args.output, "a") as f:  # the input's frame, for export in world coordinates
+            for k, v in _input_frame(args.input).items():
+                f.attrs[k] = v
         if staged.path:
             from ..plotting import save_cine_figures
 
-            save_cine_figures(series, result, staged.path)
+            save_cine_figures(series, result, staged.path, fmt=args.figure_format, dpi=args.dpi)
         staged.commit()
     for line in cine.cycle_warnings(result, series):  # each kind once, with the slices and frames it applies to
         sys.stderr.write(f"wss-nlp: warning: {line}\n")
@@ -122,18 +155,21 @@ def cmd_reconstruct(args) -> int:
     if _is_time_resolved(args.input):
         return _reconstruct_cine(args, options)
     acq = wio.read_acquisition(args.input)
-    print(
-        f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
-        f"h = {acq.grid.h:g} mm",
-        file=sys.stderr,
-    )
+    if not args.quiet:
+        print(
+            f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
+            f"h = {acq.grid.h:g} mm",
+            file=sys.stderr,
+        )
     parallel = acq.nz > 1 and not stack_applies(acq, options) and methods.of(options).ties_slices
     with _segments_in_parallel(args, parallel):
-        results = reconstruct(acq, options, progress=_progress(sys.stderr))
+        results = reconstruct(acq, options, progress=_progress(sys.stderr, args.quiet))
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
-            _slice_figures(results, acq, staged.path)
-        extra = {} if acq.slice_spacing_mm is None else {"slice_spacing_mm": float(acq.slice_spacing_mm)}
+            _slice_figures(results, acq, staged.path, args.figure_format, args.dpi)
+        extra = {k: v for k, v in _input_frame(args.input).items() if k == "import_json"}
+        if acq.slice_spacing_mm is not None:
+            extra["slice_spacing_mm"] = float(acq.slice_spacing_mm)
         wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv], extra_attrs=extra)
         staged.commit()
     _warn(results, sys.stderr)
@@ -157,15 +193,16 @@ def cmd_reconstruct(args) -> int:
     return 0
 
 
-def _slice_figures(results, acq, folder: str) -> None:
+def _slice_figures(results, acq, folder: str, fmt: str = "png", dpi: float | None = None) -> None:
     from ..plotting import figure_stack, save_figure, save_figures, save_tissue_figures
 
     for r in results:
         if not isinstance(r, wio.FailedSlice):
-            save_figures(r, folder, prefix=f"slice_{r.index:03d}_")
-            save_tissue_figures(r, acq.magnitude[r.index], folder, prefix=f"slice_{r.index:03d}_")
+            prefix = f"slice_{r.index:03d}_"
+            save_figures(r, folder, prefix=prefix, fmt=fmt, dpi=dpi)
+            save_tissue_figures(r, acq.magnitude[r.index], folder, prefix=prefix, fmt=fmt, dpi=dpi)
     if len(results) > 1:
-        save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, "stack_wall_maps.png"))
+        save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, f"stack_wall_maps.{fmt}"), dpi)
 
 
 @contextlib.contextmanager

@@ -104,21 +104,22 @@ def _compare_cine(args) -> int:
 def cmd_analyze(args) -> int:
     outputs.check_outputs(folders={"--figures": args.figures}, inputs=[args.result])
     layout = wio.result_layout(args.result)
-    choices = wio.read_choices(args.result)
+    choices = _one_slice(wio.read_choices(args.result), args)
     if "cine" in layout:
         _analyze_cycle(args.result, choices)
     else:
         _analyze_choices(choices)
-    for name, rec in wio.read_near_wall(args.result).items():
+    for name, rec in _one_slice(wio.read_near_wall(args.result), args).items():
         print(f"{name}: near-wall model '{rec['model']}'" + _layer_text(rec))
         print(f"    {rec['criterion']}")
         for model, value in sorted(rec["values"].items(), key=lambda kv: kv[1]):
             print(f"    {model:>12}: {value:12.2f}" + ("  <- chosen" if model == rec["model"] else ""))
         if rec["ambiguous"]:
             print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
-    for name, rec in wio.read_dephasing(args.result).items():
+    for name, rec in _one_slice(wio.read_dephasing(args.result), args).items():
         print(f"{name}: {_dephasing_text(rec)}")
-    for name, rec in surround.read_tissue(args.result).items():  # the surround model, the phase offset (issue 39)
+    # the surround model, the phase offset (issue 39)
+    for name, rec in _one_slice(surround.read_tissue(args.result), args).items():
         for line in surround.report_lines(rec):
             print(f"{name}: {line}")
     if args.figures:
@@ -126,7 +127,7 @@ def cmd_analyze(args) -> int:
 
         flat = {name.replace("/", "_"): per for name, per in choices.items()}  # one figure file per record
         with outputs.StagedFolder(args.figures) as staged:
-            save_parameter_figures(flat, str(staged.path))
+            save_parameter_figures(flat, str(staged.path), fmt=args.figure_format, dpi=args.dpi)
             paths = staged.commit()
         print(f"{len(paths)} figure(s) in {args.figures}")
     return 0
@@ -217,6 +218,24 @@ def _viscosity_text(v: dict) -> str:
     if not v.get("determined"):
         return text + "the data do not determine it"
     return text + ("the stated value lies inside the interval" if v["agrees"] else "the stated value lies OUTSIDE")
+
+
+def _one_slice(per_slice: dict, args) -> dict:
+    """The records of slice ``--slice K`` alone (every slice without it); a K the file lacks is bad input."""
+    if getattr(args, "slice", None) is None:
+        return per_slice
+    import h5py
+
+    with h5py.File(args.result, "r") as f:
+        names = sorted(k for k in f if k.startswith("slice_"))
+    name = f"slice_{args.slice:03d}"
+    if name not in names:
+        raise InputError(
+            f"{args.result}: no slice {args.slice} (--slice); the file has slices 0 to {len(names) - 1}"
+            if names
+            else f"{args.result}: no slices in this file (--slice)"
+        )
+    return {k: v for k, v in per_slice.items() if k == name or k.startswith(name + "/")}  # a cine slice's frames
 
 
 def _dephasing_text(rec: dict) -> str:

@@ -83,6 +83,6 @@ def cmd_plot(args) -> int:
         if k is not None and k not in rows[0]:
             raise InputError(f"{args.outdir}/results.csv: no column {k!r}; columns: {', '.join(rows[0])}")
     fig = sweep.plot(rows, args.x, args.y, by=args.by, where=where, panels=args.panels, logx=args.logx)
-    out = args.output or os.path.join(args.outdir, f"{args.y}_vs_{args.x}.png")
-    print(f"wrote {save_figure(fig, out)}")
+    out = args.output or os.path.join(args.outdir, f"{args.y}_vs_{args.x}.{args.figure_format}")
+    print(f"wrote {save_figure(fig, out, args.dpi)}")
     return 0
