@@ -213,25 +213,38 @@ def magnitude_levels(vol, coords: tube.VoxelCoordinates, radius_of_s, s_grid: np
     return MagnitudeLevels(s_grid, lumen, static_level, static_level / lumen, sigma, method)
 
 
+def _kernel_density(s_grid, s_values, weights, width, lo, hi) -> np.ndarray:
+    """``sum_i K(s - s_i) w_i`` per unit length with a Gaussian kernel of standard deviation ``width`` (``int K = 1``),
+    divided by the kernel's mass on ``[lo, hi]`` where the data are (no loss at the data's ends)."""
+    from scipy.special import ndtr
+
+    k = np.exp(-0.5 * ((s_grid[:, None] - s_values[None, :]) / width) ** 2) / (np.sqrt(2 * np.pi) * width)
+    mass = ndtr((hi - s_grid) / width) - ndtr((lo - s_grid) / width)
+    return (k @ weights) / np.maximum(mass, 0.2)
+
+
 def radius_from_mask(mask, vol, coords: tube.VoxelCoordinates, s_grid: np.ndarray) -> np.ndarray:
     """Equal-area radius of a mask along ``s``: ``sqrt(A(s) / pi)`` with ``A(s)`` the kernel-weighted volume of
-    the mask's voxels per unit length (``sum_i K(s - s_i) |V|``, ``int K ds = 1``)."""
+    the mask's voxels per unit length (``sum_i K(s - s_i) |V|``, ``int K ds = 1``, corrected at the mask's ends)."""
     a = np.asarray(vol.affine_mm, float)
     voxel = abs(float(np.linalg.det(a[:3, :3])))
     h = float(np.linalg.norm(a[:3, :3], axis=0).max())
     inside = np.asarray(mask, bool)[tuple(coords.index.T)] & (coords.beyond == 0)
-    width = 1.5 * h
-    k = np.exp(-0.5 * ((s_grid[:, None] - coords.s[inside][None, :]) / width) ** 2) / (np.sqrt(2 * np.pi) * width)
-    return np.sqrt(k.sum(axis=1) * voxel / np.pi)
+    if not inside.any():
+        raise NoVesselError(f"{vol.source}: the mask holds no voxel along the centreline")
+    s_in = coords.s[inside]
+    density = _kernel_density(s_grid, s_in, np.full(s_in.size, voxel), 1.5 * h, s_in.min() - 0.5 * h,
+                              s_in.max() + 0.5 * h)  # fmt: skip
+    return np.sqrt(density / np.pi)
 
 
 def reference_radius(m_norm, coords: tube.VoxelCoordinates, r_est, s_grid, voxel: float, h: float) -> np.ndarray:
     """Equal-area radius of the normalized magnitude along ``s`` (the 2D "area" prior per cross-section):
     ``A(s) = sum_i K(s - s_i) m_i |V|`` over voxels within ``R_est + 1.5 h`` of the centreline."""
     near = (coords.r < r_est + 1.5 * h) & (coords.beyond == 0)
-    width = 1.5 * h
-    k = np.exp(-0.5 * ((s_grid[:, None] - coords.s[near][None, :]) / width) ** 2) / (np.sqrt(2 * np.pi) * width)
-    return np.sqrt(np.maximum(k @ m_norm[near], 0.0) * voxel / np.pi)
+    s_in = coords.s[near]
+    density = _kernel_density(s_grid, s_in, m_norm[near] * voxel, 1.5 * h, s_in.min() - 0.5 * h, s_in.max() + 0.5 * h)
+    return np.sqrt(np.maximum(density, 0.0) / np.pi)
 
 
 def update_outside(problem: GeometryProblem3D, stage, c: np.ndarray) -> float:

@@ -467,31 +467,23 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record) -> Vesse
     t0 = time.perf_counter()
     vp = v3.assemble(vol, geometry, frame, coords, options.velocity,
                      static_level=lambda s: np.interp(s, levels.s_mm, levels.static), exclude=exclude)  # fmt: skip
-    velocity = v3.fit_velocity(vol, vp, options.velocity)
+    velocity = v3.fit_velocity(vol, vp, options.velocity, levels=levels)
     seconds["velocity"] = time.perf_counter() - t0
     bar.update()
     t0 = time.perf_counter()
     s, phi = wss3d.wall_grid(s_range, h, options.n_phi, options.s_spacing_mm)
     ss, pp = (v.ravel() for v in np.meshgrid(s, phi, indexing="ij"))
     ns, nph = s.size, phi.size
-    taus, axial, circ = [], [], []
-    ev = None
-    for k in range(vol.nt):
-        ev = wss3d.evaluate(centerline, geometry, velocity, ss, pp, mu=mu, frames=[k])
-        taus.append(ev.tau[0])
-        axial.append(ev.axial[0])
-        circ.append(ev.circumferential[0])
-        bar.update()
-    assert ev is not None
+    ev = wss3d.wall_wss(centerline, geometry, velocity, ss, pp, mu=mu, progress=bar)
     seconds["wss"] = time.perf_counter() - t0
     wall = ev.x.reshape(ns, nph, 3)
     radius = geometry.radius(ss, pp).reshape(ns, nph)
     ds = float(s[1] - s[0]) if ns > 1 else h
     area = ev.area.reshape(ns, nph) * ds * (2 * np.pi / nph)
     flags = _flags(s, phi, wall, radius, geometry, velocity, record, exclude, vol, options, h)
-    wss = np.stack(taus).reshape(vol.nt, ns, nph, 3)
-    axial_a = np.stack(axial).reshape(vol.nt, ns, nph)
-    circ_a = np.stack(circ).reshape(vol.nt, ns, nph)
+    wss = ev.tau.reshape(vol.nt, ns, nph, 3)
+    axial_a = ev.axial.reshape(vol.nt, ns, nph)
+    circ_a = ev.circumferential.reshape(vol.nt, ns, nph)
     planes = plane_table(centerline, geometry, velocity, s, phi, radius, wss, axial_a, flags)
     times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
     tawss = osi = None

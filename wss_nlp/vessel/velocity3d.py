@@ -59,10 +59,12 @@ from . import tube
 
 log = logging.getLogger(__name__)
 
+#: The data-driven rules for beta.
+BETA_RULES = ("gcv", "discrepancy")
 #: Rademacher probe vectors of the GCV trace estimate.
 GCV_PROBES = 12
-#: The beta grid of GCV (dimensionless, as in 2D): half decades.
-GCV_BETAS = 10.0 ** -np.arange(2.0, 10.01, 0.5)
+#: The beta grid of GCV (dimensionless, as in 2D): decades, the best refined by half a decade either side.
+GCV_BETAS = 10.0 ** -np.arange(2.0, 10.01, 1.0)
 
 
 @dataclass(frozen=True)
@@ -78,7 +80,10 @@ class Velocity3DOptions:
     smoothing_mm : float or None
         Smoothing length ``l`` along the vessel (``kappa_v = l^4``); None: ``h``.
     beta : float or str
-        The Laplacian prior's weight (dimensionless), or "gcv".
+        The Laplacian prior's weight (dimensionless), or a rule: "gcv" (default), "discrepancy" (needs the venc
+        and the magnitude's noise: :func:`discrepancy_beta`).
+    tau_discrepancy : float
+        The discrepancy principle's factor.
     laplacian_power : int
         ``t`` of ``||Delta^t v||^2`` (2: Remark 3.5's norm, the 2D default).
     inner_fraction : float
@@ -92,14 +97,15 @@ class Velocity3DOptions:
     knot_spacing_mm: float | None = None
     smoothing_mm: float | None = None
     beta: float | str = "gcv"
+    tau_discrepancy: float = 1.1
     laplacian_power: int = 2
     inner_fraction: float = 1.0
     quad_order: int = 3
 
     def __post_init__(self):
         if isinstance(self.beta, str):
-            if self.beta != "gcv":
-                raise InputError(f"beta must be a number > 0 or 'gcv', got {self.beta!r}")
+            if self.beta not in BETA_RULES:
+                raise InputError(f"beta must be a number > 0 or one of {', '.join(BETA_RULES)}, got {self.beta!r}")
         elif not self.beta > 0:
             raise InputError(f"beta must be > 0, got {self.beta}")
         if not 0 < self.inner_fraction <= 1:
@@ -336,10 +342,21 @@ class BetaChoice:
     criterion: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
-def gcv_beta(problem: VelocityProblem3D, data: np.ndarray, betas=GCV_BETAS, seed: int = 0) -> BetaChoice:
+def gcv_beta(problem: VelocityProblem3D, data: np.ndarray, betas=GCV_BETAS, seed: int = 0,
+             refine: bool = True) -> BetaChoice:  # fmt: skip
     r"""``beta`` minimizing ``GCV(beta) = n |W^{1/2}(T a_beta - u)|^2 / (n - tr A_beta)^2`` (three components'
     residuals summed, ``n`` three times the voxels, ``tr A_beta = 3 tr(H_beta^{-1} T^T W T)`` by Hutchinson's
-    estimator with :data:`GCV_PROBES` fixed Rademacher vectors and the banded factor of ``H_beta``)."""
+    estimator with :data:`GCV_PROBES` fixed Rademacher vectors and the banded factor of ``H_beta``) on ``betas``,
+    then (``refine``) at half a step either side of the best."""
+    if refine:
+        first = gcv_beta(problem, data, betas, seed, refine=False)
+        extra = [b for b in (first.beta * np.sqrt(10.0), first.beta / np.sqrt(10.0)) if min(betas) <= b <= max(betas)]
+        second = gcv_beta(problem, data, np.array(extra), seed, refine=False) if extra else None
+        grid = np.concatenate([first.betas, [] if second is None else second.betas])
+        crit = np.concatenate([first.criterion, [] if second is None else second.criterion])
+        order = np.argsort(grid)[::-1]
+        grid, crit = grid[order], crit[order]
+        return BetaChoice("gcv", float(grid[int(np.argmin(crit))]), grid, crit)
     rng = np.random.default_rng(seed)
     probes = rng.choice([-1.0, 1.0], size=(problem.size, GCV_PROBES))
     k_probes = problem.normal() @ probes
@@ -359,6 +376,40 @@ def gcv_beta(problem: VelocityProblem3D, data: np.ndarray, betas=GCV_BETAS, seed
         scores.append(n * res / max(n - trace, 1e-12) ** 2)
     scores_a = np.array(scores)
     return BetaChoice("gcv", float(betas[int(np.argmin(scores_a))]), np.asarray(betas), scores_a)
+
+
+def velocity_noise(vol, problem: VelocityProblem3D, levels) -> np.ndarray:
+    """Standard deviation ``(V, 3)`` (m/s) of each voxel's measured velocity components: the phase noise of a
+    voxel whose summed signal is ``S_i = m1 (f_i + b (1 - f_i))`` (lumen fraction ``f_i``, static level ``b``) is
+    ``sigma / S_i`` for complex noise ``sigma`` per channel, so ``venc_c sigma / (pi S_i)``."""
+    if vol.venc_m_s is None:
+        raise InputError(
+            f"{vol.source}: the velocity's noise needs the velocity encoding: the file has no 'venc_m_s'; pass "
+            "--venc (m/s, one value or one per component), or choose beta by GCV or a number"
+        )
+    m1, _, b = levels.at(problem.voxel_s)
+    signal = m1 * (problem.fraction + b * (1 - problem.fraction))
+    return np.asarray(vol.venc_m_s, float)[None, :] * levels.noise_sigma / (np.pi * signal[:, None])
+
+
+def discrepancy_beta(problem: VelocityProblem3D, data: np.ndarray, sigma: np.ndarray, tau: float,
+                     betas=GCV_BETAS) -> BetaChoice:  # fmt: skip
+    """The largest ``beta`` whose weighted residual ``sum_i w_i |T_i a - u_i|^2`` is at most ``tau^2`` times the
+    noise's ``sum_i w_i |sigma_i|^2`` (the discrepancy principle, eq. (disc2) in 3D), from large to small."""
+    noise = float(np.sum(problem.weights[:, None] * sigma**2))
+    rhs = problem.rhs(data)
+    op = problem.operator()
+    u = np.asarray(data, float).reshape(problem.n_voxels, -1)
+    res = []
+    for beta in sorted(betas, reverse=True):
+        coef = scipy.linalg.cho_solve_banded((problem.factor(beta), False), rhs)
+        res.append(float(np.sum(problem.weights[:, None] * (op @ coef - u) ** 2)))
+        if res[-1] <= tau**2 * noise:
+            break
+    grid = np.array(sorted(betas, reverse=True)[: len(res)])
+    ok = np.flatnonzero(np.array(res) <= tau**2 * noise)
+    chosen = float(grid[ok[0]] if ok.size else grid[int(np.argmin(res))])
+    return BetaChoice("discrepancy", chosen, grid, np.sqrt(np.array(res) / noise))
 
 
 @dataclass
@@ -386,17 +437,21 @@ def voxel_velocities(vol, problem: VelocityProblem3D, frames=None) -> np.ndarray
 
 
 def fit_velocity(vol, problem: VelocityProblem3D, options: Velocity3DOptions, frames=None,
-                 beta_frame: int | None = None) -> Velocity3DResult:  # fmt: skip
+                 beta_frame: int | None = None, levels=None) -> Velocity3DResult:  # fmt: skip
     """Solve for the three components of every frame (one factorization serves all: rigid walls).
 
-    ``beta``: fixed, or GCV on ``beta_frame`` (default: the frame with the largest mean speed, where the signal
-    is strongest; one beta for the cycle).
+    ``beta``: fixed, or a rule on ``beta_frame`` (default: the frame with the largest mean speed, where the signal
+    is strongest; one beta for the cycle); "discrepancy" needs ``levels`` (the magnitude's noise) and the venc.
     """
     t0 = time.perf_counter()
     u = voxel_velocities(vol, problem, frames)
+    k = int(np.argmax(np.mean(np.linalg.norm(u, axis=2), axis=1))) if beta_frame is None else beta_frame
     if options.beta == "gcv":
-        k = int(np.argmax(np.mean(np.linalg.norm(u, axis=2), axis=1))) if beta_frame is None else beta_frame
         choice = gcv_beta(problem, u[k])
+    elif options.beta == "discrepancy":
+        if levels is None:
+            raise InputError("beta rule 'discrepancy' needs the magnitude's noise level (levels)")
+        choice = discrepancy_beta(problem, u[k], velocity_noise(vol, problem, levels), options.tau_discrepancy)
     else:
         choice = BetaChoice("fixed", float(options.beta))
     cb = problem.factor(choice.beta)

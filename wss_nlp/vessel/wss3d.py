@@ -47,7 +47,8 @@ def point_function(disk, n_fourier: int) -> ca.Function:
     their s-derivatives), ``mu`` (Pa s). Outputs: ``u`` (3, m/s), ``grad`` (3 x 3, ``d u_a / d x_b`` in 1/s),
     ``x`` (3, mm), ``normal`` (3, outward unit normal of the ``rho``-level surface: the wall's at ``rho = 1``),
     ``tau`` (3, Pa, tangential), ``axial``, ``circumferential``, ``normal_part`` (Pa), ``area`` (``|x_theta x
-    x_s|``, mm^2 per mm and rad).
+    x_s|``, mm^2 per mm and rad), ``dtau`` (``d tau / d [vec(A); vec(A_s)]``, 3 x 6 n_z: ``tau`` is linear in the
+    velocity), ``e_c`` (the circumferential unit vector).
     """
     sx = ca.SX
     rho, theta, sigma = sx.sym("rho"), sx.sym("theta"), sx.sym("sigma")
@@ -82,9 +83,12 @@ def point_function(disk, n_fourier: int) -> ca.Function:
     e_c = ca.cross(e_a, normal)
     inputs = [rho, theta, c, t, n1, n2, dn1, dn2, r_i, r_s, rin, rin_s, a, a_s, mu]
     names = ["rho", "theta", "c", "t", "n1", "n2", "dn1", "dn2", "R_i", "R_s", "r_in", "r_in_s", "A", "A_s", "mu"]
-    outputs = [u, grad, x, normal, tau, ca.dot(tau, t), ca.dot(tau, e_c), normal_part, area]
+    # tau is linear in the velocity coefficients (the wall and its normal do not depend on them): its Jacobian
+    # in [vec(A); vec(A_s)] turns every frame's tau into one product
+    dtau = ca.jacobian(tau, ca.vertcat(ca.vec(a), ca.vec(a_s)))
+    outputs = [u, grad, x, normal, tau, ca.dot(tau, t), ca.dot(tau, e_c), normal_part, area, dtau, e_c]
     outputs = [ca.substitute(o, sigma, 0) for o in outputs]
-    out_names = ["u", "grad", "x", "normal", "tau", "axial", "circumferential", "normal_part", "area"]
+    out_names = ["u", "grad", "x", "normal", "tau", "axial", "circumferential", "normal_part", "area", "dtau", "e_c"]
     return ca.Function("vessel_wss_point", inputs, outputs, names, out_names)
 
 
@@ -153,14 +157,9 @@ def evaluate(centerline, geometry, velocity, s, theta, rho=None, mu: float = 3.5
     nz = basis.disk.size
     coef = velocity.coefficients if frames is None else velocity.coefficients[list(frames)]
     nt = coef.shape[0]
-    j, b = basis.spline.local(s, 0)
-    _, db = basis.spline.local(s, 1)
     outs = []
     for k in range(nt):
-        cm = coef[k].reshape(basis.spline.size, nz, 3)
-        rows = cm[j[:, None] + np.arange(4)[None, :]]  # (m, 4, nz, 3)
-        a = np.einsum("ma,majc->jcm", b, rows).reshape(nz, 3 * m, order="F")  # per point an (nz, 3) block
-        a_s = np.einsum("ma,majc->jcm", db, rows).reshape(nz, 3 * m, order="F")
+        a, a_s = _velocity_blocks(basis, coef[k], s)  # per point an (n_z, 3) block
         res = fun(rho[None], theta[None], p.c, p.t, p.n1, p.n2, p.dn1, p.dn2, p.r_i, p.r_s, p.r_in[None],
                   p.r_in_s[None], a, a_s, mu)  # fmt: skip
         outs.append([np.asarray(v) for v in res])
@@ -178,6 +177,51 @@ def evaluate(centerline, geometry, velocity, s, theta, rho=None, mu: float = 3.5
         circumferential=np.stack([o[6].ravel() for o in outs]),
         normal_part=np.stack([o[7].ravel() for o in outs]),
     )
+
+
+def _velocity_blocks(basis, coefficients, s):
+    """Per point the ``(n_z, 3)`` blocks ``A = sum_k B_k(s) a_k`` and ``A_s = sum_k B_k'(s) a_k`` side by side
+    (CasADi's mapped layout), for coefficients ``(size, 3)``."""
+    nz, m = basis.disk.size, s.size
+    j, b = basis.spline.local(s, 0)
+    _, db = basis.spline.local(s, 1)
+    rows = np.asarray(coefficients, float).reshape(basis.spline.size, nz, 3)[j[:, None] + np.arange(4)[None, :]]
+    a = np.einsum("ma,majc->jcm", b, rows).reshape(nz, 3 * m, order="F")
+    a_s = np.einsum("ma,majc->jcm", db, rows).reshape(nz, 3 * m, order="F")
+    return a, a_s
+
+
+def wall_wss(centerline, geometry, velocity, s, theta, mu: float = 3.5e-3, progress=None) -> WallEvaluation:
+    """``tau`` at wall points ``(s, theta)`` for every frame: the points' linear maps ``d tau / d(A, A_s)`` once
+    (:func:`point_function`), then one product per frame (``u`` and ``grad`` are not returned: zero arrays)."""
+    basis = velocity.basis
+    s = np.asarray(s, float).ravel()
+    theta = np.asarray(theta, float).ravel()
+    m = s.size
+    nz = basis.disk.size
+    fun = point_function(basis.disk, geometry.basis.n_fourier).map(m)
+    p = point_inputs(centerline, geometry, basis, s)
+    zero = np.zeros((nz, 3 * m))
+    res = fun(np.ones((1, m)), theta[None], p.c, p.t, p.n1, p.n2, p.dn1, p.dn2, p.r_i, p.r_s, p.r_in[None],
+              p.r_in_s[None], zero, zero, mu)  # fmt: skip
+    out = [np.asarray(v) for v in res]
+    dtau = out[9].reshape(3, 6 * nz, m, order="F").transpose(2, 0, 1)  # (m, 3, 6 nz)
+    t_vec, e_c = p.t.T, out[10].T
+    nt = velocity.coefficients.shape[0]
+    taus = np.empty((nt, m, 3))
+    for k in range(nt):
+        a, a_s = _velocity_blocks(basis, velocity.coefficients[k], s)
+        # [vec(A); vec(A_s)] per point: CasADi's vec is column-major: component c's n_z values, then the next
+        vec = np.concatenate([a.reshape(nz, m, 3).transpose(1, 2, 0).reshape(m, 3 * nz),
+                              a_s.reshape(nz, m, 3).transpose(1, 2, 0).reshape(m, 3 * nz)], axis=1)  # fmt: skip
+        taus[k] = np.einsum("mcj,mj->mc", dtau, vec)
+        if progress is not None:
+            progress.update()
+    return WallEvaluation(
+        x=out[2].T, normal=out[3].T, area=out[8].ravel(), u=np.zeros((nt, m, 3)), grad=np.zeros((nt, m, 3, 3)),
+        tau=taus, axial=np.einsum("tmc,mc->tm", taus, t_vec), circumferential=np.einsum("tmc,mc->tm", taus, e_c),
+        normal_part=np.zeros((nt, m)),
+    )  # fmt: skip
 
 
 def wall_grid(s_range: tuple[float, float], h: float, n_phi: int = 64, spacing: float | None = None):
