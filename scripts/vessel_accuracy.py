@@ -29,7 +29,7 @@ from _report import RESULTS, write_report
 from wss_nlp.synthetic.vessels import DEVELOPMENT_SEEDS, REPORTED_SEEDS, make_vessel_phantom
 from wss_nlp.vessel.baseline import baseline_vessel
 from wss_nlp.vessel.metrics import accuracy
-from wss_nlp.vessel.reconstruct import VesselOptions, reconstruct_vessel, vessel_inputs
+from wss_nlp.vessel.reconstruct import reconstruct_vessel, vessel_inputs
 
 AORTA = "arc,swirl,taper,ellipse,helix"
 

@@ -150,8 +150,15 @@ def test_geometry_gradient_newton_hessian_and_jacobian_are_exact(small_problem):
     opts = g3.Geometry3DOptions(n_fourier=3)
     basis = tube.WallBasis(tube.SplineBasis(*problem.s_range, 2.5), 3)
     r0 = float(np.mean(problem.radius_estimate(np.linspace(*problem.s_range, 20))))
-    f, r, nlp = g3.functional(problem, basis, opts, 2, lambda s, p: np.full(np.shape(s), r0 - 2.0),
-                              lambda s, p: np.full(np.shape(s), r0 + 2.0), basis.constant(np.full(basis.spline.size, r0)))
+    f, r, nlp = g3.functional(
+        problem,
+        basis,
+        opts,
+        2,
+        lambda s, p: np.full(np.shape(s), r0 - 2.0),
+        lambda s, p: np.full(np.shape(s), r0 + 2.0),
+        basis.constant(np.full(basis.spline.size, r0)),
+    )
     rng = np.random.default_rng(6)
     c = basis.constant(np.full(basis.spline.size, r0)) + 0.05 * rng.normal(size=basis.size)
     d = rng.normal(size=basis.size)

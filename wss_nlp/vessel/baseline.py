@@ -119,7 +119,10 @@ def baseline_vessel(vol, mask: np.ndarray, centerline, record: dict, options: re
     visible = record.get("visible", [])
     if s is None or phi is None:
         ext = 4 * h if options.extend_mm is None else float(options.extend_mm)
-        s_range = (max(0.0, min(v[0] for v in visible) - ext), min(centerline.length_mm, max(v[1] for v in visible) + ext))
+        s_range = (
+            max(0.0, min(v[0] for v in visible) - ext),
+            min(centerline.length_mm, max(v[1] for v in visible) + ext),
+        )
         s, phi = wss3d.wall_grid(s_range, h, options.n_phi, options.s_spacing_mm)
     fit = wall_normal_fit(vol, mask, centerline, record, s, phi, mu)
     ns, nph = s.size, phi.size

@@ -50,6 +50,8 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -146,7 +148,8 @@ class MagnitudeLevels:
     def at(self, s) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(m1, m0, static)`` at ``s`` (linear interpolation, held beyond the ends)."""
         s = np.asarray(s, float)
-        return tuple(np.interp(s, self.s_mm, v) for v in (self.lumen, self.outside, self.static))  # type: ignore
+        m1, m0, b = (np.interp(s, self.s_mm, v) for v in (self.lumen, self.outside, self.static))
+        return m1, m0, b
 
     def normalize(self, magnitude, s) -> np.ndarray:
         """``(M - m0(s)) / (m1(s) - m0(s))``."""
@@ -374,15 +377,15 @@ class GeometryProblem3D:
     """What the wall fit needs: the volume, the centreline (and its fast table), the fitted range, the voxels near
     the vessel with their coordinates, the normalized magnitude on them, the radius estimate and the levels."""
 
-    vol: object
-    centerline: object
+    vol: Any
+    centerline: Any
     frame: tube.FrameTable
     s_range: tuple[float, float]
     coords: tube.VoxelCoordinates
     raw: np.ndarray  # time-mean magnitude on coords
-    radius_estimate: object  # callable s -> R_est
+    radius_estimate: Callable  # s -> R_est
     levels: MagnitudeLevels
-    exclude: object = None  # callable (s, phi) -> bool: wall regions left out of the fit (branches)
+    exclude: Callable | None = None  # (s, phi) -> bool: wall regions left out of the fit (branches)
 
     @property
     def magnitude(self) -> np.ndarray:
@@ -410,8 +413,8 @@ class _Stage:
 
     model: tube.TubeModel
     position: np.ndarray  # index into problem.coords of each model voxel
-    lower: object
-    upper: object
+    lower: Callable
+    upper: Callable
     q: int
     gamma: float
 
@@ -475,7 +478,7 @@ def fit_wall(problem: GeometryProblem3D, options: Geometry3DOptions | None = Non
     s_grid = np.linspace(lo_s, hi_s, max(2 * spline.intervals + 1, 8))
     co = problem.coords
     r_est = problem.radius_estimate(co.s)
-    voxel = abs(float(np.linalg.det(np.asarray(problem.vol.affine_mm, float)[:3, :3])))
+    voxel = abs(float(np.linalg.det(np.asarray(problem.vol.affine_mm, dtype=float)[:3, :3])))
     r_ref = reference_radius(problem.magnitude, co, r_est, s_grid, voxel, h)
     ref_spline = spline.fit(s_grid, r_ref, smoothing=h**3)
     reference = basis.constant(ref_spline)

@@ -38,6 +38,7 @@ import logging
 import sys
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -106,7 +107,7 @@ class VesselResult:
     """A wall map of one vessel (module notes; arrays as in the result file)."""
 
     method: str
-    centerline: object
+    centerline: Any
     s_mm: np.ndarray
     phi: np.ndarray
     time_ms: np.ndarray
@@ -379,7 +380,7 @@ class VesselInputs:
     """The lumen mask, the centreline and its record (visible part, branches) a reconstruction starts from."""
 
     mask: np.ndarray
-    centerline: object
+    centerline: Any
     record: dict | None
     notes: list
     seconds: dict
@@ -494,7 +495,8 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record) -> Vesse
     seconds["total"] = time.perf_counter() - t_all
     notes.append("walls rigid: one wall from the time-mean magnitude serves every frame")
     statuses = {"geometry": g3.stats_dicts(geometry.stats),
-                "velocity": {"beta_rule": velocity.beta_choice.rule, "residual_m_s": velocity.residual_norm}}  # fmt: skip
+                "velocity": {"beta_rule": velocity.beta_choice.rule,
+                             "residual_m_s": velocity.residual_norm}}  # fmt: skip
     parameters = {
         "alpha": geometry.alpha, "kappa_mm4": geometry.kappa, "smoothing_mm": geometry.smoothing_mm,
         "gamma_mm": geometry.gamma, "quad_order": geometry.q, "n_fourier": geometry.basis.n_fourier,

@@ -96,7 +96,7 @@ class SplineBasis:
         return self.lo + self.delta * np.arange(self.intervals + 1)
 
     def local(self, s, nu: int = 0) -> tuple[np.ndarray, np.ndarray]:
-        """``(j, values)``: the first nonzero index ``j (m,)`` and ``d^nu B_{j+a} / ds^nu``, ``a = 0..3``, ``(m, 4)``."""
+        """``(j, values)``: the first nonzero index ``j (m,)`` and ``d^nu B_{j+a} / ds^nu``, ``a = 0..3`` (m, 4)."""
         s = np.asarray(s, float).ravel()
         u = (s - self.lo) / self.delta
         j = np.clip(np.floor(u), 0, self.intervals - 1).astype(np.int64)
@@ -261,11 +261,15 @@ class FrameTable:
         h = self.ds
         t2, t3 = t * t, t * t * t
         h00, h10, h01, h11 = 2 * t3 - 3 * t2 + 1, t3 - 2 * t2 + t, -2 * t3 + 3 * t2, t3 - t2
-        out = h00[:, None] * y[i] + (h * h10)[:, None] * dy[i] + h01[:, None] * y[i + 1] + (h * h11)[:, None] * dy[i + 1]
+        out = (
+            h00[:, None] * y[i] + (h * h10)[:, None] * dy[i] + h01[:, None] * y[i + 1] + (h * h11)[:, None] * dy[i + 1]
+        )
         if not derivative:
             return out
         d00, d10, d01, d11 = 6 * t2 - 6 * t, 3 * t2 - 4 * t + 1, -6 * t2 + 6 * t, 3 * t2 - 2 * t
-        dout = (d00[:, None] * y[i] + h * d10[:, None] * dy[i] + d01[:, None] * y[i + 1] + h * d11[:, None] * dy[i + 1]) / h
+        dout = (
+            d00[:, None] * y[i] + h * d10[:, None] * dy[i] + d01[:, None] * y[i + 1] + h * d11[:, None] * dy[i + 1]
+        ) / h
         return out, dout
 
     def project(self, points, s_start) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -516,7 +520,8 @@ class TubeModel:
 
 
 def auto_quad_order(order: int | None, h_mm: float, radius_mm: float, cap: int = 4) -> int:
-    """Sub-voxel points per axis: ``order`` if given, else the 2D rule (:func:`wss_nlp.models.measurement.auto_quad_order`,
+    """Sub-voxel points per axis: ``order`` if given, else the 2D rule
+    (:func:`wss_nlp.models.measurement.auto_quad_order`,
     ``clip(ceil(60 h / R), 2, 6)``) capped at ``cap``: the points grow like ``q^3`` in 3D (see the geometry
     module's notes for the measured effect of the cap)."""
     grid = meas.VoxelGrid((1, 1), (h_mm, h_mm))

@@ -48,6 +48,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -128,7 +129,7 @@ class VelocityBasis3D:
     """``v(s, xi) = sum a_kj B_k(s) w_j(xi)`` with the reference disk of each cross-section (module notes)."""
 
     spline: tube.SplineBasis
-    disk: object  # ZernikeWallBasis
+    disk: Any  # ZernikeWallBasis
     wall: tube.WallBasis
     wall_coefficients: np.ndarray
     inner: np.ndarray  # rho_k (mm) times inner_fraction: r_in(s) = sum B_k(s) inner_k
@@ -245,7 +246,9 @@ class VelocityProblem3D:
 
     def rhs(self, data: np.ndarray) -> np.ndarray:
         """``T^T W u`` for data ``(V, k)``."""
-        return np.asarray(self.operator().T @ (self.weights[:, None] * np.asarray(data, float).reshape(self.n_voxels, -1)))
+        return np.asarray(
+            self.operator().T @ (self.weights[:, None] * np.asarray(data, float).reshape(self.n_voxels, -1))
+        )
 
     def solve(self, beta: float, data: np.ndarray, factor=None) -> np.ndarray:
         cb = self.factor(beta) if factor is None else factor

@@ -154,7 +154,6 @@ def evaluate(centerline, geometry, velocity, s, theta, rho=None, mu: float = 3.5
     m = s.size
     fun = point_function(basis.disk, geometry.basis.n_fourier).map(m)
     p = point_inputs(centerline, geometry, basis, s)
-    nz = basis.disk.size
     coef = velocity.coefficients if frames is None else velocity.coefficients[list(frames)]
     nt = coef.shape[0]
     outs = []
