@@ -447,3 +447,18 @@ def test_the_pulsatile_arch_tawss_and_osi():
     vol, truth = vs.make_vessel_phantom("pulsatile", h_mm=2.0, snr=20, seed=5, frames=20)
     acc = accuracy(vrec.reconstruct_vessel(vol), truth)
     assert acc.tawss_rel_l2 < 0.1 and acc.osi_rms < 0.05
+
+
+def test_the_wall_mesh_opens_with_meshio_in_world_coordinates(arc_result, tmp_path):
+    meshio = pytest.importorskip("meshio")
+    from wss_nlp.vessel.mesh import write_wall
+
+    _, _, res, _ = arc_result
+    files = write_wall(res, tmp_path / "wall.vtu")
+    mesh = meshio.read(files[0])
+    assert np.allclose(mesh.points, res.wall_mm.reshape(-1, 3))  # world mm, the volume's frame
+    assert mesh.cells[0].type == "quad" and mesh.cells[0].data.shape == ((res.s_mm.size - 1) * res.phi.size, 4)
+    assert np.allclose(mesh.point_data["wss_vector_pa"], res.wss_pa[0].reshape(-1, 3))
+    assert np.allclose(mesh.point_data["tau_pa"], res.axial_pa[0].ravel())
+    assert Centerline.from_file(files[1]).length_mm == pytest.approx(res.centerline.length_mm, rel=1e-3)
+    assert open(files[2]).readline().startswith("s_mm,area_mm2,flow_ml_s")

@@ -153,7 +153,10 @@ def baseline_vessel(vol, mask: np.ndarray, centerline, record: dict, options: re
     times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
     tawss = osi = None
     if vol.nt > 1:
-        tawss, osi = rec.cycle_indices(tau, times, vol.cardiac_period_ms)
+        period = vol.cardiac_period_ms
+        if period is None:  # as the reconstruction: the frames cover one cycle
+            period = float(times[-1] - times[0] + np.mean(np.diff(times)))
+        tawss, osi = rec.cycle_indices(tau, times, period)
     radius = fit["radius"]
     dphi = 2 * np.pi / nph
     mag = np.linalg.norm(tau, axis=-1)

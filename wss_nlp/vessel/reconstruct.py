@@ -489,7 +489,11 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record) -> Vesse
     times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
     tawss = osi = None
     if vol.nt > 1:
-        tawss, osi = cycle_indices(wss, times, vol.cardiac_period_ms)
+        period = vol.cardiac_period_ms
+        if period is None:  # frames equally spaced over one cycle, as a cine export has them
+            period = float(times[-1] - times[0] + np.mean(np.diff(times)))
+            notes.append(f"cardiac period not in the file: {period:.1f} ms assumed (the frames cover one cycle)")
+        tawss, osi = cycle_indices(wss, times, period)
     bar.update()
     bar.close()
     seconds["total"] = time.perf_counter() - t_all
