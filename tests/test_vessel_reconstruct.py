@@ -209,7 +209,7 @@ def test_wss_derivative_graph_passes_a_taylor_test(small_problem, small_wall):
 def test_noise_free_straight_tube_equals_the_2d_result():
     """A z-invariant volume made of one 2D phantom slice: the 3D functionals are the 2D ones summed over the voxel
     layers (same points in each layer, z-invariant wall and velocity, s-penalties zero), so with the same options
-    (N, alpha, q, basis, beta, r_in) the 3D wall and WSS equal the 2D method's (models.geometry, models.velocity,
+    (N, alpha, q, basis, beta, r_in = min R as in 2D) the 3D wall and WSS equal the 2D method's (models.geometry, models.velocity,
     models.wss) to the solvers' tolerances: measured 2e-10 (radius) and 4e-5 (axial WSS) relative."""
     from wss_nlp.models import geometry as geo
     from wss_nlp.models import preprocess as pp
@@ -241,7 +241,7 @@ def test_noise_free_straight_tube_equals_the_2d_result():
     record = {"visible": [[10.0 + 1.5 * dz, 10.0 + (nk - 2.5) * dz]], "branches": []}  # whole voxel layers 2..9
     opts = vrec.VesselOptions(
         geometry=g3.Geometry3DOptions(n_fourier=n, alpha=1e-6, quad_order=q, outside_updates=0),
-        velocity=v3.Velocity3DOptions(degree=10, angular_order=4, beta=1e-6, inner_fraction=1.0, quad_order=3),
+        velocity=v3.Velocity3DOptions(degree=10, angular_order=4, beta=1e-6, inner="min", quad_order=3),
         extend_mm=0.0, s_spacing_mm=dz, n_phi=32,
     )  # fmt: skip
     res = vrec.reconstruct_vessel(vol, opts, m2d.T[:, :, None].repeat(nk, 2) > 0.5, cl, record)
