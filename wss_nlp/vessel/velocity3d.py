@@ -98,6 +98,8 @@ class Velocity3DOptions:
         and the magnitude's noise: :func:`discrepancy_beta`).
     tau_discrepancy : float
         The discrepancy principle's factor.
+    noise_free_beta : float or None
+        The beta a rule gives way to on noise-free data (:data:`NOISE_FREE_BETA`; None: the rule anyway).
     laplacian_power : int
         ``t`` of ``||Delta^t v||^2`` (2: Remark 3.5's norm, the 2D default).
     inner, inner_fraction : str, float
@@ -112,6 +114,7 @@ class Velocity3DOptions:
     smoothing_mm: float | None = None
     beta: float | str = "gcv"
     tau_discrepancy: float = 1.1
+    noise_free_beta: float | None = NOISE_FREE_BETA
     laplacian_power: int = 2
     inner: str = "mean"
     inner_fraction: float = 1.0
@@ -478,8 +481,8 @@ def fit_velocity(vol, problem: VelocityProblem3D, options: Velocity3DOptions, fr
     u = voxel_velocities(vol, problem, frames)
     k = int(np.argmax(np.mean(np.linalg.norm(u, axis=2), axis=1))) if beta_frame is None else beta_frame
     noise_free = levels is not None and not levels.noise_sigma > 1e-9 * float(np.mean(levels.lumen))
-    if options.beta in BETA_RULES and noise_free:
-        choice = BetaChoice(f"{options.beta} (noise-free data: fixed)", NOISE_FREE_BETA)
+    if options.beta in BETA_RULES and noise_free and options.noise_free_beta is not None:
+        choice = BetaChoice(f"{options.beta} (noise-free data: fixed)", float(options.noise_free_beta))
     elif options.beta == "gcv":
         choice = gcv_beta(problem, u[k])
     elif options.beta == "discrepancy":
