@@ -70,8 +70,9 @@ log = logging.getLogger(__name__)
 LEVEL_BANDWIDTH_VOXELS = 3.0
 #: The outside level's updates stop when it changes by less than this (relative to the lumen's level).
 OUTSIDE_TOL = 0.01
-#: Over-relaxation of the outside level's updates: plain updates shrank the change by a factor of about 0.6 per
-#: step on the arc with tissue (``scripts/vessel_accuracy.py``'s development runs), relaxed ones by about 0.4.
+#: Over-relaxation of the outside level's updates: the alternation with the wall fit converges linearly (the wall
+#: and the outside level trade off in the wall voxels), plain steps slowly; each update's change is in the
+#: geometry's statuses (``outside_change``), its effect in ``scripts/results/vessel_choices.md``.
 OUTSIDE_RELAXATION = 1.5
 #: Fewest voxels in a level's kernel window below which the global level is used instead.
 MIN_LEVEL_VOXELS = 20

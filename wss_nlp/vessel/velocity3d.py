@@ -17,9 +17,9 @@ the fit is one operator with three right-hand sides. The inner radius ``r_in(s)`
   ``s`` with an exact derivative). For a circular section and ``f = 1`` the map is the scaling ``x = R rho``, under
   which Poiseuille flow is the first basis function and skewed and swirling parabolic flows are low-degree
   polynomials, whatever ``R(s)`` does along the vessel. The map stays one-to-one while ``r_in < 2 min R`` (its
-  radial derivative ``2 R - r_in`` at the wall); refused otherwise. Chosen over "min" on the tapering phantom,
-  where the smallest radius over a B-spline's support lies well below the local radius and the map departs from
-  a scaling (``scripts/vessel_accuracy.py``'s development runs);
+  radial derivative ``2 R - r_in`` at the wall); refused otherwise. Against "min" on the tapering and the
+  elliptic phantoms: ``scripts/results/vessel_choices.md`` (on the taper the smallest radius over a B-spline's
+  support lies well below the local radius and the map departs from a scaling);
 * ``"min"``: the 2D rule, ``f`` times the smallest radius: ``f sum_k B_k(s) rho_k`` with ``rho_k`` the smallest
   ``R`` over the support of ``B_k`` (a convex combination, so ``r_in <= f min_theta R(s, theta)``, the condition of
   Lemma A.4, with an exact s-derivative).
@@ -70,8 +70,8 @@ from . import tube
 log = logging.getLogger(__name__)
 
 #: beta for noise-free data (the magnitude's noise estimate zero), where GCV has no noise to balance and takes the
-#: grid's smallest value (a fit of the model's own discretization error): the best on the noise-free arch at
-#: h = 2 mm (1e-3: 1.3 %, 1e-5: 0.8 %, 1e-7: 0.9 %, GCV's 1e-10: 4.2 % WSS error; development seed 3).
+#: grid's smallest value (a fit of the model's own discretization error); against GCV there:
+#: ``scripts/results/vessel_choices.md``.
 NOISE_FREE_BETA = 1e-5
 #: The data-driven rules for beta.
 BETA_RULES = ("gcv", "discrepancy")
