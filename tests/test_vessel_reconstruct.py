@@ -462,3 +462,19 @@ def test_the_wall_mesh_opens_with_meshio_in_world_coordinates(arc_result, tmp_pa
     assert np.allclose(mesh.point_data["tau_pa"], res.axial_pa[0].ravel())
     assert Centerline.from_file(files[1]).length_mm == pytest.approx(res.centerline.length_mm, rel=1e-3)
     assert open(files[2]).readline().startswith("s_mm,area_mm2,flow_ml_s")
+
+
+def test_the_wall_pieces_give_the_point_graph_wss(small_problem, small_wall):
+    """:func:`wss3d.wall_wss` (the velocity-independent pieces from CasADi, the linear part in NumPy) equals the
+    whole graph of :func:`wss3d.point_function` (one CasADi expression) to rounding."""
+    vol, _, problem = small_problem
+    vopt = v3.Velocity3DOptions(beta=1e-4)
+    vel = v3.fit_velocity(vol, v3.assemble(vol, small_wall, problem.frame, problem.coords, vopt), vopt)
+    s, phi = wss3d.wall_grid(small_wall.s_range, 2.5, 16)
+    ss, pp = (v.ravel() for v in np.meshgrid(s, phi, indexing="ij"))
+    fast = wss3d.wall_wss(problem.centerline, small_wall, vel, ss, pp, mu=MU)
+    full = wss3d.evaluate(problem.centerline, small_wall, vel, ss, pp, mu=MU)
+    scale = np.max(np.abs(full.tau))
+    assert np.max(np.abs(fast.tau - full.tau)) <= 1e-12 * scale
+    assert np.max(np.abs(fast.axial - full.axial)) <= 1e-12 * scale
+    assert np.allclose(fast.x, full.x, atol=1e-12) and np.allclose(fast.normal, full.normal, atol=1e-14)

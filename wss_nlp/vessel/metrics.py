@@ -10,7 +10,9 @@ radius inside the field of view); sums are weighted by the wall area each point 
   frames;
 * ``axial_rel_l2``: the same for ``tau . t`` (signed);
 * ``wall_rms_mm`` (and ``wall_bias_mm``): the signed distance's RMS (mean) over the covered visible wall;
-* ``coverage``: the area of the covered visible wall over the visible wall's;
+* ``coverage``: the area of the covered visible wall over the true visible wall's (the truth's wall surface over
+  its visible s-intervals, :func:`visible_area`), so that a wall map that stops short of the visible part loses
+  coverage too;
 * ``tawss_rel_l2``, ``osi_rms``, ``osi_max`` (cines): TAWSS's relative L2 error, OSI's RMS and largest absolute
   error over the covered visible wall.
 """
@@ -40,6 +42,24 @@ class VesselAccuracy:
         return asdict(self)
 
 
+def visible_area(truth, ds: float = 0.25, n_phi: int = 256) -> float:
+    """Area (mm^2) of the true wall over the truth's visible s-intervals: ``sum |x_s x x_phi| ds dphi`` with the
+    tangents by central differences of :meth:`wss_nlp.synthetic.vessels.VesselTruth.wall_point` (midpoint rule)."""
+    total = 0.0
+    phi = np.linspace(-np.pi, np.pi, n_phi, endpoint=False) + np.pi / n_phi
+    dphi = 2 * np.pi / n_phi
+    for a, b in truth.visible:
+        n = max(2, int(np.ceil((b - a) / ds)))
+        step = (b - a) / n
+        s = a + step * (np.arange(n) + 0.5)
+        ss, pp = np.meshgrid(s, phi, indexing="ij")
+        eps = 1e-4
+        x_s = (truth.wall_point(ss + eps, pp) - truth.wall_point(ss - eps, pp)) / (2 * eps)
+        x_p = (truth.wall_point(ss, pp + eps) - truth.wall_point(ss, pp - eps)) / (2 * eps)
+        total += float(np.sum(np.linalg.norm(np.cross(x_s, x_p), axis=-1))) * step * dphi
+    return total
+
+
 def accuracy(result, truth) -> VesselAccuracy:
     """:class:`VesselAccuracy` of a :class:`wss_nlp.vessel.reconstruct.VesselResult` against a
     :class:`wss_nlp.synthetic.vessels.VesselTruth` (module notes)."""
@@ -51,7 +71,7 @@ def accuracy(result, truth) -> VesselAccuracy:
     area = result.area_mm2.ravel()
     covered = result.flags.ravel() == 0
     use = covered & visible
-    coverage = float(np.sum(area[use]) / max(np.sum(area[visible]), 1e-300))
+    coverage = float(np.sum(area[use]) / max(visible_area(truth), 1e-300))
     if not use.any():
         return VesselAccuracy(*(float("nan"),) * 4, coverage=coverage, points=0)
     a = area[use]

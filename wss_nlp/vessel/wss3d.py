@@ -47,8 +47,7 @@ def point_function(disk, n_fourier: int) -> ca.Function:
     their s-derivatives), ``mu`` (Pa s). Outputs: ``u`` (3, m/s), ``grad`` (3 x 3, ``d u_a / d x_b`` in 1/s),
     ``x`` (3, mm), ``normal`` (3, outward unit normal of the ``rho``-level surface: the wall's at ``rho = 1``),
     ``tau`` (3, Pa, tangential), ``axial``, ``circumferential``, ``normal_part`` (Pa), ``area`` (``|x_theta x
-    x_s|``, mm^2 per mm and rad), ``dtau`` (``d tau / d [vec(A); vec(A_s)]``, 3 x 6 n_z: ``tau`` is linear in the
-    velocity), ``e_c`` (the circumferential unit vector).
+    x_s|``, mm^2 per mm and rad), ``e_c`` (the circumferential unit vector).
     """
     sx = ca.SX
     rho, theta, sigma = sx.sym("rho"), sx.sym("theta"), sx.sym("sigma")
@@ -83,13 +82,57 @@ def point_function(disk, n_fourier: int) -> ca.Function:
     e_c = ca.cross(e_a, normal)
     inputs = [rho, theta, c, t, n1, n2, dn1, dn2, r_i, r_s, rin, rin_s, a, a_s, mu]
     names = ["rho", "theta", "c", "t", "n1", "n2", "dn1", "dn2", "R_i", "R_s", "r_in", "r_in_s", "A", "A_s", "mu"]
-    # tau is linear in the velocity coefficients (the wall and its normal do not depend on them): its Jacobian
-    # in [vec(A); vec(A_s)] turns every frame's tau into one product
-    dtau = ca.jacobian(tau, ca.vertcat(ca.vec(a), ca.vec(a_s)))
-    outputs = [u, grad, x, normal, tau, ca.dot(tau, t), ca.dot(tau, e_c), normal_part, area, dtau, e_c]
+    outputs = [u, grad, x, normal, tau, ca.dot(tau, t), ca.dot(tau, e_c), normal_part, area, e_c]
     outputs = [ca.substitute(o, sigma, 0) for o in outputs]
-    out_names = ["u", "grad", "x", "normal", "tau", "axial", "circumferential", "normal_part", "area", "dtau", "e_c"]
+    out_names = ["u", "grad", "x", "normal", "tau", "axial", "circumferential", "normal_part", "area", "e_c"]
     return ca.Function("vessel_wss_point", inputs, outputs, names, out_names)
+
+
+@functools.lru_cache(maxsize=8)
+def wall_function(disk, n_fourier: int) -> ca.Function:
+    """The velocity-independent part of :func:`point_function` at a point ``(rho, theta)``: ``x``, ``normal``,
+    ``area``, ``e_c``, ``minv`` (``(d x / d(s, rho, theta))^{-1}``, 3 x 3), the basis ``w`` (``n_z``) and its
+    derivatives ``w_rho``, ``w_theta`` (CasADi's exact ones).
+
+    ``grad u`` is linear in the velocity coefficients: with ``A``, ``A_s`` as in :func:`point_function`,
+    ``d u_c / d(s, rho, theta) = (w . A_s[:, c], w_rho . A[:, c], w_theta . A[:, c])`` and
+    ``grad u = 1000 (d u / d(s, rho, theta)) minv`` (:func:`traction`), so every frame costs a few products.
+    Inputs: :func:`point_function`'s without ``A``, ``A_s``, ``mu``.
+    """
+    sx = ca.SX
+    rho, theta, sigma = sx.sym("rho"), sx.sym("theta"), sx.sym("sigma")
+    c, t, n1, n2, dn1, dn2 = (sx.sym(k, 3) for k in ("c", "t", "n1", "n2", "dn1", "dn2"))
+    nf = rad.n_coefficients(n_fourier)
+    r_i, r_s = sx.sym("R_i", nf), sx.sym("R_s", nf)
+    rin, rin_s = sx.sym("r_in"), sx.sym("r_in_s")
+    big_r = rad.symbolic(r_i + sigma * r_s, theta)
+    r_in = rin + sigma * rin_s
+    radius = r_in * rho + (big_r - r_in) * rho**2
+    e_r = ca.cos(theta) * (n1 + sigma * dn1) + ca.sin(theta) * (n2 + sigma * dn2)
+    x = c + sigma * t + radius * e_r
+    q = ca.vertcat(sigma, rho, theta)
+    jac_x = ca.jacobian(x, q)
+    x_s, x_th = jac_x[:, 0], jac_x[:, 2]
+    cross = ca.cross(x_th, x_s)
+    area = ca.norm_2(cross)
+    normal = cross / area
+    e_a = t - ca.dot(t, normal) * normal
+    e_c = ca.cross(e_a / ca.norm_2(e_a), normal)
+    w = disk.symbolic(ca.vertcat(rho * ca.cos(theta), rho * ca.sin(theta)))
+    outputs = [x, normal, area, e_c, ca.inv(jac_x), w, ca.jacobian(w, rho), ca.jacobian(w, theta)]
+    outputs = [ca.substitute(o, sigma, 0) for o in outputs]
+    inputs = [rho, theta, c, t, n1, n2, dn1, dn2, r_i, r_s, rin, rin_s]
+    names = ["rho", "theta", "c", "t", "n1", "n2", "dn1", "dn2", "R_i", "R_s", "r_in", "r_in_s"]
+    return ca.Function("vessel_wall_point", inputs, outputs, names,
+                       ["x", "normal", "area", "e_c", "minv", "w", "w_rho", "w_theta"])  # fmt: skip
+
+
+def traction(d_u: np.ndarray, minv: np.ndarray, normal: np.ndarray, mu: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(tau, grad u)``: ``grad u = 1000 d_u minv`` (1/s) from ``d u / d(s, rho, theta)`` ``(m, 3, 3)``, and
+    ``tau = (I - n n^T)(-mu (grad u + grad u^T) n)`` (Pa), for points along the first axis."""
+    grad = np.einsum("mcq,mqb->mcb", d_u, minv) * PER_MM
+    trac = -mu * np.einsum("mcb,mb->mc", grad + np.swapaxes(grad, 1, 2), normal)
+    return trac - np.sum(trac * normal, axis=1, keepdims=True) * normal, grad
 
 
 @dataclass
@@ -191,34 +234,37 @@ def _velocity_blocks(basis, coefficients, s):
 
 
 def wall_wss(centerline, geometry, velocity, s, theta, mu: float = 3.5e-3, progress=None) -> WallEvaluation:
-    """``tau`` at wall points ``(s, theta)`` for every frame: the points' linear maps ``d tau / d(A, A_s)`` once
-    (:func:`point_function`), then one product per frame (``u`` and ``grad`` are not returned: zero arrays)."""
+    """``tau`` at wall points ``(s, theta)`` for every frame: the points' velocity-independent pieces once
+    (:func:`wall_function`), then per frame the velocity's derivatives ``(w . A_s, w_rho . A, w_theta . A)`` and
+    :func:`traction` (``u`` is zero on the wall; ``grad`` is returned)."""
     basis = velocity.basis
     s = np.asarray(s, float).ravel()
     theta = np.asarray(theta, float).ravel()
     m = s.size
     nz = basis.disk.size
-    fun = point_function(basis.disk, geometry.basis.n_fourier).map(m)
+    fun = wall_function(basis.disk, geometry.basis.n_fourier).map(m)
     p = point_inputs(centerline, geometry, basis, s)
-    zero = np.zeros((nz, 3 * m))
-    res = fun(np.ones((1, m)), theta[None], p.c, p.t, p.n1, p.n2, p.dn1, p.dn2, p.r_i, p.r_s, p.r_in[None],
-              p.r_in_s[None], zero, zero, mu)  # fmt: skip
-    out = [np.asarray(v) for v in res]
-    dtau = out[9].reshape(3, 6 * nz, m, order="F").transpose(2, 0, 1)  # (m, 3, 6 nz)
-    t_vec, e_c = p.t.T, out[10].T
+    out = [np.asarray(v) for v in fun(np.ones((1, m)), theta[None], p.c, p.t, p.n1, p.n2, p.dn1, p.dn2, p.r_i, p.r_s,
+                                       p.r_in[None], p.r_in_s[None])]  # fmt: skip
+    x, normal, area, e_c = out[0].T, out[1].T, out[2].ravel(), out[3].T
+    minv = out[4].reshape(3, 3, m, order="F").transpose(2, 0, 1)
+    w, w_rho, w_theta = out[5].T, out[6].T, out[7].T  # (m, n_z)
     nt = velocity.coefficients.shape[0]
-    taus = np.empty((nt, m, 3))
+    taus, grads = np.empty((nt, m, 3)), np.empty((nt, m, 3, 3))
+    j, b = basis.spline.local(s, 0)
+    _, db = basis.spline.local(s, 1)
     for k in range(nt):
-        a, a_s = _velocity_blocks(basis, velocity.coefficients[k], s)
-        # [vec(A); vec(A_s)] per point: CasADi's vec is column-major: component c's n_z values, then the next
-        vec = np.concatenate([a.reshape(nz, m, 3).transpose(1, 2, 0).reshape(m, 3 * nz),
-                              a_s.reshape(nz, m, 3).transpose(1, 2, 0).reshape(m, 3 * nz)], axis=1)  # fmt: skip
-        taus[k] = np.einsum("mcj,mj->mc", dtau, vec)
+        rows = np.asarray(velocity.coefficients[k], float).reshape(basis.spline.size, nz, 3)[j[:, None] + np.arange(4)]
+        a = np.einsum("ma,majc->mjc", b, rows)  # (m, n_z, 3): the coefficients at s
+        a_s = np.einsum("ma,majc->mjc", db, rows)
+        d_u = np.stack([np.einsum("mj,mjc->mc", w, a_s), np.einsum("mj,mjc->mc", w_rho, a),
+                        np.einsum("mj,mjc->mc", w_theta, a)], axis=2)  # (m, 3 components, 3 coordinates)  # fmt: skip
+        taus[k], grads[k] = traction(d_u, minv, normal, mu)
         if progress is not None:
             progress.update()
     return WallEvaluation(
-        x=out[2].T, normal=out[3].T, area=out[8].ravel(), u=np.zeros((nt, m, 3)), grad=np.zeros((nt, m, 3, 3)),
-        tau=taus, axial=np.einsum("tmc,mc->tm", taus, t_vec), circumferential=np.einsum("tmc,mc->tm", taus, e_c),
+        x=x, normal=normal, area=area, u=np.zeros((nt, m, 3)), grad=grads, tau=taus,
+        axial=np.einsum("tmc,mc->tm", taus, p.t.T), circumferential=np.einsum("tmc,mc->tm", taus, e_c),
         normal_part=np.zeros((nt, m)),
     )  # fmt: skip
 
