@@ -68,6 +68,16 @@ log = logging.getLogger(__name__)
 
 #: Kernel width (standard deviation, in voxels) of the magnitude levels along s.
 LEVEL_BANDWIDTH_VOXELS = 3.0
+#: IPOPT options of a re-solve from a solution (the outside level's updates): the iterate and the multipliers are
+#: taken as given and the barrier starts small (as the 2D geometry's warm solver,
+#: :data:`wss_nlp.models.geometry.WARM_START`).
+WARM_START = {
+    "ipopt.warm_start_init_point": "yes",
+    "ipopt.mu_init": 1e-9,
+    "ipopt.warm_start_bound_push": 1e-9,
+    "ipopt.warm_start_mult_bound_push": 1e-9,
+    "ipopt.warm_start_slack_bound_push": 1e-9,
+}
 #: The outside level's updates stop when it changes by less than this (relative to the lumen's level).
 OUTSIDE_TOL = 0.01
 #: Over-relaxation of the outside level's updates: the alternation with the wall fit converges linearly (the wall
@@ -305,16 +315,19 @@ class GeometryNLP:
     kept: tuple  # callbacks (CasADi's rule: alive while the functions are)
 
 
-def build_nlp(model: tube.TubeModel, data: np.ndarray, penalty: np.ndarray, reference: np.ndarray,
+def build_nlp(model: tube.TubeModel, data, penalty: np.ndarray, reference: np.ndarray,
               alpha_part: np.ndarray, box_matrix, newton: bool = True) -> GeometryNLP:  # fmt: skip
     """``J(c) = |sqrt|V| (F(c) - m)|^2 + (c - c_ref)^T P_a (c - c_ref) + c^T (P - P_a) c`` (module notes), its
     box rows and its Hessian: ``2 (J^T J + P)`` (Gauss-Newton) plus, with ``newton``, the second-order term
     ``2 sum_i r_i Hess r_i = 2 A^T diag(d) A``, ``d_p = |V| (F_i - m_i) w_p H_gamma''(gap_p)`` (the exact Hessian,
-    quadratic convergence where Gauss-Newton converges linearly on residuals that do not vanish: noise, tissue)."""
+    quadratic convergence where Gauss-Newton converges linearly on residuals that do not vanish: noise, tissue).
+    ``data``: the normalized magnitude of the model's voxels, or a CasADi symbol for it (one solver for several
+    data: the outside level's updates)."""
     sym = tube.symbolic(model)
     c = sym.c
     scale = np.sqrt(model.voxel_volume)
-    residual = scale * (sym.predicted - ca.DM(data))
+    data_expr = data if isinstance(data, ca.MX) else ca.DM(data)
+    residual = scale * (sym.predicted - data_expr)
     dc = c - ca.DM(reference)
     p_alpha = _sparse_dm(alpha_part)
     p_rest = _sparse_dm(penalty - alpha_part)
@@ -326,7 +339,7 @@ def build_nlp(model: tube.TubeModel, data: np.ndarray, penalty: np.ndarray, refe
     kept: tuple = (sym.callbacks, gn, jac)
     if newton:
         curv = tube._Curvature(model)
-        per_point = model.voxel_volume * sym.callbacks[2](sym.predicted - ca.DM(data))
+        per_point = model.voxel_volume * sym.callbacks[2](sym.predicted - data_expr)
         d = per_point * ca.DM(model.weight) * meas.heaviside_curvature(sym.gap, model.gamma, model.heaviside)
         hess = hess + 2 * curv(d)
         kept = kept + (curv,)
@@ -418,6 +431,7 @@ class _Stage:
     upper: Callable
     q: int
     gamma: float
+    solvers: dict = field(default_factory=dict)  # built IPOPT solvers (the data are a parameter), by tolerance
 
 
 def _stage(problem: GeometryProblem3D, basis, options, q, gamma, lower, upper) -> _Stage:
@@ -450,11 +464,21 @@ def _solve(problem: GeometryProblem3D, stage: _Stage, options, x0, reference, al
     lo, hi = stage.lower(ss, pp), stage.upper(ss, pp)
     data = problem.magnitude[stage.position]
     box_matrix = basis.design(ss, pp)
-    nlp = build_nlp(model, data, penalty, reference, alpha_part, box_matrix, options.newton)
-    extra = {"clip_inactive_lam": True, "ipopt.mu_strategy": "adaptive"}
-    solver = gauss_newton_ipopt("vessel_geometry", nlp.c, nlp.f, nlp.g, nlp.hessian, None, tol, options.max_iter,
-                                extra)  # fmt: skip
-    sol, stats = run_nlpsol(solver, f"vessel geometry ({what}, IPOPT)", x0=x0, lbg=lo, ubg=hi)
+    warm = "lam_g" in stage.solvers  # a re-solve from the previous solution: the outside level's updates
+    key = (tol, warm)
+    if key not in stage.solvers:
+        symbol = ca.MX.sym("m", model.n_voxels)
+        nlp = build_nlp(model, symbol, penalty, reference, alpha_part, box_matrix, options.newton)
+        extra = {"clip_inactive_lam": True, "ipopt.mu_strategy": "adaptive"}
+        if warm:
+            extra = {"clip_inactive_lam": True, **WARM_START}
+        solver = gauss_newton_ipopt("vessel_geometry", nlp.c, nlp.f, nlp.g, nlp.hessian, symbol, tol,
+                                    options.max_iter, extra)  # fmt: skip
+        stage.solvers[key] = (solver, nlp)
+    solver, _ = stage.solvers[key]
+    start = {"lam_g0": stage.solvers["lam_g"]} if warm else {}
+    sol, stats = run_nlpsol(solver, f"vessel geometry ({what}, IPOPT)", x0=x0, p=data, lbg=lo, ubg=hi, **start)
+    stage.solvers["lam_g"] = np.asarray(sol["lam_g"]).ravel()
     c = np.asarray(sol["x"]).ravel()
     r = box_matrix @ c
     slack = 1e-6 * float(np.max(hi))
