@@ -12,9 +12,10 @@ OSI's RMS error; mean (max) over the seeds. Seeds: the reported seeds 100-104 (`
 development seeds (``--seeds dev`` or a comma list) for tuning.
 
     python scripts/vessel_accuracy.py [--seeds reported] [--cases arc,swirl,taper,ellipse,helix] [--h 2.0,2.5]
-        [--tissue no,yes] [--pulsatile] [--carotid] [--out scripts/results]
+        [--tissue no,yes] [--pulsatile] [--carotid] [--out scripts/results] [--name vessel_accuracy]
+    python scripts/vessel_accuracy.py --merge NAME1,NAME2,...   # one table from runs split by --name
 
-Writes ``vessel_accuracy.md`` (and the rows as JSON under ``results/studies/``).
+Writes ``<name>.md`` (and the rows as JSON under ``results/studies/``).
 """
 
 import argparse
@@ -63,7 +64,16 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=20)
     p.add_argument("--out", default=RESULTS)
     p.add_argument("--name", default="vessel_accuracy")
+    p.add_argument("--merge", default="", help="make the table from these runs' saved rows (comma list of --name)")
     args = p.parse_args()
+    if args.merge:
+        rows = []
+        for name in args.merge.split(","):
+            with open(os.path.join(args.out, "studies", f"{name}_rows.json")) as fh:
+                rows += json.load(fh)
+        seeds = tuple(sorted({r["seed"] for r in rows}))
+        write_report(args.out, f"{args.name}.md", table(rows, seeds, sys.argv[1:]))
+        return
     seeds = {"reported": REPORTED_SEEDS, "dev": DEVELOPMENT_SEEDS}.get(args.seeds)
     seeds = tuple(int(s) for s in args.seeds.split(",")) if seeds is None else seeds
     hs = [float(v) for v in args.h.split(",")]
