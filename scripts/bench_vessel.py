@@ -67,11 +67,14 @@ def child(case: str, frames: int, changes: dict) -> None:
 def measure(case: str, frames: int, changes: dict) -> dict:
     code = (f"import sys; sys.path.insert(0, {os.path.dirname(os.path.abspath(__file__))!r}); import bench_vessel; "
             f"bench_vessel.child({case!r}, {frames}, {changes!r})")  # fmt: skip
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss  # kB, the largest child so far
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
     row = json.loads(out.stdout.strip().splitlines()[-1])
-    row["peak_mb"] = peak / 1024 if peak > before else float("nan")  # a smaller child leaves the maximum unchanged
+    # kB, the largest child so far: a smaller child leaves the maximum unchanged
+    row["peak_mb"] = after.ru_maxrss / 1024 if after.ru_maxrss > usage.ru_maxrss else float("nan")
+    # the child's CPU time (phantom included): on a loaded machine closer to an idle machine's wall-clock time
+    row["cpu_seconds"] = (after.ru_utime + after.ru_stime) - (usage.ru_utime + usage.ru_stime)
     return row
 
 
@@ -86,13 +89,16 @@ def main() -> None:
         "default options unless the row says otherwise), SNR 20, development seed 0, 2 mm voxels; wall-clock "
         "seconds on 2 cores shared with other jobs (load average at the start: "
         f"{', '.join(f'{v:.1f}' for v in os.getloadavg())}). Peak memory: the subprocess's maximum resident set "
-        "(`getrusage(RUSAGE_CHILDREN)`, phantom included; blank where a row's peak stayed below an earlier row's). "
+        "(`getrusage(RUSAGE_CHILDREN)`, phantom included; blank where a row's peak stayed below an earlier row's); "
+        "CPU seconds: the subprocess's user + system time, the phantom's build (its wall-clock seconds in "
+        "parentheses) included: the code runs on one thread (BLAS limited to one), so on an idle machine the "
+        "wall-clock time is about the CPU time less the phantom's. "
         "Targets: one frame <= 60 s, 20 frames <= 600 s, <= 4096 MB.",
         "Made by `python scripts/bench_vessel.py" + "".join(f" {a}" for a in sys.argv[1:]) + "`.",
         "",
-        "| run | grid | length [mm] | fitted voxels / points | seconds | mask + centreline | geometry | velocity "
-        "| WSS | peak [MB] |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| run | grid | length [mm] | fitted voxels / points | seconds | CPU seconds (with phantom) "
+        "| mask + centreline | geometry | velocity | WSS | peak [MB] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     peak_max = 0.0
     for name, case, frames, changes in rows:
@@ -102,6 +108,7 @@ def main() -> None:
         peak_max = max(peak_max, peak if peak == peak else 0.0)
         cells = [name, "x".join(str(v) for v in r["shape"]) + f" x {r['frames']}", f"{r['length_mm']:.0f}",
                  f"{r['voxels_fitted']} / {r['points']}", f"{r['seconds']:.1f}",
+                 f"{r['cpu_seconds']:.1f} ({r['phantom_seconds']:.1f})",
                  f"{st['segmentation'] + st['centerline']:.1f}", f"{st['geometry']:.1f}", f"{st['velocity']:.1f}",
                  f"{st['wss']:.1f}", "" if peak != peak else f"{peak:.0f}"]  # fmt: skip
         lines.append("| " + " | ".join(cells) + " |")
