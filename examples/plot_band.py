@@ -8,15 +8,18 @@ does). The test suite runs the same comparison with 200 draws (``tests/test_sens
 
 import numpy as np
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.synthetic import phantoms
 from wss_nlp.app import plotting
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 clean, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=None, seed=2026)
 rng = np.random.default_rng(2026)
-banded = reconstruct(phantoms.noisy_copy(clean, 25.0, rng), ReconstructionOptions(beta_rule="fixed"))[0]
+banded = reconstruct(
+    phantoms.noisy_copy(clean, 25.0, rng), ReconstructionOptions(choice=ChoiceOptions(beta_rule="fixed"))
+)[0]
 draws = 40
-options = ReconstructionOptions(beta_rule="fixed", uncertainty=False)
+options = ReconstructionOptions(uncertainty=False, choice=ChoiceOptions(beta_rule="fixed"))
 taus = np.array([reconstruct(phantoms.noisy_copy(clean, 25.0, rng), options)[0].wss.tau for _ in range(draws)])
 sampled = taus.std(axis=0, ddof=1)
 ratio = np.sqrt(np.mean(banded.wss.tau_std**2) / np.mean(sampled**2))

@@ -13,7 +13,7 @@ from matplotlib.figure import Figure
 
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_phantom("turbulent", h_mm=1.5, snr=25, seed=2026)
 fig = Figure(figsize=(8, 3.8))

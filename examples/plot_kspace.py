@@ -12,7 +12,7 @@ from wss_nlp.models import kspace
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.app import plotting
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 psf = kspace.PSF("hamming", (2.0, 2.0))
 acq, truth = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=2026, psf=psf)

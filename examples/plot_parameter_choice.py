@@ -6,12 +6,13 @@ the default balancing principle on the WSS (the smallest beta whose WSS differs 
 regularized ones by no more than their noise). The figures are those ``wss-nlp analyze --figures`` writes.
 """
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.synthetic import phantoms
 from wss_nlp.app import plotting
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=2027)
-res = reconstruct(acq, ReconstructionOptions(alpha_rule="discrepancy", uncertainty=False))[0]
+res = reconstruct(acq, ReconstructionOptions(uncertainty=False, choice=ChoiceOptions(alpha_rule="discrepancy")))[0]
 for choice in (res.alpha_choice, res.beta_choice):
     print(f"{choice.name}: {choice.chosen:.3g} by the {choice.rule} rule (noise estimate {choice.noise:.3g})")
 

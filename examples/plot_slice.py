@@ -9,7 +9,7 @@ sensitivities. The phantom knows its exact wall and WSS, so the errors below are
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.app import plotting
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=2026)
 res = reconstruct(acq, ReconstructionOptions())[0]

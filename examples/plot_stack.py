@@ -10,7 +10,7 @@ import numpy as np
 
 from wss_nlp.synthetic import phantoms
 from wss_nlp.app import plotting
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_stack("tapered", nz=6, h_mm=1.5, spacing_mm=2.0, snr=25, seed=2026)
 results = reconstruct(acq, ReconstructionOptions())

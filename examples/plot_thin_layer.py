@@ -12,7 +12,7 @@ from dataclasses import replace
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.app import plotting
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 acq, truth = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=25, seed=2026)
 default = ReconstructionOptions(uncertainty=False)

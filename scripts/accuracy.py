@@ -29,13 +29,14 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.parameters import rules as pr
 from wss_nlp.models import geometry as geo
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.models import velocity as vel
 from wss_nlp.models import wss
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 TARGET_RADIUS = 0.005  # issue: geometry error <= 0.5 % at every h
 TARGET_WSS_LAMINAR = 0.05  # issue: laminar WSS error <= 5 % at every h
@@ -52,7 +53,10 @@ def oracle_wss_error(acq, truth) -> float:
     betas = pr.geometric_grid(1e-2, 1e-14)
     for k in range(-4, 5):
         opts = ReconstructionOptions(
-            geometry=geo.GeometryOptions(alpha=1e-3 * 4.0**k), uncertainty=False, beta_rule="fixed", velocity=PLAIN
+            geometry=geo.GeometryOptions(alpha=1e-3 * 4.0**k),
+            uncertainty=False,
+            velocity=PLAIN,
+            choice=ChoiceOptions(beta_rule="fixed"),
         )  # beta is scanned below; the fixed rule skips a search
         res = reconstruct(acq, opts)[0]
         g = res.geometry
@@ -68,11 +72,13 @@ def oracle_wss_error(acq, truth) -> float:
 
 AUTO_RULES = {
     "discrepancy": ReconstructionOptions(
-        alpha_rule="discrepancy", beta_rule="discrepancy", uncertainty=False, velocity=PLAIN
+        uncertainty=False, velocity=PLAIN, choice=ChoiceOptions(alpha_rule="discrepancy", beta_rule="discrepancy")
     ),
-    "balance": ReconstructionOptions(alpha_rule="balance", beta_rule="balance", uncertainty=False, velocity=PLAIN),
+    "balance": ReconstructionOptions(
+        uncertainty=False, velocity=PLAIN, choice=ChoiceOptions(alpha_rule="balance", beta_rule="balance")
+    ),
     "fixed alpha, balance beta": ReconstructionOptions(
-        alpha_rule="fixed", beta_rule="balance", uncertainty=False, velocity=PLAIN
+        uncertainty=False, velocity=PLAIN, choice=ChoiceOptions(alpha_rule="fixed", beta_rule="balance")
     ),
 }
 
@@ -138,7 +144,9 @@ def unseen_study(args) -> None:
                 for seed in UNSEEN_SEEDS:
                     acq, truth = phantoms.make_phantom(case, h_mm=h, snr=snr, seed=seed)
                     for rule, v in e.items():
-                        res = reconstruct(acq, ReconstructionOptions(uncertainty=False, beta_rule=rule))[0]
+                        res = reconstruct(
+                            acq, ReconstructionOptions(uncertainty=False, choice=ChoiceOptions(beta_rule=rule))
+                        )[0]
                         v.append(metrics.compare_slice(res, truth).wss_rel_l2)
                 lines.append(
                     f"| {case} | {h:g} | {snr:g} | "

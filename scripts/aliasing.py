@@ -27,7 +27,7 @@ from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.errors import InputError
 from wss_nlp.pipeline.plausibility import ScreenOptions
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 FRACTIONS = (0.8, 0.6, 0.45, 0.35)
 SEED0 = 300  # seeds 300.. : not used by any test or by the choice of the screen's thresholds

@@ -31,7 +31,7 @@ from _report import write_report
 from wss_nlp.models import geometry as geo
 from wss_nlp.synthetic import phantoms
 from wss_nlp.core import velocity_basis as vb
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 TARGET_S = 0.25  # issue 19: a default slice without the band in at most 0.25 s at every h
 TARGET_WITH_BAND = 0.5  # issue 19: ... and with the band in at most 0.5 s

@@ -19,7 +19,7 @@ import numpy as np
 from _report import RESULTS, write_report
 from wss_nlp.models import geometry as geo
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 
 def main(argv=None):

@@ -24,7 +24,7 @@ from wss_nlp.pipeline import cine
 from wss_nlp.synthetic import pulsatile
 from wss_nlp.models import womersley
 from wss_nlp.models import geometry as geo
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 TARGET_RATIO = 10.0
 

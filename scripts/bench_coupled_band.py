@@ -34,7 +34,7 @@ from _report import RESULTS, write_report
 from wss_nlp.models import coupled as cpl
 from wss_nlp.synthetic import phantoms
 from wss_nlp.uncertainty import sensitivity as sens
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 from wss_nlp.core.solver import DenseCall
 
 

@@ -23,7 +23,7 @@ from _report import RESULTS, write_report
 from bench import fresh
 from wss_nlp.models import kspace
 from wss_nlp.synthetic import phantoms as ph
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 TARGET_RATIO = 2.0
 
@@ -63,8 +63,8 @@ def main(argv=None):
         box, ksp = float(np.median(times["box"])), float(np.median(times["kspace"]))
         sec = split["kspace"][0]
         deph = sec.get("dephasing_check", 0.0) + sec.get("dephasing_pass", 0.0)
-        passes = " / ".join(str(split[m][1].get("passes", 0)) for m in times)
-        factors = " / ".join(f"{split[m][1]['min_factor']:.3f}" for m in times)
+        passes = " / ".join(str(split[m][1].passes or 0) for m in times)
+        factors = " / ".join(f"{split[m][1].min_factor:.3f}" for m in times)
         lines.append(
             f"| {h:g} | {box:.2f} | {ksp:.2f} | {ksp / box:.1f}{'' if ksp / box <= TARGET_RATIO else ' (missed)'} | "
             f"{sec['geometry']:.2f} / {sec['velocity']:.2f} / {deph:.2f}"

@@ -24,7 +24,7 @@ TARGET_MB = 1024  # issue 19: coupled at h = 0.3 mm within 1 GB, with the band t
 CHILD = """
 import json, resource, sys, time
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 case, h, method, band = sys.argv[1], float(sys.argv[2]), sys.argv[3], sys.argv[4] == "1"
 acq, _ = phantoms.make_phantom(case, h_mm=h, snr=25, seed=100)
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

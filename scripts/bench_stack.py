@@ -16,18 +16,21 @@ import time
 from dataclasses import replace
 
 from _report import RESULTS, write_report
+from wss_nlp.pipeline import driver
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline import steps as pipeline
 from wss_nlp.models import stack
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 TARGET_100_S = 60.0  # issue 6: 100 slices at h = 1 mm in under 60 s on 2 cores
 
 
 def run(acq, strategy, method="decoupled"):
     t0 = time.perf_counter()
-    _, info = pipeline.reconstruct_stack(
-        acq, ReconstructionOptions(beta_rule="fixed", method=method), stack.StackOptions(strategy=strategy)
+    _, info = driver.reconstruct_stack(
+        acq,
+        ReconstructionOptions(method=method, choice=ChoiceOptions(beta_rule="fixed")),
+        stack.StackOptions(strategy=strategy),
     )
     total = time.perf_counter() - t0
     band = info.seconds.get("uncertainty", 0.0)
@@ -79,7 +82,7 @@ def main(argv=None):
         acq, _ = phantoms.make_stack("curved", nz=n, h_mm=1.5, spacing_mm=2.0, snr=15, seed=3)
         sec, band, info = run(acq, "auto", "coupled")
         t0 = time.perf_counter()
-        opts = ReconstructionOptions(beta_rule="fixed", method="coupled", uncertainty=False)
+        opts = ReconstructionOptions(method="coupled", uncertainty=False, choice=ChoiceOptions(beta_rule="fixed"))
         reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=0.0)))
         alone = time.perf_counter() - t0
         lines.append(f"| {n} | {sec:.1f} | {info.seconds.get('coupled', 0):.1f} | {band:.1f} | {alone:.1f} |")

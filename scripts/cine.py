@@ -39,7 +39,7 @@ from _report import study_parser, write_report
 from wss_nlp.pipeline import cine
 from wss_nlp.models import kspace, womersley
 from wss_nlp.synthetic import pulsatile
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions
+from wss_nlp.pipeline import ReconstructionOptions
 
 METHODS = {
     "independent": ReconstructionOptions(cine=womersley.CineModelOptions(model="independent")),

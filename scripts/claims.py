@@ -23,14 +23,15 @@ import os
 import numpy as np
 
 from _report import write_report
+from wss_nlp.pipeline import driver
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.models import baselines as bl
 from wss_nlp.models import geometry as geo
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline import steps as pipeline
 from wss_nlp.models import stack
 from wss_nlp.models import velocity as vel
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 
 def main():
@@ -43,7 +44,7 @@ def main():
     acq, truth = phantoms.make_phantom("circle", h_mm=0.6, snr=None, seed=1)
     for t in (1, 2):
         vo = vel.VelocityOptions(degree=10, angular_order=None, inner_fraction=1.0, laplacian_power=t, beta=1e-4)
-        res = reconstruct(acq, ReconstructionOptions(velocity=vo, beta_rule="fixed"))[0]
+        res = reconstruct(acq, ReconstructionOptions(velocity=vo, choice=ChoiceOptions(beta_rule="fixed")))[0]
         lines.append(f"| t = {t} | {metrics.compare_slice(res, truth).mean_wss_rel:+.3%} |")
     lines += [
         "",
@@ -74,7 +75,10 @@ def main():
         cells = []
         for method in ("decoupled", "coupled"):
             opts = ReconstructionOptions(
-                method=method, uncertainty=False, velocity=vel.VelocityOptions(beta=beta), beta_rule="fixed"
+                method=method,
+                uncertainty=False,
+                velocity=vel.VelocityOptions(beta=beta),
+                choice=ChoiceOptions(beta_rule="fixed"),
             )
             e = metrics.compare_slice(reconstruct(acq, opts)[0], truth)
             cells.append(f"{e.radius_rel_l2:.2%} / {e.wss_rel_l2:.1%}")
@@ -107,7 +111,9 @@ def main():
                 ("inner fraction 1", vel.VelocityOptions(inner_fraction=1.0), "balance"),
             ]
         for name, vo, rule in variants:
-            res = reconstruct(acq, ReconstructionOptions(uncertainty=False, velocity=vo, beta_rule=rule))
+            res = reconstruct(
+                acq, ReconstructionOptions(uncertainty=False, velocity=vo, choice=ChoiceOptions(beta_rule=rule))
+            )
             errs = []
             for k, r in enumerate(res):
                 z = 2.0 * k
@@ -127,7 +133,7 @@ def main():
         acq, _ = phantoms.make_stack(case, nz=12, h_mm=1.0, spacing_mm=2.0, snr=25, seed=0)
         cells = []
         for ell in (2.0, 4.0):
-            _, info = pipeline.reconstruct_stack(
+            _, info = driver.reconstruct_stack(
                 acq,
                 ReconstructionOptions(uncertainty=False),
                 stack.StackOptions(z_smoothing_mm=ell, strategy="kaczmarz"),

@@ -17,10 +17,11 @@ import time
 import numpy as np
 
 from _report import study_parser, write_report
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.errors import WssNlpError
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 TARGET_TIME_RATIO = 5.0  # issue: the coupled solve at h = 1 mm takes at most 5x the decoupled time
 
@@ -41,7 +42,9 @@ def main(argv=None):
                         out = {}
                         for m in methods:
                             t0 = time.perf_counter()
-                            opts = ReconstructionOptions(method=m, uncertainty=False, beta_rule="fixed")
+                            opts = ReconstructionOptions(
+                                method=m, uncertainty=False, choice=ChoiceOptions(beta_rule="fixed")
+                            )
                             out[m] = (reconstruct(acq, opts)[0], time.perf_counter() - t0)
                     except WssNlpError as exc:  # both methods share the preprocessing; count, report, go on
                         failed += 1

@@ -23,7 +23,7 @@ from _report import RESULTS, write_report
 from bench import fresh
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 SEEDS = (100, 101, 102)
 

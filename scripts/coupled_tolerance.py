@@ -19,7 +19,7 @@ import numpy as np
 from _report import RESULTS, write_report
 from wss_nlp.synthetic import phantoms
 from wss_nlp.models.coupled import CoupledOptions
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 CASES = ("manufactured", "turbulent550", "entrance", "turbulent-ellipse")
 TOLERANCES = (1e-6, 1e-5, 1e-4, 1e-3)  # the first is the reference

@@ -27,7 +27,7 @@ from _report import study_parser, write_report
 from wss_nlp.models import kspace
 from wss_nlp.synthetic import phantoms as ph
 from wss_nlp.core import radius as rad
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 SEED0 = 100
 ACQUISITIONS = {"none, F = 1": kspace.PSF("none", (1.0, 1.0)), "hamming, F = 2": kspace.PSF("hamming", (2.0, 2.0))}

@@ -29,7 +29,7 @@ from _report import study_parser, write_report
 from wss_nlp.models import kspace
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms as ph
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 SEED0 = 100
 #: (label, reported voxel size in mm, acquisition of the phantom (None: voxel means), model)

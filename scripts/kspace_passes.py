@@ -2,7 +2,7 @@
 """The k-space dephasing passes with and without the first-order prediction that skips a final pass.
 
 A k-space slice repeats its dephasing pass until the wall moves less than ``KSPACE_PASS_TOL`` voxels
-(``wss_nlp.pipeline.reconstruct``). With ``KSPACE_PASS_PREDICTION`` (the default) a pass whose move the geometry's
+(``wss_nlp.pipeline.driver``). With ``KSPACE_PASS_PREDICTION`` (the default) a pass whose move the geometry's
 first-order response (``IpoptGeometrySolver.response``) predicts below that tolerance is not run; without
 it, it is run and then ends the iteration. Both on the same development slices (seeds 0, 1; not the
 report seeds 100-104 of ``scripts/kspace.py``): three flows, three acquisitions (no filter F = 1, Hamming
@@ -24,7 +24,8 @@ from _report import study_parser, write_report
 from bench import fresh
 from wss_nlp.models import kspace
 from wss_nlp.synthetic import phantoms as ph
-from wss_nlp.pipeline import reconstruct as rc
+from wss_nlp.pipeline import ReconstructionOptions
+from wss_nlp.pipeline import driver as rc
 
 ACQUISITIONS = {
     "none, F = 1": kspace.PSF("none", (1.0, 1.0)),
@@ -35,7 +36,7 @@ ACQUISITIONS = {
 
 def _run(acq, psf, predict: bool) -> tuple:
     rc.KSPACE_PASS_PREDICTION = predict
-    options = rc.ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", psf.filter))
+    options = ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", psf.filter))
     fresh()
     t0 = time.perf_counter()
     r = rc.reconstruct(acq, options)[0]
@@ -67,7 +68,7 @@ def main(argv=None):
                         for seed in range(args.seeds):
                             acq, truth = ph.make_phantom(case, h_mm=h, snr=snr, seed=seed, psf=psf)
                             out = [_run(acq, psf, predict) for predict in (False, True)]
-                            counts = [r.dephasing.get("passes", 0) for r, _ in out]
+                            counts = [r.dephasing.passes or 0 for r, _ in out]
                             passes += counts
                             fewer += counts[1] < counts[0]
                             taus = [r.wss.tau for r, _ in out]

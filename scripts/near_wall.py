@@ -21,7 +21,7 @@ from _report import study_parser, write_report
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.models import velocity as vel
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 CASES = "laminar,circle,fourier,manufactured,entrance,turbulent,turbulent550,turbulent1000,turbulent-ellipse"
 FIRST_SEED = 100

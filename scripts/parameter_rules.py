@@ -35,11 +35,11 @@ from wss_nlp.models import preprocess as pp
 from wss_nlp.core import radius as rad
 from wss_nlp.models import velocity as vel
 from wss_nlp.models import wss
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions
+from wss_nlp.pipeline import ReconstructionOptions
 from wss_nlp.core.tikhonov import LinearTikhonov
 
 RULES = ("fixed", "DP tau=1.1", "DP tau=2", "GCV", "L-curve", "balance")
-KAPPA = ReconstructionOptions().kappa_beta
+KAPPA = ReconstructionOptions().choice.kappa_beta
 FLOOR_BETAS = (1e-7, 1e-9, 1e-11, 1e-13, 1e-14)
 
 

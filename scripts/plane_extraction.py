@@ -22,7 +22,7 @@ from _report import study_parser, write_report
 from wss_nlp.io import importing, scanner
 from wss_nlp.synthetic import scanner_exports as se
 from wss_nlp.io.plane import Plane
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 
 def main() -> None:

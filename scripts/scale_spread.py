@@ -22,7 +22,7 @@ import numpy as np
 
 from _report import study_parser, write_report
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 FIRST_SEED = 100
 CASE = "entrance"

@@ -18,10 +18,11 @@ from dataclasses import replace
 import numpy as np
 
 from _report import study_parser, write_report
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.models import stack
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 VARIANTS = {
     "independent": stack.StackOptions(z_smoothing_mm=0.0),
@@ -53,7 +54,7 @@ def main(argv=None):
                         case, nz=12, h_mm=float(args.h), spacing_mm=2.0, snr=snr, seed=seed
                     )
                     rule = "balance" if case == "turbulent" else "fixed"
-                    options = ReconstructionOptions(uncertainty=False, stack=st, beta_rule=rule)
+                    options = ReconstructionOptions(uncertainty=False, stack=st, choice=ChoiceOptions(beta_rule=rule))
                     if name == "z-reg., plain basis":
                         options = replace(options, velocity=replace(options.velocity, near_wall="off"))
                     res = reconstruct(acq, options)

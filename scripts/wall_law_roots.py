@@ -14,8 +14,8 @@ flag the slice when it exceeds the band. The roots are read by wrapping the priv
 from _report import RESULTS, write_report
 from wss_nlp.models import near_wall as nw
 from wss_nlp.synthetic import phantoms
-from wss_nlp.parameters import choice
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.parameters import layer as choice
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 CASES = ("turbulent", "turbulent-ellipse", "turbulent550", "turbulent1000")
 SEEDS = (100, 101)

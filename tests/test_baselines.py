@@ -9,7 +9,7 @@ from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.app.cli import main
 from wss_nlp.errors import NoVesselError
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 
 def _run(acq, method):

@@ -8,6 +8,7 @@ import json
 import numpy as np
 import pytest
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.core import checks
 from wss_nlp.models import coupled as cpl
 from wss_nlp.models import geometry as geo
@@ -18,7 +19,7 @@ from wss_nlp.models import near_wall as nw
 from wss_nlp.models import velocity as vel
 from wss_nlp.app.cli import main
 from wss_nlp.errors import InputError
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 from wss_nlp.core.velocity_basis import make_basis
 
 from conftest import assert_coupled_jacobian_is_exact
@@ -334,7 +335,9 @@ def test_coupled_converges_where_a_sharp_inside_fraction_stalled():
     sat 2e-5 mm from the wall at the stall) converges with the smoothed one, by Gauss-Newton alone and within a
     wall move of the start's margin; its WSS error is its neighbours' (7.1 %; below 10 %)."""
     acq, truth = phantoms.make_phantom("turbulent", h_mm=1.0, snr=25, seed=4)
-    res = reconstruct(acq, ReconstructionOptions(method="coupled", uncertainty=False, beta_rule="fixed"))[0]
+    res = reconstruct(
+        acq, ReconstructionOptions(method="coupled", uncertainty=False, choice=ChoiceOptions(beta_rule="fixed"))
+    )[0]
     extra = res.velocity.stats.extra
     assert res.converged and res.near_wall.model == "wall_law"
     assert extra["hessian"] == "gauss-newton" and extra["margin_passes"] == 1

@@ -10,9 +10,10 @@ h = 1.0 and 0.3 mm, SNR 25.
 
 import pytest
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 
 @pytest.mark.parametrize("h", [1.0, 0.3])
@@ -40,7 +41,7 @@ def test_dephasing_prediction_from_gcv_fit_reduces_turbulent_radius_error():
     acq, truth = phantoms.make_phantom("turbulent", h_mm=1.5, snr=25, seed=21)
     errs = {
         rule: metrics.compare_slice(
-            reconstruct(acq, ReconstructionOptions(dephasing_beta_rule=rule))[0], truth
+            reconstruct(acq, ReconstructionOptions(choice=ChoiceOptions(dephasing_beta_rule=rule)))[0], truth
         ).radius_rel_l2
         for rule in ("gcv", "same")
     }

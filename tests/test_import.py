@@ -24,7 +24,7 @@ from wss_nlp.synthetic import phantoms  # noqa: E402
 from wss_nlp.synthetic import scanner_exports as se  # noqa: E402
 from wss_nlp.app.cli import main  # noqa: E402
 from wss_nlp.errors import InputError  # noqa: E402
-from wss_nlp.pipeline.reconstruct import reconstruct  # noqa: E402
+from wss_nlp.pipeline import reconstruct  # noqa: E402
 from wss_nlp.io.scanner import ImportOptions, write_import  # noqa: E402
 
 OBLIQUE = {"row_dir": (0.0, 0.6, 0.8), "col_dir": (1.0, 0.0, 0.0)}  # a double-oblique plane, normal (0, 0.8, -0.6)

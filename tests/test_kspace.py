@@ -10,6 +10,7 @@ import pytest
 
 import casadi as ca
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.core import checks
 from wss_nlp.app import cli
 from wss_nlp.models import kspace
@@ -21,12 +22,13 @@ from wss_nlp.models import measurement as meas
 from wss_nlp.synthetic import phantoms as ph
 from wss_nlp.models import preprocess as pp
 from wss_nlp.core import radius as rad
-from wss_nlp.pipeline import reconstruct as rc
+from wss_nlp.pipeline import ReconstructionOptions
+from wss_nlp.pipeline import driver as rc
 from wss_nlp.models import velocity as vel
 from wss_nlp.parameters import noise as nl
 from wss_nlp.uncertainty import sensitivity as sens
 from wss_nlp.models import wss as wss_mod
-from wss_nlp.parameters.choice import choose_alpha
+from wss_nlp.parameters.alpha import choose_alpha
 from wss_nlp.errors import InputError
 
 from conftest import assert_coupled_jacobian_is_exact
@@ -210,8 +212,10 @@ def test_alpha_rules_of_the_two_geometry_solvers_agree_on_kspace_data():
     problem = geo.GeometryProblem(acq.grid, m, lumen.center, lumen.r0, lumen.r1, lumen.r_area, psf=psf)
     choices = []
     for solver in ("ipopt", "gauss-newton"):
-        options = rc.ReconstructionOptions(alpha_rule="discrepancy", geometry=geo.GeometryOptions(solver=solver))
-        _, choice = choose_alpha(problem, acq.magnitude[0], norm, lumen, options, "test")
+        options = ReconstructionOptions(
+            geometry=geo.GeometryOptions(solver=solver), choice=ChoiceOptions(alpha_rule="discrepancy")
+        )
+        _, choice = choose_alpha(problem, acq.magnitude[0], norm, lumen, options.geometry, options.choice, "test")
         choices.append(choice)
     assert choices[0].noise == pytest.approx(choices[1].noise, rel=1e-12)
     assert choices[0].chosen == choices[1].chosen
@@ -287,11 +291,11 @@ def test_noise_free_kspace_reconstruction_gets_laminar_wss_within_one_percent(ki
     acq, truth = ph.make_phantom("laminar", h_mm=1.0, snr=None, seed=5, psf=psf)
     errors = {}
     for model in ("kspace", "box"):
-        options = rc.ReconstructionOptions(
+        options = ReconstructionOptions(
             uncertainty=False,
-            beta_rule="fixed",
             velocity=vel.VelocityOptions(beta=1e-9),
             acquisition=kspace.AcquisitionOptions(model, kind),
+            choice=ChoiceOptions(beta_rule="fixed"),
         )
         r = rc.reconstruct(acq, options)[0]
         errors[model] = abs(r.wss.mean - truth.mean_wss) / truth.mean_wss
@@ -347,7 +351,7 @@ class KSpacePipeline:
 
     def __init__(self):
         acq, _ = ph.make_phantom("laminar", h_mm=1.5, snr=25, seed=13, psf=KSPACE)
-        options = rc.ReconstructionOptions(
+        options = ReconstructionOptions(
             uncertainty=False, dephasing_correction=False, acquisition=kspace.AcquisitionOptions("kspace", "hamming")
         )
         self.res, self.mu = rc.reconstruct(acq, options)[0], acq.viscosity_pa_s
@@ -442,9 +446,9 @@ def test_kspace_band_agrees_with_monte_carlo():
 
     how = kspace.AcquisitionOptions("kspace", "hamming")
     vopt = vel.VelocityOptions(near_wall="off")
-    base = dict(beta_rule="fixed", acquisition=how, noise_sigma=sigma, velocity=vopt)
-    banded = rc.reconstruct(draw(), rc.ReconstructionOptions(**base))[0]
-    means = [rc.reconstruct(draw(), rc.ReconstructionOptions(uncertainty=False, **base))[0].wss.mean for _ in range(80)]
+    base = dict(choice=ChoiceOptions(beta_rule="fixed"), acquisition=how, noise_sigma=sigma, velocity=vopt)
+    banded = rc.reconstruct(draw(), ReconstructionOptions(**base))[0]
+    means = [rc.reconstruct(draw(), ReconstructionOptions(uncertainty=False, **base))[0].wss.mean for _ in range(80)]
     assert banded.wss.mean_std == pytest.approx(np.std(means, ddof=1), rel=0.25)
 
 
@@ -470,7 +474,7 @@ def test_noise_estimate_subtracts_the_psf_tails():
     for seed in range(30, 36):
         acq, _ = ph.make_phantom("laminar", h_mm=1.5, snr=25, seed=seed, psf=KSPACE)
         how = kspace.AcquisitionOptions("kspace", "hamming")
-        r = rc.reconstruct(acq, rc.ReconstructionOptions(uncertainty=False, acquisition=how))[0]
+        r = rc.reconstruct(acq, ReconstructionOptions(uncertainty=False, acquisition=how))[0]
         raw = acq.magnitude[0]
         plain.append(nl.complex_noise_sigma(raw, r.lumen.noise_mask))
         corrected.append(nl.complex_noise_sigma(raw, r.lumen.noise_mask, r.lumen.signal))
@@ -485,7 +489,7 @@ def test_kspace_stack_reconstructs_every_slice():
     psf = kspace.PSF("hamming", (1.0, 1.0))
     acq, truth = ph.make_stack("tapered", nz=3, h_mm=1.0, spacing_mm=2.0, snr=30.0, seed=11, psf=psf)
     for model, ok in (("kspace", True), ("box", False)):
-        options = rc.ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions(model, "hamming"))
+        options = ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions(model, "hamming"))
         results = rc.reconstruct(acq, options)
         errors = [abs(r.wss.mean - t.mean_wss) / t.mean_wss for r, t in zip(results, truth.slices)]
         assert (max(errors) < 0.05) == ok, (model, errors)
@@ -516,14 +520,14 @@ def test_filter_auto_finds_the_scanner_filter_and_records_the_choice(kind):
     for seed in (40, 41):
         acq, _ = ph.make_phantom("laminar", h_mm=1.0, snr=25, seed=seed, psf=psf)
         how = kspace.AcquisitionOptions("kspace", "auto")
-        r = rc.reconstruct(acq, rc.ReconstructionOptions(uncertainty=False, acquisition=how))[0]
+        r = rc.reconstruct(acq, ReconstructionOptions(uncertainty=False, acquisition=how))[0]
         record = r.geometry.options["acquisition"]
         assert record["kspace_filter"] == kind
         choice = record["filter_choice"]
         assert choice["chosen"] == kind and set(choice["misfits_mm"]) == set(kspace.FILTERS)
         assert choice["margin"] > 0.05 and not choice["ambiguous"]
         named = kspace.AcquisitionOptions("kspace", kind)
-        same = rc.reconstruct(acq, rc.ReconstructionOptions(uncertainty=False, acquisition=named))[0]
+        same = rc.reconstruct(acq, ReconstructionOptions(uncertainty=False, acquisition=named))[0]
         assert r.wss.mean == pytest.approx(same.wss.mean, rel=1e-9)
 
 
@@ -532,15 +536,15 @@ def test_acquisition_auto_follows_the_file_and_the_box_model_on_zero_filled_data
     resolution and the box model otherwise; the box model forced onto a zero-filled file flags the slice."""
     psf = kspace.PSF("hamming", (2.0, 2.0))
     acq, _ = ph.make_phantom("circle", h_mm=1.5, snr=30, seed=42, psf=psf)
-    r = rc.reconstruct(acq, rc.ReconstructionOptions(uncertainty=False))[0]
+    r = rc.reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
     assert r.geometry.options["acquisition"]["model"] == "kspace"
     assert r.geometry.options["acquisition"]["zero_fill"] == [2.0, 2.0]
-    boxed = rc.reconstruct(
-        acq, rc.ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("box"))
-    )[0]
+    boxed = rc.reconstruct(acq, ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("box")))[
+        0
+    ]
     assert boxed.screen["suspect"] and any("zero-filled" in n for n in boxed.notes)
     plain, _ = ph.make_phantom("circle", h_mm=1.5, snr=30, seed=42)
-    r = rc.reconstruct(plain, rc.ReconstructionOptions(uncertainty=False))[0]
+    r = rc.reconstruct(plain, ReconstructionOptions(uncertainty=False))[0]
     assert r.geometry.options["acquisition"] == {"model": "box"}
 
 
@@ -600,7 +604,7 @@ def kspace_coupled():
     """A decoupled k-space reconstruction (Hamming, twofold zero-filling, h = 1.5, SNR 25, seed 13) and the
     coupled NLP built on it (velocity weight 1e4 mm^2/(m/s)^2, its alpha and beta)."""
     acq, _ = ph.make_phantom("laminar", h_mm=1.5, snr=25, seed=13, psf=KSPACE)
-    options = rc.ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "hamming"))
+    options = ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "hamming"))
     res = rc.reconstruct(acq, options)[0]
     lum, g, v = res.lumen, res.geometry, res.velocity
     problem = geo.GeometryProblem(res.grid, res.magnitude, lum.center, lum.r0, lum.r1, lum.r_area, psf=KSPACE)
@@ -657,13 +661,13 @@ def test_noise_free_coupled_kspace_gets_laminar_wss_within_one_percent():
     acq, truth = ph.make_phantom("laminar", h_mm=1.0, snr=None, seed=5, psf=KSPACE)
     errors = {}
     for method, model in (("coupled", "kspace"), ("decoupled", "kspace"), ("coupled", "box")):
-        options = rc.ReconstructionOptions(
+        options = ReconstructionOptions(
             method=method,
             uncertainty=False,
-            beta_rule="fixed",
             velocity=vel.VelocityOptions(beta=1e-9),
             coupled=cpl.CoupledOptions(velocity_weight=1e4),
             acquisition=kspace.AcquisitionOptions(model, "hamming"),
+            choice=ChoiceOptions(beta_rule="fixed"),
         )
         r = rc.reconstruct(acq, options)[0]
         assert r.converged and r.method == method
@@ -681,7 +685,7 @@ def test_coupled_kspace_converges_on_unfiltered_low_snr_slices():
     KSPACE_VOXEL_SIGNAL = 0.1); seeds 105-108 here were not used for that."""
     for seed in range(105, 109):
         acq, truth = ph.make_phantom("laminar", h_mm=1.0, snr=10, seed=seed, psf=kspace.PSF("none", (1.0, 1.0)))
-        options = rc.ReconstructionOptions(
+        options = ReconstructionOptions(
             method="coupled", uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "none")
         )
         r = rc.reconstruct(acq, options)[0]
@@ -694,7 +698,7 @@ def test_coupled_kspace_sensitivities_match_resolves(kspace_coupled):
     the k-space centre derivative) against central differences of coupled re-solves: alpha, beta, the
     centre and a random velocity direction, to 1e-4 relative as for the box model (tests/test_sensitivity.py)."""
     res, problem, _ = kspace_coupled
-    options = rc.ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "hamming"))
+    options = ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "hamming"))
     start_g, start_v = res.geometry, res.velocity
     mu = 4e-3
 
@@ -752,18 +756,18 @@ def test_dephasing_passes_stop_when_the_next_one_would_not_move_the_wall(monkeyp
     Laminar flow, Hamming PSF, h = 0.6 mm, seed 17 (not used to tune)."""
     psf = kspace.PSF("hamming", (1.0, 1.0))
     acq, _ = ph.make_phantom("laminar", h_mm=0.6, snr=25, seed=17, psf=psf)
-    options = rc.ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "hamming"))
+    options = ReconstructionOptions(uncertainty=False, acquisition=kspace.AcquisitionOptions("kspace", "hamming"))
     short = rc.reconstruct(acq, options)[0]
-    assert short.dephasing["passes"] >= 1
-    assert short.dephasing["next_move"] < rc.KSPACE_PASS_TOL
+    assert short.dephasing.passes >= 1
+    assert short.dephasing.next_move < rc.KSPACE_PASS_TOL
     monkeypatch.setattr(rc, "KSPACE_PASS_PREDICTION", False)
     full = rc.reconstruct(acq, options)[0]
-    assert full.dephasing["passes"] == short.dephasing["passes"] + 1
+    assert full.dephasing.passes == short.dephasing.passes + 1
     phi = rad.uniform_angles(72)
     moved = np.max(np.abs(full.geometry.radius(phi) - short.geometry.radius(phi)))
     assert moved < rc.KSPACE_PASS_TOL * acq.grid.h
     # the prediction itself: within 5 % of the move it predicted (measured 1e-4)
-    assert moved / acq.grid.h == pytest.approx(short.dephasing["next_move"], rel=0.05)
+    assert moved / acq.grid.h == pytest.approx(short.dephasing.next_move, rel=0.05)
     assert abs(full.wss.mean - short.wss.mean) < 1e-3 * abs(full.wss.mean)
 
 

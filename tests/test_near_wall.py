@@ -8,6 +8,8 @@ import scipy.integrate
 
 import casadi as ca
 
+from wss_nlp.pipeline import driver
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.app import cli
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
@@ -18,7 +20,7 @@ from wss_nlp.models import velocity as vel
 from wss_nlp.models import wss as wss_mod
 from wss_nlp.errors import InputError
 from wss_nlp.core.mapping import DiskMap
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 from wss_nlp.core.velocity_basis import make_basis
 
 BASE = make_basis("zernike", 20, 400.0, 6)
@@ -206,9 +208,9 @@ def test_bulk_reynolds_number_and_regime():
     vp = vel.assemble(res.grid, res.velocity_image, g.coefficients, g.center, ReconstructionOptions().velocity)
     nu = 3.5e-3 / 1060.0
     assert nw.bulk_reynolds(vp, nu) == pytest.approx(0.2 * 0.02 / nu, rel=0.02)
-    assert nw.regime_family(1211) == "exponential" and nw.regime_family(5300) == "wall_law"
+    assert nw.regime_families(1211) == ("exponential",) and nw.regime_families(5300) == ("wall_law",)
     # the scan's starting point: Blasius's law at the DNS's bulk Reynolds number 5300 gives its Re_tau 180.9 (1 %)
-    from wss_nlp.parameters.choice import blasius_scale
+    from wss_nlp.parameters.layer import blasius_scale
 
     assert 2.0 ** -blasius_scale(5300.0) == pytest.approx(180.9, rel=0.01)
 
@@ -276,10 +278,10 @@ def test_band_with_a_fixed_layer_matches_monte_carlo():
     assert first.near_wall.model == "wall_law" and np.isfinite(first.wss.mean_std)
     fixed = ReconstructionOptions(
         uncertainty=False,
-        beta_rule="fixed",
         velocity=vel.VelocityOptions(
             near_wall="wall_law", layer_scale_mm=first.near_wall.scale_mm, beta=first.beta_choice.chosen
         ),
+        choice=ChoiceOptions(beta_rule="fixed"),
     )
     band = reconstruct(phantoms.noisy_copy(acq0, 25, rng), replace(fixed, uncertainty=True))[0].wss.mean_std
     means = [reconstruct(phantoms.noisy_copy(acq0, 25, rng), fixed)[0].wss.mean for _ in range(24)]
@@ -337,7 +339,7 @@ def test_wall_law_roots_within_the_margin_give_the_scale_spread_and_the_flag(mon
     root only; a rival outside the margin leaves both NaN. On the
     phantoms the other roots lie 300-450 above (Re_tau 180) or do not exist (Re_tau 549, 998), so the rival
     here is planted a quarter octave from the real root, its fit the real one at that scale."""
-    from wss_nlp.parameters import choice as ch
+    from wss_nlp.parameters import layer as ch
 
     acq, _ = phantoms.make_phantom("turbulent", h_mm=1.5, snr=25.0, seed=24)
     real = ch._wall_law_scale
@@ -374,8 +376,7 @@ def test_a_z_regularized_stack_flags_rival_wall_law_scales(monkeypatch):
     do: a rival root planted half an octave from the real one, within the margin, on a two-slice Re_tau 549
     stack (h = 1.5 mm, SNR 25, seed 5): every slice carries the spread (measured 17-19 %, band about 1 % of the
     mean) and the warning."""
-    from wss_nlp.pipeline import steps as pipeline
-    from wss_nlp.parameters import choice as ch
+    from wss_nlp.parameters import layer as ch
 
     real = ch._wall_law_scale
 
@@ -385,7 +386,7 @@ def test_a_z_regularized_stack_flags_rival_wall_law_scales(monkeypatch):
 
     monkeypatch.setattr(ch, "_wall_law_scale", planted)
     acq, _ = phantoms.make_stack("turbulent", nz=2, h_mm=1.5, snr=25.0, seed=5)
-    slices, _ = pipeline.reconstruct_stack(acq, ReconstructionOptions())
+    slices, _ = driver.reconstruct_stack(acq, ReconstructionOptions())
     for r in slices:
         assert r.near_wall.consistent and r.near_wall.scale_wss_spread * abs(r.wss.mean) > r.wss.mean_std
         assert any("layer scale ambiguous" in n for n in r.notes)

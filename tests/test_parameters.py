@@ -3,7 +3,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from wss_nlp.parameters import choice as ch
+from wss_nlp.parameters.options import ChoiceOptions
+from wss_nlp.parameters import layer as ch
 from wss_nlp.parameters import noise as nl
 
 from wss_nlp.parameters import rules as pr
@@ -139,11 +140,15 @@ def test_balance_beta_on_laminar_phantom_is_close_to_the_oracle():
     """
     from wss_nlp.synthetic import phantoms
     from wss_nlp.models import wss
-    from wss_nlp.pipeline.reconstruct import BETA_STOP, ReconstructionOptions, reconstruct
+    from wss_nlp.parameters.beta import BETA_STOP
+    from wss_nlp.pipeline import ReconstructionOptions, reconstruct
     from wss_nlp.models import velocity as vel
 
     acq, truth = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=21)
-    res = reconstruct(acq, ReconstructionOptions(beta_rule="balance", uncertainty=False, dephasing_correction=False))[0]
+    res = reconstruct(
+        acq,
+        ReconstructionOptions(uncertainty=False, dephasing_correction=False, choice=ChoiceOptions(beta_rule="balance")),
+    )[0]
     ch = res.beta_choice
     assert ch.rule == "balance" and ch.criterion[list(ch.parameters).index(ch.chosen)] <= ch.tau
     vp = vel.assemble(
@@ -169,14 +174,18 @@ def test_balance_alpha_radius_close_to_the_best_alpha(laminar_snr25):
     """
     from wss_nlp.models import geometry as geo
     from wss_nlp.core import radius as rad
-    from wss_nlp.pipeline.reconstruct import ALPHA_STOP, ReconstructionOptions, reconstruct
+    from wss_nlp.parameters.alpha import ALPHA_STOP
+    from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
     from conftest import geometry_problem
 
     acq, truth = laminar_snr25
-    res = reconstruct(acq, ReconstructionOptions(alpha_rule="balance", uncertainty=False, dephasing_correction=False))[
-        0
-    ]
+    res = reconstruct(
+        acq,
+        ReconstructionOptions(
+            uncertainty=False, dephasing_correction=False, choice=ChoiceOptions(alpha_rule="balance")
+        ),
+    )[0]
     ch = res.alpha_choice
     i = list(ch.parameters).index(ch.chosen)
     assert ch.rule == "balance" and ch.criterion[i] <= ch.tau and np.all(ch.criterion[:i] > ch.tau)
@@ -262,7 +271,7 @@ def test_magnitude_noise_within_20_percent_on_phantoms(case, h, snr, seed):
 
 def test_noise_free_data_fall_back_to_the_fixed_values_and_say_so(fourier_noise_free):
     """Zero estimated noise: nothing to balance against; the fixed value is used and the result says why."""
-    from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+    from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
     acq, _ = fourier_noise_free  # no noise added: the Rayleigh background is exactly zero, so is epsilon
     res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
@@ -275,11 +284,16 @@ def test_noise_free_data_fall_back_to_the_fixed_values_and_say_so(fourier_noise_
 
 def test_a_value_next_to_a_rule_that_ignores_it_is_an_error():
     from wss_nlp.models import velocity as vel
-    from wss_nlp.pipeline.reconstruct import ReconstructionOptions
+    from wss_nlp.pipeline import ReconstructionOptions
 
     with pytest.raises(InputError, match="beta_rule='fixed'"):
         ReconstructionOptions(velocity=vel.VelocityOptions(beta=1e-7))  # default rule: balance
-    assert ReconstructionOptions(velocity=vel.VelocityOptions(beta=1e-7), beta_rule="fixed").velocity.beta == 1e-7
+    assert (
+        ReconstructionOptions(
+            velocity=vel.VelocityOptions(beta=1e-7), choice=ChoiceOptions(beta_rule="fixed")
+        ).velocity.beta
+        == 1e-7
+    )
 
 
 def test_no_background_names_the_option():
@@ -318,12 +332,14 @@ def test_bad_rule_is_a_usage_error(tmp_path, capsys):
 def test_alpha_discrepancy_same_choice_with_both_geometry_solvers(laminar_snr25):
     """IPOPT (one NLP with alpha as parameter, warm starts) and projected Gauss-Newton walk the same sequence."""
     from wss_nlp.models import geometry as geo
-    from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+    from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
     acq, _ = laminar_snr25
     out = []
     for solver in ("ipopt", "gauss-newton"):
-        opts = ReconstructionOptions(alpha_rule="discrepancy", geometry=geo.GeometryOptions(solver=solver, tol=1e-12))
+        opts = ReconstructionOptions(
+            geometry=geo.GeometryOptions(solver=solver, tol=1e-12), choice=ChoiceOptions(alpha_rule="discrepancy")
+        )
         out.append(reconstruct(acq, opts)[0])
     a, b = (r.alpha_choice for r in out)
     assert a.satisfied and a.chosen == b.chosen

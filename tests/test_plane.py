@@ -14,7 +14,8 @@ from wss_nlp.synthetic import scanner_exports as se  # noqa: E402
 from wss_nlp.app.cli import main  # noqa: E402
 from wss_nlp.errors import InputError  # noqa: E402
 from wss_nlp.io.plane import Plane, resample  # noqa: E402
-from wss_nlp.pipeline.reconstruct import RESAMPLED_NOTE, ReconstructionOptions, reconstruct  # noqa: E402
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline.driver import RESAMPLED_NOTE  # noqa: E402
 from wss_nlp.io.scanner import ImportOptions  # noqa: E402
 
 AFFINE = np.array([[0.9, -0.3, 0.1, -12.0], [0.35, 1.0, 0.0, -15.0], [0.0, 0.1, 1.2, -9.0], [0, 0, 0, 1.0]])

@@ -8,11 +8,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.pipeline import plausibility as pl
 from wss_nlp.errors import InputError
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 FAST = ReconstructionOptions(uncertainty=False)
 
@@ -139,7 +140,7 @@ def test_a_velocity_fit_that_interpolates_the_noise_is_flagged():
     from wss_nlp.pipeline.results import DOF_LIMIT
 
     frames, _ = pulsatile.make_cine(h_mm=1.0, snr=25, seed=4, frames=20, radius_mm=3.0)
-    base = ReconstructionOptions(uncertainty=False, beta_rule="fixed")
+    base = ReconstructionOptions(uncertainty=False, choice=ChoiceOptions(beta_rule="fixed"))
     loose = reconstruct(frames[13], replace(base, velocity=replace(base.velocity, beta=1e-13, near_wall="off")))[0]
     n_vox = np.count_nonzero(loose.velocity.voxel_fraction)
     assert loose.velocity.dof > DOF_LIMIT * n_vox

@@ -8,7 +8,7 @@ import pytest
 from wss_nlp.core import schema
 from wss_nlp.app.cli import build_parser, options_from_args
 from wss_nlp.errors import InputError
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions
+from wss_nlp.pipeline import ReconstructionOptions
 
 #: The study keys documented in problems/README.md and the README: none may disappear.
 PUBLIC_STUDY_KEYS = {

@@ -4,6 +4,7 @@ import h5py
 import numpy as np
 import pytest
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.models import coupled as cpl
 from wss_nlp.models import geometry as geo
 from wss_nlp.synthetic import phantoms
@@ -11,7 +12,7 @@ from wss_nlp.uncertainty import sensitivity as sens
 from wss_nlp.models import velocity as vel
 from wss_nlp.models import wss
 from wss_nlp.app.cli import main
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 # Re-solves use IPOPT at 1e-13 and Cholesky for the velocity, so central differences with a relative step of
 # 1e-3 (1e-4 mm for the centre) are accurate to ~1e-7; the issue asks for agreement to 1e-4.
@@ -141,7 +142,9 @@ def test_coupled_derivatives_match_resolves():
     """Coupled NLP: IFT on its KKT system against re-solves (each polished by the same Newton steps)."""
     acq, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=25, seed=3)
     # beta held fixed: the start below is solved at opts.velocity.beta, the re-solves perturb it
-    opts = ReconstructionOptions(method="coupled", uncertainty=False, dephasing_correction=False, beta_rule="fixed")
+    opts = ReconstructionOptions(
+        method="coupled", uncertainty=False, dephasing_correction=False, choice=ChoiceOptions(beta_rule="fixed")
+    )
     res = reconstruct(acq, opts)[0]
     lum = res.lumen
     problem = geo.GeometryProblem(res.grid, res.magnitude, lum.center, lum.r0, lum.r1, lum.r_area)
@@ -190,7 +193,7 @@ def test_coupled_derivatives_with_a_wall_law_layer_match_resolves():
     from wss_nlp.models import near_wall as nw
 
     acq, _ = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=25, seed=3)
-    opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False, beta_rule="fixed")
+    opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False, choice=ChoiceOptions(beta_rule="fixed"))
     res = reconstruct(acq, opts)[0]
     assert res.near_wall.model == "wall_law"
     lum = res.lumen
@@ -254,12 +257,12 @@ def test_band_agrees_with_monte_carlo():
     acq0, _ = phantoms.make_phantom("laminar", h_mm=1.5, snr=None, seed=4)
     rng = np.random.default_rng(2024)
     # the band is linearized at a given beta, so the draws hold beta fixed too (README, band)
-    opts = ReconstructionOptions(uncertainty=False, beta_rule="fixed")
+    opts = ReconstructionOptions(uncertainty=False, choice=ChoiceOptions(beta_rule="fixed"))
 
     def draw():
         return phantoms.noisy_copy(acq0, 25.0, rng)
 
-    banded = reconstruct(draw(), ReconstructionOptions(beta_rule="fixed"))[0]
+    banded = reconstruct(draw(), ReconstructionOptions(choice=ChoiceOptions(beta_rule="fixed")))[0]
     means, taus = [], []
     for _ in range(200):
         r = reconstruct(draw(), opts)[0]

@@ -4,15 +4,17 @@ import h5py
 import numpy as np
 import pytest
 
+from wss_nlp.pipeline import driver
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.io import files as wio
 from wss_nlp.analysis import metrics
 from wss_nlp.synthetic import phantoms
 from wss_nlp.pipeline import steps as pipeline
 from wss_nlp.models import stack
-from wss_nlp.parameters.choice import segment_beta
+from wss_nlp.parameters.beta import segment_beta
 from wss_nlp.app.cli import main
 from wss_nlp.errors import InputError
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 FAST = ReconstructionOptions(uncertainty=False, dephasing_correction=False)
 
@@ -28,8 +30,8 @@ def test_kaczmarz_agrees_with_the_coupled_nlp(order):
     # tol 1e-9 and the sweeps at a relative optimality residual of 1e-9, so both sit within ~1e-8 of the optimum.
     acq, _ = phantoms.make_stack("curved", nz=5, h_mm=1.5, spacing_mm=2.0, snr=15, seed=3)
     st = dict(z_smoothing_mm=3.0, z_order=order, tol=1e-9)
-    a, ia = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="coupled", **st))
-    b, ib = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", **st))
+    a, ia = driver.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="coupled", **st))
+    b, ib = driver.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", **st))
     assert ia.strategy == "coupled" and ib.strategy == "kaczmarz" and ib.converged and ib.sweeps["geometry"][0] > 1
     ca_ = np.array([r.geometry.coefficients for r in a])
     cb = np.array([r.geometry.coefficients for r in b])
@@ -39,7 +41,7 @@ def test_kaczmarz_agrees_with_the_coupled_nlp(order):
     ta, tb = np.array([r.wss.tau for r in a]), np.array([r.wss.tau for r in b])
     assert np.abs(ta - tb).max() <= 1e-4 * np.abs(ta).max()
     # the coupling is real: without it the slices differ from the coupled solution by much more
-    c0, _ = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
+    c0, _ = driver.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
     assert np.abs(np.array([r.geometry.coefficients for r in c0]) - ca_).max() > 100 * np.abs(ca_ - cb).max()
 
 
@@ -47,7 +49,7 @@ def test_zero_smoothing_is_the_independent_reconstruction():
     # l = 0 removes the coupling: each slice then solves the 2D functional of reconstruct_slice (same optimum to
     # IPOPT's tolerance, whether found by Gauss-Newton steps or IPOPT).
     acq, _ = phantoms.make_stack("tapered", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=1)
-    a, _ = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
+    a, _ = driver.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0, strategy="kaczmarz"))
     b = reconstruct(
         acq,
         ReconstructionOptions(
@@ -63,9 +65,9 @@ def test_second_order_smoothing_is_unbiased_on_a_taper():
     # Noise-free tapered tube: the second-difference penalty leaves the slowly varying radius alone (error as
     # without coupling, 0.05 %), while the first-difference penalty pulls the ends of the stack (README numbers).
     acq, truth = phantoms.make_stack("tapered", nz=8, h_mm=1.0, spacing_mm=2.0, snr=None, seed=0)
-    r0, _ = _errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0))[0], truth)
-    r2, _ = _errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_order=2))[0], truth)
-    r1, _ = _errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_order=1))[0], truth)
+    r0, _ = _errors(driver.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0))[0], truth)
+    r2, _ = _errors(driver.reconstruct_stack(acq, FAST, stack.StackOptions(z_order=2))[0], truth)
+    r1, _ = _errors(driver.reconstruct_stack(acq, FAST, stack.StackOptions(z_order=1))[0], truth)
     assert r2 < 2 * r0 + 2e-4
     assert r1 > 2 * r2
 
@@ -76,8 +78,8 @@ def test_z_regularization_lowers_the_errors_of_noisy_stacks():
     ind, reg = [], []
     for seed in (0, 1):
         acq, truth = phantoms.make_stack("curved", nz=10, h_mm=1.0, spacing_mm=2.0, snr=10, seed=seed)
-        ind.append(_errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0))[0], truth))
-        reg.append(_errors(pipeline.reconstruct_stack(acq, FAST, stack.StackOptions())[0], truth))
+        ind.append(_errors(driver.reconstruct_stack(acq, FAST, stack.StackOptions(z_smoothing_mm=0.0))[0], truth))
+        reg.append(_errors(driver.reconstruct_stack(acq, FAST, stack.StackOptions())[0], truth))
     ind, reg = np.mean(ind, axis=0), np.mean(reg, axis=0)
     assert reg[0] < 0.95 * ind[0], (ind, reg)
     assert reg[1] < 0.8 * ind[1], (ind, reg)
@@ -86,7 +88,7 @@ def test_z_regularization_lowers_the_errors_of_noisy_stacks():
 def test_velocity_sweeps_solve_the_coupled_normal_equations():
     # Block Gauss-Seidel against a direct dense solve of the same block system (an independent solver).
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=20, seed=2)
-    res, info = pipeline.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", tol=1e-12))
+    res, info = driver.reconstruct_stack(acq, FAST, stack.StackOptions(strategy="kaczmarz", tol=1e-12))
     from wss_nlp.models import velocity as vel
 
     vps = [
@@ -123,7 +125,7 @@ def test_corrupt_slices_are_reported_and_the_rest_solved(tmp_path, capsys):
         m[2, 5, 5] = np.nan  # a corrupt voxel
         m[4] = 1.0  # a slice without a vessel
         f["magnitude"][...] = m
-    from wss_nlp.app.cli import _write_truth
+    from wss_nlp.app.cli.phantom import _write_truth
 
     _write_truth(str(tfile), truth)
     for extra in ([], ["--z-smoothing", "0"]):
@@ -151,8 +153,9 @@ def test_stack_segments_and_options():
     with pytest.raises(InputError, match="strategy"):
         stack.StackOptions(strategy="magic")
     acq, _ = phantoms.make_stack("tapered", nz=2, h_mm=1.5, spacing_mm=2.0, snr=25, seed=0)
+    # a classical baseline has no velocity model to tie along z: asked for z-regularization, it is refused
     with pytest.raises(InputError, match="z-regularization"):
-        reconstruct(acq, ReconstructionOptions(alpha_rule="balance", stack=stack.StackOptions(z_smoothing_mm=2.0)))
+        reconstruct(acq, ReconstructionOptions(method="oyre", stack=stack.StackOptions(z_smoothing_mm=2.0)))
     # with the default (no explicit smoothing) an unsupported method falls back to independent slices
     res = reconstruct(acq, ReconstructionOptions(method="oyre"))
     assert res.stack is None and len(res) == 2
@@ -172,10 +175,12 @@ def test_segment_beta_is_the_geometric_median():
 def test_data_driven_beta_in_a_z_regularized_stack():
     """Balancing beta per slice, one median beta per coupled segment; l = 0 keeps each slice's own."""
     acq, truth = phantoms.make_stack("tapered", nz=4, h_mm=1.0, spacing_mm=2.0, snr=25, seed=4)
-    opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False, beta_rule="balance")
+    opts = ReconstructionOptions(
+        uncertainty=False, dephasing_correction=False, choice=ChoiceOptions(beta_rule="balance")
+    )
     own = []
     for z_smoothing in (None, 0.0):
-        res, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=z_smoothing))
+        res, _ = driver.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=z_smoothing))
         # each slice's own choice, recomputed from what the result stores: the first (largest) beta whose
         # balancing ratio is within kappa
         mine = [r.beta_choice.parameters[np.flatnonzero(r.beta_choice.criterion <= r.beta_choice.tau)[0]] for r in res]
@@ -252,7 +257,9 @@ def test_three_components_end_to_end():
     from wss_nlp.models import velocity as vel
 
     acq, truth = phantoms.make_stack("tapered", nz=5, h_mm=1.0, spacing_mm=2.0, snr=None, seed=0, swirl_per_s=20.0)
-    opts = ReconstructionOptions(uncertainty=False, velocity=vel.VelocityOptions(beta=1e-11), beta_rule="fixed")
+    opts = ReconstructionOptions(
+        uncertainty=False, velocity=vel.VelocityOptions(beta=1e-11), choice=ChoiceOptions(beta_rule="fixed")
+    )
     res = reconstruct(acq, opts)
     mu = acq.viscosity_pa_s
     for k in (1, 2, 3):  # interior slices: the spline slope at the ends is one-sided
@@ -324,7 +331,7 @@ def test_velocity_solvers_agree_when_slices_carry_near_wall_layers():
     from wss_nlp.models import velocity as vel
 
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=20, seed=3)
-    res, _ = pipeline.reconstruct_stack(acq, FAST)
+    res, _ = driver.reconstruct_stack(acq, FAST)
     vps = [
         vel.assemble(acq.grid, r.velocity_image, r.geometry.coefficients, r.geometry.center, FAST.velocity) for r in res
     ]
@@ -379,7 +386,10 @@ def test_weakly_coupled_coupled_stack_is_the_slice_by_slice_coupled_method():
 
     acq, _ = phantoms.make_stack("curved", nz=3, h_mm=1.5, spacing_mm=2.0, snr=15, seed=12)
     opts = ReconstructionOptions(
-        method="coupled", uncertainty=False, beta_rule="fixed", coupled=CoupledOptions(velocity_weight=0.5)
+        method="coupled",
+        uncertainty=False,
+        coupled=CoupledOptions(velocity_weight=0.5),
+        choice=ChoiceOptions(beta_rule="fixed"),
     )
     z = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=1e-4)))
     alone = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=0.0)))
@@ -404,7 +414,9 @@ def test_coupled_stack_is_stationary_for_the_joint_functional():
     from wss_nlp.core import radius as rad
 
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=15, seed=13)
-    opts = ReconstructionOptions(method="coupled", uncertainty=False, beta_rule="fixed", dephasing_correction=False)
+    opts = ReconstructionOptions(
+        method="coupled", uncertainty=False, dephasing_correction=False, choice=ChoiceOptions(beta_rule="fixed")
+    )
     res = reconstruct(acq, opts)
     info, order = res.stack, opts.stack.z_order
     weight = res[0].coupled_info["velocity_weight"]
@@ -456,14 +468,13 @@ def test_stacks_honour_the_dephasing_beta_rule(monkeypatch):
     base = ReconstructionOptions(uncertainty=False)
     for rule in ("same", "gcv"):
         seen.clear()
-        res = reconstruct(acq, replace(base, dephasing_beta_rule=rule))
+        res = reconstruct(acq, replace(base, choice=replace(base.choice, dephasing_beta_rule=rule)))
         assert res.stack is not None and len(seen) >= 3
-        given = [v for v, _ in seen[:3]]
+        assert all(v is not None for v, _ in seen[:3])  # each slice's own fit is at hand
         if rule == "same":  # the first pass's fits, at the betas the stack chose
-            assert all(v is not None for v in given)
-            assert all(np.isclose(used.beta, v.beta) for v, used in seen[:3])
-        else:
-            assert all(v is None for v in given)
+            assert all(used is v for v, used in seen[:3])
+        else:  # a fit of its own at the GCV beta, not the stack's
+            assert all(used is not v and used.beta != v.beta for v, used in seen[:3])
 
 
 def test_a_failed_gauss_newton_segment_solve_falls_back_to_the_exact_hessian(monkeypatch):
@@ -472,7 +483,9 @@ def test_a_failed_gauss_newton_segment_solve_falls_back_to_the_exact_hessian(mon
     from wss_nlp.errors import SolverError
 
     acq, _ = phantoms.make_stack("curved", nz=2, h_mm=1.5, spacing_mm=2.0, snr=25, seed=14)
-    opts = ReconstructionOptions(method="coupled", uncertainty=False, beta_rule="fixed", dephasing_correction=False)
+    opts = ReconstructionOptions(
+        method="coupled", uncertainty=False, dephasing_correction=False, choice=ChoiceOptions(beta_rule="fixed")
+    )
     ref = reconstruct(acq, opts)
     real, calls = stack.run_nlpsol, []
 

@@ -6,15 +6,16 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from wss_nlp.pipeline import driver
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.models import geometry as geo
 from wss_nlp.synthetic import phantoms
-from wss_nlp.pipeline import steps as pipeline
 from wss_nlp.models import stack
 from wss_nlp.uncertainty import stack_band
 from wss_nlp.core import radius as rad
 from wss_nlp.models import velocity as vel
 from wss_nlp.models import wss as wss_mod
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 
 # Re-solves at IPOPT tol 1e-13 (geometry) and exact normal equations (velocity); central differences with a step
 # of 1e-4 (normalized magnitude, m/s) are then accurate to ~1e-7 relative, so 1e-4 is far from rounding and far
@@ -84,7 +85,7 @@ def segment(request):
     opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False)
     opts = replace(opts, velocity=replace(opts.velocity, near_wall="off"))
     st = stack.StackOptions(strategy="coupled", z_smoothing_mm=3.0, z_order=order)
-    res, info = pipeline.reconstruct_stack(acq, opts, st)
+    res, info = driver.reconstruct_stack(acq, opts, st)
     r1 = {}
     if box:
         r1[2] = float(np.max(res[2].geometry.radius(np.linspace(0, 2 * np.pi, 720)))) - 0.3
@@ -165,23 +166,23 @@ def test_weakly_coupled_stack_band_equals_the_slice_band():
     each slice alone, computed by wss_nlp.uncertainty.sensitivity (its own KKT, anchor re-solve and chain rule) to 1e-6;
     with the real weight the band narrows (the z-penalty pools neighbouring slices)."""
     acq, _ = phantoms.make_stack("curved", nz=3, h_mm=1.5, spacing_mm=2.0, snr=15, seed=8)
-    opts = ReconstructionOptions(dephasing_correction=False, beta_rule="fixed")
-    weak, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
+    opts = ReconstructionOptions(dephasing_correction=False, choice=ChoiceOptions(beta_rule="fixed"))
+    weak, _ = driver.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
     alone = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=0.0)))
     for a, b in zip(weak, alone):
         assert not any("no uncertainty band" in n for n in a.notes)
         np.testing.assert_allclose(a.wss.tau_std, b.wss.tau_std, rtol=1e-6)
         assert a.wss.mean_std == pytest.approx(b.wss.mean_std, rel=1e-6)
-    coupled, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=3.0))
+    coupled, _ = driver.reconstruct_stack(acq, opts, stack.StackOptions(z_smoothing_mm=3.0))
     assert all(c.wss.mean_std < 0.95 * b.wss.mean_std for c, b in zip(coupled, alone))
 
 
 def test_turbulent_stack_band_carries_the_wall_law_scale():
     """A turbulent stack (wall-law layer on every slice): the weakly coupled band equals the slice band, which
-    includes the law-of-the-wall scale's response to the noise (wss_nlp.pipeline.reconstruct.uncertainty), to 1e-6."""
+    includes the law-of-the-wall scale's response to the noise (wss_nlp.pipeline.band.slice_band), to 1e-6."""
     acq, _ = phantoms.make_stack("turbulent", nz=3, h_mm=1.5, spacing_mm=2.0, snr=25, seed=9)
-    opts = ReconstructionOptions(dephasing_correction=False, beta_rule="fixed")
-    weak, _ = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
+    opts = ReconstructionOptions(dephasing_correction=False, choice=ChoiceOptions(beta_rule="fixed"))
+    weak, _ = driver.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
     alone = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=0.0)))
     for a, b in zip(weak, alone):
         assert a.near_wall.model == b.near_wall.model == "wall_law"
@@ -197,10 +198,13 @@ def coupled_segment():
 
     acq, _ = phantoms.make_stack("curved", nz=4, h_mm=1.5, spacing_mm=2.0, snr=15, seed=17)
     opts = ReconstructionOptions(
-        uncertainty=False, dephasing_correction=False, beta_rule="fixed", coupled=CoupledOptions(tol=1e-11)
+        uncertainty=False,
+        dephasing_correction=False,
+        coupled=CoupledOptions(tol=1e-11),
+        choice=ChoiceOptions(beta_rule="fixed"),
     )
     opts = replace(opts, velocity=replace(opts.velocity, near_wall="off"))
-    res, info = pipeline.reconstruct_stack(acq, opts, stack.StackOptions(strategy="coupled", z_smoothing_mm=3.0))
+    res, info = driver.reconstruct_stack(acq, opts, stack.StackOptions(strategy="coupled", z_smoothing_mm=3.0))
     problems = [
         geo.GeometryProblem(r.grid, r.magnitude, r.lumen.center, r.lumen.r0, r.lumen.r1, r.lumen.r_area) for r in res
     ]
@@ -259,7 +263,10 @@ def test_weakly_coupled_coupled_stack_band_equals_the_slice_band():
 
     acq, _ = phantoms.make_stack("curved", nz=3, h_mm=1.5, spacing_mm=2.0, snr=15, seed=12)
     opts = ReconstructionOptions(
-        method="coupled", beta_rule="fixed", dephasing_correction=False, coupled=CoupledOptions(velocity_weight=0.5)
+        method="coupled",
+        dephasing_correction=False,
+        coupled=CoupledOptions(velocity_weight=0.5),
+        choice=ChoiceOptions(beta_rule="fixed"),
     )
     weak = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=1e-4)))
     alone = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=0.0)))

@@ -28,12 +28,13 @@ def _resolve(module: str, node: ast.ImportFrom) -> list:
     return [f"{stem}.{a.name}" if stem else a.name for a in node.names] + ([stem] if stem else [])
 
 
-def _imports(module: str) -> set:
-    """Package modules that ``module`` imports anywhere in its code, except under ``if TYPE_CHECKING:``."""
+def _imports(module: str, type_checking: bool = False) -> set:
+    """Package modules that ``module`` imports anywhere in its code, except under ``if TYPE_CHECKING:`` (unless
+    ``type_checking``)."""
     tree = ast.parse((PACKAGE / (module.replace(".", "/") + ".py")).read_text())
     skip = set()
     for node in ast.walk(tree):
-        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+        if not type_checking and isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
             skip.update(id(n) for n in ast.walk(node))
     out = set()
     for node in ast.walk(tree):
@@ -72,10 +73,48 @@ def _cycle(graph: dict):
 
 def test_no_import_cycles():
     graph = {m: _imports(m) for m in MODULES}
-    assert graph["models.stack"] and graph["pipeline.reconstruct"]  # the parser sees imports at all
+    assert graph["models.stack"] and graph["pipeline.driver"]  # the parser sees imports at all
     # subpackages too
-    assert "parameters.choice" in graph["pipeline.reconstruct"] and "models.geometry" in graph["parameters.choice"]
+    assert "parameters.alpha" in graph["pipeline.fitters"] and "models.geometry" in graph["parameters.alpha"]
     assert _cycle(graph) is None, " -> ".join(_cycle(graph))
+
+
+#: The package's layers, lowest first (docs/architecture.md): a module imports from its own layer and the ones
+#: before it only, function-level and TYPE_CHECKING imports included.
+LAYERS = (
+    ("errors", "_lazy", "core"),
+    ("models",),
+    ("uncertainty",),
+    ("parameters",),
+    ("io",),
+    ("synthetic",),
+    ("pipeline",),
+    ("vessel",),
+    ("analysis",),
+    ("app",),
+)
+RANK = {name: rank for rank, names in enumerate(LAYERS) for name in names}
+
+
+def test_every_module_belongs_to_a_layer():
+    assert {m.split(".")[0] for m in MODULES} <= set(RANK), set(m.split(".")[0] for m in MODULES) - set(RANK)
+
+
+def test_no_module_imports_from_a_higher_layer():
+    upward = [
+        f"{m} -> {t}"
+        for m in MODULES
+        for t in sorted(_imports(m, type_checking=True))
+        if RANK[t.split(".")[0]] > RANK[m.split(".")[0]]
+    ]
+    assert not upward, upward
+
+
+def test_the_layer_check_sees_type_checking_imports():
+    graph = {m: _imports(m, type_checking=True) for m in MODULES}
+    assert "models.velocity" in graph["parameters.beta"]
+    assert "pipeline.options" in _imports("pipeline.band", type_checking=True)
+    assert "pipeline.options" not in _imports("pipeline.band")  # it is a TYPE_CHECKING import there
 
 
 def test_the_cycle_detector_finds_a_cycle():
@@ -105,7 +144,7 @@ def test_no_module_shadows_the_standard_library():
 
 def test_blas_threads_limit_is_applied_and_restored():
     threadpoolctl = pytest.importorskip("threadpoolctl")
-    from wss_nlp.pipeline.reconstruct import blas_threads
+    from wss_nlp.pipeline.driver import blas_threads
 
     def blas():
         return [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]

@@ -8,7 +8,7 @@ from wss_nlp.parameters import rules as pr
 from wss_nlp.synthetic import phantoms
 from wss_nlp.models import velocity as vel
 from wss_nlp.models import wss as wss_mod
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions, reconstruct
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
 from wss_nlp.core.tikhonov import LinearTikhonov
 
 BETAS = pr.geometric_grid(1e-2, 1e-14)

@@ -12,11 +12,13 @@ import pytest
 import scipy.linalg
 import scipy.special
 
+from wss_nlp.parameters.options import ChoiceOptions
 from wss_nlp.pipeline import cine
 from wss_nlp.synthetic import pulsatile
 from wss_nlp.models import womersley
+from wss_nlp.parameters import cycle
 from wss_nlp.core import radius as rad
-from wss_nlp.pipeline.reconstruct import ReconstructionOptions
+from wss_nlp.pipeline import ReconstructionOptions
 
 
 def _options(model="auto", **kw):
@@ -83,7 +85,8 @@ def test_noise_free_womersley_flow_is_recovered():
     peak at every frame at h = 1.5 mm (measured 0.22 %: the frames' radii are 0.05 % off and the wall voxels'
     sub-voxel rule integrates the Stokes layer) and the four harmonics the phantom has are found."""
     frames, truth = pulsatile.make_cine(h_mm=1.5, snr=None, seed=60, frames=12)
-    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, _options("momentum", noise_velocity=0.01))
+    options = _options("momentum", choice=ChoiceOptions(noise_velocity=0.01))
+    res = cine.reconstruct_cine(frames, truth.times_ms, truth.period_ms, options)
     s = res.series(0)
     assert s.model.model == "momentum" and s.model.harmonics == 4
     worst, tawss, osi = _errors(s, truth)
@@ -201,15 +204,15 @@ def test_wall_smoothing_in_time_finds_a_rigid_and_a_moving_wall():
     omega, t = 2 * np.pi, np.arange(20) / 20
     truth = np.tile(np.r_[10.0, 0.3, -0.2, 0.1, 0.05, 0.4, -0.1], (20, 1))
     rigid = truth + 0.02 * rng.standard_normal(truth.shape)
-    walls, choice = womersley.smooth_walls(t, omega, rigid, "auto", 9)
+    walls, choice = cycle.smooth_walls(t, omega, rigid, "auto", 9)
     assert choice.degree == 0 and np.allclose(walls, rigid.mean(axis=0))
     moving = truth.copy()
     moving[:, 0] += 0.5 * np.sin(omega * t)
     noisy = moving + 0.02 * rng.standard_normal(truth.shape)
-    walls, choice = womersley.smooth_walls(t, omega, noisy, "auto", 9)
+    walls, choice = cycle.smooth_walls(t, omega, noisy, "auto", 9)
     assert choice.degree == 1 and np.max(np.abs(walls - moving)) < 0.03
-    assert np.array_equal(womersley.smooth_walls(t, omega, noisy, "frames", 9)[0], noisy)
-    assert np.allclose(womersley.smooth_walls(t, omega, noisy, "shared", 9)[0], noisy.mean(axis=0))
+    assert np.array_equal(cycle.smooth_walls(t, omega, noisy, "frames", 9)[0], noisy)
+    assert np.allclose(cycle.smooth_walls(t, omega, noisy, "shared", 9)[0], noisy.mean(axis=0))
 
 
 def test_kspace_acquired_cine_gets_the_momentum_model_through_the_psf():
@@ -245,7 +248,7 @@ def _prior_problems(n: int, seed: int):
     """n frames of the circle phantom's voxel data on one wall, scaled in time plus noise (sigma 0.01 m/s)."""
     from wss_nlp.synthetic import phantoms
     from wss_nlp.models import velocity as vel
-    from wss_nlp.pipeline.reconstruct import reconstruct
+    from wss_nlp.pipeline import reconstruct
 
     acq, _ = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=seed)
     r = reconstruct(acq, _options())[0]
@@ -338,9 +341,9 @@ def test_forced_temporal_prior_follows_a_distending_wall():
 
 
 def test_auto_takes_the_temporal_prior_only_with_the_evidence():
-    """womersley.choose on frames whose criteria are set by hand (momentum chi^2 = u^T S^-1 u = 3000 for every
+    """cycle.choose on frames whose criteria are set by hand (momentum chi^2 = u^T S^-1 u = 3000 for every
     harmonic count, the frames' own fits 1000 + ln N 40): the prior is taken exactly when its criterion beats
-    the frames' own fits by womersley.EVIDENCE, and a momentum model that beats both wins over it."""
+    the frames' own fits by cycle.EVIDENCE, and a momentum model that beats both wins over it."""
 
     def terms(usu):
         return [womersley.FrameTerms(k, k / 4, np.array([5.0, 0, 0]), (0.0, 0.0), np.eye(3), np.zeros(3), usu, 100,
@@ -348,11 +351,11 @@ def test_auto_takes_the_temporal_prior_only_with_the_evidence():
 
     opts, omega, nu = womersley.CineModelOptions(), 2 * np.pi, 3.3e-6
     frames = terms(750.0)
-    log_n = womersley.criterion_scale(frames)[1]
+    log_n = cycle.criterion_scale(frames)[1]
     independent = 4 * (250.0 + 10.0 * log_n)
-    choose = womersley.choose
+    choose = cycle.choose
     assert choose(frames, omega, nu, opts, None)[0].model == "independent"  # momentum: 3000 + ln N > independent
-    assert choose(frames, omega, nu, opts, independent - 1.5 * womersley.EVIDENCE)[0].model == "temporal"
-    assert choose(frames, omega, nu, opts, independent - 0.5 * womersley.EVIDENCE)[0].model == "independent"
+    assert choose(frames, omega, nu, opts, independent - 1.5 * cycle.EVIDENCE)[0].model == "temporal"
+    assert choose(frames, omega, nu, opts, independent - 0.5 * cycle.EVIDENCE)[0].model == "independent"
     good = terms(1.0)  # the momentum model explains the data: chi^2 = 4
-    assert choose(good, omega, nu, opts, independent - 1.5 * womersley.EVIDENCE)[0].model == "momentum"
+    assert choose(good, omega, nu, opts, independent - 1.5 * cycle.EVIDENCE)[0].model == "momentum"

@@ -59,7 +59,7 @@ MOVED = {
     "phantoms": "synthetic.phantoms",
     "pulsatile": "synthetic.pulsatile",
     "scanner_exports": "synthetic.scanner_exports",
-    "reconstruct": "pipeline.reconstruct",
+    "reconstruct": "pipeline.legacy",
     "results": "pipeline.results",
     "cine": "pipeline.cine",
     "plausibility": "pipeline.plausibility",

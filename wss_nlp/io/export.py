@@ -23,7 +23,7 @@ from .files import read_result
 
 def _cine_slices(f) -> list[dict]:
     """Per slice of a time-resolved result: the wall averaged over the frames, the cycle-mean WSS, TAWSS, OSI."""
-    from ..pipeline.cine import cycle_weights
+    from ..core.periodic import cycle_weights
 
     out = []
     for name in sorted(k for k in f if k.startswith("slice_")):

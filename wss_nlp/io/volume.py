@@ -207,6 +207,7 @@ def read_volume(path) -> VolumeAcquisition:
                 raise InputError(f"{src}: attribute 'venc_m_s' must have 1 or 3 values, got {venc.size}")
         times = number("trigger_times_ms")
         scalars = {n: number(n, 1) for n in ("viscosity_pa_s", "density_kg_m3", "cardiac_period_ms")}
+
     def scalar(name: str) -> float | None:
         value = scalars[name]
         return None if value is None else float(value.ravel()[0])

@@ -44,10 +44,10 @@ import numpy as np
 import casadi as ca
 
 from .._lazy import scipy
-from ..parameters import noise as nl
 from ..core import chebyshev
 from ..core import elementwise
 from . import geometry as geo
+from . import acquisition as acq_model
 from . import kspace
 from ..core import mapping
 from . import measurement as meas
@@ -163,41 +163,6 @@ def likelihood_weight(delta: float, n_annulus: int, voxel_area: float, sigma_u: 
         )
     sigma_m2 = delta**2 / (voxel_area * n_annulus)
     return float(weight_sum * sigma_m2 / sigma_u**2)
-
-
-def weight_from_data(
-    problem: geo.GeometryProblem,
-    gopt: geo.GeometryOptions,
-    raw_magnitude,
-    norm,
-    mask,
-    velocity_image,
-    venc: float | None,
-    source: str = "",
-    signal=None,
-) -> tuple[float, dict]:
-    """The likelihood weight with both noise levels estimated (:mod:`wss_nlp.parameters`); also returns how.
-
-    ``sigma_u`` for a voxel fully inside the lumen: ``venc sigma / (pi m1)``
-    with ``sigma`` from the Rayleigh background and ``m1`` the raw lumen
-    level (phase data), else the high-pass estimate on the lumen plateau.
-    ``signal`` (raw units, the image the geometry predicts) is subtracted
-    from the background before ``sigma`` is measured (the PSF's tails,
-    :func:`wss_nlp.parameters.noise.complex_noise_sigma`).
-    """
-    annulus = geo.fitted_voxels(problem, gopt)
-    delta = nl.magnitude_noise(
-        problem.magnitude, raw_magnitude, mask, norm.m0, norm.m1, problem.grid.voxel_area, annulus, source
-    )
-    sigma = nl.complex_noise_sigma(raw_magnitude, mask, signal=signal)
-    if venc is not None and np.isfinite(sigma) and sigma > 0:
-        sigma_u, how = venc * sigma / (np.pi * norm.m1), "venc sigma / (pi m1), sigma from the Rayleigh background"
-    else:
-        est = nl.velocity_noise(velocity_image, raw_magnitude, mask, np.zeros(0, int), np.zeros(0), None, source)
-        sigma_u, how = est.value, est.method
-    weights = problem.grid.voxel_area * np.clip(problem.magnitude, 0.0, 1.0) ** 2
-    lam = likelihood_weight(delta.value, annulus.size, problem.grid.voxel_area, sigma_u, float(np.sum(weights)))
-    return lam, {"delta_mm": delta.value, "sigma_u_m_s": float(sigma_u), "sigma_u_method": how}
 
 
 @dataclass
@@ -1132,7 +1097,7 @@ def build(
         )
     gamma = ca.MX.sym("gamma")  # an NLP parameter (value: the geometry's gamma) so sensitivities can reach it
     # the box model's Jacobian by the chain rule (BLAS); the k-space one keeps CasADi's AD in the symbolic gamma
-    box_model = geometry_problem.psf is None
+    box_model = isinstance(geometry_problem.measurement, acq_model.VoxelMeans)
     gnlp = geo.build_tikhonov(geometry_problem, gopt, gamma_symbol=gamma, separable_jacobian=box_model)
     n_r = gnlp.c.numel()
     c_v = ca.MX.sym("c_v", basis.size)

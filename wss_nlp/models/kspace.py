@@ -76,7 +76,7 @@ class AcquisitionOptions:
         DICOM headers), else "box".
     kspace_filter : {"auto", "none", "hamming", "tukey", "fermi"}
         "auto" (default): the filter whose geometry fit leaves the smallest
-        magnitude misfit (:func:`wss_nlp.parameters.choice.kspace_filter`); the
+        magnitude misfit (:func:`wss_nlp.parameters.kspace_filter.kspace_filter`); the
         standard DICOM headers do not state it.
     zero_fill : float or None
         Reported voxels per acquired voxel along each axis (2 for an image
@@ -120,7 +120,8 @@ class AcquisitionOptions:
     def psf(self, voxel_size_mm, acquired_voxel_size_mm=None, where: str = "") -> PSF | None:
         """The PSF of a slice with ``voxel_size_mm = (dy, dx)``, or None for the box model.
 
-        Its filter is "auto" when it is to be chosen from the data (:func:`wss_nlp.parameters.choice.kspace_filter`).
+        Its filter is "auto" when it is to be chosen from the data
+        (:func:`wss_nlp.parameters.kspace_filter.kspace_filter`).
         """
         if self.model == "box" or (self.model == "auto" and acquired_voxel_size_mm is None):
             return None

@@ -30,7 +30,7 @@ is :math:`\mu S/\ell` times its angular factor, independent of the family):
   displacement-type thickness.
 
 Which model (plain, or a family and a scale on a grid) is chosen from the
-data by :mod:`wss_nlp.parameters.choice` (:func:`wss_nlp.parameters.choice.choose_layer`).
+data by :mod:`wss_nlp.parameters.choice` (:func:`wss_nlp.parameters.layer.choose_layer`).
 
 The columns are separable in :math:`(\rho, \theta)`; the fit integrates
 them across each quadrature cell (:class:`LayerQuadrature`), and the coupled
@@ -48,15 +48,15 @@ import numpy as np
 
 import casadi as ca
 
+from . import families
 from . import measurement as meas
 from ..errors import InputError
+from .families.wall_law import KAPPA, REICHARDT_C  # noqa: F401 (the law of the wall's constants, kept here)
 
-#: Profile families of the wall layer (see the module notes).
-FAMILIES = ("wall_law", "exponential")
+#: Profile families of the wall layer, one module each (:mod:`wss_nlp.models.families`).
+FAMILIES = families.NAMES
 #: What ``--near-wall`` accepts: off (the paper's basis alone), auto (chosen from the data), or one family.
 MODES = ("off", "auto") + FAMILIES
-#: von Karman constant and the additive constant of Reichardt's law.
-KAPPA, REICHARDT_C = 0.41, 7.8
 #: The branches of a cell mean (:func:`cell_mean`): the point value (cells narrow against the profile), the box
 #: mean (one projection negligible) and the trapezoid mean.
 BRANCHES = ("point", "box", "trapezoid")
@@ -69,7 +69,8 @@ NARROW_PROFILE = 0.02
 
 
 def profile(family: str, y):
-    """``f(y)`` of a family, for NumPy arrays or CasADi symbols (``y >= 0`` is the fluid side).
+    """``f(y)`` of a family (:mod:`wss_nlp.models.families`), for NumPy arrays or CasADi symbols (``y >= 0`` is
+    the fluid side).
 
     Points outside the wall (``y < 0``) only occur within rounding of the
     map's inverse; the formulas are smooth there down to ``y = -1``, where
@@ -77,12 +78,7 @@ def profile(family: str, y):
     """
     is_sym = isinstance(y, (ca.SX, ca.MX))
     y = ca.fmax(y, -1.0) if is_sym else np.maximum(y, -1.0)
-    log, exp = (ca.log, ca.exp) if is_sym else (np.log, np.exp)
-    if family == "wall_law":
-        return log(1 + KAPPA * y) / KAPPA + REICHARDT_C * (1 - exp(-y / 11) - y / 11 * exp(-y / 3))
-    if family == "exponential":
-        return 1 - exp(-y)
-    raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+    return families.get(family).f(y, ca if is_sym else np)
 
 
 def profile_derivative(family: str, y) -> np.ndarray:
@@ -96,32 +92,11 @@ def profile_second_derivative(family: str, y) -> np.ndarray:
 
 
 def profile_derivatives(family: str, y, order: int) -> np.ndarray:
-    r"""``f^(k)(y)`` of a family for any order ``k >= 0`` (NumPy, ``y > -1/kappa``; no cut-off).
-
-    Notes
-    -----
-    Reichardt's law :math:`f = \ln(1 + \kappa y)/\kappa + C (1 - e^{-y/11} - (y/11) e^{-y/3})` has, for
-    :math:`k \ge 1`,
-
-    .. math::
-
-        f^{(k)} = \frac{(-1)^{k-1} (k-1)!\, \kappa^{k-1}}{(1 + \kappa y)^k}
-        - C \Big[ (-\tfrac{1}{11})^k e^{-y/11}
-        + \tfrac{1}{11} \big( y (-\tfrac{1}{3})^k + k (-\tfrac{1}{3})^{k-1} \big) e^{-y/3} \Big];
-
-    the exponential family :math:`1 - e^{-y}` has :math:`f^{(k)} = (-1)^{k+1} e^{-y}`.
-    """
+    r"""``f^(k)(y)`` of a family for any order ``k >= 0`` (NumPy, ``y > -1/kappa``; the cut-off of
+    :func:`profile` at order 0 only): the family's closed forms
+    (:meth:`wss_nlp.models.families.base.WallFamily.derivative`)."""
     y = np.asarray(y, dtype=float)
-    if family == "wall_law":
-        if order == 0:
-            return profile(family, y)
-        z, e11, e3, k = 1 + KAPPA * y, np.exp(-y / 11), np.exp(-y / 3), int(order)
-        log_part = (-1) ** (k - 1) * float(np.prod(np.arange(1, k))) * KAPPA ** (k - 1) / z**k
-        third = -1.0 / 3
-        return log_part - REICHARDT_C * ((-1.0 / 11) ** k * e11 + (y * third**k + k * third ** (k - 1)) / 11 * e3)
-    if family == "exponential":
-        return profile(family, y) if order == 0 else (-1.0) ** (order + 1) * np.exp(-y)
-    raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+    return profile(family, y) if order == 0 else families.get(family).derivative(y, int(order))
 
 
 def far_cell_mean_derivative(family: str, y, a, b, order: int) -> np.ndarray:
@@ -351,24 +326,16 @@ class EnrichedBasis:
 
 
 def antiderivatives(family: str, y):
-    """First and second antiderivatives of ``f(y) 1(y > 0)`` from 0 (zero for ``y <= 0``; NumPy or CasADi)."""
+    """First and second antiderivatives of ``f(y) 1(y > 0)`` from 0 (zero for ``y <= 0``; NumPy or CasADi).
+
+    ``family`` is a registered family (:meth:`wss_nlp.models.families.base.WallFamily.integrals`) or
+    ``"inside"``: ``f = 1``, the cell's area fraction inside the wall.
+    """
     is_sym = isinstance(y, (ca.SX, ca.MX))
     y = ca.fmax(y, 0) if is_sym else np.maximum(np.asarray(y, dtype=float), 0.0)
-    log, exp = (ca.log, ca.exp) if is_sym else (np.log, np.exp)
-    if family == "inside":  # f = 1: the cell's area fraction inside the wall
+    if family == "inside":
         return y, y * y / 2
-    if family == "exponential":
-        e = exp(-y)
-        return y - 1 + e, y * y / 2 - y + 1 - e
-    if family != "wall_law":
-        raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
-    z, e11, e3 = 1 + KAPPA * y, exp(-y / 11), exp(-y / 3)
-    lz = log(z)
-    f1 = (z * lz - KAPPA * y) / KAPPA**2 + REICHARDT_C * (y - 11 * (1 - e11) - (9 - (3 * y + 9) * e3) / 11)
-    f2 = (z * z * lz / 2 - 3 * z * z / 4 + z - 0.25) / KAPPA**3 + REICHARDT_C * (
-        y * y / 2 - 11 * y + 121 * (1 - e11) - (9 * y - 54 + (9 * y + 54) * e3) / 11
-    )
-    return f1, f2
+    return families.get(family).integrals(y, ca if is_sym else np)
 
 
 def cell_mean(family: str, y, a, b, derivative: bool = False, moment: bool = False) -> np.ndarray:
@@ -758,9 +725,11 @@ def bulk_reynolds(problem, nu_m2_s: float) -> float:
     return bulk * (4 * area / perimeter) / 1000.0 / nu_m2_s
 
 
-def regime_family(reynolds: float) -> str:
-    """The layer family of a flow regime: ``wall_law`` above :data:`RE_TURBULENT`, else ``exponential``."""
-    return "wall_law" if reynolds >= RE_TURBULENT else "exponential"
+def regime_families(reynolds: float) -> tuple[str, ...]:
+    """The layer families of a flow regime: the turbulent ones above :data:`RE_TURBULENT`, else the others
+    (:attr:`wss_nlp.models.families.base.WallFamily.turbulent`)."""
+    turbulent = reynolds >= RE_TURBULENT
+    return tuple(name for name in FAMILIES if families.get(name).turbulent == turbulent)
 
 
 #: How the choice record names a law-of-the-wall scale found from u_tau l = nu.
@@ -792,7 +761,7 @@ def scale_sensitivity(problem, coefficients, beta: float, wss_matrix, nu_m2_s: f
 
     Returns ``(dg_da0, dg_dlog, dtau_dlog)``: the derivatives of
     :math:`g = a_0\, c_s(\ell)\, \ell / \nu - 1` (whose root is the scale,
-    :func:`wss_nlp.parameters.choice._wall_law_scale`) with respect to the m = 0 layer
+    :func:`wss_nlp.parameters.layer._wall_law_scale`) with respect to the m = 0 layer
     coefficient :math:`a_0` and to :math:`\log\ell`, and
     :math:`d\tau/d\log\ell` at fixed data. By the implicit-function
     theorem any data perturbation that moves :math:`a_0` by

@@ -223,3 +223,51 @@ def velocity_noise(
         "high-pass: MAD of u minus its 4-neighbour mean on the lumen plateau, scaled by plateau magnitude / |d_i|",
         {"plateau_m_s": s, "plateau_magnitude": m_plateau, "per_voxel": su},
     )
+
+
+def given_or_velocity_noise(vp, raw, lumen, venc, given: float | None, where: str) -> NoiseEstimate:
+    """Per-voxel velocity noise of a velocity problem ``vp``: ``given`` (``--noise-velocity``, m/s) or estimated
+    (:func:`velocity_noise`)."""
+    if given is not None:
+        return NoiseEstimate(
+            given,
+            "given (--noise-velocity)",
+            {"per_voxel": np.full(vp.data.size, given)},
+        )
+    return velocity_noise(
+        vp.data_image, raw, lumen.noise_mask, vp.voxels.index, vp.weights, venc, where.rstrip(), lumen.signal
+    )
+
+
+def band_noise_levels(
+    raw_magnitude: np.ndarray,
+    mask: np.ndarray,
+    m0: float,
+    m1: float,
+    u_index: np.ndarray,
+    venc: float | None,
+    sigma: float | None = None,
+    signal: np.ndarray | None = None,
+) -> tuple[float, np.ndarray, str]:
+    """Per-voxel noise ``(sigma_m, sigma_u[u_index], how)`` from the complex noise level (Appendix B).
+
+    ``sigma`` (per channel, raw units) is estimated from the Rayleigh
+    background when not given.
+    """
+    how = "given"
+    if sigma is None:
+        sigma = complex_noise_sigma(raw_magnitude, mask, signal)
+        how = "Rayleigh background" + (", predicted PSF tails subtracted" if signal is not None else "")
+    if not np.isfinite(sigma) or sigma <= 0:
+        raise NoiseEstimationError(
+            "cannot estimate the complex noise level for the uncertainty band (no background "
+            "in the field of view); pass --noise-sigma"
+        )
+    if venc is None:
+        raise NoiseEstimationError("the uncertainty band needs venc (phase data) to convert phase noise to velocity")
+    sigma_u = phase_noise_std(np.asarray(raw_magnitude, float).ravel()[u_index], sigma, venc)
+    return (
+        float(sigma / (m1 - m0)),
+        sigma_u,
+        f"sigma = {sigma:.4g} ({how}); sigma_m = sigma/(m1-m0), sigma_u,i = venc sigma/(pi |d_i|)",
+    )

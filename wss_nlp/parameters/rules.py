@@ -230,3 +230,18 @@ def geometric_grid(start: float, stop: float, factor: float = 0.5) -> np.ndarray
     """``start, start factor, ...`` down to ``stop`` (inclusive within rounding)."""
     n = int(np.floor(np.log(stop / start) / np.log(factor) + 1e-9)) + 1
     return start * factor ** np.arange(n)
+
+
+def noise_free_choice(name: str, rule: str, fixed: float, noise) -> ParameterChoice:
+    """The fixed value, recorded as such, when the estimated noise is zero (noise-free synthetic data).
+
+    There is no noise to balance against or to match a residual to; the
+    choice says so (``SliceResult.warnings`` reports it) instead of guessing.
+    """
+    return ParameterChoice(
+        name,
+        "fixed",
+        fixed,
+        noise=0.0,
+        noise_method=f"{rule} needs noise, the estimate is zero ({noise.method}); the fixed value is used",
+    )

@@ -1,25 +1,13 @@
 r"""Time-resolved (cine) reconstruction: every frame of the cycle, then TAWSS and OSI.
 
-Each frame is reconstructed by the single-frame pipeline (:func:`wss_nlp.pipeline.reconstruct.reconstruct`), with
-its own parameter choices (the frames of a slice share its lumen box, built solvers and warm starts). Then
-each slice's velocity over the cycle is chosen by the BIC (:func:`cycle_models`) among the frames' own
-fits, a periodic temporal prior (:mod:`wss_nlp.models.temporal`) and the momentum balance of pulsatile flow
-(:mod:`wss_nlp.models.womersley`), on the frames' walls regularized in time. What the cycle adds is computed here.
-
-Notes
------
-With frames at trigger times :math:`t_0 < \dots < t_{n-1}` in a cycle of length :math:`T`, integrals over
-the cycle use the periodic trapezoid rule, weights
-:math:`w_k = (t_{k+1} - t_{k-1})/2` with :math:`t_{-1} = t_{n-1} - T`, :math:`t_n = t_0 + T`
-(exact for trigonometric polynomials of degree below :math:`n/2` at equal spacing). Then, per wall angle,
-
-.. math::
-
-    \mathrm{TAWSS} = \frac{1}{T}\sum_k w_k |\tau_k|, \qquad
-    \mathrm{OSI} = \frac12\Big(1 - \frac{|\sum_k w_k \tau_k|}{\sum_k w_k |\tau_k|}\Big),
-
-in Pa and dimensionless (``shared/spec/data-format.md``). A frame that failed is bridged by linear
-interpolation in time between its periodic neighbours, and the result says so.
+Each frame is an acquisition of its own, reconstructed by the driver (:func:`wss_nlp.pipeline.driver.reconstruct`)
+with its own parameter choices (the frames of a slice share its lumen box, built solvers and warm starts; their
+bands wait until the cycle's model is chosen). Then each slice's velocity over the cycle is chosen by the BIC
+(:func:`cycle_models`, :func:`wss_nlp.parameters.cycle.choose`) among the frames' own fits, a periodic temporal
+prior (:mod:`wss_nlp.models.temporal`) and the momentum balance of pulsatile flow (:mod:`wss_nlp.models.womersley`),
+on the frames' walls regularized in time; TAWSS and OSI integrate the chosen WSS over the cycle
+(:mod:`wss_nlp.core.periodic`, which also bridges a failed frame by linear interpolation in time, and the result
+says so).
 """
 
 from __future__ import annotations
@@ -33,56 +21,20 @@ import numpy as np
 
 from ..models import preprocess as pp
 from ..core import radius as rad
+from ..models import acquisition as acq_model
 from ..models import temporal, womersley
+from ..parameters import cycle
 from ..models import wss as wss_mod
-from ..errors import InputError, WssNlpError
+from ..models import velocity as vel
+from ..parameters import noise as nl
+from .results import SliceResult
+from ..core.periodic import bridge, cycle_weights, tawss_osi  # noqa: F401 (part of this module's API)
+from ..errors import WssNlpError
 from ..io.files import Acquisition, FailedSlice
-from .reconstruct import ReconstructionOptions, blas_threads, reconstruct
+from .driver import blas_threads, reconstruct
+from .options import ReconstructionOptions
 
 log = logging.getLogger(__name__)
-
-
-def cycle_weights(times_ms, period_ms: float) -> np.ndarray:
-    """Periodic trapezoid weights (ms) of the frames over one cycle (see the module notes)."""
-    t = np.asarray(times_ms, dtype=float)
-    if t.size == 0 or np.any(np.diff(t) <= 0):
-        raise InputError(f"trigger times must increase, got {t.tolist()}")
-    if not period_ms > t[-1] - t[0]:
-        raise InputError(f"the cardiac period {period_ms:g} ms must exceed the frames' span {t[-1] - t[0]:g} ms")
-    if t.size == 1:
-        return np.array([float(period_ms)])
-    before = np.concatenate([[t[-1] - period_ms], t[:-1]])
-    after = np.concatenate([t[1:], [t[0] + period_ms]])
-    return (after - before) / 2
-
-
-def tawss_osi(tau: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(TAWSS in Pa, OSI)`` per column of ``tau (nt, nphi)`` with the cycle weights (module notes)."""
-    tau = np.asarray(tau, dtype=float)
-    w = np.asarray(weights, dtype=float)[:, None]
-    total = float(np.sum(w))
-    magnitude = np.sum(w * np.abs(tau), axis=0)
-    net = np.abs(np.sum(w * tau, axis=0))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        osi = np.where(magnitude > 0, 0.5 * (1 - net / magnitude), 0.0)
-    return magnitude / total, osi
-
-
-def bridge(values: np.ndarray, good: np.ndarray, times_ms, period_ms: float) -> np.ndarray:
-    """Rows of ``values (nt, ...)`` where ``good`` is False, linearly interpolated in time (periodically)."""
-    values = np.array(values, dtype=float)
-    t = np.asarray(times_ms, dtype=float)
-    if good.all():
-        return values
-    if not good.any():
-        raise InputError("every frame failed; nothing to interpolate from")
-    tg = t[good]
-    ext_t = np.concatenate([tg - period_ms, tg, tg + period_ms])
-    flat = values.reshape(t.size, -1)
-    ext_v = np.concatenate([flat[good]] * 3)
-    for k in np.nonzero(~good)[0]:
-        flat[k] = [np.interp(t[k], ext_t, ext_v[:, j]) for j in range(flat.shape[1])]
-    return flat.reshape(values.shape)
 
 
 @dataclass
@@ -105,14 +57,14 @@ class CineSeries:
     notes: list = field(default_factory=list)
     tau_std: np.ndarray | None = None  # (nt, nphi), Pa: the band of the chosen model (NaN where unknown)
     mean_std: np.ndarray | None = None  # (nt,), Pa
-    model: womersley.CineModelChoice | None = None  # the velocity model over the cycle and why
+    model: cycle.CineModelChoice | None = None  # the velocity model over the cycle and why
 
 
 @dataclass
 class CycleModel:
     """The velocity model of one slice over the cycle: the choice, and the momentum model's WSS if chosen."""
 
-    choice: womersley.CineModelChoice
+    choice: cycle.CineModelChoice
     tau: np.ndarray | None = None  # (nt, nphi), Pa; NaN rows for frames the model was not fitted on
     tau_std: np.ndarray | None = None
     mean: np.ndarray | None = None  # (nt,)
@@ -187,7 +139,7 @@ class CineResult:
         )  # fmt: skip
 
 
-def model_note(choice: womersley.CineModelChoice) -> str:
+def model_note(choice: cycle.CineModelChoice) -> str:
     """One line on the cycle's velocity model for the result's warnings."""
     if choice.model == "momentum":
         how = "chosen by the BIC" if np.isfinite(choice.margin) else "forced (--cine-model momentum)"
@@ -236,12 +188,13 @@ def shared_boxes(frames: list[Acquisition], options: ReconstructionOptions) -> d
     boxes = {}
     for iz in range(ref.nz):
         lumens = []
+        clip = acq_model.of(psf).clip_upper
         for frame in frames:
             image = frame.magnitude[iz]
             if not np.all(np.isfinite(image)):
                 continue
             try:
-                lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, psf is None)[2])
+                lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, clip)[2])
             except WssNlpError:
                 continue
         if lumens:
@@ -340,13 +293,14 @@ MODEL_NAMES = {
 
 
 def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: float, psf) -> dict:
-    """Each slice's velocity model over the cycle (:func:`wss_nlp.models.womersley.choose`) and its WSS per frame.
+    """Each slice's velocity model over the cycle (:func:`wss_nlp.parameters.cycle.choose`) and its WSS per frame.
 
-    The momentum model is fitted on the frames' walls regularized in time (:func:`~.womersley.smooth_walls`),
+    The momentum model is fitted on the frames' walls regularized in time
+    (:func:`~wss_nlp.parameters.cycle.smooth_walls`),
     with the Womersley parameters at those walls' mean equal-area radius (:func:`equal_area_radius`).
     """
     if options.cine.model == "independent":
-        choice = womersley.CineModelChoice("independent", criterion="independent frames (--cine-model independent)")
+        choice = cycle.CineModelChoice("independent", criterion="independent frames (--cine-model independent)")
         return {iz: CycleModel(choice) for iz in range(result.n_slices)}
     ref = frames[0]
     mu = ref.viscosity(options.viscosity_pa_s)
@@ -357,33 +311,35 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
         good = [(k, fr[iz]) for k, fr in enumerate(result.frames) if not isinstance(fr[iz], FailedSlice)]
         times = np.array([result.times_ms[k] / 1000.0 for k, _ in good])
         own = np.array([np.r_[r.geometry.coefficients, r.geometry.center] for _, r in good])
-        walls, wall_choice = womersley.smooth_walls(times, omega, own, options.cine.walls, k_max)
+        walls, wall_choice = cycle.smooth_walls(times, omega, own, options.cine.walls, k_max)
         n_r = own.shape[1] - 2
         radius = equal_area_radius(walls[:, :n_r])
         usable, problems, sigmas, betas = [], [], [], []
         previous, shapes = None, None  # frames on one wall (a rigid vessel) share its operator and model shapes
         for (k, r), wall in zip(good, walls):
-            problem = womersley.plain_problem(r, options, psf, wall[:n_r], wall[n_r:], like=previous)
+            problem = plain_problem(r, options, psf, wall[:n_r], wall[n_r:], like=previous)
             if previous is None or problem.operator is not previous.operator:
                 shapes = womersley.wall_shapes(problem, k_max, omega, nu, radius)
             previous = problem
             acq = frames[k]
-            sigma = womersley.velocity_sigma(r, problem, acq.magnitude[iz], acq, options, f"{acq.source} slice {iz}")
+            sigma = velocity_sigma(
+                r, problem, acq.magnitude[iz], acq, options.choice.noise_velocity, f"{acq.source} slice {iz}"
+            )
             if sigma is not None:  # noise-free data give the models nothing to be weighed by
                 time_s = float(result.times_ms[k]) / 1000.0
-                usable.append(womersley.frame_terms(problem, sigma, k, time_s, k_max, omega, nu, radius, shapes))
+                usable.append(cycle.frame_terms(problem, sigma, k, time_s, k_max, omega, nu, radius, shapes))
                 problems.append(problem)
                 sigmas.append(sigma)
                 betas.append(r.velocity.beta)
         if len(usable) < 2:
             why = "fewer than two frames with a velocity noise estimate (noise-free data?): independent frames"
-            models[iz] = CycleModel(womersley.CineModelChoice("independent", criterion=why))
+            models[iz] = CycleModel(cycle.CineModelChoice("independent", criterion=why))
             continue
         prior = None
         if len(usable) == len(result.frames) >= 3 and _equally_spaced(result):
-            scale, log_n = womersley.criterion_scale(usable)
+            scale, log_n = cycle.criterion_scale(usable)
             prior = temporal.fit(problems, betas, sigmas, scale, log_n)
-        choice, fitted = womersley.choose(usable, omega, nu, options.cine, None if prior is None else prior.bic)
+        choice, fitted = cycle.choose(usable, omega, nu, options.cine, None if prior is None else prior.bic)
         choice.walls = wall_choice.as_dict()
         if prior is not None:
             choice.walls["temporal_prior"] = prior.as_dict()
@@ -487,3 +443,46 @@ def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[
             for k, frame in enumerate(cine.frames):
                 write_slice_group(g.create_group(f"frames/frame_{k:03d}"), frame[s.index])
     return series
+
+
+def velocity_sigma(
+    result: SliceResult, problem: vel.VelocityProblem, raw: np.ndarray, acq, noise_velocity: float | None, where: str
+):
+    """Per-voxel velocity noise of a frame as its own fit estimates it (None for noise-free data)."""
+    if noise_velocity is not None:
+        return np.full(problem.data.size, float(noise_velocity))
+    venc = acq.venc_m_s  # as the slice's own fit chose it (wss_nlp.pipeline.steps.prepare)
+    if venc is None and nl.velocity_plateau(result.lumen.noise_mask).sum() < nl.MIN_PLATEAU_VOXELS:
+        venc = acq.noise_venc_m_s
+    noise = nl.velocity_noise(
+        problem.data_image, raw, result.lumen.noise_mask, problem.voxels.index, problem.weights, venc, where,
+        result.lumen.signal,
+    )  # fmt: skip
+    return np.asarray(noise.details["per_voxel"], dtype=float) if noise.value > 0 else None
+
+
+def plain_problem(
+    result: SliceResult, options, psf, coefficients=None, center=None, like: vel.VelocityProblem | None = None
+) -> vel.VelocityProblem:
+    """The frame's plain velocity problem on a wall (default: its own): the one its fit used, or assembled.
+
+    ``like``: another frame's plain problem; on the same wall and grid its operator serves this frame's data.
+    """
+    problem, g = result.problem, result.geometry
+    coefficients = g.coefficients if coefficients is None else np.asarray(coefficients, dtype=float)
+    center = g.center if center is None else (float(center[0]), float(center[1]))
+    same = problem is not None and np.array_equal(problem.disk_map.coefficients, coefficients)
+    if same and problem is not None and tuple(problem.disk_map.center) == tuple(center):
+        if getattr(problem.basis, "base", None) is None:  # not the coupled start, no layer columns
+            return problem
+
+    if (
+        like is not None
+        and np.array_equal(like.disk_map.coefficients, coefficients)
+        and tuple(like.disk_map.center) == tuple(center)
+        and like.data_image.shape == result.velocity_image.shape
+    ):
+        image = np.asarray(result.velocity_image, dtype=float)
+        return replace(like, data=image.ravel()[like.voxels.index], data_image=image)
+    vopt = replace(options.velocity, near_wall="off")
+    return vel.assemble(result.grid, result.velocity_image, coefficients, center, vopt, psf=psf)

@@ -16,8 +16,10 @@ from typing import TYPE_CHECKING, Protocol, runtime_checkable
 import numpy as np
 
 from ..models import near_wall as nw
+from .state import DephasingRecord
 
 if TYPE_CHECKING:
+    from .state import SliceState
     from ..parameters import rules as pr
     from ..models import geometry as geo
     from ..models import preprocess as pp
@@ -65,13 +67,11 @@ class SliceResult:
     sensitivity: sens.Sensitivity | None = None
     notes: list = field(default_factory=list)  # things the user should know that are not failures
     screen: dict = field(default_factory=dict)  # what wss_nlp.pipeline.plausibility found (vessels, aliasing)
-    near_wall: nw.NearWallChoice | None = None  # the near-wall model and why (wss_nlp.parameters.choice.choose_layer)
-    # the dephasing passes: "passes" run, "min_factor" (smallest predicted magnitude factor of the first check),
-    # "next_move" (k-space: predicted wall move of a further pass, voxels), "beta" (of the velocity the check used)
-    dephasing: dict = field(default_factory=dict)
+    near_wall: nw.NearWallChoice | None = None  # the near-wall model and why (wss_nlp.parameters.layer.choose_layer)
+    dephasing: DephasingRecord = field(default_factory=DephasingRecord)  # what the dephasing passes did
     # the velocity problem of the final fit, kept only with a deferred band (cine frames), then dropped
     problem: vel.VelocityProblem | None = None
-    # the uncertainty band still to compute (reconstruct_slice(defer_band=True)): () -> (Sensitivity, note)
+    # the uncertainty band still to compute (reconstruct(defer_band=True)): () -> (Sensitivity, note)
     pending_band: Callable[[], tuple] | None = None
 
     def finish_band(self) -> None:
@@ -146,3 +146,46 @@ class SliceResult:
                 f"{self.geometry.box[1]:.3g}] mm; the lumen may not be star-shaped about the centre"
             )
         return out
+
+
+def make_result(
+    *,
+    state: SliceState,
+    wss: wss_mod.WssResult,
+    grid: VoxelGrid,
+    beta_choice: pr.ParameterChoice | None,
+    method: str,
+    coupled_info: dict,
+    sensitivity: sens.Sensitivity | None,
+    notes: list,
+    pending_band: Callable[[], tuple] | None,
+    seconds: dict,
+) -> SliceResult:
+    """The :class:`SliceResult` of a slice at the end of the steps (keyword-only: the one place results are made).
+
+    The magnitude is the normalized one preprocessing made, the velocity image the measured one (not a
+    dephasing-corrected copy); the velocity problem is kept for a deferred band (the driver drops it otherwise).
+    """
+    data = state.data
+    return SliceResult(
+        index=data.index,
+        geometry=state.geometry,
+        velocity=state.velocity,
+        wss=wss,
+        normalization=data.norm,
+        lumen=state.lumen,
+        grid=grid,
+        magnitude=data.magnitude,
+        velocity_image=np.asarray(data.velocity, float),
+        seconds=seconds,
+        alpha_choice=state.alpha_choice,
+        beta_choice=beta_choice,
+        method=method,
+        coupled_info=coupled_info,
+        sensitivity=sensitivity,
+        notes=notes,
+        near_wall=state.near,
+        dephasing=state.dephasing,
+        problem=state.velocity_problem,
+        pending_band=pending_band,
+    )

@@ -521,7 +521,7 @@ def write_truth(path: str, truth: CineTruth, n_phi: int = 1440) -> None:
     Radius and WSS per frame from each frame's flow about the lumen centre; ``geometry/coefficients`` holds
     each frame's mean radius only (exact for the circular pipes of :func:`make_cine`).
     """
-    from ..pipeline.cine import cycle_weights, tawss_osi
+    from ..core.periodic import cycle_weights, tawss_osi
     from ..io.files import atomic_h5, provenance
 
     phi = 2 * np.pi * np.arange(n_phi) / n_phi

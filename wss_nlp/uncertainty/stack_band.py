@@ -309,9 +309,7 @@ def linearize(
     out = Linearization()
     for s in slices:
         g, vp, c_r = s.geometry, s.velocity_problem, s.geometry.coefficients
-        derivatives = (
-            sens.geometry_parameter_derivatives if s.problem.psf is None else sens.kspace_parameter_derivatives
-        )
+        derivatives = sens.parameter_derivatives(s.problem)
         hmat, dgrad, annulus = derivatives(s.problem, geo.with_options(gopt, alpha=g.alpha), c_r, g.alpha, g.gamma)
         lam = _active_multipliers(s.box_multipliers, s.problem, gopt, c_r)
         out.hessians.append(hmat)
@@ -366,7 +364,7 @@ def segment_band(
     """The band of every slice of a solved z-regularized segment (see the module notes).
 
     ``zop`` is the segment's z-operator ``L`` (:func:`wss_nlp.models.stack.z_operator`). Each slice's ``sigma_m``
-    and ``sigma_u`` are its noise levels (:func:`wss_nlp.uncertainty.sensitivity.noise_levels`).
+    and ``sigma_u`` are its noise levels (:func:`wss_nlp.parameters.noise.band_noise_levels`).
     """
     lin = linearize(slices, gopt, vopt, viscosity_pa_s, n_phi)
     info_m = [
