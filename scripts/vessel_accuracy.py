@@ -48,6 +48,12 @@ def run(case, h, tissue, seed, frames=1, options=None) -> dict:
             "statuses": [s["status"] for s in res.statuses["geometry"]]}  # fmt: skip
 
 
+def _save_rows(out: str, name: str, rows: list) -> None:
+    os.makedirs(os.path.join(out, "studies"), exist_ok=True)
+    with open(os.path.join(out, "studies", f"{name}_rows.json"), "w") as fh:
+        json.dump(rows, fh, indent=1)
+
+
 def _fmt(values, scale=100.0, digits=1, suffix=" %") -> str:
     v = np.asarray(values, float) * scale
     return f"{np.mean(v):.{digits}f}{suffix} ({np.max(v):.{digits}f})"
@@ -93,9 +99,7 @@ def main() -> None:
             print(f"{case} h={h} tissue={tissue} seed={seed}: ours {100 * o['wss_rel_l2']:.1f} % "
                   f"(wall {o['wall_rms_mm'] / h:.3f} h, cov {100 * o['coverage']:.0f} %), baseline "
                   f"{100 * b['wss_rel_l2']:.1f} %, {row['seconds']:.0f} s", file=sys.stderr, flush=True)  # fmt: skip
-    os.makedirs(os.path.join(args.out, "studies"), exist_ok=True)
-    with open(os.path.join(args.out, "studies", f"{args.name}_rows.json"), "w") as fh:
-        json.dump(rows, fh, indent=1)
+            _save_rows(args.out, args.name, rows)  # after every run: a stopped run keeps what it finished
     write_report(args.out, f"{args.name}.md", table(rows, seeds, sys.argv[1:]))
 
 

@@ -192,8 +192,8 @@ def velocity_basis(geometry, options: Velocity3DOptions, h: float) -> VelocityBa
             ss, pp = np.meshgrid(s, phi, indexing="ij")
             inner[k] = options.inner_fraction * float(np.min(geometry.radius(ss.ravel(), pp.ravel())))
     s = np.linspace(lo, hi, 4 * spline.intervals + 1)
-    ss, pp = (v.ravel() for v in np.meshgrid(s, phi, indexing="ij"))
-    r_min = geometry.radius(ss, pp).reshape(s.size, phi.size).min(axis=1)
+    grid_s, grid_phi = np.meshgrid(s, phi, indexing="ij")
+    r_min = geometry.radius(grid_s.ravel(), grid_phi.ravel()).reshape(s.size, phi.size).min(axis=1)
     r_in = inner_spline.evaluate(inner, s)
     if not np.all(r_min > 0) or not np.all((r_in > 0) & (r_in < 2 * r_min)):
         raise InputError(

@@ -47,11 +47,24 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser(
         "reconstruct",
         help="reconstruct an acquisition file",
-        description="Reconstruct geometry, velocity and WSS of every slice of INPUT.",
+        description="Reconstruct geometry, velocity and WSS of every slice of INPUT, or of the whole vessel's wall "
+        "when INPUT is a 4D flow volume file.",
     )
     r.add_argument("input", help='input HDF5 file (format: docs, "File formats")')
     r.add_argument("-o", "--output", required=True, help="result HDF5 file")
     r.add_argument("--figures", default=None, help="folder for PNG figures of every slice")
+    v = r.add_argument_group(
+        "4D flow volumes",
+        "a volume file (wss-nlp import without --plane) maps the whole vessel's wall; --vessel then takes X,Y,Z "
+        "in world mm (docs: 4D flow)",
+    )
+    v.add_argument("--mask", default=None, metavar="FILE", help="the lumen as a NIfTI mask on the volume's grid")
+    v.add_argument(
+        "--centerline", default=None, metavar="FILE", help="the centreline as CSV (x,y,z per row) or VTK polyline, mm"
+    )
+    v.add_argument(
+        "--baseline", action="store_true", help="also the wall-normal fit of common 4D flow tools on the same mask"
+    )
     _add_reconstruction_arguments(r)
     r.set_defaults(func=cmd_reconstruct)
 
@@ -175,7 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
         "export",
         help="the reconstructed wall with its WSS as a VTK file for ParaView",
         description="A slice becomes a polyline, a stack the wall surface; point data tau_pa (and tau_std_pa, "
-        "wss_vector_pa where present).",
+        "wss_vector_pa where present). A vessel result (4D flow) becomes the wall's quad mesh in world mm "
+        "(wss_vector_pa, tau_pa, tawss_pa and osi for cines, one .vtu per frame and a .pvd), the centreline "
+        "(_centerline.vtk) and the per-plane table (_planes.csv).",
     )
     ex.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
     ex.add_argument("--vtk", required=True, help="output file: .vtu (VTK XML) or .vtk (legacy)")
@@ -192,12 +207,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="scanner exports (DICOM folder/files or NIfTI) to an input file",
         description="Read a magnitude and a phase (or velocity) series from DICOM (Siemens, Philips, GE, enhanced "
         "multi-frame) or NIfTI (with dcm2niix JSON sidecars) and write an input file of the format document; "
-        "venc, voxel size, origin, slice spacing and trigger times come from the headers. See the docs page "
-        "'Your own data'.",
+        "venc, voxel size, origin, slice spacing and trigger times come from the headers. A 4D flow NIfTI "
+        "magnitude and three velocity components (*_vx, *_vy, *_vz or sidecar directions) without --plane "
+        "become a volume file ('wss-nlp reconstruct' then maps the whole vessel's wall). See the docs pages "
+        "'Your own data' and '4D flow'.",
     )
     im.add_argument("paths", nargs="+", metavar="PATH", help="DICOM folders or files, or NIfTI files")
     im.add_argument("-o", "--output", required=True, help="input file to write (.h5)")
-    im.add_argument("--venc", type=float, default=None, metavar="M_S", help="velocity encoding in m/s (overrides)")
+    im.add_argument(
+        "--venc",
+        default=None,
+        metavar="M_S",
+        help="velocity encoding in m/s (overrides); a 4D flow volume takes one value or three X,Y,Z",
+    )
     im.add_argument("--viscosity", type=float, default=None, metavar="PA_S", help="dynamic viscosity to store")
     im.add_argument("--density", type=float, default=None, metavar="KG_M3", help="fluid density to store")
     im.add_argument(

@@ -31,6 +31,9 @@ def _errors_rows(err: metrics.Errors):
 
 
 def cmd_compare(args) -> int:
+    from .vessel import refuse_on_volume
+
+    refuse_on_volume("compare", args.result)
     truths = metrics.TruthTable.all_from_file(args.truth)
     rec = wio.read_result(args.result)
     if len(truths) > 1 and len(truths) != len(rec):
@@ -51,6 +54,10 @@ def cmd_compare(args) -> int:
 
 
 def cmd_analyze(args) -> int:
+    from .vessel import analyze_volume, is_vessel_result
+
+    if is_vessel_result(args.result):
+        return analyze_volume(args)
     outputs.check_outputs(folders={"--figures": args.figures}, inputs=[args.result])
     choices = wio.read_choices(args.result)
     for name, per in choices.items():
@@ -148,6 +155,9 @@ def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
 
 
 def cmd_sensitivity(args) -> int:
+    from .vessel import refuse_on_volume
+
+    refuse_on_volume("sensitivity", args.result)
     recs = wio.read_sensitivity(args.result)
     if not recs:
         raise InputError(f"{args.result}: no sensitivity records; reconstruct without --no-uncertainty")
