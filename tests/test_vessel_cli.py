@@ -58,10 +58,10 @@ def cli_run(nifti_tube, tmp_path_factory):
                       "--viscosity", f"{mu!r}"])  # fmt: skip
     seed = truth.vessel.centreline.point(np.array([30.0]))[0]  # a point on the true axis, world mm
     rc_rec = main(["reconstruct", str(exam), "-o", str(result), "--vessel", ",".join(f"{v:.3f}" for v in seed),
-                   "--baseline"])  # fmt: skip
+                   "--baseline", "--figures", str(out / "figs")])  # fmt: skip
     rc_exp = main(["export", str(result), "--vtk", str(wall)])
     return {"codes": (rc_import, rc_rec, rc_exp), "exam": exam, "result": result, "wall": wall, "vol": vol,
-            "truth": truth, "mu": mu}  # fmt: skip
+            "truth": truth, "mu": mu, "figures": out / "figs"}  # fmt: skip
 
 
 def test_import_without_plane_writes_the_volume_as_given(cli_run):
@@ -121,6 +121,23 @@ def test_export_writes_the_wall_mesh_in_world_mm_with_the_issue_arrays(cli_run):
     assert os.path.exists(stem + "_centerline.vtk") and os.path.exists(stem + "_planes.csv")
 
 
+def test_the_unrolled_wall_map_shows_the_result_blank_where_flagged(cli_run):
+    from wss_nlp.app.plotting import figure_vessel_wall_map, vessel_wall_maps
+    from wss_nlp.vessel.reconstruct import read_result
+
+    assert (cli_run["figures"] / "wall_map.png").stat().st_size > 0
+    res = read_result(cli_run["result"])
+    maps = vessel_wall_maps(res)
+    flagged = res.flags != 0
+    assert flagged.any() and (~flagged).any()
+    expected = [np.linalg.norm(res.wss_pa[0], axis=-1), res.axial_pa[0], res.circumferential_pa[0]]
+    for data, want in zip(maps.values(), expected):
+        assert np.all(np.isnan(data[flagged])) and np.array_equal(data[~flagged], want[~flagged])
+    fig = figure_vessel_wall_map(res)
+    shown = fig.axes[0].images[0].get_array()  # (phi, s): angle up, arc length across
+    assert np.array_equal(shown.mask, flagged.T) and np.array_equal(shown.data[~flagged.T], expected[0].T[~flagged.T])
+
+
 def test_analyze_reads_a_vessel_result(cli_run, capsys):
     rc, out, err = _run(["analyze", cli_run["result"]], capsys)
     assert rc == 0, err
@@ -159,7 +176,6 @@ def volume_file(tmp_path_factory):
     [
         (["--vessel", "1,2"], "--vessel takes three numbers X,Y,Z"),
         (["--method", "coupled"], "--method: not an option of the volume reconstruction"),
-        (["--figures", "figs"], "--figures"),
         (["--beta", "fast"], "--beta fast"),
     ],
 )

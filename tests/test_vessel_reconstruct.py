@@ -60,8 +60,8 @@ def test_wall_design_matrix_and_evaluation_agree():
 # ------------------------------------------------------------------ the forward model
 @pytest.fixture(scope="module")
 def arc_noise_free():
-    """The arch at h = 2 mm without noise over a 50 mm stretch (fast) and its truth."""
-    vol, truth = vs.make_vessel_phantom("arc", h_mm=2.0, snr=None, seed=3, visible_mm=(45.0, 95.0))
+    """The arch at h = 2 mm without noise over a 35 mm stretch (fast) and its truth."""
+    vol, truth = vs.make_vessel_phantom("arc", h_mm=2.0, snr=None, seed=3, visible_mm=(50.0, 85.0))
     return vol, truth
 
 
@@ -125,7 +125,7 @@ def test_fast_coordinates_agree_with_the_centerline_projection():
 @pytest.fixture(scope="module")
 def small_problem():
     """A short straight tube with noise (non-zero residuals) as a geometry problem."""
-    vol, truth = vs.make_vessel_phantom("straight", h_mm=2.5, snr=20, seed=2, visible_mm=(20.0, 40.0),
+    vol, truth = vs.make_vessel_phantom("straight", h_mm=2.5, snr=20, seed=2, visible_mm=(20.0, 32.0),
                                         radius_mm=7.0)  # fmt: skip
     inputs = vrec.vessel_inputs(vol)
     cl = inputs.centerline
@@ -209,8 +209,9 @@ def test_wss_derivative_graph_passes_a_taylor_test(small_problem, small_wall):
 def test_noise_free_straight_tube_equals_the_2d_result():
     """A z-invariant volume made of one 2D phantom slice: the 3D functionals are the 2D ones summed over the voxel
     layers (same points in each layer, z-invariant wall and velocity, s-penalties zero), so with the same options
-    (N, alpha, q, basis, beta, r_in = min R as in 2D) the 3D wall and WSS equal the 2D method's (models.geometry, models.velocity,
-    models.wss) to the solvers' tolerances: measured 2e-10 (radius) and 4e-5 (axial WSS) relative."""
+    (N, alpha, q, basis, beta, r_in = min R as in 2D) the 3D wall and WSS equal the 2D method's (models.geometry,
+    models.velocity, models.wss) to the solvers' tolerances: measured 2e-10 (radius) and 4e-5 (axial WSS)
+    relative."""
     from wss_nlp.models import geometry as geo
     from wss_nlp.models import preprocess as pp
     from wss_nlp.models import velocity as vel
@@ -335,6 +336,25 @@ def test_the_wall_normal_fit_takes_the_slope_of_the_profile_at_its_surface():
     assert np.max(np.abs(tau[..., :2])) < 1e-9  # tangential: along the axis
 
 
+def test_an_oblique_small_tube_gives_the_axis_aligned_wss():
+    """The fast version of the claim below: a radius-6 mm tube at h = 2.5 mm (2.4 voxels per radius), 20 mm in
+    view, SNR 20, seed 4, on a grid along its axis and on one turned at random. The ring-mean WSS of both equal
+    ``2 mu U / R`` within 3 %: measured 1.6 % and 0.3 % off (seeds 6 and 7: up to 1.1 % and 1.0 %, the two
+    grids 1-2 % apart); the WSS vector's L2 error 11.5 % and 12.8 % (the issue's h = 2.5 mm target is 12 % for
+    aorta-sized vessels, twice this radius), bound at 15 %."""
+    means = []
+    for rotation in (np.eye(3), None):
+        vol, truth = vs.make_vessel_phantom("straight", h_mm=2.5, snr=20, seed=4, visible_mm=(20.0, 40.0),
+                                            radius_mm=6.0, rotation=rotation)  # fmt: skip
+        acc = accuracy(vrec.reconstruct_vessel(vol), truth)
+        means.append(acc.mean_wss_pa)
+        assert acc.wss_rel_l2 < 0.15
+    expected = 2 * MU * 0.8 / 6e-3
+    assert abs(means[0] - means[1]) < 0.03 * expected
+    assert max(abs(m - expected) for m in means) < 0.03 * expected
+
+
+@pytest.mark.slow
 def test_an_oblique_straight_tube_gives_the_axis_aligned_wss():
     """The same straight tube (radius 8 mm, 2 mm voxels, 40 mm in view) on a grid along its axis and on one turned
     at random: the ring-mean axial WSS of both equal the truth's ``2 mu U / R`` within the noise (SNR 20: measured

@@ -453,3 +453,49 @@ def save_cine_figures(series, result, folder: str, truth_tau=None) -> list[str]:
         fig = figure_cine(s, result.times_ms, truth_tau)
         paths.append(save_figure(fig, os.path.join(folder, f"cine_slice_{s.index:03d}.png")))
     return paths
+
+
+def vessel_wall_maps(result) -> dict:
+    """The unrolled wall maps of a vessel result (:class:`wss_nlp.vessel.reconstruct.VesselResult`), ``(ns, nphi)``
+    arrays keyed by their colour-bar label, flagged wall points NaN (they are not covered: module notes of
+    :mod:`wss_nlp.vessel.reconstruct`). One frame: ``|tau|``, its axial part ``tau . t`` (signed) and its
+    circumferential part; a cine: TAWSS, OSI and ``|tau|`` at the frame of the largest mean ``|tau|``."""
+    flagged = result.flags != 0
+    mag = np.linalg.norm(result.wss_pa, axis=-1)  # (nt, ns, nphi)
+    if result.nt == 1 or result.tawss_pa is None:
+        maps = {r"$|\tau|$ [Pa]": mag[0], r"axial $\tau \cdot t$ [Pa]": result.axial_pa[0],
+                r"circumferential WSS [Pa]": result.circumferential_pa[0]}  # fmt: skip
+    else:
+        peak = int(np.argmax([np.nanmean(np.where(flagged, np.nan, m)) for m in mag]))
+        maps = {"TAWSS [Pa]": result.tawss_pa, "OSI": result.osi,
+                rf"$|\tau|$ at {float(result.time_ms[peak]):g} ms [Pa]": mag[peak]}  # fmt: skip
+    return {k: np.where(flagged, np.nan, np.asarray(v, float)) for k, v in maps.items()}
+
+
+def figure_vessel_wall_map(result):
+    """The wall unrolled: arc length along the centreline x angle about it (issue 38's wall map), the maps of
+    :func:`vessel_wall_maps`; blank where a wall point is flagged (branch, outside the visible part, border,
+    unresolved)."""
+    maps = vessel_wall_maps(result)
+    s, phi = np.asarray(result.s_mm, float), np.degrees(np.asarray(result.phi, float))
+    ds = float(s[1] - s[0]) if s.size > 1 else 1.0
+    dphi = float(phi[1] - phi[0]) if phi.size > 1 else 1.0
+    extent = (s[0] - ds / 2, s[-1] + ds / 2, phi[0] - dphi / 2, phi[-1] + dphi / 2)
+    fig, axes = _subplots(len(maps), 1, figsize=(9, 2.8 * len(maps)), sharex=True, squeeze=False)
+    for ax, (label, data), cmap in zip(axes[:, 0], maps.items(), ("magma", "coolwarm", "coolwarm")):
+        if "OSI" in label:
+            cmap = "viridis"
+        im = ax.imshow(np.ma.masked_invalid(data.T), origin="lower", aspect="auto", extent=extent, cmap=cmap,
+                       interpolation="nearest")  # fmt: skip
+        fig.colorbar(im, ax=ax, label=label)
+        ax.set(ylabel=r"angle $\varphi$ [deg]", title=label)
+    axes[-1, 0].set_xlabel("arc length s along the centreline [mm]")
+    covered = float(np.mean(result.flags == 0))
+    fig.suptitle(f"unrolled wall ({100 * covered:.0f} % of the points covered; blank: flagged)")
+    fig.tight_layout()
+    return fig
+
+
+def save_vessel_figures(result, folder: str) -> list[str]:
+    """``wall_map.png`` (:func:`figure_vessel_wall_map`) in ``folder``."""
+    return [save_figure(figure_vessel_wall_map(result), os.path.join(folder, "wall_map.png"))]

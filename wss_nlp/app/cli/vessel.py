@@ -139,10 +139,8 @@ def reconstruct_volume(args) -> int:
     from ...vessel.segmentation import read_mask
 
     options = vessel_options(args)
-    if args.figures:
-        raise InputError("--figures: the volume route writes no figures yet; export the wall (--vtk) for ParaView")
     inputs = [args.input] + [p for p in (args.mask, args.centerline) if p]
-    outputs.check_outputs(files={"-o": args.output}, inputs=inputs)
+    outputs.check_outputs(files={"-o": args.output}, folders={"--figures": args.figures}, inputs=inputs)
     vol = read_volume(args.input)
     print(
         f"{args.input}: a 4D flow volume of {' x '.join(map(str, vol.shape))} voxels "
@@ -158,13 +156,19 @@ def reconstruct_volume(args) -> int:
     if args.baseline:
         base = baseline_vessel(vol, prepared.mask, prepared.centerline, result.record, options,
                                s=result.s_mm, phi=result.phi)  # fmt: skip
-    with atomic_h5(args.output) as f:
-        f.attrs["argv"] = " ".join(["wss-nlp", *args.argv])
-        f.attrs["input"] = str(args.input)
-        f.attrs["options"] = json.dumps(dataclasses.asdict(options), default=str)
-        result.write(f.create_group("vessel"))
-        if base is not None:
-            base.write(f.create_group("baseline"))
+    with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
+        if staged.path:
+            from ..plotting import save_vessel_figures
+
+            save_vessel_figures(result, staged.path)
+        with atomic_h5(args.output) as f:
+            f.attrs["argv"] = " ".join(["wss-nlp", *args.argv])
+            f.attrs["input"] = str(args.input)
+            f.attrs["options"] = json.dumps(dataclasses.asdict(options), default=str)
+            result.write(f.create_group("vessel"))
+            if base is not None:
+                base.write(f.create_group("baseline"))
+        staged.commit()
     for note in result.notes:
         print(f"  {note}", file=sys.stderr)
     for b in result.record.get("branches", []):
@@ -189,6 +193,8 @@ def reconstruct_volume(args) -> int:
         bmag = np.linalg.norm(base.wss_pa, axis=-1)
         print(f"baseline ({base.method}): mean |WSS| {float(np.mean(bmag[:, covered])):.4g} Pa on the same points")
     print(f"wrote {args.output}")
+    if args.figures:
+        print(f"figures in {args.figures}")
     return 0
 
 
