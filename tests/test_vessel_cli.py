@@ -138,6 +138,40 @@ def test_the_unrolled_wall_map_shows_the_result_blank_where_flagged(cli_run):
     assert np.array_equal(shown.mask, flagged.T) and np.array_equal(shown.data[~flagged.T], expected[0].T[~flagged.T])
 
 
+def test_a_cine_wall_is_a_pvd_time_series_with_tawss_and_osi(cli_run, tmp_path):
+    """The export of a cine without a cine solve: the reconstructed frame scaled by 1, -0.5, 0.25 at 0, 300,
+    600 ms of a 900 ms cycle (reverse flow in the middle frame). Equal trapezoid weights (1/3 each): TAWSS =
+    (1 + 0.5 + 0.25) / 3 |tau| and OSI = (1 - 0.75 / 1.75) / 2 = 2/7 at every point, by hand."""
+    import dataclasses
+    import xml.etree.ElementTree as ET
+
+    import meshio
+
+    from wss_nlp.vessel.mesh import write_wall
+    from wss_nlp.vessel.reconstruct import cycle_indices, read_result
+
+    one = read_result(cli_run["result"])
+    scale = np.array([1.0, -0.5, 0.25])
+    wss = scale[:, None, None, None] * one.wss_pa[0]
+    times = np.array([0.0, 300.0, 600.0])
+    tawss, osi = cycle_indices(wss, times, 900.0)
+    mag = np.linalg.norm(one.wss_pa[0], axis=-1)
+    assert np.allclose(tawss, 1.75 / 3 * mag, rtol=1e-12) and np.allclose(osi[mag > 0], 2 / 7, rtol=1e-12)
+    cine = dataclasses.replace(one, wss_pa=wss, axial_pa=scale[:, None, None] * one.axial_pa[0],
+                               circumferential_pa=scale[:, None, None] * one.circumferential_pa[0], time_ms=times,
+                               tawss_pa=tawss, osi=osi)  # fmt: skip
+    written = write_wall(cine, tmp_path / "wall.vtu")
+    pvd = ET.parse(tmp_path / "wall.pvd").getroot()
+    steps = [(float(d.get("timestep")), d.get("file")) for d in pvd.iter("DataSet")]
+    assert steps == [(0.0, "wall_000.vtu"), (300.0, "wall_001.vtu"), (600.0, "wall_002.vtu")]
+    for k, (_, name) in enumerate(steps):
+        assert str(tmp_path / name) in written
+        mesh = meshio.read(tmp_path / name)
+        assert np.allclose(mesh.point_data["wss_vector_pa"], wss[k].reshape(-1, 3))
+        assert np.allclose(mesh.point_data["tawss_pa"], tawss.ravel()) and np.allclose(mesh.point_data["osi"],
+                                                                                       osi.ravel())  # fmt: skip
+
+
 def test_analyze_reads_a_vessel_result(cli_run, capsys):
     rc, out, err = _run(["analyze", cli_run["result"]], capsys)
     assert rc == 0, err
