@@ -122,10 +122,11 @@ def test_export_writes_the_wall_mesh_in_world_mm_with_the_issue_arrays(cli_run):
 
 
 def test_the_unrolled_wall_map_shows_the_result_blank_where_flagged(cli_run):
-    from wss_nlp.app.plotting import figure_vessel_wall_map, vessel_wall_maps
+    from wss_nlp.app.plotting import figure_vessel_wall_3d, figure_vessel_wall_map, vessel_wall_maps
     from wss_nlp.vessel.reconstruct import read_result
 
     assert (cli_run["figures"] / "wall_map.png").stat().st_size > 0
+    assert (cli_run["figures"] / "wall_3d.png").stat().st_size > 0
     res = read_result(cli_run["result"])
     maps = vessel_wall_maps(res)
     flagged = res.flags != 0
@@ -136,6 +137,10 @@ def test_the_unrolled_wall_map_shows_the_result_blank_where_flagged(cli_run):
     fig = figure_vessel_wall_map(res)
     shown = fig.axes[0].images[0].get_array()  # (phi, s): angle up, arc length across
     assert np.array_equal(shown.mask, flagged.T) and np.array_equal(shown.data[~flagged.T], expected[0].T[~flagged.T])
+    # the 3D view: one quad per wall cell (the ring closed), corners at the wall points
+    view = figure_vessel_wall_3d(res)
+    quads = view.axes[0].collections[0]
+    assert len(quads.get_facecolor()) == (res.s_mm.size - 1) * res.phi.size
 
 
 def test_a_cine_wall_is_a_pvd_time_series_with_tawss_and_osi(cli_run, tmp_path):

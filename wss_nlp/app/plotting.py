@@ -485,8 +485,12 @@ def figure_vessel_wall_map(result):
     for ax, (label, data), cmap in zip(axes[:, 0], maps.items(), ("magma", "coolwarm", "coolwarm")):
         if "OSI" in label:
             cmap = "viridis"
+        signed = {}
+        if cmap == "coolwarm" and np.isfinite(data).any():  # signed parts: white at zero
+            top = float(np.nanmax(np.abs(data)))
+            signed = {"vmin": -top, "vmax": top}
         im = ax.imshow(np.ma.masked_invalid(data.T), origin="lower", aspect="auto", extent=extent, cmap=cmap,
-                       interpolation="nearest")  # fmt: skip
+                       interpolation="nearest", **signed)  # fmt: skip
         fig.colorbar(im, ax=ax, label=label)
         ax.set(ylabel=r"angle $\varphi$ [deg]", title=label)
     axes[-1, 0].set_xlabel("arc length s along the centreline [mm]")
@@ -496,6 +500,35 @@ def figure_vessel_wall_map(result):
     return fig
 
 
+def figure_vessel_wall_3d(result):
+    """The wall in world mm as quads coloured by the first map of :func:`vessel_wall_maps` (``|tau|`` of one frame,
+    TAWSS of a cine; grey where flagged), one view, with the centreline."""
+    from matplotlib import cm, colormaps, colors
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    label, data = next(iter(vessel_wall_maps(result).items()))
+    p = np.asarray(result.wall_mm, float)  # (ns, nphi, 3)
+    q = np.concatenate([p, p[:, :1]], axis=1)  # close the ring
+    quads = np.stack([q[:-1, :-1], q[1:, :-1], q[1:, 1:], q[:-1, 1:]], axis=2).reshape(-1, 4, 3)
+    d = np.concatenate([data, data[:, :1]], axis=1)
+    value = 0.25 * (d[:-1, :-1] + d[1:, :-1] + d[1:, 1:] + d[:-1, 1:]).ravel()  # NaN where a corner is flagged
+    finite = np.isfinite(value)
+    norm = colors.Normalize(*(np.nanpercentile(value, [1, 99]) if finite.any() else (0.0, 1.0)))
+    rgba = colormaps["magma"](norm(np.where(finite, value, 0.0)))
+    rgba[~finite] = (0.75, 0.75, 0.75, 1.0)
+    fig = Figure(figsize=(8, 6.5))
+    ax = fig.add_subplot(projection="3d")
+    ax.add_collection3d(Poly3DCollection(quads, facecolors=rgba, edgecolors="none"))
+    ax.plot(*np.asarray(result.centerline.position(result.s_mm)).T, color="k", lw=1)
+    lo, hi = p.reshape(-1, 3).min(axis=0), p.reshape(-1, 3).max(axis=0)
+    mid, half = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo))
+    ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half),
+           zlim=(mid[2] - half, mid[2] + half), xlabel="x [mm]", ylabel="y [mm]", zlabel="z [mm]")  # fmt: skip
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap="magma"), ax=ax, shrink=0.7, label=label + " (grey: flagged)")
+    return fig
+
+
 def save_vessel_figures(result, folder: str) -> list[str]:
-    """``wall_map.png`` (:func:`figure_vessel_wall_map`) in ``folder``."""
-    return [save_figure(figure_vessel_wall_map(result), os.path.join(folder, "wall_map.png"))]
+    """``wall_map.png`` (:func:`figure_vessel_wall_map`) and ``wall_3d.png`` (:func:`figure_vessel_wall_3d`)."""
+    return [save_figure(figure_vessel_wall_map(result), os.path.join(folder, "wall_map.png")),
+            save_figure(figure_vessel_wall_3d(result), os.path.join(folder, "wall_3d.png"))]  # fmt: skip
