@@ -77,6 +77,10 @@ def main() -> None:
         for name in args.merge.split(","):
             with open(os.path.join(args.out, "studies", f"{name}_rows.json")) as fh:
                 rows += json.load(fh)
+        unique: dict = {}  # a case run twice (split runs that overlap) counts once: the first run's row
+        for r in rows:
+            unique.setdefault((r["case"], r["h"], r["tissue"], r["seed"]), r)
+        rows = list(unique.values())
         seeds = tuple(sorted({r["seed"] for r in rows}))
         write_report(args.out, f"{args.name}.md", table(rows, seeds, sys.argv[1:]))
         return
