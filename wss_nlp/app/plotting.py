@@ -287,11 +287,11 @@ def figure_band_check(phi, linearized, sampled, n_draws: int):
     return fig
 
 
-def save_figure(fig, path: str) -> str:
-    """Write one figure as PNG."""
+def save_figure(fig, path: str, dpi: int = 120) -> str:
+    """Write one figure as PNG (``dpi``: dots per inch; thumbnails take fewer)."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = path + ".part.png"  # never a half-written figure under the final name
-    fig.savefig(tmp, dpi=120)
+    fig.savefig(tmp, dpi=dpi)
     os.replace(tmp, path)
     return path
 
@@ -532,3 +532,116 @@ def save_vessel_figures(result, folder: str) -> list[str]:
     """``wall_map.png`` (:func:`figure_vessel_wall_map`) and ``wall_3d.png`` (:func:`figure_vessel_wall_3d`)."""
     return [save_figure(figure_vessel_wall_map(result), os.path.join(folder, "wall_map.png")),
             save_figure(figure_vessel_wall_3d(result), os.path.join(folder, "wall_3d.png"))]  # fmt: skip
+
+
+def save_tissue_figures(res, raw, folder, prefix: str = "") -> list[str]:
+    """Write ``surround.png`` (:func:`figure_surround`) and ``offset.png`` (:func:`figure_offset`) of a slice the
+    surround model or the offset correction looked at (``res.lumen.tissue``; none otherwise); returns the paths.
+
+    ``raw``: the slice's measured magnitude (the result keeps the magnitude the geometry fitted)."""
+    rec = getattr(getattr(res, "lumen", None), "tissue", None) or {}
+    sm, o = rec.get("surround") or {}, rec.get("offset") or {}
+    paths = []
+    if sm.get("kind") == "tissue" or o.get("static_voxels", 0) > 0:
+        os.makedirs(folder, exist_ok=True)
+        for name, make in (("surround.png", figure_surround), ("offset.png", figure_offset)):
+            path = os.path.join(folder, prefix + name)
+            save_figure(make(res, np.asarray(raw, float)), path)
+            paths.append(path)
+    return paths
+
+
+def figure_surround(res, raw):
+    """Vessel in tissue: the raw magnitude with the wall, and the fitted outside level (issue 39).
+
+    ``raw``: the slice's measured magnitude; the outside model comes from ``res.lumen.tissue``
+    (:func:`wss_nlp.models.surround.model_images`).
+    """
+    from ..models import surround
+
+    outside, _ = surround.model_images(res.lumen.tissue or {}, res.grid)
+    if outside is not None:  # shown where it was fitted and used: up to the outer edge of the outside ring
+        outside = np.where(surround.model_reach(res.lumen.mask, res.grid), outside, np.nan)
+    fig, ax = _subplots(1, 2, figsize=(11, 4.5))
+    fig.set_layout_engine("constrained")
+    im = _image(ax[0], raw, res.grid, cmap="gray")
+    _contour(ax[0], res, color="r", lw=1)
+    fig.colorbar(im, ax=ax[0], label="magnitude (raw)")
+    ax[0].set_title("magnitude and the reconstructed wall")
+    if outside is None:
+        ax[1].set_axis_off()
+        ax[1].set_title("two-level model (Appendix B): no outside model")
+    else:
+        im = _image(ax[1], outside, res.grid, cmap="viridis")
+        _contour(ax[1], res, color="w", lw=1)
+        fig.colorbar(im, ax=ax[1], label="outside level (raw)")
+        sm = (res.lumen.tissue or {}).get("surround", {})
+        wall = (
+            f"; wall ring {sm['wall_mm']:g} mm at {sm['wall_level']:.2f}"
+            if np.isfinite(sm.get("wall_level", np.nan))
+            else ""
+        )
+        ax[1].set_title("fitted outside level" + wall)
+    for a in ax:
+        a.set_xlabel("x [mm]")
+        a.set_ylabel("y [mm]")
+    return fig
+
+
+def figure_offset(res, raw):
+    """The static tissue the offset was fitted to and the removed offset in % of the venc (issue 39)."""
+    from ..models import offset as off
+    from ..models import surround
+
+    rec = res.lumen.tissue or {}
+    _, offset = surround.model_images(rec, res.grid)
+    sigma = rec.get("sigma_lumen_plateau", float("nan"))
+    static = off.static_mask(raw, sigma, res.lumen.noise_mask) if np.isfinite(sigma) else np.zeros_like(raw, bool)
+    fig, ax = _subplots(1, 2, figsize=(11, 4.5))
+    fig.set_layout_engine("constrained")
+    _image(ax[0], static.astype(float), res.grid, cmap="gray")
+    _contour(ax[0], res, color="r", lw=1)
+    ax[0].set_title(f"static tissue ({int(static.sum())} voxels)")
+    o = rec.get("offset") or {}
+    venc = o.get("at_vessel_m_s", float("nan")) / o.get("at_vessel_fraction_of_venc", float("nan"))
+    if offset is None or not np.isfinite(venc):
+        ax[1].set_axis_off()
+        ax[1].set_title("offset not corrected: " + str(o.get("reason", ""))[:60])
+    else:
+        im = _image(ax[1], 100 * offset / venc, res.grid, cmap="RdBu_r")
+        _contour(ax[1], res, color="k", lw=1)
+        fig.colorbar(im, ax=ax[1], label="removed offset [% of venc]")
+        ax[1].set_title(f"removed offset (degree {o['order']})")
+    for a in ax:
+        a.set_xlabel("x [mm]")
+        a.set_ylabel("y [mm]")
+    return fig
+
+
+def figure_cohort(values: dict, flagged=None):
+    """Distributions across the exams of a batch: one panel per quantity, every exam a point over a box plot.
+
+    ``values``: ``{label: {exam id: value}}`` (NaN values are left out: a steady exam has no TAWSS); ``flagged``:
+    the ids of exams with flags, drawn as open orange circles.
+    """
+    flagged = set(flagged or ())
+    panels = [(label, {k: v for k, v in vals.items() if np.isfinite(v)}) for label, vals in values.items()]
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
+    rng = np.random.default_rng(0)  # the points' sideways jitter, the same in every report
+    for ax, (label, vals) in zip(axes[0], panels):
+        ax.set(title=label, xticks=[])
+        if not vals:
+            ax.text(0.5, 0.5, "no exam has it", ha="center", va="center", transform=ax.transAxes, color="0.4")
+            continue
+        data = np.array(list(vals.values()), dtype=float)
+        ax.boxplot(data, widths=0.5, showfliers=False)
+        x = 1 + rng.uniform(-0.15, 0.15, data.size)
+        bad = np.array([k in flagged for k in vals])
+        ax.plot(x[~bad], data[~bad], "o", color="C0", ms=4, label="exam")
+        if bad.any():
+            ax.plot(x[bad], data[bad], "o", mfc="none", color="C1", ms=6, label="flagged exam")
+        ax.set_xticks([])  # after the box plot, which sets its own
+        ax.set_xlabel(f"{data.size} exam(s): median {np.median(data):.4g}")
+        ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    return fig

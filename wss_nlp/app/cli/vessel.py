@@ -139,6 +139,8 @@ def reconstruct_volume(args) -> int:
     from ...vessel.segmentation import read_mask
 
     options = vessel_options(args)
+    if getattr(args, "workers", 1) != 1 or getattr(args, "scheduler", None):
+        raise InputError("--workers/--scheduler: a vessel is one reconstruction; run it without them")
     inputs = [args.input] + [p for p in (args.mask, args.centerline) if p]
     outputs.check_outputs(files={"-o": args.output}, folders={"--figures": args.figures}, inputs=inputs)
     vol = read_volume(args.input)
