@@ -533,6 +533,85 @@ def save_cine_figures(
     return paths
 
 
+def vessel_wall_maps(result) -> dict:
+    """The unrolled wall maps of a vessel result (:class:`wss_nlp.vessel.reconstruct.VesselResult`), ``(ns, nphi)``
+    arrays keyed by their colour-bar label, flagged wall points NaN (they are not covered: module notes of
+    :mod:`wss_nlp.vessel.reconstruct`). One frame: ``|tau|``, its axial part ``tau . t`` (signed) and its
+    circumferential part; a cine: TAWSS, OSI and ``|tau|`` at the frame of the largest mean ``|tau|``."""
+    flagged = result.flags != 0
+    mag = np.linalg.norm(result.wss_pa, axis=-1)  # (nt, ns, nphi)
+    if result.nt == 1 or result.tawss_pa is None:
+        maps = {r"$|\tau|$ [Pa]": mag[0], r"axial $\tau \cdot t$ [Pa]": result.axial_pa[0],
+                r"circumferential WSS [Pa]": result.circumferential_pa[0]}  # fmt: skip
+    else:
+        peak = int(np.argmax([np.nanmean(np.where(flagged, np.nan, m)) for m in mag]))
+        maps = {"TAWSS [Pa]": result.tawss_pa, "OSI": result.osi,
+                rf"$|\tau|$ at {float(result.time_ms[peak]):g} ms [Pa]": mag[peak]}  # fmt: skip
+    return {k: np.where(flagged, np.nan, np.asarray(v, float)) for k, v in maps.items()}
+
+
+def figure_vessel_wall_map(result):
+    """The wall unrolled: arc length along the centreline x angle about it (issue 38's wall map), the maps of
+    :func:`vessel_wall_maps`; blank where a wall point is flagged (branch, outside the visible part, border,
+    unresolved)."""
+    maps = vessel_wall_maps(result)
+    s, phi = np.asarray(result.s_mm, float), np.degrees(np.asarray(result.phi, float))
+    ds = float(s[1] - s[0]) if s.size > 1 else 1.0
+    dphi = float(phi[1] - phi[0]) if phi.size > 1 else 1.0
+    extent = (s[0] - ds / 2, s[-1] + ds / 2, phi[0] - dphi / 2, phi[-1] + dphi / 2)
+    fig, axes = _subplots(len(maps), 1, figsize=(9, 2.8 * len(maps)), sharex=True, squeeze=False)
+    for ax, (label, data), cmap in zip(axes[:, 0], maps.items(), ("magma", "coolwarm", "coolwarm")):
+        if "OSI" in label:
+            cmap = "viridis"
+        signed = {}
+        if cmap == "coolwarm" and np.isfinite(data).any():  # signed parts: white at zero
+            top = float(np.nanmax(np.abs(data)))
+            signed = {"vmin": -top, "vmax": top}
+        im = ax.imshow(np.ma.masked_invalid(data.T), origin="lower", aspect="auto", extent=extent, cmap=cmap,
+                       interpolation="nearest", **signed)  # fmt: skip
+        fig.colorbar(im, ax=ax, label=label)
+        ax.set(ylabel=r"angle $\varphi$ [deg]", title=label)
+    axes[-1, 0].set_xlabel("arc length s along the centreline [mm]")
+    covered = float(np.mean(result.flags == 0))
+    fig.suptitle(f"unrolled wall ({100 * covered:.0f} % of the points covered; blank: flagged)")
+    fig.tight_layout()
+    return fig
+
+
+def figure_vessel_wall_3d(result):
+    """The wall in world mm as quads coloured by the first map of :func:`vessel_wall_maps` (``|tau|`` of one frame,
+    TAWSS of a cine; grey where flagged), one view, with the centreline."""
+    from matplotlib import cm, colormaps, colors
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    label, data = next(iter(vessel_wall_maps(result).items()))
+    p = np.asarray(result.wall_mm, float)  # (ns, nphi, 3)
+    q = np.concatenate([p, p[:, :1]], axis=1)  # close the ring
+    quads = np.stack([q[:-1, :-1], q[1:, :-1], q[1:, 1:], q[:-1, 1:]], axis=2).reshape(-1, 4, 3)
+    d = np.concatenate([data, data[:, :1]], axis=1)
+    value = 0.25 * (d[:-1, :-1] + d[1:, :-1] + d[1:, 1:] + d[:-1, 1:]).ravel()  # NaN where a corner is flagged
+    finite = np.isfinite(value)
+    norm = colors.Normalize(*(np.nanpercentile(value, [1, 99]) if finite.any() else (0.0, 1.0)))
+    rgba = colormaps["magma"](norm(np.where(finite, value, 0.0)))
+    rgba[~finite] = (0.75, 0.75, 0.75, 1.0)
+    fig = Figure(figsize=(8, 6.5))
+    ax = fig.add_subplot(projection="3d")
+    ax.add_collection3d(Poly3DCollection(quads, facecolors=rgba, edgecolors="none"))
+    ax.plot(*np.asarray(result.centerline.position(result.s_mm)).T, color="k", lw=1)
+    lo, hi = p.reshape(-1, 3).min(axis=0), p.reshape(-1, 3).max(axis=0)
+    mid, half = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo))
+    ax.set(xlim=(mid[0] - half, mid[0] + half), ylim=(mid[1] - half, mid[1] + half),
+           zlim=(mid[2] - half, mid[2] + half), xlabel="x [mm]", ylabel="y [mm]", zlabel="z [mm]")  # fmt: skip
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap="magma"), ax=ax, shrink=0.7, label=label + " (grey: flagged)")
+    return fig
+
+
+def save_vessel_figures(result, folder: str, fmt: str = "png", dpi: float | None = None) -> list[str]:
+    """``wall_map.<fmt>`` (:func:`figure_vessel_wall_map`) and ``wall_3d.<fmt>`` (:func:`figure_vessel_wall_3d`)."""
+    return [save_figure(figure_vessel_wall_map(result), os.path.join(folder, f"wall_map.{fmt}"), dpi),
+            save_figure(figure_vessel_wall_3d(result), os.path.join(folder, f"wall_3d.{fmt}"), dpi)]  # fmt: skip
+
+
 def save_tissue_figures(res, raw, folder, prefix: str = "", fmt: str = "png", dpi: float | None = None) -> list[str]:
     """Write ``surround.<fmt>`` (:func:`figure_surround`) and ``offset.<fmt>`` (:func:`figure_offset`) of a slice
     the surround model or the offset correction looked at (``res.lumen.tissue``; none otherwise); returns the paths.

@@ -91,6 +91,32 @@ def _is_dicom_file(path: str) -> bool:
         return False
 
 
+def is_flow_volume(paths) -> bool:
+    """Whether ``paths`` look like a 4D flow volume (the volume route of ``wss-nlp import`` without ``--plane``).
+
+    True when every path is NIfTI and either at least two of them are velocity components of different world axes
+    (:func:`wss_nlp.io.nifti.component_of`: sidecar encoding direction or a name ending ``_vx``, ``_vy``, ``_vz``),
+    or there are four files of which one is a magnitude and three are phase/velocity images (then
+    :func:`read_nifti_volume` asks the user to tell the components apart). A 2D through-plane series has one phase
+    image per slice and no component axis, so it keeps the slice route.
+    """
+    paths = [os.fspath(p) for p in paths]
+    if not paths or not all(nifti.is_nifti(p) for p in paths):
+        return False
+    axes = {nifti.component_of(p, nifti.sidecar(p)) for p in paths} - {None}
+    if len(axes) >= 2:
+        return True
+    if len(paths) != 4:
+        return False
+    roles = []
+    for p in paths:
+        try:
+            roles.append(nifti.role_of(p, nifti.sidecar(p)))
+        except InputError:
+            return False  # the slice route names the file whose role is unknown
+    return roles.count("magnitude") == 1 and roles.count("phase") == 3
+
+
 def read_nifti_volume(
     paths,
     venc_m_s: float | tuple[float, float, float] | None = None,

@@ -163,7 +163,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser(
         "reconstruct",
         help="reconstruct an acquisition file",
-        description="Reconstruct geometry, velocity and WSS of every slice of INPUT.",
+        description="Reconstruct geometry, velocity and WSS of every slice of INPUT, or of the whole vessel's wall "
+        "when INPUT is a 4D flow volume file.",
     )
     r.add_argument("input", help='input HDF5 file (format: docs, "File formats")')
     r.add_argument("-o", "--output", required=True, help="result HDF5 file")
@@ -176,6 +177,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="independent slices (and the slices of each cine frame) in this many processes (default 1: serial)",
     )
     r.add_argument("--scheduler", default=None, help="run them on the Dask scheduler at this address instead")
+    v = r.add_argument_group(
+        "4D flow volumes",
+        "a volume file (wss-nlp import without --plane) maps the whole vessel's wall; --vessel then takes X,Y,Z "
+        "in world mm (docs: 4D flow)",
+    )
+    v.add_argument("--mask", default=None, metavar="FILE", help="the lumen as a NIfTI mask on the volume's grid")
+    v.add_argument(
+        "--centerline", default=None, metavar="FILE", help="the centreline as CSV (x,y,z per row) or VTK polyline, mm"
+    )
+    v.add_argument(
+        "--baseline", action="store_true", help="also the wall-normal fit of common 4D flow tools on the same mask"
+    )
     _add_reconstruction_arguments(r)
     r.set_defaults(func=cmd_reconstruct)
 
@@ -341,7 +354,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="A slice becomes a polyline, a stack the wall surface; point data tau_pa (and tau_std_pa, "
         "wss_vector_pa, tawss_pa and osi where present). Imported data (DICOM, NIfTI, planes of 4D flow) are placed "
         "in the scanner's world frame, so the wall overlays the images in ParaView; field data world_frame and "
-        "length_unit_mm. A cine result: its cycle average (.vtu/.vtk) or its frames as a time series (.pvd).",
+        "length_unit_mm. A cine result: its cycle average (.vtu/.vtk) or its frames as a time series (.pvd). "
+        "A vessel result (4D flow) becomes the wall's quad mesh in world mm (wss_vector_pa, tau_pa, tawss_pa and "
+        "osi for cines, one .vtu per frame and a .pvd), the centreline (_centerline.vtk) and the per-plane table "
+        "(_planes.csv).",
     )
     ex.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
     ex.add_argument(
@@ -360,8 +376,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="scanner exports (DICOM folder/files or NIfTI) to an input file",
         description="Read a magnitude and a phase (or velocity) series from DICOM (Siemens, Philips, GE, enhanced "
         "multi-frame) or NIfTI (with dcm2niix JSON sidecars) and write an input file of the format document; "
-        "venc, voxel size, origin, slice spacing and trigger times come from the headers. See the docs page "
-        "'Your own data'.",
+        "venc, voxel size, origin, slice spacing and trigger times come from the headers. A 4D flow NIfTI "
+        "magnitude and three velocity components (*_vx, *_vy, *_vz or sidecar directions) without --plane "
+        "become a volume file ('wss-nlp reconstruct' then maps the whole vessel's wall). See the docs pages "
+        "'Your own data' and '4D flow'.",
     )
     im.add_argument("paths", nargs="+", metavar="PATH", help="DICOM folders or files, or NIfTI files")
     im.add_argument("-o", "--output", required=True, help="input file to write (.h5)")

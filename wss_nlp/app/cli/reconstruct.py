@@ -9,6 +9,7 @@ import time
 import numpy as np
 from ...io import files as wio
 from ...io import outputs
+from ...errors import InputError
 from ...pipeline import methods
 from ...pipeline.driver import reconstruct, segments_in_parallel, stack_applies
 from .arguments import options_from_args
@@ -150,6 +151,17 @@ def _reconstruct_cine(args, options) -> int:
 
 
 def cmd_reconstruct(args) -> int:
+    from ...io.volume import is_volume_file
+
+    if is_volume_file(args.input):
+        from .vessel import reconstruct_volume
+
+        return reconstruct_volume(args)
+    for flag, value in (("--mask", args.mask), ("--centerline", args.centerline), ("--baseline", args.baseline)):
+        if value:
+            raise InputError(
+                f"{flag}: for a 4D flow volume file (wss-nlp import without --plane); {args.input} is not one"
+            )
     options = options_from_args(args)
     outputs.check_outputs(files={"-o": args.output}, folders={"--figures": args.figures}, inputs=[args.input])
     if _is_time_resolved(args.input):

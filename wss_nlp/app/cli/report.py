@@ -34,6 +34,10 @@ def _errors_rows(err: metrics.Errors):
 
 
 def cmd_compare(args) -> int:
+    from .vessel import refuse_on_volume
+
+    refuse_on_volume("compare", args.result)
+
     layout, truth_layout = wio.result_layout(args.result), wio.result_layout(args.truth)
     if ("cine" in layout) != ("cine" in truth_layout):
         raise InputError(
@@ -102,6 +106,10 @@ def _compare_cine(args) -> int:
 
 
 def cmd_analyze(args) -> int:
+    from .vessel import analyze_volume, is_vessel_result
+
+    if is_vessel_result(args.result):
+        return analyze_volume(args)
     outputs.check_outputs(folders={"--figures": args.figures}, inputs=[args.result])
     layout = wio.result_layout(args.result)
     choices = _one_slice(wio.read_choices(args.result), args)
@@ -290,6 +298,10 @@ def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
 
 
 def cmd_sensitivity(args) -> int:
+    from .vessel import refuse_on_volume
+
+    refuse_on_volume("sensitivity", args.result)
+
     layout = wio.result_layout(args.result)
     recs = wio.read_sensitivity(args.result)
     if "cine" in layout:

@@ -1,0 +1,256 @@
+"""The volume route on the command line (issue 38): ``import`` without ``--plane``, ``reconstruct`` on a volume
+file, ``export --vtk`` of the wall, and the refusals (one line, exit code 2)."""
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+pytest.importorskip("nibabel")
+
+from wss_nlp.app.cli.main import main  # noqa: E402
+from wss_nlp.io.volume import read_volume, write_volume  # noqa: E402
+from wss_nlp.synthetic import vessels as vs  # noqa: E402
+
+
+def _run(argv, capsys):
+    capsys.readouterr()
+    rc = main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    assert "Traceback" not in cap.err
+    return rc, cap.out, cap.err
+
+
+def _refused(rc, err, match):
+    """Exit code 2 and exactly one error line, the last one, naming ``match``."""
+    errors = [ln for ln in err.splitlines() if ln.startswith("wss-nlp: error:")]
+    assert rc == 2, err
+    assert len(errors) == 1 and err.rstrip().splitlines()[-1] == errors[0], err
+    assert match in errors[0], errors[0]
+
+
+def _tube(**overrides):
+    """A short straight tube, radius 6 mm at h = 2.5 mm (2.4 voxels), turned against the grid (seed 1): the
+    smallest vessel phantom the whole route resolves, so the CLI tests stay within seconds."""
+    return vs.make_vessel_phantom("straight", h_mm=2.5, snr=20, seed=1, visible_mm=(20.0, 40.0), radius_mm=6.0,
+                                  **overrides)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def nifti_tube(tmp_path_factory):
+    vol, truth = _tube()
+    folder = tmp_path_factory.mktemp("nifti")
+    files = vs.write_volume_nifti(folder, vol)
+    return vol, truth, [f for f in files if f.endswith(".nii.gz")], folder
+
+
+@pytest.fixture(scope="module")
+def cli_run(nifti_tube, tmp_path_factory):
+    """import -> reconstruct (a seed point, the baseline) -> export, once for the module's tests (``main`` called
+    directly: a module fixture cannot take ``capsys``)."""
+    vol, truth, files, _ = nifti_tube
+    out = tmp_path_factory.mktemp("cli")
+    exam, result, wall = out / "exam.h5", out / "result.h5", out / "wall.vtu"
+    mu = truth.viscosity_pa_s  # NIfTI has no viscosity: only --viscosity gives it (else reconstruct refuses)
+    rc_import = main(["import", *files, "-o", str(exam), "--phase-units", "m/s", "--venc", "1.5,1.5,2",
+                      "--viscosity", f"{mu!r}"])  # fmt: skip
+    seed = truth.vessel.centreline.point(np.array([30.0]))[0]  # a point on the true axis, world mm
+    rc_rec = main(["reconstruct", str(exam), "-o", str(result), "--vessel", ",".join(f"{v:.3f}" for v in seed),
+                   "--baseline", "--figures", str(out / "figs")])  # fmt: skip
+    rc_exp = main(["export", str(result), "--vtk", str(wall)])
+    return {"codes": (rc_import, rc_rec, rc_exp), "exam": exam, "result": result, "wall": wall, "vol": vol,
+            "truth": truth, "mu": mu, "figures": out / "figs"}  # fmt: skip
+
+
+def test_import_without_plane_writes_the_volume_as_given(cli_run):
+    assert cli_run["codes"][0] == 0
+    vol, back = cli_run["vol"], read_volume(cli_run["exam"])
+    # NIfTI stores float32: values agree to its rounding (2^-24 relative to the largest value, doubled for safety)
+    assert np.allclose(back.magnitude, vol.magnitude, rtol=0, atol=2**-23 * np.abs(vol.magnitude).max())
+    assert np.allclose(back.velocity, vol.velocity, rtol=0, atol=2**-23 * np.abs(vol.velocity).max())
+    assert np.allclose(back.affine_mm, vol.affine_mm, rtol=0, atol=1e-4)  # the NIfTI sform is float32 too
+    assert np.allclose(back.venc_m_s, (1.5, 1.5, 2.0)) and back.viscosity_pa_s == cli_run["mu"]
+    import h5py
+
+    with h5py.File(cli_run["exam"], "r") as f:  # the import's record of which file gave which component
+        record = json.loads(f.attrs["import"])
+    assert {a: os.path.basename(record["components"][a]["file"]) for a in "xyz"} == {
+        "x": "flow_vx.nii.gz", "y": "flow_vy.nii.gz", "z": "flow_vz.nii.gz"}  # fmt: skip
+
+
+def test_reconstruct_on_a_volume_file_maps_the_wall_near_the_truth(cli_run):
+    from wss_nlp.vessel.metrics import accuracy
+    from wss_nlp.vessel.reconstruct import read_result
+
+    assert cli_run["codes"][1] == 0
+    res, base = read_result(cli_run["result"]), read_result(cli_run["result"], "baseline")
+    acc = accuracy(res, cli_run["truth"])
+    # 2.4 voxels per radius at SNR 20 (seed 1): the issue's wall target (h/4 rms) and coverage target (90 %);
+    # the WSS within 15 %, the h = 2.5 mm target (12 %) with room for this vessel being half the aorta's size
+    assert acc.wall_rms_mm < 0.25 * 2.5
+    assert acc.coverage >= 0.9
+    assert acc.wss_rel_l2 < 0.15
+    assert base.wss_pa.shape == res.wss_pa.shape and np.array_equal(base.s_mm, res.s_mm)
+
+
+def test_export_writes_the_wall_mesh_in_world_mm_with_the_issue_arrays(cli_run):
+    import meshio
+
+    from wss_nlp.vessel.reconstruct import read_result
+
+    assert cli_run["codes"][2] == 0
+    res = read_result(cli_run["result"])
+    mesh = meshio.read(cli_run["wall"])
+    assert np.allclose(mesh.points, res.wall_mm.reshape(-1, 3))
+    assert {"wss_vector_pa", "tau_pa", "flags", "covered"} <= set(mesh.point_data)
+    assert mesh.cells_dict["quad"].shape == ((res.s_mm.size - 1) * res.phi.size, 4)
+    # world mm: the covered points lie on the true tube (radius 6 mm about the true axis) within the wall's error
+    truth = cli_run["truth"]
+    covered = mesh.point_data["covered"] == 1
+    pts = mesh.points[covered]
+    s = truth.vessel.centreline.project(pts)
+    r = np.linalg.norm(pts - truth.vessel.centreline.point(s), axis=-1)
+    assert np.sqrt(np.mean((r - 6.0) ** 2)) < 0.25 * 2.5
+    # tau_pa is the WSS vector's part along the centreline's direction (signed)
+    tangent = np.repeat(res.centerline.frame(res.s_mm)[0], res.phi.size, axis=0)
+    along = np.sum(mesh.point_data["wss_vector_pa"] * tangent, axis=-1)
+    assert np.allclose(along, mesh.point_data["tau_pa"], rtol=0, atol=1e-9 * np.abs(along).max())
+    stem = str(cli_run["wall"])[:-4]
+    assert os.path.exists(stem + "_centerline.vtk") and os.path.exists(stem + "_planes.csv")
+
+
+def test_the_unrolled_wall_map_shows_the_result_blank_where_flagged(cli_run):
+    from wss_nlp.app.plotting import figure_vessel_wall_3d, figure_vessel_wall_map, vessel_wall_maps
+    from wss_nlp.vessel.reconstruct import read_result
+
+    assert (cli_run["figures"] / "wall_map.png").stat().st_size > 0
+    assert (cli_run["figures"] / "wall_3d.png").stat().st_size > 0
+    res = read_result(cli_run["result"])
+    maps = vessel_wall_maps(res)
+    flagged = res.flags != 0
+    assert flagged.any() and (~flagged).any()
+    expected = [np.linalg.norm(res.wss_pa[0], axis=-1), res.axial_pa[0], res.circumferential_pa[0]]
+    for data, want in zip(maps.values(), expected):
+        assert np.all(np.isnan(data[flagged])) and np.array_equal(data[~flagged], want[~flagged])
+    fig = figure_vessel_wall_map(res)
+    shown = fig.axes[0].images[0].get_array()  # (phi, s): angle up, arc length across
+    assert np.array_equal(shown.mask, flagged.T) and np.array_equal(shown.data[~flagged.T], expected[0].T[~flagged.T])
+    # the 3D view: one quad per wall cell (the ring closed), corners at the wall points
+    view = figure_vessel_wall_3d(res)
+    quads = view.axes[0].collections[0]
+    assert len(quads.get_facecolor()) == (res.s_mm.size - 1) * res.phi.size
+
+
+def test_a_cine_wall_is_a_pvd_time_series_with_tawss_and_osi(cli_run, tmp_path):
+    """The export of a cine without a cine solve: the reconstructed frame scaled by 1, -0.5, 0.25 at 0, 300,
+    600 ms of a 900 ms cycle (reverse flow in the middle frame). Equal trapezoid weights (1/3 each): TAWSS =
+    (1 + 0.5 + 0.25) / 3 |tau| and OSI = (1 - 0.75 / 1.75) / 2 = 2/7 at every point, by hand."""
+    import dataclasses
+    import xml.etree.ElementTree as ET
+
+    import meshio
+
+    from wss_nlp.vessel.mesh import write_wall
+    from wss_nlp.vessel.reconstruct import cycle_indices, read_result
+
+    one = read_result(cli_run["result"])
+    scale = np.array([1.0, -0.5, 0.25])
+    wss = scale[:, None, None, None] * one.wss_pa[0]
+    times = np.array([0.0, 300.0, 600.0])
+    tawss, osi = cycle_indices(wss, times, 900.0)
+    mag = np.linalg.norm(one.wss_pa[0], axis=-1)
+    assert np.allclose(tawss, 1.75 / 3 * mag, rtol=1e-12) and np.allclose(osi[mag > 0], 2 / 7, rtol=1e-12)
+    cine = dataclasses.replace(one, wss_pa=wss, axial_pa=scale[:, None, None] * one.axial_pa[0],
+                               circumferential_pa=scale[:, None, None] * one.circumferential_pa[0], time_ms=times,
+                               tawss_pa=tawss, osi=osi)  # fmt: skip
+    written = write_wall(cine, tmp_path / "wall.vtu")
+    pvd = ET.parse(tmp_path / "wall.pvd").getroot()
+    steps = [(float(d.get("timestep")), d.get("file")) for d in pvd.iter("DataSet")]
+    assert steps == [(0.0, "wall_000.vtu"), (300.0, "wall_001.vtu"), (600.0, "wall_002.vtu")]
+    for k, (_, name) in enumerate(steps):
+        assert str(tmp_path / name) in written
+        mesh = meshio.read(tmp_path / name)
+        assert np.allclose(mesh.point_data["wss_vector_pa"], wss[k].reshape(-1, 3))
+        assert np.allclose(mesh.point_data["tawss_pa"], tawss.ravel()) and np.allclose(mesh.point_data["osi"],
+                                                                                       osi.ravel())  # fmt: skip
+
+
+def test_analyze_reads_a_vessel_result(cli_run, capsys):
+    rc, out, err = _run(["analyze", cli_run["result"]], capsys)
+    assert rc == 0, err
+    assert "beta" in out and "wall solve" in out
+
+
+# ------------------------------------------------------------------ refusals: one line, exit code 2
+def test_components_that_cannot_be_told_apart_are_refused(nifti_tube, tmp_path, capsys):
+    _, _, files, _ = nifti_tube
+    renamed = []
+    for k, f in enumerate(sorted(files)):  # flow_vx, flow_vy, flow_vz, mag: the components lose their axes
+        name = "mag.nii.gz" if os.path.basename(f).startswith("mag") else f"flow_phase{k}.nii.gz"
+        shutil.copy(f, tmp_path / name)
+        renamed.append(tmp_path / name)
+    rc, _, err = _run(["import", *renamed, "-o", tmp_path / "exam.h5", "--phase-units", "m/s"], capsys)
+    _refused(rc, err, "which velocity component is this?")
+    assert not (tmp_path / "exam.h5").exists()
+
+
+def test_phase_without_a_venc_is_refused(nifti_tube, tmp_path, capsys):
+    _, _, files, _ = nifti_tube
+    rc, _, err = _run(["import", *files, "-o", tmp_path / "exam.h5", "--phase-units", "rad"], capsys)
+    _refused(rc, err, "venc")
+
+
+@pytest.fixture(scope="module")
+def volume_file(tmp_path_factory):
+    vol, truth = _tube()
+    path = tmp_path_factory.mktemp("vol") / "exam.h5"
+    write_volume(path, vol)
+    return path, vol, truth
+
+
+@pytest.mark.parametrize(
+    "extra, match",
+    [
+        (["--vessel", "1,2"], "--vessel takes three numbers X,Y,Z"),
+        (["--method", "coupled"], "--method: not an option of the volume reconstruction"),
+        (["--beta", "fast"], "--beta fast"),
+    ],
+)
+def test_options_a_volume_cannot_take_are_refused(volume_file, tmp_path, capsys, extra, match):
+    rc, _, err = _run(["reconstruct", volume_file[0], "-o", tmp_path / "r.h5", *extra], capsys)
+    _refused(rc, err, match)
+    assert not (tmp_path / "r.h5").exists()
+
+
+def test_a_volume_without_a_flowing_vessel_is_refused(volume_file, tmp_path, capsys):
+    import dataclasses
+
+    _, vol, _ = volume_file
+    still = tmp_path / "still.h5"
+    write_volume(still, dataclasses.replace(vol, velocity=np.zeros_like(vol.velocity)))
+    rc, _, err = _run(["reconstruct", still, "-o", tmp_path / "r.h5"], capsys)
+    _refused(rc, err, "the velocity is zero everywhere")
+
+
+def test_a_seed_point_outside_the_volume_is_refused(volume_file, tmp_path, capsys):
+    rc, _, err = _run(["reconstruct", volume_file[0], "-o", tmp_path / "r.h5", "--vessel", "1e4,0,0"], capsys)
+    _refused(rc, err, "lies outside the volume")
+
+
+def test_volume_flags_on_a_slice_file_are_refused(tmp_path, capsys):
+    from wss_nlp.io import files as wio
+    from wss_nlp.synthetic import phantoms
+
+    slice_file = tmp_path / "slice.h5"
+    acq, _ = phantoms.make_phantom("laminar", h_mm=1.0, snr=25, seed=0)
+    wio.write_acquisition(slice_file, acq)
+    rc, _, err = _run(["reconstruct", slice_file, "-o", tmp_path / "r.h5", "--mask", "m.nii.gz"], capsys)
+    _refused(rc, err, "--mask: for a 4D flow volume file")
+
+
+def test_compare_and_sensitivity_refuse_a_vessel_result(cli_run, capsys):
+    for cmd in (["compare", cli_run["result"], cli_run["result"]], ["sensitivity", cli_run["result"]]):
+        rc, _, err = _run(cmd, capsys)
+        _refused(rc, err, "does not read vessel (4D flow) results yet")

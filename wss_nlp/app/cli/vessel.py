@@ -1,0 +1,254 @@
+"""``wss-nlp reconstruct`` and ``export`` on a 4D flow volume file: the whole vessel's wall map (issue 38).
+
+A volume file (:func:`wss_nlp.io.volume.is_volume_file`) goes through :func:`wss_nlp.vessel.reconstruct
+.reconstruct_vessel` instead of the slice driver. The options that carry over from slices keep their flags
+(:data:`VOLUME_OPTIONS`); any other reconstruction option set on the command line is refused with one line rather
+than silently ignored. The result file holds the group ``vessel/`` (and ``baseline/`` with ``--baseline``), the
+layout of :mod:`wss_nlp.vessel.reconstruct`; ``wss-nlp export RESULT --vtk wall.vtu`` writes the wall mesh
+(:func:`wss_nlp.vessel.mesh.write_wall`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+
+import numpy as np
+
+from ...core import schema
+from ...errors import InputError
+from ...io import outputs
+from ...pipeline.options import ReconstructionOptions
+
+#: Reconstruction options (schema paths) that a volume honours, with what they set in the vessel's options.
+VOLUME_OPTIONS = {
+    "screen.vessel": "vessel_point (three numbers X,Y,Z in world mm)",
+    "viscosity_pa_s": "viscosity_pa_s",
+    "n_phi": "n_phi (wall points per cross-section)",
+    "blas_threads": "blas_threads",
+    "geometry.n_fourier": "geometry.n_fourier",
+    "geometry.quad_order": "geometry.quad_order",
+    "stack.z_smoothing_mm": "geometry.smoothing_mm and velocity.smoothing_mm (the smoothing length along s)",
+    "choice.alpha_rule": "geometry.alpha (a number)",
+    "choice.beta_rule": "velocity.beta (a number, gcv or discrepancy)",
+    "velocity.degree": "velocity.degree",
+    "velocity.angular_order": "velocity.angular_order",
+    "velocity.laplacian_power": "velocity.laplacian_power",
+    "velocity.inner_fraction": "velocity.inner_fraction",
+}
+
+
+def parse_point3(text) -> tuple[float, float, float]:
+    """``"X,Y,Z"`` (world mm) -> ``(x, y, z)``; an :class:`InputError` names the expected form."""
+    try:
+        values = tuple(float(v) for v in str(text).split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(np.isfinite(values)):
+        raise InputError(f"--vessel takes three numbers X,Y,Z in world mm for a 4D flow volume, e.g. 10,-4.5,32; "
+                         f"got {text!r}")  # fmt: skip
+    return values[0], values[1], values[2]
+
+
+def _set(args) -> dict:
+    """``{schema path: (flag, value)}`` of the reconstruction options given on the command line."""
+    given = {}
+    for path, f, _ in schema._leaves(ReconstructionOptions):
+        meta = f.metadata[schema._KEY]
+        if not meta["cli"]:
+            continue
+        value = getattr(args, "opt__" + path.replace(".", "__"), None)
+        if (meta["flag_off"] and value is False) or (not meta["flag_off"] and value is not None):
+            given[path] = (meta["cli"], value)
+    return given
+
+
+def _number(flag: str, value) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{flag} {value}: a 4D flow volume takes a number here") from None
+    if not out > 0:
+        raise InputError(f"{flag} {value}: must be > 0")
+    return out
+
+
+def vessel_options(args):
+    """The :class:`wss_nlp.vessel.reconstruct.VesselOptions` of the command line (refusing slice-only options)."""
+    from ...vessel.reconstruct import VesselOptions
+
+    given = _set(args)
+    other = sorted(flag for path, (flag, _) in given.items() if path not in VOLUME_OPTIONS)
+    if other:
+        raise InputError(
+            f"{', '.join(other)}: not an option of the volume reconstruction (it takes "
+            f"{', '.join(sorted(given_flag(p) for p in VOLUME_OPTIONS))}, --mask, --centerline, --baseline)"
+        )
+    top: dict = {}
+    geo: dict = {}
+    vel: dict = {}
+    for path, (flag, value) in given.items():
+        if path == "screen.vessel":
+            top["vessel_point"] = parse_point3(value)
+        elif path == "viscosity_pa_s":
+            top["viscosity_pa_s"] = _number(flag, value)
+        elif path in ("n_phi", "blas_threads"):
+            top[path] = int(value)
+        elif path == "geometry.n_fourier":
+            geo["n_fourier"] = int(value)
+        elif path == "geometry.quad_order":
+            geo["quad_order"] = int(value)
+        elif path == "stack.z_smoothing_mm":
+            geo["smoothing_mm"] = vel["smoothing_mm"] = _number(flag, value)
+        elif path == "choice.alpha_rule":
+            geo["alpha"] = _number(flag, value)
+        elif path == "choice.beta_rule":
+            vel["beta"] = value if str(value) in ("gcv", "discrepancy") else _number(flag, value)
+        elif path == "velocity.degree":
+            vel["degree"] = int(value)
+        elif path == "velocity.angular_order":
+            vel["angular_order"] = int(value)
+        elif path == "velocity.laplacian_power":
+            vel["laplacian_power"] = int(value)
+        elif path == "velocity.inner_fraction":
+            vel["inner_fraction"] = _number(flag, value)
+    base = VesselOptions()
+    return dataclasses.replace(
+        base,
+        geometry=dataclasses.replace(base.geometry, **geo),
+        velocity=dataclasses.replace(base.velocity, **vel),
+        **top,
+    )
+
+
+def given_flag(path: str) -> str:
+    for p, f, _ in schema._leaves(ReconstructionOptions):
+        if p == path:
+            return str(f.metadata[schema._KEY]["cli"])
+    return path
+
+
+def reconstruct_volume(args) -> int:
+    """``wss-nlp reconstruct VOLUME.h5 -o RESULT.h5 [--vessel X,Y,Z] [--mask FILE] [--centerline FILE]``."""
+    from ...io.files import atomic_h5
+    from ...io.volume import read_volume
+    from ...vessel.baseline import baseline_vessel
+    from ...vessel.centerline import Centerline
+    from ...vessel.reconstruct import FLAG_NAMES, FLAG_NOT_VISIBLE, check_volume, reconstruct_vessel, vessel_inputs
+    from ...vessel.segmentation import read_mask
+
+    options = vessel_options(args)
+    if getattr(args, "workers", 1) != 1 or getattr(args, "scheduler", None):
+        raise InputError("--workers/--scheduler: a vessel is one reconstruction; run it without them")
+    inputs = [args.input] + [p for p in (args.mask, args.centerline) if p]
+    outputs.check_outputs(files={"-o": args.output}, folders={"--figures": args.figures}, inputs=inputs)
+    vol = read_volume(args.input)
+    print(
+        f"{args.input}: a 4D flow volume of {' x '.join(map(str, vol.shape))} voxels "
+        f"({' x '.join(f'{v:.3g}' for v in vol.voxel_size_mm)} mm), {vol.nt} frame(s)",
+        file=sys.stderr,
+    )
+    check_volume(vol, options)  # the volume's own refusals (no flow, components alike, no viscosity) come first
+    mask = read_mask(args.mask, vol) if args.mask else None
+    centerline = Centerline.from_file(args.centerline) if args.centerline else None
+    prepared = vessel_inputs(vol, options, mask, centerline)
+    result = reconstruct_vessel(vol, options, prepared.mask, prepared.centerline, prepared.record)
+    base = None
+    if args.baseline:
+        base = baseline_vessel(vol, prepared.mask, prepared.centerline, result.record, options,
+                               s=result.s_mm, phi=result.phi)  # fmt: skip
+    with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
+        if staged.path:
+            from ..plotting import save_vessel_figures
+
+            save_vessel_figures(result, staged.path, fmt=args.figure_format, dpi=args.dpi)
+        with atomic_h5(args.output) as f:
+            f.attrs["argv"] = " ".join(["wss-nlp", *args.argv])
+            f.attrs["input"] = str(args.input)
+            f.attrs["options"] = json.dumps(dataclasses.asdict(options), default=str)
+            result.write(f.create_group("vessel"))
+            if base is not None:
+                base.write(f.create_group("baseline"))
+        staged.commit()
+    for note in result.notes:
+        print(f"  {note}", file=sys.stderr)
+    for b in result.record.get("branches", []):
+        pos = ", ".join(f"{v:.1f}" for v in np.asarray(b.get("position_mm", []), float).ravel())
+        print(f"side branch at s = {float(b.get('s_mm', np.nan)):.1f} mm ({pos} mm): its wall region is flagged")
+    covered = result.covered
+    area = result.area_mm2
+    visible = (result.flags & FLAG_NOT_VISIBLE) == 0
+    cov = float(np.sum(area[covered]) / np.sum(area[visible])) if np.any(visible) else 0.0
+    counts = {name: int(np.count_nonzero(result.flags & bit)) for bit, name in FLAG_NAMES.items()}
+    flagged = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
+    mag = np.linalg.norm(result.wss_pa, axis=-1)
+    mean_wss = float(np.sum(mag[:, covered] * area[covered]) / max(np.sum(area[covered]), 1e-300))
+    print(
+        f"vessel: {result.centerline.length_mm:.1f} mm of centreline, wall {result.s_mm.size} x {result.phi.size} "
+        f"points, {100 * cov:.1f} % of the visible wall's area covered" + (f" (flagged: {flagged})" if flagged else "")
+    )
+    print(f"mean |WSS| over the covered wall {mean_wss:.4g} Pa" + ("" if result.nt == 1 else " (over the frames)"))
+    if result.tawss_pa is not None and result.osi is not None:
+        print(f"TAWSS {np.mean(result.tawss_pa[covered]):.4g} Pa (wall mean), OSI up to {np.max(result.osi):.3f}")
+    if base is not None:
+        bmag = np.linalg.norm(base.wss_pa, axis=-1)
+        print(f"baseline ({base.method}): mean |WSS| {float(np.mean(bmag[:, covered])):.4g} Pa on the same points")
+    print(f"wrote {args.output}")
+    if args.figures:
+        print(f"figures in {args.figures}")
+    return 0
+
+
+def is_vessel_result(path: str) -> bool:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return "vessel" in f
+    except OSError:
+        return False
+
+
+def export_volume(args) -> int:
+    """``wss-nlp export RESULT --vtk wall.vtu`` for a vessel result: the wall mesh, centreline and plane table."""
+    from ...vessel.mesh import write_wall
+    from ...vessel.reconstruct import read_result
+
+    if not args.vtk.lower().endswith(".vtu"):
+        raise InputError(f"--vtk {args.vtk}: a vessel wall is written as .vtu (VTK XML unstructured grid)")
+    if args.slice_spacing is not None:
+        raise InputError("--slice-spacing: a vessel result has its own geometry; leave it out")
+    outputs.check_outputs(files={"--vtk": args.vtk}, inputs=[args.result])
+    result = read_result(args.result)
+    for name in write_wall(result, args.vtk):
+        print(f"wrote {name}")
+    return 0
+
+
+def analyze_volume(args) -> int:
+    """``wss-nlp analyze RESULT`` for a vessel result: how alpha and beta were chosen, the solvers' statuses."""
+    from ...vessel.reconstruct import read_result
+
+    if args.figures:
+        raise InputError("--figures: no residual curves for a vessel result yet (the choice is printed)")
+    res = read_result(args.result)
+    p, st = res.parameters, res.statuses
+    print(f"wall: alpha {p.get('alpha')} (fixed), smoothing along the vessel {p.get('smoothing_mm')} mm, "
+          f"N = {p.get('n_fourier')}, {p.get('quad_order')}^3 points per voxel")  # fmt: skip
+    for k, g in enumerate(st.get("geometry", [])):
+        print(f"  wall solve {k}: {g.get('status')} ({g.get('iterations')} iterations)")
+    vel = st.get("velocity", {})
+    print(f"velocity: beta {p.get('beta')} by {vel.get('beta_rule')}, residual {vel.get('residual_m_s')} m/s")
+    for name, sec in res.seconds.items():
+        print(f"  {name}: {float(sec):.1f} s")
+    for note in res.notes:
+        print(f"note: {note}")
+    return 0
+
+
+def refuse_on_volume(command: str, path: str) -> None:
+    """One line for the report commands that do not read vessel results yet."""
+    if is_vessel_result(path):
+        raise InputError(f"{path}: '{command}' does not read vessel (4D flow) results yet; use 'wss-nlp analyze' for "
+                         "the parameter choice and 'wss-nlp export --vtk' for the wall map")  # fmt: skip
