@@ -124,7 +124,7 @@ def test_sweep_resumes_after_interruption(tmp_path, monkeypatch):
         calls.append(params)
         return real(params, base_dir)
 
-    monkeypatch.setattr(sweep, "run_case", interrupted)
+    monkeypatch.setattr(sweep.run, "run_case", interrupted)
     with pytest.raises(KeyboardInterrupt):
         sweep.run_study(s, out, workers=1)
     assert not os.path.exists(os.path.join(out, "results.csv"))  # no table from a partial run
@@ -135,7 +135,7 @@ def test_sweep_resumes_after_interruption(tmp_path, monkeypatch):
     os.remove(first[:-5] + ".h5")
 
     calls.clear()
-    monkeypatch.setattr(sweep, "run_case", lambda p, b=".": (calls.append(p), real(p, b))[1])
+    monkeypatch.setattr(sweep.run, "run_case", lambda p, b=".": (calls.append(p), real(p, b))[1])
     summary = sweep.run_study(s, out, workers=1)
     assert summary.ran == len(calls) == 12 - 4 and summary.skipped == 4
     assert not glob.glob(os.path.join(out, "cases", "*.part"))
@@ -175,7 +175,7 @@ def test_local_processes_and_dask_cluster_agree(tmp_path):
 def test_failed_case_is_recorded_and_the_rest_run(tmp_path):
     acq, truth = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=0)
     wio.write_acquisition(tmp_path / "good.h5", acq)
-    from wss_nlp.app.cli import _write_truth
+    from wss_nlp.app.cli.phantom import _write_truth
 
     _write_truth(str(tmp_path / "good_truth.h5"), truth)
     bad = acq.magnitude.copy()

@@ -17,6 +17,9 @@ from __future__ import annotations
 import os
 
 import numpy as np
+from ..pipeline.results import SliceResult
+from ..models.baselines import BaselineResult
+from ..io.files import FailedSlice
 from matplotlib.figure import Figure
 
 
@@ -62,7 +65,7 @@ def figure_geometry(res, truth=None):
     ax.plot(phi, res.geometry.radius(phi), color="tab:red", label=r"$R_\alpha^\delta$ (reconstructed)")
     if truth is not None:
         ax.plot(phi, rt, "--", color="tab:blue", label=r"$R^\dagger$ (true, about the same centre)")
-    baseline = not hasattr(res, "velocity")
+    baseline = isinstance(res, BaselineResult)
     if not baseline:
         ax.axhspan(*res.geometry.box, color="0.92", zorder=0, label="box [r0, r1]")
     r = res.geometry.radius(phi)
@@ -155,7 +158,7 @@ def figure_near_wall(res, truth=None):
     for a phantom). Drawn for slices reconstructed with ``--near-wall``.
     """
     near = getattr(res, "near_wall", None)
-    if near is None or not hasattr(res, "velocity"):
+    if near is None or not isinstance(res, SliceResult):
         return None
     g, v, grid = res.geometry, res.velocity, res.grid
     xc, yc = (a.ravel()[v.voxel_index] for a in grid.centers())
@@ -201,7 +204,7 @@ def save_figures(res, folder, truth=None, prefix: str = "") -> list[str]:
     os.makedirs(folder, exist_ok=True)
     paths = []
     # classical baselines have a wall and a WSS but no velocity model
-    names = [n for n in FIGURES if hasattr(res, "velocity") or "velocity" not in n]
+    names = [n for n in FIGURES if isinstance(res, SliceResult) or "velocity" not in n]
     for name in names:
         make = FIGURES[name]
         fig = make(res, truth)
@@ -368,7 +371,7 @@ def figure_stack(results, spacing_mm: float):
     With three velocity components the axial and circumferential WSS are drawn too.
     """
     n = len(results)
-    ok = [r for r in results if hasattr(r, "wss")]
+    ok = [r for r in results if not isinstance(r, FailedSlice)]
     phi = ok[0].wss.phi
     vector = all(getattr(r.wss, "vector", None) is not None for r in ok)
     maps = {
@@ -394,7 +397,7 @@ def figure_stack(results, spacing_mm: float):
         fig.colorbar(im, ax=ax, label=label)
         ax.set(xlabel=r"angle $\varphi$ [deg] (unrolled wall)", title=label)
     axes[0].set_ylabel("z [mm] (slice position)")
-    failed = [i for i in range(n) if not hasattr(results[i], "wss")]
+    failed = [i for i in range(n) if isinstance(results[i], FailedSlice)]
     if failed:
         fig.suptitle(f"blank rows: slices {failed} failed (see the result file)")
     fig.tight_layout()

@@ -14,6 +14,7 @@ import json
 import os
 import sys
 import tempfile
+from ..models.baselines import BaselineResult
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -545,7 +546,7 @@ def write_slice_group(s, r) -> None:
         s.attrs["screen_json"] = json.dumps(r.screen, default=float)
     if getattr(r, "near_wall", None) is not None:
         s.attrs["near_wall_json"] = json.dumps(r.near_wall.as_dict(), default=float)
-    if not hasattr(r, "velocity"):  # a classical method (wss_nlp.models.baselines): no velocity model to store
+    if isinstance(r, BaselineResult):  # a classical method: no velocity model to store
         s.attrs["baseline_json"] = json.dumps(r.info)
         s["geometry"].attrs["segmentation_threshold"] = r.geometry.threshold
         return
@@ -664,7 +665,7 @@ def _write_core(s, r) -> None:
     """The datasets and attributes every result has (the format's required part, plus wall points)."""
     g, w = r.geometry, r.wss
     s.attrs["alpha"] = float(g.alpha)
-    s.attrs["beta"] = float(r.velocity.beta) if hasattr(r, "velocity") else float("nan")
+    s.attrs["beta"] = float("nan") if isinstance(r, BaselineResult) else float(r.velocity.beta)
     s.attrs["converged"] = bool(r.converged)
     s.attrs["warnings"] = json.dumps(r.warnings)
     s.attrs["seconds_json"] = json.dumps(r.seconds)

@@ -47,6 +47,7 @@ from .._lazy import scipy
 from ..core import chebyshev
 from ..core import elementwise
 from . import geometry as geo
+from . import acquisition as acq_model
 from . import kspace
 from ..core import mapping
 from . import measurement as meas
@@ -1096,7 +1097,7 @@ def build(
         )
     gamma = ca.MX.sym("gamma")  # an NLP parameter (value: the geometry's gamma) so sensitivities can reach it
     # the box model's Jacobian by the chain rule (BLAS); the k-space one keeps CasADi's AD in the symbolic gamma
-    box_model = geometry_problem.psf is None
+    box_model = isinstance(geometry_problem.measurement, acq_model.VoxelMeans)
     gnlp = geo.build_tikhonov(geometry_problem, gopt, gamma_symbol=gamma, separable_jacobian=box_model)
     n_r = gnlp.c.numel()
     c_v = ca.MX.sym("c_v", basis.size)

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from . import acquisition as acq_model
 from . import kspace
 from . import measurement as meas
 from ..core import radius as rad
@@ -74,11 +75,14 @@ def correct(
     window : flat voxel indices for the misfits (k-space; default: the geometry window of this state), so that
         states with different walls are compared on the same voxels
     """
-    if psf is None:
-        m_corr = np.array(m, dtype=float).ravel()
-        factors = meas.dephasing_factors(vp.voxels, velocity_at, venc, near_wall=(coefficients, grid.h))
-        m_corr[vp.voxels.index] = np.clip(m_corr[vp.voxels.index] / np.maximum(factors, 1e-3), 0.0, 1.0)
-        return Correction(factors, m_corr.reshape(np.shape(m)), np.asarray(velocity_image, dtype=float))
+    model = acq_model.of(psf)
+    return _CORRECTIONS[type(model)](
+        m, raw, m0, velocity_image, vp, velocity_at, venc, coefficients, center, grid, psf, window
+    )
+
+
+def _correct_kspace(m, raw, m0, velocity_image, vp, velocity_at, venc, coefficients, center, grid, psf, window):
+    """The k-space model's correction (:func:`correct`): the PSF's phase mixing on a window about the wall."""
     reach = float(np.max(rad.evaluate(coefficients, rad.uniform_angles(360))))
     out = kspace.window_index(grid, center, reach, psf)
     out = out if window is None else np.union1d(out, window)
@@ -105,3 +109,16 @@ def correct(
         float(np.sqrt(np.mean(still_fit[at] ** 2))),
         float(np.sqrt(np.mean((measured - scale * moving)[at] ** 2))),
     )
+
+
+def _correct_voxel_means(m, raw, m0, velocity_image, vp, velocity_at, venc, coefficients, center, grid, psf, window):
+    """The voxel-mean model's correction (:func:`correct`): each wall voxel's magnitude divided by its predicted
+    dephasing factor; the velocity stays as measured."""
+    m_corr = np.array(m, dtype=float).ravel()
+    factors = meas.dephasing_factors(vp.voxels, velocity_at, venc, near_wall=(coefficients, grid.h))
+    m_corr[vp.voxels.index] = np.clip(m_corr[vp.voxels.index] / np.maximum(factors, 1e-3), 0.0, 1.0)
+    return Correction(factors, m_corr.reshape(np.shape(m)), np.asarray(velocity_image, dtype=float))
+
+
+#: The correction of each measurement model (dispatch on the model's type).
+_CORRECTIONS = {acq_model.VoxelMeans: _correct_voxel_means, acq_model.KSpace: _correct_kspace}

@@ -21,6 +21,7 @@ import numpy as np
 import casadi as ca
 
 from .._lazy import scipy
+from . import acquisition as acq_model
 from . import kspace
 from . import measurement as meas
 from ..core import operators
@@ -84,7 +85,7 @@ class GeometryOptions:
     schema_group = "geometry (Sec. 2, 7.1)"
 
     n_fourier: int = option(8, "highest harmonic N of the radius R(phi)", cli="--n-fourier", toml=("N", "n_fourier"))
-    alpha: float = 1e-3  # on the command line and in studies through --alpha (ReconstructionOptions.alpha_rule)
+    alpha: float = 1e-3  # on the command line and in studies through --alpha (ReconstructionOptions.choice.alpha_rule)
     sobolev_s: int = option(2, "order s of the H^s penalty", cli="--sobolev", toml=("sobolev",))
     prior: str = option(
         "area",
@@ -157,6 +158,11 @@ class GeometryProblem:
     r1: float  # box upper bound, mm
     r_ref: float  # reference (equal-area) radius, mm
     psf: kspace.PSF | None = None  # None: voxel means (box model); else the k-space point-spread function
+
+    @property
+    def measurement(self) -> acq_model.MeasurementModel:
+        """The measurement model of the magnitude (:mod:`wss_nlp.models.acquisition`)."""
+        return acq_model.of(self.psf)
 
     def __post_init__(self):
         if not 0 < self.r0 < self.r1:
@@ -250,28 +256,17 @@ def build_tikhonov(
     c = ca.MX.sym("c", rad.n_coefficients(n))
     alpha = ca.MX.sym("alpha")  # a parameter, so one solver serves a whole alpha sequence
     width = gamma if gamma_symbol is None else gamma_symbol  # a symbol lets callers differentiate in gamma
-    model: meas.AnnulusModel | kspace.KSpaceMagnitudeModel
+    measurement = problem.measurement
+    model = measurement.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma)
     second = None
-    if problem.psf is None:
-        model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
-        if separable_jacobian and second_order:
-            predicted, d_predicted, second = meas.magnitude_model(
-                model, c, width, options.heaviside, jacobian=True, second_order=True
-            )
-        elif separable_jacobian:
-            predicted, d_predicted = meas.magnitude_model(model, c, width, options.heaviside, jacobian=True)
-        else:
-            predicted = meas.magnitude_model(model, c, width, options.heaviside)
+    if separable_jacobian and second_order:
+        predicted, d_predicted, second = measurement.magnitude_model(
+            model, c, width, options.heaviside, jacobian=True, second_order=True
+        )
+    elif separable_jacobian:
+        predicted, d_predicted = measurement.magnitude_model(model, c, width, options.heaviside, jacobian=True)
     else:
-        model = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf)
-        if separable_jacobian and second_order:
-            predicted, d_predicted, second = kspace.magnitude_model(
-                model, c, width, options.heaviside, jacobian=True, second_order=True
-            )
-        elif separable_jacobian:
-            predicted, d_predicted = kspace.magnitude_model(model, c, width, options.heaviside, jacobian=True)
-        else:
-            predicted = kspace.magnitude_model(model, c, width, options.heaviside)
+        predicted = measurement.magnitude_model(model, c, width, options.heaviside)
     m = problem.magnitude.ravel()
     area = problem.grid.voxel_area
     data = ca.MX.sym("m", model.annulus.size) if data_symbol else None
@@ -298,25 +293,18 @@ def _constant_misfit(m: np.ndarray, model, area: float) -> float:
 
 def fitted_voxels(problem: GeometryProblem, options: GeometryOptions) -> np.ndarray:
     """Flat indices of the voxels whose magnitude the functional fits (the annulus, or the k-space window)."""
-    q = quad_order(problem, options)
-    if problem.psf is None:
-        return meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q).annulus
-    gamma = effective_gamma(problem, options)
-    return kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf).annulus
+    q, gamma = quad_order(problem, options), effective_gamma(problem, options)
+    return problem.measurement.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma).annulus
 
 
 def model_image(problem: GeometryProblem, options: GeometryOptions, result: GeometryResult) -> np.ndarray:
     """The forward model's normalized magnitude of ``result`` as an image (0 outside the fitted voxels)."""
     q = quad_order(problem, options)
     out = np.zeros(problem.magnitude.size)
-    if problem.psf is None:
-        model = meas.annulus_model(problem.grid, problem.center, problem.r0, problem.r1, q)
-        out[model.inside] = 1.0
-        out[model.annulus] = meas.magnitude_model(model, result.coefficients, result.gamma, options.heaviside)
-    else:
-        ks = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, result.gamma, problem.psf)
-        out[ks.inside] = 1.0
-        out[ks.annulus] = kspace.magnitude_model(ks, result.coefficients, result.gamma, options.heaviside)
+    measurement = problem.measurement
+    model = measurement.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, result.gamma)
+    out[model.inside] = 1.0
+    out[model.annulus] = measurement.magnitude_model(model, result.coefficients, result.gamma, options.heaviside)
     return out.reshape(problem.magnitude.shape)
 
 
@@ -494,7 +482,7 @@ class IpoptGeometrySolver:
         tenth of a re-solve). :func:`wss_nlp.uncertainty.sensitivity.geometry_kkt` gives the same derivative (and those
         in every other parameter) from a graph built for the purpose, 8-40x slower (tested equal); this form
         reuses the solver's graph, so the dephasing passes can afford it to see that a further pass would
-        not move the wall (:func:`wss_nlp.pipeline.reconstruct.reconstruct_slice`).
+        not move the wall (:mod:`wss_nlp.pipeline.driver`).
         """
         nlp = self.nlp
         if nlp.curvature is None or np.any(result.box_multipliers != 0):

@@ -40,7 +40,7 @@ The coupled method (Sec. 4's coupled functional) on a segment: :func:`coupled_se
 
 This module holds the z-coupled mathematics only; the steps every slice goes
 through and the driver that runs them on a stack are in :mod:`wss_nlp.pipeline.steps`
-(:func:`wss_nlp.pipeline.steps.reconstruct_stack`), the band in :mod:`wss_nlp.uncertainty.stack_band`.
+(:class:`wss_nlp.pipeline.fitters.ZCoupled`), the band in :mod:`wss_nlp.uncertainty.stack_band`.
 """
 
 from __future__ import annotations
@@ -571,16 +571,6 @@ def z_derivatives(coefficients: np.ndarray, centers: np.ndarray, z: np.ndarray):
         spline = scipy.interpolate.CubicSpline(z, values, axis=0, bc_type=kind)
         out.append(spline.derivative()(z))
     return out[0], out[1]
-
-
-def supports(options) -> bool:
-    """Whether z-regularization applies to these reconstruction options (decoupled or coupled method, fixed
-    alpha).
-
-    beta may come from any rule: a segment is fitted with one beta, the
-    median (on a log scale) of its slices' own choices (:func:`wss_nlp.parameters.beta.segment_beta`).
-    """
-    return options.method in ("decoupled", "coupled") and options.alpha_rule == "fixed"
 
 
 def segments_of(ok: list[int]) -> list[list[int]]:

@@ -23,6 +23,8 @@ import numpy as np
 
 import casadi as ca
 
+from . import acquisition as acq_model
+from .acquisition import MIN_KSPACE_SIGNAL  # noqa: F401 (its home before the measurement models)
 from . import kspace
 from . import measurement as meas
 from . import near_wall as nw
@@ -33,10 +35,6 @@ from ..core.schema import option
 from ..core.solver import SolverStats, ipopt_options, run_nlpsol
 from ..core.tikhonov import LinearTikhonov
 from ..core.velocity_basis import BASES, make_basis
-
-
-#: Smallest modeled signal (K * chi)_i, relative to the lumen's, of a voxel in the k-space velocity fit.
-MIN_KSPACE_SIGNAL = 0.02
 
 
 @dataclass(frozen=True)
@@ -105,7 +103,7 @@ class VelocityOptions:
     max_eigenvalue: float = option(
         400.0, "eigenvalue cut-off M of the eigenfunction basis", cli="--max-eigenvalue", toml=("max_eigenvalue",)
     )
-    beta: float = 5e-8  # on the command line and in studies through --beta (ReconstructionOptions.beta_rule)
+    beta: float = 5e-8  # on the command line and in studies through --beta (ReconstructionOptions.choice.beta_rule)
     laplacian_power: int = option(
         2,
         "t in ||Delta^t v||^2: 1 = eq. (tik2), 2 = Remark 3.5",
@@ -287,23 +285,9 @@ def assemble(
         raise InputError("no voxel meets the reconstructed lumen; the geometry step failed to find a vessel")
     px, py = vox.px[vox.inside], vox.py[vox.inside]
     rho, t = disk_map.inverse(px, py)
-    avg = vox.mean_matrix()
     rho = np.minimum(rho, 1.0)
-    averager = None
-    if psf is None:
-        operator = basis.evaluate(rho * np.cos(t), rho * np.sin(t), average=avg)
-        weights = vox.fraction * grid.voxel_area
-    else:
-        averager = kspace.Averager(grid, vox.index, q, psf)
-        signal = averager(vox.inside.astype(float))
-        keep = signal >= MIN_KSPACE_SIGNAL
-        # the PSF (linear) on the unnormalized functions, the basis's transform on the small result
-        raw = basis.evaluate_raw(rho * np.cos(t), rho * np.sin(t))
-        values = np.zeros(vox.inside.shape + (raw.shape[1],))
-        values[vox.inside] = raw
-        averaged = averager(values) @ basis.transform
-        operator = np.where(keep[:, None], averaged / np.where(keep, signal, 1.0)[:, None], 0.0)
-        weights = np.where(keep, signal, 0.0) * grid.voxel_area  # weight 0: the voxel's points still radiate
+    model = acq_model.of(psf)
+    operator, weights, averager = model.velocity_operator(grid, vox, basis, rho, t, q)
     return VelocityProblem(
         operator=operator,
         weights=weights,
@@ -315,7 +299,7 @@ def assemble(
         basis=basis,
         cell_mm=(grid.dx / q, grid.dy / q),
         averager=averager,
-        noise_correlation=None if psf is None else kspace.NoiseCorrelation(grid.shape, psf, vox.index),
+        noise_correlation=model.noise_correlation(grid.shape, vox.index),
     )
 
 

@@ -67,9 +67,9 @@ def choose_alpha(
         r = run(alpha, prev)
         return r, r.annulus_residual_norm
 
-    g, choice = pr.discrepancy_search(solve, choice.alpha_start, noise.value, choice.tau_alpha)
-    choice.name, choice.noise_method = "alpha", noise.method
-    return g, choice
+    g, picked = pr.discrepancy_search(solve, choice.alpha_start, noise.value, choice.tau_alpha)
+    picked.name, picked.noise_method = "alpha", noise.method
+    return g, picked
 
 
 def balance_alpha(

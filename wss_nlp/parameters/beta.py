@@ -93,9 +93,9 @@ def choose_beta(
         c = vel.solve_cholesky(vp, beta)
         return c, vp.residual_norm(c)
 
-    _, choice = pr.discrepancy_search(solve, choice.beta_start, noise.value, choice.tau_beta, smallest=BETA_STOP)
-    choice.name, choice.noise_method = "beta", noise.method
-    return choice
+    _, picked = pr.discrepancy_search(solve, choice.beta_start, noise.value, choice.tau_beta, smallest=BETA_STOP)
+    picked.name, picked.noise_method = "beta", noise.method
+    return picked
 
 
 def gcv_beta(vp: vel.VelocityProblem, choice: ChoiceOptions) -> pr.ParameterChoice:

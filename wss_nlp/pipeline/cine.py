@@ -21,6 +21,7 @@ import numpy as np
 
 from ..models import preprocess as pp
 from ..core import radius as rad
+from ..models import acquisition as acq_model
 from ..models import temporal, womersley
 from ..parameters import cycle
 from ..models import wss as wss_mod
@@ -187,12 +188,13 @@ def shared_boxes(frames: list[Acquisition], options: ReconstructionOptions) -> d
     boxes = {}
     for iz in range(ref.nz):
         lumens = []
+        clip = acq_model.of(psf).clip_upper
         for frame in frames:
             image = frame.magnitude[iz]
             if not np.all(np.isfinite(image)):
                 continue
             try:
-                lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, psf is None)[2])
+                lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, clip)[2])
             except WssNlpError:
                 continue
         if lumens:

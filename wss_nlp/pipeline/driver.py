@@ -32,6 +32,7 @@ import numpy as np
 from ..core import radius as rad
 from ..errors import InputError, WssNlpError
 from ..io.files import Acquisition, FailedSlice
+from ..models import acquisition as acq_model
 from ..models import dephasing as deph
 from ..models import geometry as geo
 from ..models import kspace
@@ -58,7 +59,7 @@ class Results(list):
     or None) and ``psf`` (the acquisition model used, resolved: a :class:`wss_nlp.models.kspace.PSF`, or None
     for the box)."""
 
-    stack = None
+    stack: stk.StackInfo | None = None
     psf: kspace.PSF | None = None
 
 
@@ -70,7 +71,7 @@ def stack_applies(acq: Acquisition, options: ReconstructionOptions) -> bool:
     ell = options.stack.z_smoothing_mm
     if acq.nz == 1 or ell == 0:
         return False
-    supported = stk.supports(options)
+    supported = methods.of(options).ties_slices
     if ell is not None and not supported:
         raise InputError(
             f"{acq.source}: z-regularization (--z-smoothing {ell:g}) supports the decoupled and coupled methods "
@@ -87,6 +88,11 @@ def blas_threads(n: int):
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - threadpoolctl is a dependency; tolerate its absence
         return contextlib.nullcontext()
+    # threadpoolctl limits only the libraries already loaded: SciPy ships its own OpenBLAS, loaded on the
+    # first import of scipy.linalg, which would otherwise run the first solve of a process unlimited (and
+    # with other rounding than every later one)
+    import scipy.linalg  # noqa: F401
+
     return threadpool_limits(limits=n, user_api="blas")
 
 
@@ -140,7 +146,7 @@ def reconstruct_stack(acq: Acquisition, options: ReconstructionOptions, stack=No
     from dataclasses import replace
 
     options = replace(options, stack=stack or options.stack)
-    if not stk.supports(options):
+    if not methods.of(options).ties_slices:
         raise InputError(
             f"{acq.source}: the stack's solvers need the decoupled or coupled method, not {options.method!r}"
         )
@@ -175,14 +181,15 @@ def _reconstruct(
         raise InputError(f"{acq.source}: no usable slice: {reasons}")
     for k, why in failed.items():
         results[k] = FailedSlice(k, why, options.n_phi, options.geometry.n_fourier)
-    info = None
+    info: stk.StackInfo | None = None
     if tied:
         r_ref = float(np.mean([d.lumen.r_area for d in prepared.values()]))
         segments = stk.segments_of(sorted(prepared))
         info = stk.StackInfo("", 0.0, 0.0, 0.0, segments, dict(failed))
-        zc = ZCoupled(options, mu, density, acq.grid, float(acq.slice_spacing_mm), r_ref, info)
+        dz = float(acq.slice_spacing_mm or 1.0)  # validate() requires it for nz > 1
+        zc = ZCoupled(options, mu, density, acq.grid, dz, r_ref, info)
         ell = options.stack.z_smoothing_mm
-        info.z_smoothing_mm = float(acq.slice_spacing_mm if ell is None else ell)
+        info.z_smoothing_mm = dz if ell is None else float(ell)
         info.kappa, info.kappa_velocity = zc.kappa, zc.kappa_v
     else:
         segments = [[k] for k in sorted(prepared)]
@@ -288,9 +295,10 @@ def run_segment(
         if not np.all(np.isfinite(w.tau)):
             raise WssNlpError(f"{s.data.where}: wall shear stress is not finite; the reconstruction is unusable")
         walls.append(w)
-    if all(s.data.inplane is not None for s in states):
+    inplane = [s.data.inplane for s in states]
+    if all(u is not None for u in inplane):
         t0 = time.perf_counter()
-        wss_vectors(fitter, states, [[s.data.inplane[c] for s in states] for c in range(2)], walls, dz, mu)
+        wss_vectors(fitter, states, [[u[c] for u in inplane] for c in range(2)], walls, dz, mu)  # type: ignore[index]
         _add_time(states, fitter, "velocity_inplane", t0)
 
     pending: list = [None] * len(states)
@@ -363,8 +371,9 @@ def _deferred(band, states: list[SliceState], walls: list) -> list:
             return None, note
         w = walls[i]
         w.tau_std, w.mean_std = b.tau_std, b.mean_std
-        if states[i].near is not None and np.isfinite(b.scale_std_log):
-            states[i].near.scale_std_log = b.scale_std_log
+        near = states[i].near
+        if near is not None and np.isfinite(b.scale_std_log):
+            near.scale_std_log = b.scale_std_log
         return b.sensitivity, b.note
 
     return [functools.partial(finish, i) for i in range(len(states))]
@@ -381,9 +390,10 @@ def _dephasing_passes(states: list[SliceState], fitter: Fitter, options: Reconst
         for s in states:
             s.seconds.setdefault("dephasing_check", 0.0)
         return
-    psf = states[0].data.psf
-    passes = 1 if psf is None else KSPACE_PASSES
-    previous: list | None = None
+    model = acq_model.of(states[0].data.psf)
+    judged = model.dephasing_passes > 1  # repeated passes must explain the magnitude better than the last
+    passes = KSPACE_PASSES if judged else model.dephasing_passes
+    previous: tuple[list[SliceState], object] | None = None
     windows: list = [None] * len(states)
     explained = [float("inf")] * len(states)
     h = states[0].data.grid.h
@@ -395,7 +405,7 @@ def _dephasing_passes(states: list[SliceState], fitter: Fitter, options: Reconst
         ]
         _add_time(states, fitter, "dephasing_check", t0)
         corrections = [c for c, _ in checks]
-        if psf is not None:
+        if judged:
             if k == 0:  # the first geometry assumed no phase: its own model is the one a pass must beat
                 windows = [c.window for c in corrections]
                 explained = [c.misfit_still for c in corrections]
@@ -418,7 +428,7 @@ def _dephasing_passes(states: list[SliceState], fitter: Fitter, options: Reconst
         # a further pass only pays where some wall voxel loses more than 1 % of its magnitude
         if k == passes or not any(c.worth_a_pass for c in corrections):
             return
-        if psf is not None and k > 0 and KSPACE_PASS_PREDICTION:
+        if judged and k > 0 and KSPACE_PASS_PREDICTION:
             # the pass would end the iteration if it moved the wall less than the tolerance: predicted to first
             # order (within 1 % of such small moves on the phantoms), it need not be run
             t0 = time.perf_counter()
@@ -442,7 +452,7 @@ def _dephasing_passes(states: list[SliceState], fitter: Fitter, options: Reconst
         )
         for s in states:
             s.dephasing.passes = k + 1
-        if psf is None or moved < KSPACE_PASS_TOL * h:
+        if not judged or moved < KSPACE_PASS_TOL * h:
             return
 
 
@@ -488,10 +498,11 @@ def _with_screens(results, screens: dict, acq: Acquisition, psf=None):
     """
     acquired = acq.acquired_voxel_size_mm
     zero_filled = acquired is not None and any(a > v * ZERO_FILL_TOLERANCE for a, v in zip(acquired, acq.voxel_size_mm))
+    voxel_means = isinstance(acq_model.of(psf), acq_model.VoxelMeans)
     for r in results:
         if isinstance(r, FailedSlice):
             continue
-        box_on_kspace = zero_filled and psf is None and isinstance(r, SliceResult)
+        box_on_kspace = zero_filled and voxel_means and isinstance(r, SliceResult)
         note = ZERO_FILLED_NOTE.format(acquired=acquired, voxel=acq.voxel_size_mm)
         if box_on_kspace and note not in r.notes:
             r.notes.append(note)

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..core.solver import SolverStats
 from ..errors import WssNlpError
+from ..models import acquisition as acq_model
 from ..models import geometry as geo
 from ..models import near_wall as nw
 from ..models import stack as stk
@@ -32,6 +33,7 @@ from ..models import wss as wss_mod
 from ..parameters import rules as pr
 from ..parameters.alpha import choose_alpha
 from ..parameters.beta import geometric_median, segment_beta
+from ..uncertainty import sensitivity as sens
 from ..uncertainty import stack_band
 from . import steps
 from .band import slice_band
@@ -92,7 +94,7 @@ class Band:
 
     tau_std: np.ndarray
     mean_std: float
-    sensitivity: object = None  # a wss_nlp.uncertainty.sensitivity.Sensitivity (single slices)
+    sensitivity: sens.Sensitivity | None = None  # single slices
     note: str = ""
     scale_std_log: float = float("nan")  # the law-of-the-wall scale's spread (stacks carry it here)
 
@@ -111,7 +113,7 @@ class Independent(Fitter):
             s.geometry, s.alpha_choice = choose_alpha(
                 s.problem, s.data.raw, s.data.norm, s.lumen, options.geometry, options.choice, s.data.where, start
             )
-            if s.data.psf is not None:  # the PSF's tails reach into the background the noise estimates use
+            if acq_model.of(s.data.psf).background_tails:  # they reach into the background the noise estimates use
                 image = geo.model_image(s.problem, options.geometry, s.geometry)
                 s.lumen = replace(s.lumen, signal=s.data.norm.m1 * image)
             s.seconds["geometry"] = time.perf_counter() - t0

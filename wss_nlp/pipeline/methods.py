@@ -21,6 +21,9 @@ class Method:
     """A reconstruction method; ``name`` is its ``--method`` word."""
 
     name = ""
+    #: Whether a stack's slices can be tied along z (Sec. 5): the z-penalty needs the velocity model of every
+    #: slice, which the classical baselines do not have (they fit each slice on its own segmentation).
+    ties_slices = True
 
     def refine(self, states, fitter) -> tuple:
         """``(results, records)`` of what the method adds to the decoupled states (None, empty records: nothing);
@@ -45,6 +48,8 @@ class Coupled(Method):
 class Baseline(Method):
     """A classical estimator of :mod:`wss_nlp.models.baselines` (``oyre`` or ``stalder``)."""
 
+    ties_slices = False
+
     def __init__(self, name: str):
         self.name = name
 
@@ -54,6 +59,7 @@ class Baseline(Method):
         bad = set(acq.nonfinite_slices())
         out: list = []
         for iz in range(acq.nz):
+            res: bl.BaselineResult | FailedSlice
             try:
                 if iz in bad:
                     raise InputError(f"{acq.source} slice {iz}: the images contain NaN or Inf")

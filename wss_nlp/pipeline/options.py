@@ -47,7 +47,6 @@ class ReconstructionOptions:
 
     geometry: geo.GeometryOptions = field(default_factory=geo.GeometryOptions)
     velocity: vel.VelocityOptions = field(default_factory=vel.VelocityOptions)
-    choice: ChoiceOptions = field(default_factory=ChoiceOptions)  # alpha and beta from the data
     method: str = option(
         "decoupled",
         "decoupled: geometry, then velocity (the paper's); coupled: both as one NLP "
@@ -109,6 +108,8 @@ class ReconstructionOptions:
         cli="--noise-sigma",
         group=WSS_GROUP,
     )
+    # last: its options join the groups the fields above open (the --help layout of before 0.2)
+    choice: ChoiceOptions = field(default_factory=ChoiceOptions)  # alpha and beta from the data
 
     def __post_init__(self):
         if self.n_phi < 360:
@@ -149,5 +150,11 @@ def _legacy_init(init):
 
 
 ReconstructionOptions.__init__ = _legacy_init(ReconstructionOptions.__init__)  # type: ignore[method-assign]
+
+
+def _choice_field(name: str) -> property:
+    return property(lambda self: getattr(self.choice, name), doc=f"``choice.{name}`` (its name before 0.2)")
+
+
 for _name in ChoiceOptions.FIELDS:  # the old names read the choice's fields
-    setattr(ReconstructionOptions, _name, property(lambda self, _n=_name: getattr(self.choice, _n)))
+    setattr(ReconstructionOptions, _name, _choice_field(_name))

@@ -71,7 +71,7 @@ class SliceResult:
     dephasing: DephasingRecord = field(default_factory=DephasingRecord)  # what the dephasing passes did
     # the velocity problem of the final fit, kept only with a deferred band (cine frames), then dropped
     problem: vel.VelocityProblem | None = None
-    # the uncertainty band still to compute (reconstruct_slice(defer_band=True)): () -> (Sensitivity, note)
+    # the uncertainty band still to compute (reconstruct(defer_band=True)): () -> (Sensitivity, note)
     pending_band: Callable[[], tuple] | None = None
 
     def finish_band(self) -> None:

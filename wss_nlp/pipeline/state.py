@@ -55,12 +55,13 @@ class SliceState:
     problem: geo.GeometryProblem
     lumen: pp.Lumen
     velocity_image: np.ndarray
-    geometry: geo.GeometryResult | None = None
-    alpha_choice: ParameterChoice | None = None
-    velocity_problem: vel.VelocityProblem | None = None
-    near: nw.NearWallChoice | None = None
-    beta_choice: ParameterChoice | None = None
-    velocity: vel.VelocityResult | None = None
+    # set by the fitter's first steps (geometry, then velocity); a state is only read after them
+    geometry: geo.GeometryResult = None  # type: ignore[assignment]
+    alpha_choice: ParameterChoice = None  # type: ignore[assignment]
+    velocity_problem: vel.VelocityProblem = None  # type: ignore[assignment]
+    near: nw.NearWallChoice | None = None  # None: --near-wall off
+    beta_choice: ParameterChoice = None  # type: ignore[assignment]
+    velocity: vel.VelocityResult = None  # type: ignore[assignment]
     dephasing: DephasingRecord = field(default_factory=DephasingRecord)
     factors: np.ndarray | None = None  # the first check's predicted magnitude factors of the wall voxels
     notes: list = field(default_factory=list)

@@ -1,19 +1,15 @@
-"""The steps of a reconstruction, shared by single slices and z-regularized stacks.
-
-Every slice goes through the same steps, whatever solves its geometry and velocity:
+"""The steps of a reconstruction that act on one slice's data, whatever fits its geometry and velocity.
 
 * :func:`prepare`: preprocessing (normalization, lumen, radius box) into a :class:`SliceData` record, which
   also fixes the noise venc the parameter rules and the band use;
-* geometry (Sec. 2) and alpha (:mod:`wss_nlp.parameters.choice`);
-* :func:`near_wall_model` and :func:`beta_choice`: the velocity model and its beta;
-* the velocity fit (Sec. 3);
-* :func:`predict_dephasing`: the signal loss that decides a second, corrected pass;
+* :func:`near_wall_model` and :func:`beta_choice`: the velocity model and its beta
+  (:mod:`wss_nlp.parameters.layer`, :mod:`wss_nlp.parameters.beta`);
+* :func:`predict_dephasing`: the signal loss that decides a corrected pass;
 * :func:`coupled_weight`: the coupled method's velocity weight;
-* WSS (Sec. 4) and :func:`noise_levels` for the band.
+* :func:`noise_levels`: the band's noise levels.
 
-Two drivers run them: :func:`wss_nlp.pipeline.reconstruct.reconstruct_slice` solves each slice alone;
-:func:`reconstruct_stack` solves segments of consecutive slices together, with the z-coupled
-mathematics of :mod:`wss_nlp.models.stack` (Sec. 5) and the band of :mod:`wss_nlp.uncertainty.stack_band`.
+The driver (:mod:`wss_nlp.pipeline.driver`) runs them on every segment, its fitter
+(:mod:`wss_nlp.pipeline.fitters`) solving what couples the slices.
 """
 
 from __future__ import annotations
@@ -26,6 +22,7 @@ import numpy as np
 
 from ..models import dephasing as deph
 from ..models import geometry as geo
+from ..models import acquisition as acq_model
 from ..models import kspace
 from ..models import preprocess as pp
 from ..models import velocity as vel
@@ -90,7 +87,7 @@ def prepare(
     preferred: it also holds what the data's placement adds).
     """
     where = f"{source} slice {index}"
-    norm, m, lumen = pp.preprocess(raw, grid, where, vessel, clip_upper=psf is None)
+    norm, m, lumen = pp.preprocess(raw, grid, where, vessel, clip_upper=acq_model.of(psf).clip_upper)
     if box is not None:
         lumen = box.apply(lumen)
     nvenc = venc

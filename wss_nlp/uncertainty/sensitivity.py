@@ -45,6 +45,7 @@ import casadi as ca
 from .._lazy import scipy
 from ..models import coupled as cpl
 from ..models import geometry as geo
+from ..models import acquisition as acq_model
 from ..models import kspace
 from ..core import mapping
 from ..models import measurement as meas
@@ -347,9 +348,9 @@ def kspace_parameter_derivatives(
     """
     n = options.n_fourier
     q = geo.quad_order(problem, options)
-    if problem.psf is None:
+    if not isinstance(problem.measurement, acq_model.KSpace):
         raise InputError("kspace_parameter_derivatives: the problem has no k-space PSF")
-    model = kspace.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma, problem.psf)
+    model = problem.measurement.magnitude_setup(problem.grid, problem.center, problem.r0, problem.r1, q, gamma)
     c, g, shift = ca.MX.sym("c", rad.n_coefficients(n)), ca.MX.sym("gamma"), ca.MX.sym("shift", 2)
     root_area = np.sqrt(problem.grid.voxel_area)
     data = problem.magnitude.ravel()[model.annulus]
@@ -413,8 +414,7 @@ def geometry_kkt(
     is where IPOPT's multipliers are nonzero (run with ``clip_inactive_lam``,
     so inactive ones are exactly zero). Returns ``(dc/dp, annulus indices)``.
     """
-    derivatives = geometry_parameter_derivatives if problem.psf is None else kspace_parameter_derivatives
-    hmat, dgrad, annulus = derivatives(problem, options, coefficients, alpha, gamma)
+    hmat, dgrad, annulus = parameter_derivatives(problem)(problem, options, coefficients, alpha, gamma)
     box = rad.design_matrix(options.box_angles(), options.n_fourier)
     return solve_kkt(bordered(hmat, box[lam_box != 0]), dgrad, "geometry sensitivity"), annulus
 
@@ -667,7 +667,9 @@ def decoupled(
     """
     t_start = time.perf_counter()
     gopt_t = geo.with_options(gopt, alpha=geometry.alpha, tol=tol)
-    newton = _newton_anchor(problem, gopt_t, geometry) if problem.psf is None else None
+    # the closed-form Newton anchor exists for voxel means; other models re-solve to a tight tolerance
+    voxel_means = isinstance(problem.measurement, acq_model.VoxelMeans)
+    newton = _newton_anchor(problem, gopt_t, geometry) if voxel_means else None
     if newton is not None:
         c_r0, dcr_dpg, annulus, active_rows = newton
     else:
@@ -761,22 +763,17 @@ def _newton_anchor(problem: geo.GeometryProblem, gopt: geo.GeometryOptions, geom
 
 def noise_correlation_of(problem: geo.GeometryProblem):
     """``(R_y, R_x, shape)`` of a k-space acquisition's image noise (None for the box model: independent voxels)."""
-    if problem.psf is None:
-        return None
-    (ny, nx), psf = problem.grid.shape, problem.psf
-    return (
-        kspace.noise_correlation(ny, psf.zero_fill[0], psf.filter),
-        kspace.noise_correlation(nx, psf.zero_fill[1], psf.filter),
-        (ny, nx),
-    )
+    return problem.measurement.correlation_factors(problem.grid.shape)
 
 
 def _attach_correlation(out: Sensitivity, problem: geo.GeometryProblem) -> None:
     """Give the band the noise correlation of a k-space acquisition (none for the box model)."""
-    if problem.psf is None:
+    correlation = noise_correlation_of(problem)
+    if correlation is None:
         return
-    out.correlation = noise_correlation_of(problem)
+    out.correlation = correlation
     psf = problem.psf
+    assert psf is not None  # a correlated model is a PSF's
     out.noise["correlation"] = f"k-space noise: {psf.filter} filter, zero-filling {list(psf.zero_fill)}"
 
 
@@ -946,7 +943,7 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
     coupled model; the box does not depend on the centre.
     """
     n_r = nlp.n_r
-    derivatives = geometry_parameter_derivatives if problem.psf is None else kspace_parameter_derivatives
+    derivatives = parameter_derivatives(problem)
     _, dgrad_geo, _ = derivatives(problem, geo.with_options(gopt, alpha=nlp.alpha), x[:n_r], nlp.alpha, gamma)
     center = ca.MX.sym("center", 2)
     res_v = cpl.velocity_residual(
@@ -968,3 +965,11 @@ def _coupled_centre_derivative(nlp, problem, gopt, x: np.ndarray, gamma: float, 
     out = DenseCall(fun)(x, np.asarray(problem.center, float), np.eye(2))[0]
     out[:n_r] += dgrad_geo[:, -2:]
     return out
+
+
+def parameter_derivatives(problem: geo.GeometryProblem):
+    """The function giving the geometry functional's Hessian and ``d grad / d p`` for the problem's measurement model
+    (:func:`geometry_parameter_derivatives` for voxel means, :func:`kspace_parameter_derivatives` for a PSF)."""
+    return {acq_model.VoxelMeans: geometry_parameter_derivatives, acq_model.KSpace: kspace_parameter_derivatives}[
+        type(problem.measurement)
+    ]

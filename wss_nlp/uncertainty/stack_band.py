@@ -309,9 +309,7 @@ def linearize(
     out = Linearization()
     for s in slices:
         g, vp, c_r = s.geometry, s.velocity_problem, s.geometry.coefficients
-        derivatives = (
-            sens.geometry_parameter_derivatives if s.problem.psf is None else sens.kspace_parameter_derivatives
-        )
+        derivatives = sens.parameter_derivatives(s.problem)
         hmat, dgrad, annulus = derivatives(s.problem, geo.with_options(gopt, alpha=g.alpha), c_r, g.alpha, g.gamma)
         lam = _active_multipliers(s.box_multipliers, s.problem, gopt, c_r)
         out.hessians.append(hmat)

@@ -1,0 +1,70 @@
+"""``wss-nlp``'s entry point: parse, dispatch, turn errors into one line and an exit code, show the library's log."""
+
+from __future__ import annotations
+
+import logging
+import os
+import sys
+from ...errors import WssNlpError
+from .parser import build_parser
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse: --help (0) or usage error (2)
+        return int(exc.code or 0)
+    args.argv = argv
+    _show_library_log()
+    try:
+        return int(args.func(args) or 0)
+    except WssNlpError as exc:
+        print(f"wss-nlp: error: {_one_line(exc)}", file=sys.stderr)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        print("wss-nlp: interrupted", file=sys.stderr)
+        return 130
+    except OSError as exc:  # the file system refused (disk full, permissions changed during the run)
+        print(f"wss-nlp: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug: one line for the user, the traceback for the report
+        if os.environ.get("WSS_NLP_DEBUG"):
+            raise
+        print(
+            f"wss-nlp: internal error: {type(exc).__name__}: {_one_line(exc)}; please report it with the "
+            "command line (WSS_NLP_DEBUG=1 shows the traceback)",
+            file=sys.stderr,
+        )
+        return 1
+
+
+class _StderrHandler(logging.StreamHandler):
+    """Writes to the current ``sys.stderr`` (which tests and embedding programs may replace)."""
+
+    @property
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, value) -> None:
+        pass
+
+
+def _show_library_log() -> None:
+    """The library's INFO messages (stages of long solves) on stderr, indented under the progress lines."""
+    logger = logging.getLogger("wss_nlp")
+    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):  # main() may run many times in a process
+        handler = _StderrHandler()
+        handler.setFormatter(logging.Formatter("  %(message)s"))
+        logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).split())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,238 @@
+"""The command line's arguments: one subparser per subcommand, the reconstruction options from their declarations
+(:mod:`wss_nlp.core.schema`)."""
+
+from __future__ import annotations
+
+import argparse
+from ... import __version__
+from ...synthetic import phantoms
+from ...core import schema
+from ...models.kspace import AcquisitionOptions
+from .demo import cmd_demo
+from .exchange import cmd_export, cmd_import
+from .phantom import cmd_phantom
+from .reconstruct import cmd_reconstruct
+from .report import cmd_analyze, cmd_compare, cmd_sensitivity
+from .studies import cmd_plot, cmd_sweep, cmd_table
+from .arguments import _add_reconstruction_arguments, options_from_args  # noqa: F401
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="wss-nlp",
+        description="Vessel geometry, velocity and wall shear stress from phase-contrast MRI "
+        "(Egger & Teschner), with every Tikhonov problem posed in CasADi.",
+    )
+    p.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    d = sub.add_parser(
+        "demo",
+        help="reconstruct a built-in phantom and report errors against the truth",
+        description="Build a phantom, reconstruct it, print errors, write files and figures.",
+    )
+    d.add_argument(
+        "--case",
+        choices=[*phantoms.CASES, "cine"],
+        default="laminar",
+        help="phantom (default %(default)s); cine: Womersley flow over a cycle, TAWSS and OSI",
+    )
+    d.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
+    d.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none (default %(default)g)")
+    d.add_argument("--seed", type=int, default=0, help="random seed (default %(default)s)")
+    d.add_argument("-o", "--output-dir", default="wss_nlp_demo", help="output folder (default %(default)s)")
+    _add_reconstruction_arguments(d)
+    d.set_defaults(func=cmd_demo)
+
+    r = sub.add_parser(
+        "reconstruct",
+        help="reconstruct an acquisition file",
+        description="Reconstruct geometry, velocity and WSS of every slice of INPUT.",
+    )
+    r.add_argument("input", help='input HDF5 file (format: docs, "File formats")')
+    r.add_argument("-o", "--output", required=True, help="result HDF5 file")
+    r.add_argument("--figures", default=None, help="folder for PNG figures of every slice")
+    _add_reconstruction_arguments(r)
+    r.set_defaults(func=cmd_reconstruct)
+
+    ph = sub.add_parser("phantom", help="write a synthetic acquisition (and its truth)")
+    ph.add_argument(
+        "--case",
+        choices=[*phantoms.CASES, "womersley"],
+        default="laminar",
+        help="womersley: a time-resolved (cine) phantom, Womersley flow over one cycle (--frames)",
+    )
+    ph.add_argument("--frames", type=int, default=20, help="womersley: frames over the cycle (default %(default)s)")
+    ph.add_argument(
+        "--distension",
+        type=float,
+        default=None,
+        metavar="EPS",
+        help="womersley: the pipe breathes, radius R0 (1 + EPS sin(omega t)), EPS in [0, 0.3) (default 0: rigid)",
+    )
+    ph.add_argument(
+        "--shape",
+        choices=("circle", "ellipse"),
+        default=None,
+        help="womersley: circular pipe, or elliptic (aspect 1.32, same area, its exact pulsatile flow; rigid)",
+    )
+    ph.add_argument(
+        "--pipe-radius",
+        type=float,
+        default=None,
+        metavar="MM",
+        help="womersley: pipe radius in mm (default 10: first harmonic's Womersley number about 14)",
+    )
+    ph.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
+    ph.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none")
+    ph.add_argument("--seed", type=int, default=0)
+    ph.add_argument("--venc", type=float, default=None, help="velocity encoding in m/s (default 1.25 x peak)")
+    ph.add_argument("--velocity", action="store_true", help="store 'velocity' instead of 'phase' + venc")
+    ph.add_argument(
+        "--stack", choices=list(phantoms.STACK_CASES), default=None, help="a 3D stack phantom instead of one slice"
+    )
+    ph.add_argument("--nz", type=int, default=10, help="stack: number of slices (default %(default)s)")
+    ph.add_argument("--spacing", type=float, default=2.0, help="stack: slice spacing in mm (default %(default)g)")
+    ph.add_argument(
+        "--swirl",
+        type=float,
+        default=None,
+        help="stack: add in-plane velocity components (4D flow) of a swirl with this rate in 1/s",
+    )
+    ph.add_argument("-o", "--output", required=True, help="input file to write")
+    ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
+    ph.add_argument(
+        "--dicom", default=None, metavar="FOLDER", help="also write the images as DICOM files (for 'wss-nlp import')"
+    )
+    ph.add_argument(
+        "--vendor",
+        choices=["siemens", "philips", "ge", "enhanced"],
+        default="siemens",
+        help="DICOM convention of --dicom (default %(default)s)",
+    )
+    ph.add_argument("--nifti", default=None, metavar="FOLDER", help="also write NIfTI files with JSON sidecars")
+    schema.add_arguments(ph, AcquisitionOptions)  # acquire in k-space: --acquisition kspace --kspace-filter ...
+    ph.set_defaults(func=cmd_phantom)
+
+    a = sub.add_parser(
+        "analyze", help="how alpha, beta, the near-wall model and the dephasing passes were chosen (tables, curves)"
+    )
+    a.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
+    a.add_argument("--figures", default=None, help="folder for residual-vs-parameter PNGs")
+    a.set_defaults(func=cmd_analyze)
+
+    se = sub.add_parser("sensitivity", help="which parameters and which noise the mean WSS is most sensitive to")
+    se.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
+    se.set_defaults(func=cmd_sensitivity)
+
+    sw = sub.add_parser(
+        "sweep",
+        help="run a parameter study from a TOML file (problems/*.toml)",
+        description="Expand the study's grid, run the cases in parallel (resumable), write "
+        "OUTDIR/results.csv, per-case result files and the study's tables and plots.",
+    )
+    sw.add_argument("study", help="study file (TOML; see problems/README.md)")
+    sw.add_argument("-o", "--output-dir", default=None, help="output folder (default runs/STUDY_NAME)")
+    sw.add_argument("--workers", type=int, default=None, help="local worker processes (default: all cores)")
+    sw.add_argument(
+        "--scheduler",
+        default=None,
+        help="address of a Dask distributed scheduler (tcp://HOST:PORT) to run the cases on",
+    )
+    sw.add_argument("--retry-failed", action="store_true", help="run again the cases that failed before")
+    sw.set_defaults(func=cmd_sweep)
+
+    tb = sub.add_parser(
+        "table",
+        help="a paper-style table from a sweep's results.csv",
+        description="Pivot a metric over two parameters (mean over seeds); best per row in bold.",
+    )
+    tb.add_argument("outdir", help="output folder of 'wss-nlp sweep'")
+    tb.add_argument("--rows", required=True, help="parameter of the rows (or 'metric' for a single row)")
+    tb.add_argument("--cols", required=True, help="parameter of the columns (or 'metric')")
+    tb.add_argument("--metric", required=True, help="metric column, e.g. radius_err_h2, wss_err")
+    tb.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="fix other parameters")
+    tb.add_argument(
+        "--agg", choices=["mean", "median", "max", "min"], default="mean", help="over seeds (default %(default)s)"
+    )
+    tb.add_argument("--latex", action="store_true", help="print LaTeX instead of Markdown")
+    tb.add_argument("--no-bold", action="store_true", help="do not mark the best value of each row")
+    tb.add_argument("-o", "--output", default=None, help="also write the table (.tex: LaTeX, else Markdown)")
+    tb.set_defaults(func=cmd_table)
+
+    pl = sub.add_parser("plot", help="a metric against a parameter from a sweep's results.csv")
+    pl.add_argument("outdir", help="output folder of 'wss-nlp sweep'")
+    pl.add_argument("--x", required=True, help="parameter on the x axis, e.g. h")
+    pl.add_argument("--y", required=True, help="metric on the y axis, e.g. wss_err")
+    pl.add_argument("--by", default=None, help="one line per value of this parameter, e.g. method")
+    pl.add_argument("--panels", default=None, help="one panel per value of this parameter, e.g. case")
+    pl.add_argument("--where", nargs="*", default=[], metavar="KEY=VALUE", help="fix other parameters")
+    pl.add_argument("--logx", action="store_true", help="logarithmic x axis")
+    pl.add_argument("-o", "--output", default=None, help="PNG file (default OUTDIR/Y_vs_X.png)")
+    pl.set_defaults(func=cmd_plot)
+
+    ex = sub.add_parser(
+        "export",
+        help="the reconstructed wall with its WSS as a VTK file for ParaView",
+        description="A slice becomes a polyline, a stack the wall surface; point data tau_pa (and tau_std_pa, "
+        "wss_vector_pa where present).",
+    )
+    ex.add_argument("result", help="result file written by 'wss-nlp reconstruct'")
+    ex.add_argument("--vtk", required=True, help="output file: .vtu (VTK XML) or .vtk (legacy)")
+    ex.add_argument(
+        "--slice-spacing",
+        type=float,
+        default=None,
+        help="mm between slices (default: the result's slice_spacing_mm, stored by reconstruct)",
+    )
+    ex.set_defaults(func=cmd_export)
+
+    im = sub.add_parser(
+        "import",
+        help="scanner exports (DICOM folder/files or NIfTI) to an input file",
+        description="Read a magnitude and a phase (or velocity) series from DICOM (Siemens, Philips, GE, enhanced "
+        "multi-frame) or NIfTI (with dcm2niix JSON sidecars) and write an input file of the format document; "
+        "venc, voxel size, origin, slice spacing and trigger times come from the headers. See the docs page "
+        "'Your own data'.",
+    )
+    im.add_argument("paths", nargs="+", metavar="PATH", help="DICOM folders or files, or NIfTI files")
+    im.add_argument("-o", "--output", required=True, help="input file to write (.h5)")
+    im.add_argument("--venc", type=float, default=None, metavar="M_S", help="velocity encoding in m/s (overrides)")
+    im.add_argument("--viscosity", type=float, default=None, metavar="PA_S", help="dynamic viscosity to store")
+    im.add_argument("--density", type=float, default=None, metavar="KG_M3", help="fluid density to store")
+    im.add_argument(
+        "--flip-through-plane", action="store_true", help="negate the through-plane velocity (forward flow negative)"
+    )
+    im.add_argument(
+        "--phase-units",
+        default=None,
+        choices=["rad", "siemens", "cm/s", "mm/s", "m/s"],
+        help="units of the phase images' values when the headers do not state them",
+    )
+    im.add_argument(
+        "--frame-interval", type=float, default=None, metavar="MS", help="ms between NIfTI frames (if not in header)"
+    )
+    im.add_argument(
+        "--plane",
+        type=float,
+        nargs=6,
+        default=None,
+        metavar=("X", "Y", "Z", "NX", "NY", "NZ"),
+        help="4D flow (NIfTI magnitude + *_vx/_vy/_vz files): cut the volume by the plane through (X, Y, Z) mm "
+        "with normal (NX, NY, NZ), in the affine's world frame",
+    )
+    im.add_argument("--plane-fov", type=float, default=40.0, metavar="MM", help="side of the plane (default 40)")
+    im.add_argument(
+        "--plane-voxel", type=float, default=None, metavar="MM", help="plane voxel (default: the volume's largest)"
+    )
+    im.add_argument("--plane-slices", type=int, default=1, metavar="N", help="parallel slices (a stack; default 1)")
+    im.add_argument(
+        "--plane-spacing", type=float, default=None, metavar="MM", help="between those slices (default: the voxel)"
+    )
+    im.set_defaults(func=cmd_import)
+
+    c = sub.add_parser("compare", help="errors of a result file against a truth file")
+    c.add_argument("result")
+    c.add_argument("truth")
+    c.set_defaults(func=cmd_compare)
+    return p

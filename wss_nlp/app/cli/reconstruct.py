@@ -1,0 +1,137 @@
+"""``wss-nlp reconstruct``: one input file (slices, stacks, cine) to a result file, with progress and figures."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+import numpy as np
+from ...io import files as wio
+from ...io import outputs
+from ...pipeline.driver import reconstruct
+from .arguments import options_from_args
+
+
+def _progress(stream):
+    t0 = time.perf_counter()
+
+    def report(done, total, res):
+        if isinstance(res, wio.FailedSlice):
+            stream.write(f"  slice {done}/{total}: FAILED ({res.reason})\n")
+            stream.flush()
+            return
+        flag = "" if res.converged else "  [NOT CONVERGED]"
+        stream.write(
+            f"  slice {done}/{total}: mean WSS {res.wss.mean:.4g} Pa, {time.perf_counter() - t0:.1f} s elapsed{flag}\n"
+        )
+        stream.flush()
+
+    return report
+
+
+def _warn(results, stream) -> None:
+    for r in results:
+        for msg in r.warnings:
+            stream.write(f"wss-nlp: warning: {msg}\n")
+
+
+def _is_time_resolved(path: str) -> bool:
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return "trigger_times_ms" in f.attrs
+    except OSError:
+        return False  # read_acquisition names the problem
+
+
+def _reconstruct_cine(args, options) -> int:
+    from ...pipeline import cine
+
+    frames, times, period = wio.read_frames(args.input)
+    acq = frames[0]
+    print(
+        f"{args.input}: {len(frames)} frames over {period:g} ms, {acq.nz} slice(s) of {acq.magnitude.shape[2]} x "
+        f"{acq.magnitude.shape[1]} voxels, h = {acq.grid.h:g} mm",
+        file=sys.stderr,
+    )
+
+    def progress(done, total, seconds):
+        sys.stderr.write(f"  frame {done}/{total}: {seconds:.1f} s elapsed\n")
+        sys.stderr.flush()
+
+    result = cine.reconstruct_cine(frames, times, period, options, progress=progress)
+    with outputs.StagedFolder(args.figures) as staged:
+        series = cine.write_result(args.output, result, options.as_dict(), argv=["wss-nlp", *args.argv])
+        if staged.path:
+            from ..plotting import save_cine_figures
+
+            save_cine_figures(series, result, staged.path)
+        staged.commit()
+    for k, frame in enumerate(result.frames):
+        for r in frame:
+            for msg in r.warnings:
+                sys.stderr.write(f"wss-nlp: warning: frame {k}: {msg}\n")
+    for s in series:
+        for note in s.notes:
+            sys.stderr.write(f"wss-nlp: warning: slice {s.index}: {note}\n")
+        print(
+            f"slice {s.index}: time-averaged WSS {s.time_average_mean:.4g} Pa, TAWSS {np.mean(s.tawss):.4g} Pa "
+            f"(wall mean), OSI {np.min(s.osi):.3f}-{np.max(s.osi):.3f}, peak mean WSS {np.max(s.mean):.4g} Pa at "
+            f"{times[int(np.nanargmax(s.mean))]:g} ms; velocity over the cycle: "
+            + (f"momentum model ({s.model.harmonics} harmonics)" if s.model and s.model.model == "momentum" else
+               "the frames' own fits")
+        )  # fmt: skip
+    print(f"wrote {args.output}")
+    if args.figures:
+        print(f"figures in {args.figures}")
+    return 0
+
+
+def cmd_reconstruct(args) -> int:
+    options = options_from_args(args)
+    outputs.check_outputs(files={"-o": args.output}, folders={"--figures": args.figures}, inputs=[args.input])
+    if _is_time_resolved(args.input):
+        return _reconstruct_cine(args, options)
+    acq = wio.read_acquisition(args.input)
+    print(
+        f"{args.input}: {acq.nz} slice(s) of {acq.magnitude.shape[2]} x {acq.magnitude.shape[1]} voxels, "
+        f"h = {acq.grid.h:g} mm",
+        file=sys.stderr,
+    )
+    results = reconstruct(acq, options, progress=_progress(sys.stderr))
+    with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
+        if staged.path:
+            _slice_figures(results, acq, staged.path)
+        extra = {} if acq.slice_spacing_mm is None else {"slice_spacing_mm": float(acq.slice_spacing_mm)}
+        wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv], extra_attrs=extra)
+        staged.commit()
+    _warn(results, sys.stderr)
+    for r in results:
+        if isinstance(r, wio.FailedSlice):
+            print(f"slice {r.index}: FAILED: {r.reason}")
+            continue
+        print(
+            f"slice {r.index}: mean WSS {r.wss.mean:.5g} Pa, mean radius {r.geometry.coefficients[0]:.4f} mm, "
+            f"converged: {r.converged}"
+        )
+    if results.stack is not None:
+        st = results.stack
+        print(
+            f"stack: z-regularized over {st.z_smoothing_mm:g} mm ({st.strategy}; segments "
+            f"{[f'{s[0]}-{s[-1]}' for s in st.segments]})" + ("" if st.converged else "; NOT CONVERGED")
+        )
+    print(f"wrote {args.output}")
+    if args.figures:
+        print(f"figures in {args.figures}")
+    return 0
+
+
+def _slice_figures(results, acq, folder: str) -> None:
+    from ..plotting import figure_stack, save_figure, save_figures
+
+    for r in results:
+        if not isinstance(r, wio.FailedSlice):
+            save_figures(r, folder, prefix=f"slice_{r.index:03d}_")
+    if len(results) > 1:
+        save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, "stack_wall_maps.png"))
