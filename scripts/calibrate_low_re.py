@@ -7,7 +7,7 @@ Madrid group (Re_tau 186, 547, 934, 2004; ``wss_nlp/data/channel_dns``), on 400 
 ln y+ from 0.2 to the centreline (monotone cubic interpolation of each file), each profile with its own wake
 ``a2 eta^2 + a3 eta^3 + a4 eta^4`` (``eta = y+ / Re_tau``, zero value and slope at the wall) fitted beside the
 constants and discarded. Start: Reichardt's constants, no Reynolds-number dependence, no wake. The pipe DNS
-takes no part (it is the test, ``scripts/near_wall.py``).
+takes no part (it is the test, ``scripts/low_re.py``).
 
 Writes ``scripts/results/calibrate_low_re.md``: the constants (to be copied into
 ``wss_nlp/models/families/low_re.py``, whose values it checks), the misfit per profile (max |Delta U+| of the

@@ -27,7 +27,7 @@ uniform in :math:`\ln y^+` from 0.2 to the centreline, each profile with its own
 fitted beside the constants and then discarded. The wake is where channel and pipe flow differ; the velocity
 fit leaves it, like every other smooth outer part, to its penalized polynomials, so it cannot reach the wall
 gradient through this profile. No pipe data took part: the pipe DNS in ``wss_nlp/data`` is the test
-(``scripts/near_wall.py``).
+(``scripts/low_re.py``, ``tests/test_low_re.py``).
 
 **Re_tau from the data.** The profile of a layer of scale ``l`` in a lumen of mean radius ``R`` is the one at
 :math:`Re_\tau = R/\ell` (:func:`wss_nlp.models.near_wall.enrich`,
