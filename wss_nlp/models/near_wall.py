@@ -752,8 +752,9 @@ def scale_ambiguity_note(choice: NearWallChoice | None, mean_pa: float, mean_std
 
 #: Largest voxel size in viscous units (h / l, the data's best scale) at which the data's own scale is read as a
 #: viscosity (:func:`viscosity_note`): up to it the first voxel holds the buffer layer (y+ < 25-30), beyond it the
-#: scale trades against the log law's intercept. On the turbulent phantoms (development seeds 1-2) the implied nu
-#: was 0.86-1.02 x the true one up to h+ = 29 and 0.54-0.94 beyond (scripts/results/viscosity_check.md).
+#: scale trades against the log law's intercept. On the turbulent phantoms (development seeds 1-2, not kept) the
+#: implied nu was 0.86-1.02 x the true one up to h+ = 29 and 0.54-0.94 beyond; report seeds in
+#: scripts/results/viscosity_check.md (``python scripts/low_re.py --part viscosity``).
 VISCOSITY_RESOLVED = 25.0
 #: The data's viscosity and the stated one disagree when their ratio leaves [1/VISCOSITY_TOLERANCE,
 #: VISCOSITY_TOLERANCE]; a 30 % error in nu moved the WSS by 3-31 % on the turbulent phantoms.
