@@ -42,6 +42,7 @@ import numpy as np
 from .._lazy import scipy
 from ..parameters import noise as nl
 from ..models import preprocess as pp
+from ..models import surround
 from ..errors import InputError, WssNlpError
 from ..core.schema import option
 
@@ -219,6 +220,8 @@ def _screen_slice(
     record: dict[str, Any] = {"other_vessels": lumen.others, "vessel_chosen_by": lumen.chosen_by}
     if lumen.others:
         notes.append(lumen.others_note())
+    if lumen.tissue and lumen.tissue.get("static_bright"):  # hook (issue 39)
+        record["static_bright_regions"] = lumen.tissue["static_bright"]
     venc, out = acq.venc_m_s, velocity
     if venc is not None:
         region = (scipy.ndimage.binary_dilation(lumen.mask) & (m > UNWRAP_MAGNITUDE)) | lumen.mask
@@ -274,7 +277,11 @@ def screen(acq, options: ScreenOptions | None = None):
         if iz in bad:
             continue
         try:
-            _, m, lumen = pp.preprocess(acq.magnitude[iz], acq.grid, f"{acq.source} slice {iz}", options.vessel)
+            # hook (issue 39): the lumen among the bright regions that flow; static bright tissue (fat) is
+            # neither the vessel nor "another vessel in view" (wss_nlp.models.surround.screen_preprocess)
+            _, m, lumen = surround.screen_preprocess(
+                acq.magnitude[iz], velocity[iz], acq.grid, f"{acq.source} slice {iz}", options.vessel, acq.venc_m_s
+            )
         except WssNlpError:  # no vessel, lumen on the border: a stack reports the slice as failed later
             if acq.nz == 1:
                 raise
