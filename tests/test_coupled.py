@@ -231,10 +231,10 @@ def test_cli_coupled(tmp_path):
 
 @pytest.fixture(scope="module")
 def turbulent_layered():
-    """A decoupled turbulent slice (DNS at Re_tau 549, h = 1.5 mm) that chose the law-of-the-wall layer."""
+    """A decoupled turbulent slice (DNS at Re_tau 549, h = 1.5 mm) that chose the law-of-the-wall layer (``low_re``)."""
     acq, truth = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=25, seed=5)
     res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
-    assert res.near_wall.model == "wall_law"
+    assert res.near_wall.model == "low_re"
     return acq, truth, res
 
 
@@ -293,7 +293,8 @@ def test_coupled_method_takes_the_near_wall_layer(turbulent_layered):
     acq, truth, dec = turbulent_layered
     cou = reconstruct(acq, ReconstructionOptions(method="coupled", uncertainty=False))[0]
     assert cou.method == "coupled" and cou.converged
-    assert cou.near_wall.model == "wall_law" and cou.near_wall.scale_mm == dec.near_wall.scale_mm
+    assert cou.near_wall.model == "low_re" and cou.near_wall.scale_mm == dec.near_wall.scale_mm
+    assert cou.velocity.basis.family == dec.velocity.basis.family  # the member at the decoupled Re_tau = R/l
     assert isinstance(cou.velocity.basis, nw.EnrichedBasis)
     assert abs(metrics.compare_slice(cou, truth).mean_wss_rel) < 0.05
     off = ReconstructionOptions(method="coupled", uncertainty=False)
@@ -339,7 +340,7 @@ def test_coupled_converges_where_a_sharp_inside_fraction_stalled():
         acq, ReconstructionOptions(method="coupled", uncertainty=False, choice=ChoiceOptions(beta_rule="fixed"))
     )[0]
     extra = res.velocity.stats.extra
-    assert res.converged and res.near_wall.model == "wall_law"
+    assert res.converged and res.near_wall.model == "low_re"
     assert extra["hessian"] == "gauss-newton" and extra["margin_passes"] == 1
     assert metrics.compare_slice(res, truth).wss_rel_l2 < 0.10
 
@@ -352,7 +353,7 @@ def test_coupled_with_the_layer_matches_the_decoupled_accuracy_on_the_re_tau_180
     dec = metrics.compare_slice(reconstruct(acq, ReconstructionOptions(uncertainty=False))[0], truth)
     res = reconstruct(acq, ReconstructionOptions(method="coupled", uncertainty=False))[0]
     cou = metrics.compare_slice(res, truth)
-    assert res.near_wall.model == "wall_law" and res.converged
+    assert res.near_wall.model == "low_re" and res.converged
     assert abs(cou.wss_rel_l2 - dec.wss_rel_l2) <= 0.01 and cou.wss_rel_l2 < 0.10
 
 

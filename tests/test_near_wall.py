@@ -193,7 +193,7 @@ def test_turbulent_wss_with_the_law_of_the_wall(case, h, seed, limit):
     acq, truth = phantoms.make_phantom(case, h_mm=h, snr=25.0, seed=seed)
     opts = ReconstructionOptions(uncertainty=False, velocity=vel.VelocityOptions(near_wall="auto"))
     res = reconstruct(acq, opts)[0]
-    assert res.near_wall.model == "wall_law" and "u_tau l = nu" in res.near_wall.criterion
+    assert res.near_wall.model == "low_re" and "u_tau l = nu" in res.near_wall.criterion
     assert metrics.compare_slice(res, truth).wss_rel_l2 < limit
     if case != "turbulent-ellipse":  # a pipe: the scale is the DNS's viscous length nu/u_tau = R/Re_tau
         true_ratio = 1 / phantoms.dns_profile(truth.flow.dns)[2]
@@ -208,7 +208,7 @@ def test_bulk_reynolds_number_and_regime():
     vp = vel.assemble(res.grid, res.velocity_image, g.coefficients, g.center, ReconstructionOptions().velocity)
     nu = 3.5e-3 / 1060.0
     assert nw.bulk_reynolds(vp, nu) == pytest.approx(0.2 * 0.02 / nu, rel=0.02)
-    assert nw.regime_families(1211) == ("exponential",) and nw.regime_families(5300) == ("wall_law",)
+    assert nw.regime_families(1211) == ("exponential",) and nw.regime_families(5300) == ("wall_law", "low_re")
     # the scan's starting point: Blasius's law at the DNS's bulk Reynolds number 5300 gives its Re_tau 180.9 (1 %)
     from wss_nlp.parameters.layer import blasius_scale
 
@@ -275,11 +275,11 @@ def test_band_with_a_fixed_layer_matches_monte_carlo():
     first = reconstruct(
         phantoms.noisy_copy(acq0, 25, rng), ReconstructionOptions(velocity=vel.VelocityOptions(near_wall="auto"))
     )[0]
-    assert first.near_wall.model == "wall_law" and np.isfinite(first.wss.mean_std)
+    assert first.near_wall.model == "low_re" and np.isfinite(first.wss.mean_std)
     fixed = ReconstructionOptions(
         uncertainty=False,
         velocity=vel.VelocityOptions(
-            near_wall="wall_law", layer_scale_mm=first.near_wall.scale_mm, beta=first.beta_choice.chosen
+            near_wall="low_re", layer_scale_mm=first.near_wall.scale_mm, beta=first.beta_choice.chosen
         ),
         choice=ChoiceOptions(beta_rule="fixed"),
     )
@@ -358,7 +358,7 @@ def test_wall_law_roots_within_the_margin_give_the_scale_spread_and_the_flag(mon
     monkeypatch.setattr(ch, "_wall_law_scale", with_rival(nw.AMBIGUOUS_MARGIN / 2))
     r = reconstruct(acq, ReconstructionOptions())[0]
     choice = r.near_wall
-    assert choice.model == "wall_law" and choice.consistent
+    assert choice.model == "low_re" and choice.consistent
     assert passes[0] is None and any(p is not None for p in passes)  # the record is the dephasing pass's
     lo, hi = choice.scale_interval
     # the first pass's range, kept: the pass moved the root by far less than the planted quarter octave

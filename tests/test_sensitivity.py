@@ -195,12 +195,12 @@ def test_coupled_derivatives_with_a_wall_law_layer_match_resolves():
     acq, _ = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=25, seed=3)
     opts = ReconstructionOptions(uncertainty=False, dephasing_correction=False, choice=ChoiceOptions(beta_rule="fixed"))
     res = reconstruct(acq, opts)[0]
-    assert res.near_wall.model == "wall_law"
+    assert res.near_wall.model == "low_re"  # the default turbulent family (its member at Re_tau = R/l)
     lum = res.lumen
     problem = _geometry_problem(res, lum.r1)
     start_g = geo.solve(problem, opts.geometry)
     plain = vel.assemble(res.grid, res.velocity_image, start_g.coefficients, start_g.center, opts.velocity)
-    layered = nw.enrich(plain, "wall_law", res.near_wall.scale_mm, opts.velocity.laplacian_power)
+    layered = nw.enrich(plain, res.near_wall.model, res.near_wall.scale_mm, opts.velocity.laplacian_power)
     start_v = vel.solve(layered, opts.velocity)
     weight = 1e4
 

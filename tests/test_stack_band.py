@@ -185,7 +185,7 @@ def test_turbulent_stack_band_carries_the_wall_law_scale():
     weak, _ = driver.reconstruct_stack(acq, opts, stack.StackOptions(strategy="kaczmarz", z_smoothing_mm=1e-4))
     alone = reconstruct(acq, replace(opts, stack=stack.StackOptions(z_smoothing_mm=0.0)))
     for a, b in zip(weak, alone):
-        assert a.near_wall.model == b.near_wall.model == "wall_law"
+        assert a.near_wall.model == b.near_wall.model == "low_re"
         assert a.near_wall.scale_ratio == pytest.approx(b.near_wall.scale_ratio, rel=1e-6)
         np.testing.assert_allclose(a.wss.tau_std, b.wss.tau_std, rtol=1e-6)
         assert a.near_wall.scale_std_log == pytest.approx(b.near_wall.scale_std_log, rel=1e-6)

@@ -582,6 +582,7 @@ def figure_vessel_wall_3d(result):
     """The wall in world mm as quads coloured by the first map of :func:`vessel_wall_maps` (``|tau|`` of one frame,
     TAWSS of a cine; grey where flagged), one view, with the centreline."""
     from matplotlib import cm, colormaps, colors
+    from matplotlib.figure import Figure
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     label, data = next(iter(vessel_wall_maps(result).items()))

@@ -16,7 +16,7 @@ on the reference disk (:math:`\rho, \theta` polar coordinates), with
 :math:`S = r_{in} + \eta(\bar R - r_{in})` the mean wall-normal stretch of
 :math:`\phi_R` at the wall (mm per unit of :math:`\rho`), so ``d`` is the
 distance to the wall in mm to first order, and ``l`` (mm) is the layer's
-length scale. Two profile families, both with :math:`f(0) = 0` (the columns
+length scale. The profile families, all with :math:`f(0) = 0` (the columns
 vanish on the wall, like the basis) and :math:`f'(0) = 1` (so a column's WSS
 is :math:`\mu S/\ell` times its angular factor, independent of the family):
 
@@ -25,6 +25,11 @@ is :math:`\mu S/\ell` times its angular factor, independent of the family):
   :math:`f(y) = \ln(1 + \kappa y)/\kappa + 7.8\,(1 - e^{-y/11} - (y/11)\,e^{-y/3})`,
   :math:`\kappa = 0.41`: turbulent mean flow, ``l`` the viscous length
   :math:`\nu/u_\tau`;
+* ``low_re``: Reichardt's form with constants that depend on the friction
+  Reynolds number :math:`Re_\tau = R/\ell` (``R`` the lumen's mean radius),
+  calibrated on channel DNS (:mod:`wss_nlp.models.families.low_re`): the
+  buffer layer of turbulent flow at low :math:`Re_\tau`; the basis of a
+  layer of scale ``l`` takes the member at :math:`R/\ell` (:func:`enrich`);
 * ``exponential``: :math:`f(y) = 1 - e^{-y}`: laminar layers that saturate
   (developing entrance flow, Stokes layers of pulsatile flow), ``l`` the
   displacement-type thickness.
@@ -97,6 +102,25 @@ def profile_derivatives(family: str, y, order: int) -> np.ndarray:
     (:meth:`wss_nlp.models.families.base.WallFamily.derivative`)."""
     y = np.asarray(y, dtype=float)
     return profile(family, y) if order == 0 else families.get(family).derivative(y, int(order))
+
+
+#: Relative step in Re_tau of :func:`reynolds_derivative`'s central difference (truncation ~1e-8, rounding ~1e-12).
+RE_STEP = 1e-4
+
+
+def reynolds_derivative(family: str, value):
+    r"""``-Re_tau d value(member) / d Re_tau`` at a member ``"<family>@<Re_tau>"`` of a Reynolds-number-dependent
+    family, by a central difference of relative step :data:`RE_STEP`; 0 for other families.
+
+    ``value(name)`` evaluates anything built from a family's profile (NumPy). With :math:`Re_\tau = R/\ell` this
+    is the shape's part of :math:`d/d\log\ell` at fixed ``R``.
+    """
+    fam = families.get(family)
+    if not fam.reynolds_dependent:
+        return 0.0
+    base, re_tau = families.base_name(family), float(fam.re_tau)  # type: ignore[attr-defined]
+    up, down = (families.at_reynolds(base, re_tau * (1 + s * RE_STEP)) for s in (1, -1))
+    return -(np.asarray(value(up)) - np.asarray(value(down))) / (2 * RE_STEP)
 
 
 def far_cell_mean_derivative(family: str, y, a, b, order: int) -> np.ndarray:
@@ -215,8 +239,9 @@ class EnrichedBasis:
     ----------
     base : basis of :mod:`wss_nlp.core.velocity_basis`
         The penalized polynomial part.
-    family : {"wall_law", "exponential"}
-        Profile of the layer.
+    family : str
+        Profile of the layer: a family of :data:`FAMILIES`, or a member ``"<family>@<Re_tau>"`` of a
+        Reynolds-number-dependent one (:func:`wss_nlp.models.families.at_reynolds`).
     scale : float
         ``l / S``: the layer's length scale in units of the reference radius.
     max_order : int
@@ -231,8 +256,7 @@ class EnrichedBasis:
     """
 
     def __init__(self, base, family: str, scale: float, max_order: int = 2):
-        if family not in FAMILIES:
-            raise InputError(f"near-wall family must be one of {', '.join(FAMILIES)}, got {family!r}")
+        families.get(family)  # an InputError names the known families
         if not 0 < scale < 1:
             raise InputError(f"near-wall scale l/S must lie in (0, 1), got {scale}")
         self.base, self.family, self.scale, self.max_order = base, family, float(scale), int(max_order)
@@ -241,8 +265,12 @@ class EnrichedBasis:
         self.n_layer = len(self.layer_terms)
         self.column_scale = 1.0 / float(profile(family, 1.0 / self.scale))
         core = 1.0 / self.scale
-        # d log(column_scale) / d log l: the core value f(S/l) moves with l
-        self.dlog_column_scale = float(core * profile_derivative(family, core) * self.column_scale)
+        # d log(column_scale) / d log l: the core value f(S/l) moves with l, and so does the shape of a
+        # Reynolds-number-dependent family, whose Re_tau = R/l (-Re_tau d/dRe_tau: reynolds_derivative)
+        self.dlog_column_scale = float(
+            core * profile_derivative(family, core) * self.column_scale
+            - reynolds_derivative(family, lambda fam: profile(fam, core)) * self.column_scale
+        )
         nb = base.transform.shape[0]
         self.transform = np.zeros((nb + self.n_layer, base.size + self.n_layer))
         self.transform[:nb, : base.size] = base.transform
@@ -456,7 +484,7 @@ def cell_mean_function(family: str, continuous: bool = False, branch: str | None
             _spread_mean(f1, f2, y, a, b),
             ca.if_else(far, point + (a * a + b * b) / 6 * curvature, point),
         )
-    name = f"cell_mean_{family}" + (f"_{branch}" if branch else "")
+    name = f"cell_mean_{_symbol(family)}" + (f"_{branch}" if branch else "")
     return ca.Function(name, [y, a_in, b_in], [value, ca.jacobian(value, y)], {"cse": True})
 
 
@@ -538,7 +566,14 @@ def far_cell_mean_function(family: str) -> ca.Function:
     second = ca.Function("f2", [t], [ca.hessian(profile(family, t), t)[0]])
     wide = ca.fmax(a_in, b_in) > NARROW_PROFILE
     value = profile(family, y) + wide * (a_in * a_in + b_in * b_in) / 6 * second(y)
-    return ca.Function(f"far_cell_mean_{family}", [y, a_in, b_in], [value, ca.jacobian(value, y)], {"cse": True})
+    return ca.Function(
+        f"far_cell_mean_{_symbol(family)}", [y, a_in, b_in], [value, ca.jacobian(value, y)], {"cse": True}
+    )
+
+
+def _symbol(family: str) -> str:
+    """A family's name as CasADi accepts in a function name (a member ``"low_re@183.2"``: ``low_re_at_183p2``)."""
+    return family.replace("@", "_at_").replace(".", "p").replace("-", "m").replace("+", "")
 
 
 class LayerQuadrature:
@@ -584,8 +619,12 @@ class LayerQuadrature:
         return self._means(basis, moment=False)
 
     def columns_dlog_scale(self, basis: EnrichedBasis) -> np.ndarray:
-        """``d/d(log l)`` of :meth:`columns` (the scale of the column factor included)."""
-        return basis.dlog_column_scale * self._means(basis, moment=False) - self._means(basis, moment=True)
+        """``d/d(log l)`` of :meth:`columns` (the scale of the column factor included; a Reynolds-number-dependent
+        family's shape moves with ``Re_tau = R/l``, :func:`reynolds_derivative`)."""
+        out = basis.dlog_column_scale * self._means(basis, moment=False) - self._means(basis, moment=True)
+        if families.get(basis.family).reynolds_dependent:
+            out += reynolds_derivative(basis.family, lambda fam: self._means(basis, moment=False, family=fam))
+        return out
 
     def _angular(self, terms: tuple) -> np.ndarray:
         """``rho^m cos(m t)`` / ``rho^m sin(m t)`` at every cell, ``(n_voxels, n_cells, n_terms)`` (kept: no scale)."""
@@ -596,9 +635,10 @@ class LayerQuadrature:
             )
         return self._angular_cache[terms]
 
-    def _means(self, basis: EnrichedBasis, moment: bool) -> np.ndarray:
+    def _means(self, basis: EnrichedBasis, moment: bool, family: str | None = None) -> np.ndarray:
         ell = basis.scale * self.stretch  # mm
-        f = cell_mean(basis.family, self.depth / ell, self.half_x / ell, self.half_y / ell, moment=moment)
+        family = basis.family if family is None else family
+        f = cell_mean(family, self.depth / ell, self.half_x / ell, self.half_y / ell, moment=moment)
         f = f * basis.column_scale
         angular = self._angular(tuple(basis.layer_terms))
         if self.averager is None:
@@ -651,6 +691,14 @@ class NearWallChoice:
         A spread larger than the band flags the slice (:func:`scale_ambiguity_note`).
     quad_order : int
         Quadrature cells per voxel axis of the layer columns (:class:`LayerQuadrature`).
+    viscosity_ratio : float
+        A self-consistent scale: the kinematic viscosity the data imply (the layer's ``u_tau l`` at the scale of
+        smallest criterion within half an octave) over the stated ``nu = mu / rho``
+        (:func:`wss_nlp.parameters.layer._data_viscosity`); else NaN.
+    voxel_plus : float
+        The voxel size over that scale (``h+``): the ratio is read only up to :data:`VISCOSITY_RESOLVED`.
+    warning : str
+        A warning about this choice for the slice's notes (:func:`viscosity_note`), or "".
     unresolved_mm : float
         When the best model was an ``exponential`` layer the data cannot resolve (thinner than the voxel
         over :data:`UNRESOLVED_FRACTION`, or with its criterion smallest at the smallest beta tried): its
@@ -675,6 +723,9 @@ class NearWallChoice:
     scale_interval: tuple = (float("nan"), float("nan"))
     scale_wss_spread: float = float("nan")
     consistent: bool = False
+    viscosity_ratio: float = float("nan")
+    voxel_plus: float = float("nan")
+    warning: str = ""
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -696,6 +747,34 @@ def scale_ambiguity_note(choice: NearWallChoice | None, mean_pa: float, mean_std
         f"best criterion and give mean WSS {100 * choice.scale_wss_spread:.2g} % apart ({spread_pa:.2g} Pa), more "
         f"than the band ({mean_std_pa:.2g} Pa), which leaves the scale's spread out: read the spread as the mean "
         "WSS's uncertainty"
+    )
+
+
+#: Largest voxel size in viscous units (h / l, the data's best scale) at which the data's own scale is read as a
+#: viscosity (:func:`viscosity_note`): up to it the first voxel holds the buffer layer (y+ < 25-30), beyond it the
+#: scale trades against the log law's intercept. On the turbulent phantoms (development seeds 1-2, not kept) the
+#: implied nu was 0.86-1.02 x the true one up to h+ = 29 and 0.54-0.94 beyond; report seeds in
+#: scripts/results/viscosity_check.md (``python scripts/low_re.py --part viscosity``).
+VISCOSITY_RESOLVED = 25.0
+#: The data's viscosity and the stated one disagree when their ratio leaves [1/VISCOSITY_TOLERANCE,
+#: VISCOSITY_TOLERANCE]; a 30 % error in nu moved the WSS by 3-31 % on the turbulent phantoms.
+VISCOSITY_TOLERANCE = 1.2
+
+
+def viscosity_note(choice: NearWallChoice, viscosity_pa_s: float | None) -> str:
+    """A warning when the data's own law-of-the-wall scale implies a kinematic viscosity that disagrees with the
+    stated one (:attr:`NearWallChoice.viscosity_ratio`, read where the voxels resolve the buffer layer), else ""."""
+    ratio = choice.viscosity_ratio
+    if not (np.isfinite(ratio) and choice.voxel_plus <= VISCOSITY_RESOLVED):
+        return ""
+    if 1 / VISCOSITY_TOLERANCE <= ratio <= VISCOSITY_TOLERANCE:
+        return ""
+    stated = f"viscosity {viscosity_pa_s:g} Pa s, " if viscosity_pa_s else ""
+    return (
+        f"near-wall layer: the data imply a kinematic viscosity {ratio:.2f} x the stated one ({stated}density "
+        f"{choice.density_kg_m3:g} kg/m^3 from {choice.density_source or 'the default'}): the layer's scale "
+        "u_tau l = nu, and the WSS with it, rests on the stated values (30 % off moved the WSS by 3-31 % on "
+        "turbulent phantoms); check --viscosity and --density"
     )
 
 
@@ -750,7 +829,9 @@ AMBIGUOUS_MARGIN = 2.0
 
 
 def enrich(problem, family: str, scale_mm: float, laplacian_power: int):
-    """``problem`` (plain basis) with the layer columns of ``family`` at scale ``l = scale_mm`` appended."""
+    """``problem`` (plain basis) with the layer columns of ``family`` at scale ``l = scale_mm`` appended (a
+    Reynolds-number-dependent family's member at :math:`Re_\\tau = R/\\ell`, ``R`` the mean radius)."""
+    family = families.at_reynolds(family, float(problem.disk_map.coefficients[0]) / scale_mm)
     basis = EnrichedBasis(problem.basis, family, scale_mm / stretch(problem.disk_map))
     quadrature = LayerQuadrature(problem)
     return problem.with_layer(basis, quadrature.columns(basis), laplacian_power)

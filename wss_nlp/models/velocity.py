@@ -130,7 +130,8 @@ class VelocityOptions:
     near_wall: str = option(
         "auto",
         "wall-layer columns for layers thinner than a voxel: off, auto (plain or a family, chosen by BIC), "
-        "or one family (wall_law: Reichardt's law of the wall; exponential: laminar layers)",
+        "or one family (wall_law: Reichardt's law of the wall; low_re: the law of the wall with a Re_tau-dependent "
+        "buffer layer, auto's turbulent family; exponential: laminar layers)",
         cli="--near-wall",
         toml=("near_wall",),
         choices=nw.MODES,

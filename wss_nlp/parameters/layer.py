@@ -134,24 +134,32 @@ def choose_layer(
     r"""The near-wall model of one slice: the plain basis, or a layer family and scale, by BIC.
 
     With the bulk Reynolds number ``reynolds`` the families are the flow
-    regime's (:func:`wss_nlp.models.near_wall.regime_families`: the law of the wall
+    regime's (:func:`wss_nlp.models.near_wall.regime_families`: the laws of the wall
     for turbulent flow, the exponential layer for laminar flow) and only
-    plain-or-layer is left to the BIC, which cannot tell the families apart
+    plain-or-layer is left to the BIC, which cannot tell the laminar and turbulent families apart
     (both fit thin layers about equally well; measured in
-    scripts/results/near_wall.md). Without it both families compete.
+    scripts/results/near_wall.md). Without it all families compete. In
+    ``"auto"`` a family that another candidate supersedes
+    (:attr:`wss_nlp.models.families.base.WallFamily.supersedes`: ``wall_law``
+    by ``low_re``) is not tried: at h = 1.5 mm on the Re_tau 180 pipe the two
+    differ in BIC by 0.5-2, within the ambiguity margin, and by 3 % in WSS.
 
     Candidates: the plain basis; ``exponential`` at the scale minimizing
     :class:`PlainCriterion` (octaves :data:`LAYER_RATIOS` x mean R, refined by
-    golden-section search in log l); ``wall_law`` at the scale where the
+    golden-section search in log l); ``wall_law`` and ``low_re`` at the scale where the
     fitted layer obeys the law of the wall, :math:`u_\tau \ell = \nu`
     (:func:`_wall_law_scale`; by BIC like the exponential when ``nu_m2_s``
-    is None). Each is scored by :class:`PlainCriterion` at its best beta; the smallest
+    is None), ``low_re`` with the profile of :math:`Re_\tau = R/\ell` at each
+    scale ``l`` (its member, :func:`wss_nlp.models.families.at_reynolds`). Each is scored by
+    :class:`PlainCriterion` at its best beta; the smallest
     score wins. ``mode`` restricts the candidates (``"auto"``: all; a family
     name: that family, plain excluded). ``around`` (an earlier choice on a
     nearby geometry, e.g. before the dephasing pass) keeps its family and
     searches half an octave either side of its scale (the law of the wall:
-    from its root outwards). Returns the chosen
-    problem (the plain one or its enrichment) and the record of the choice.
+    from its root outwards). A self-consistent scale comes with the viscosity
+    the data's own best scale implies (:func:`_data_viscosity`, in the record).
+    Returns the chosen problem (the plain one or its enrichment) and the record
+    of the choice.
     """
     big_r = float(vp.disk_map.coefficients[0])
     quad = nw.LayerQuadrature(vp)
@@ -168,7 +176,9 @@ def choose_layer(
     def prefetch(family, log_ratios):
         """Score the scales not scored yet together (one pass over the operator for all their columns)."""
         todo = list(dict.fromkeys(float(x) for x in log_ratios if (family, float(x)) not in scored))
-        bases = [nw.EnrichedBasis(vp.basis, family, 2.0**x * big_r / stretch) for x in todo]
+        # a Reynolds-number-dependent family's shape at each scale is its member at Re_tau = R/l = 2^-x
+        bases = [nw.EnrichedBasis(vp.basis, nw.families.at_reynolds(family, 2.0**-x), 2.0**x * big_r / stretch)
+                 for x in todo]  # fmt: skip
         columns = [quad.columns(basis) for basis in bases]
         for x, basis, cols, (crit, beta, coef) in zip(todo, bases, columns, criterion.many(columns)):
             tried.append((family, 2.0**x, crit))
@@ -181,7 +191,9 @@ def choose_layer(
         return scored[key][:4]
 
     previous, chosen_log = None, {}
+    voxel_mm = max(vp.cell_mm or (np.nan,)) * quad.order
     fitted: dict = {}  # family -> its scale minimizes the criterion (rather than solving u_tau l = nu)
+    implied: dict = {}  # family -> (nu the data imply / the stated nu, log2 l/R of the data's best scale)
     rivals: dict = {}  # family -> other roots of u_tau l = nu whose criterion is within the ambiguity margin
     if around is not None and around.model in nw.FAMILIES:
         families: tuple = (around.model,)
@@ -189,6 +201,8 @@ def choose_layer(
         brackets = {around.model: (previous - 0.5, previous + 0.5)}
     else:
         families = (mode,) if mode != "auto" else nw.FAMILIES if reynolds is None else nw.regime_families(reynolds)
+        if mode == "auto":  # a family calibrated to replace another is tried in its place
+            families = tuple(f for f in families if not any(f in nw.families.get(g).supersedes for g in families))
         logs = np.log2(LAYER_RATIOS)
         brackets = {f: (logs[-1], logs[0]) for f in families}
     for family in families:
@@ -204,8 +218,16 @@ def choose_layer(
         else:
             x, how, fitted[family], rival_roots = _bic_scale(family_score, lo, hi), "the BIC's", True, []
         notes[family] = how + (", + ln(n) for the fitted scale" if fitted[family] else "")
+        if nw.families.get(family).reynolds_dependent:
+            notes[family] += f"; profile of Re_tau = R/l = {2.0**-x:.0f}"
         crit, basis, beta, _ = score(family, x)
         rivals[family] = [r for c, r in rival_roots if c <= crit + nw.AMBIGUOUS_MARGIN]
+        # the data's own scale, where the voxels may resolve the buffer layer (the root's h+ is within 1.5x of it
+        # for nu off by up to 30 %)
+        if not fitted[family] and nu_m2_s is not None and voxel_mm <= 1.5 * nw.VISCOSITY_RESOLVED * 2.0**x * big_r:
+            implied[family] = _data_viscosity(
+                family_score, functools.partial(prefetch, family), float(x), big_r, nu_m2_s, vp.basis.size
+            )
         if fitted[family]:
             # a scale fitted to the data is one more parameter, which tr(H^-1 K) does not count
             crit += criterion.log_n
@@ -218,7 +240,6 @@ def choose_layer(
     chosen = order[0]
     margin = best[order[1]][0] + penalty[order[1]] - best[chosen][0] - penalty[chosen] if len(order) > 1 else np.inf
     unresolved = float("nan")
-    voxel_mm = max(vp.cell_mm or (np.nan,)) * quad.order
     # a saturating layer that is thinner than the voxels resolve, or that needs no regularization at all, is a
     # velocity jump at the wall; the wall law is exempt: its scale is fixed by u_tau l = nu, not by the data's
     # shape, and on turbulent data its best beta may well be the smallest (the soak's aliased Re_tau 998 runs)
@@ -263,7 +284,56 @@ def choose_layer(
         and nw.families.get(chosen).scale_rule == "consistent"
         and not fitted.get(chosen, True),
     )
+    if chosen in implied:
+        choice.viscosity_ratio = implied[chosen][0]
+        choice.voxel_plus = voxel_mm / (2.0 ** implied[chosen][1] * big_r)
     return best[chosen][2], choice
+
+
+#: Offsets (octaves) of the probes about a self-consistent scale that locate the data's own best scale
+#: (:func:`_data_viscosity`; a 30 % error in nu moves the root by about a quarter octave), and of the second
+#: probes about the best of them.
+VISCOSITY_PROBES = (-0.5, -0.25, -0.125, 0.0, 0.125, 0.25, 0.5)
+VISCOSITY_REFINE = 1.0 / 32
+
+
+def _data_viscosity(score, prefetch, x_root: float, big_r: float, nu_m2_s: float, n_base: int) -> tuple[float, float]:
+    r"""The kinematic viscosity the data imply, over the stated one, and the scale at which they imply it.
+
+    Notes
+    -----
+    The criterion is scored at the self-consistent scale and at :data:`VISCOSITY_PROBES` octaves about it,
+    then at :data:`VISCOSITY_REFINE` either side of the best of those (two passes over the operator); a
+    parabola in :math:`\log_2\ell` through the best point and its nearest neighbours gives the data's best
+    scale :math:`\ell^*` (at most half an octave away). There the layer's amplitude :math:`u_\tau(\ell^*)` and
+    the scale imply :math:`\nu^* = u_\tau(\ell^*)\,\ell^*`: with the consistency
+    :math:`g(\ell) = u_\tau(\ell)\ell/\nu - 1` (a parabola through the same points) the ratio is
+    :math:`\nu^*/\nu = 1 + g(\ell^*)`. Only where the voxels resolve the buffer layer does the criterion fix
+    :math:`\ell^*` (:data:`wss_nlp.models.near_wall.VISCOSITY_RESOLVED`); elsewhere it trades against the
+    log-law intercept. Returns ``(nu*/nu, log2 l*/R)``.
+    """
+    values: dict = {}
+
+    def at(xs):
+        prefetch(xs)
+        for x in xs:
+            if float(x) not in values:
+                c, basis, _, coef = score(float(x))
+                u_tau = coef[n_base] * basis.column_scale
+                values[float(x)] = (c, u_tau * 2.0**x * big_r / 1000.0 / nu_m2_s - 1.0)
+
+    at(x_root + np.array(VISCOSITY_PROBES))
+    best = min(values, key=lambda x: values[x][0])
+    lo, hi = x_root + VISCOSITY_PROBES[0], x_root + VISCOSITY_PROBES[-1]
+    at(np.clip(best + np.array([-VISCOSITY_REFINE, VISCOSITY_REFINE]), lo, hi))
+    xs = np.array(sorted(values))
+    k = int(np.clip(np.searchsorted(xs, min(values, key=lambda x: values[x][0])), 1, xs.size - 2))
+    near = xs[k - 1 : k + 2]
+    crit, g = (np.array([values[float(x)][i] for x in near]) for i in (0, 1))
+    a, b, _ = np.polyfit(near - near[1], crit, 2)
+    dx = -b / (2 * a) if a > 0 else 0.0
+    x_star = float(np.clip(near[1] + dx, lo, hi))
+    return float(1.0 + np.polyval(np.polyfit(near - near[1], g, 2), x_star - near[1])), x_star
 
 
 def _scale_spread(score, x_best: float, bracket: tuple, disk_map) -> tuple[tuple[float, float], float]:
@@ -498,4 +568,5 @@ def layer_model(
     if density is not None:
         choice.density_kg_m3, choice.density_source = density
     choice.reynolds = float("nan") if reynolds is None else reynolds
+    choice.warning = nw.viscosity_note(choice, viscosity_pa_s)
     return problem, choice

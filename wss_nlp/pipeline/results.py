@@ -134,6 +134,8 @@ class SliceResult:
                 "determined and the plain model's is not trustworthy either (causes: misregistered or resampled "
                 "images, an acquisition the box model does not describe)"
             )
+        if nwc is not None and nwc.warning:
+            out.append(f"slice {self.index}: {nwc.warning}")
         if nwc is not None and nwc.ambiguous:
             runner = min((m for m in nwc.values if m != nwc.model), key=lambda m: nwc.values[m])
             out.append(

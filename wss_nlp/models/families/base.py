@@ -38,6 +38,13 @@ class WallFamily:
         The family of turbulent flow: with ``--near-wall auto`` and a bulk Reynolds number known, turbulent
         flows (bulk Re above :data:`wss_nlp.models.near_wall.RE_TURBULENT`) try the turbulent families, laminar
         flows the others.
+    reynolds_dependent : bool
+        The profile's shape depends on the friction Reynolds number :math:`Re_\\tau = R/\\ell` (``R`` the lumen's
+        mean radius): :meth:`at` gives the member at one, named ``"<name>@<Re_tau>"``
+        (:func:`wss_nlp.models.families.at_reynolds`), and the layer machinery takes the member at each scale.
+    supersedes : tuple of str
+        Families this one is calibrated to replace: ``--near-wall auto`` tries it in their place (they stay
+        available by name).
     """
 
     name: str = ""
@@ -45,6 +52,8 @@ class WallFamily:
     scale_rule: str = "criterion"
     saturating: bool = False
     turbulent: bool = False
+    reynolds_dependent: bool = False
+    supersedes: tuple[str, ...] = ()
 
     def f(self, y, lib):
         """``f(y)`` with the elementary functions of ``lib`` (``numpy`` or ``casadi``), ``y > -1/kappa``."""
@@ -53,6 +62,11 @@ class WallFamily:
     def derivative(self, y: np.ndarray, order: int) -> np.ndarray:
         """``f^(order)(y)`` for ``order >= 1`` (NumPy; closed form)."""
         raise NotImplementedError
+
+    def at(self, re_tau: float) -> WallFamily:
+        """The profile at friction Reynolds number ``re_tau``: a family whose shape does not depend on it is
+        itself."""
+        return self
 
     def integrals(self, y, lib):
         """``(F_1, F_2)``: the first and second antiderivatives of ``f`` from 0, at ``y >= 0`` (``lib`` as in
