@@ -191,10 +191,10 @@ def _reconstruct(
     out = Results()
     out.psf = psf
     method = methods.of(options)
+    tied = tie or stack_applies(acq, options)  # first: refuses z-regularization asked of a method without it
     if isinstance(method, methods.Baseline):
         out.extend(method.reconstruct(acq, mu, options, progress))
         return _with_screens(out, screens, acq, psf)
-    tied = tie or stack_applies(acq, options)
     results: list = [None] * acq.nz
     t0 = time.perf_counter()
     prepared, failed = _prepare(acq, options, psf, boxes)
