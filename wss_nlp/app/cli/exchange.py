@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import os
-from ...io import files as wio
-from ...io import outputs
+import sys
+from ...io import outputs, ranges
 from ...errors import InputError
 
 
@@ -14,6 +14,9 @@ def cmd_export(args) -> int:
     if not args.vtk.endswith((".vtu", ".vtk")):
         raise InputError(f"--vtk {args.vtk}: name a .vtu (VTK XML) or .vtk (legacy VTK) file")
     outputs.check_outputs(files={"--vtk": args.vtk}, inputs=[args.result])
+    if args.slice_spacing is not None:
+        ranges.check("slice_spacing", args.slice_spacing, "--slice-spacing", ranges.parse_allow(args.allow_unphysical)
+                     if args.allow_unphysical else ())  # fmt: skip
     print(f"wrote {export.write_vtk(args.result, args.vtk, args.slice_spacing)}")
     return 0
 
@@ -24,14 +27,26 @@ def cmd_import(args) -> int:
     outputs.check_outputs(files={"-o": args.output}, inputs=[p for p in args.paths if os.path.isfile(p)])
     if not args.output.endswith((".h5", ".hdf5")):
         raise InputError(f"-o {args.output}: name an HDF5 file (.h5)")
-    wio.check_density(args.density, "--density")
-    if args.viscosity is not None and not args.viscosity > 0:
-        raise InputError(f"--viscosity {args.viscosity}: must be > 0 Pa*s (e.g. 3.5e-3 for blood)")
+    allow = ranges.parse_allow(args.allow_unphysical) if args.allow_unphysical else ()
+    for name, value, flag in (
+        ("venc", args.venc, "--venc"),
+        ("viscosity", args.viscosity, "--viscosity"),
+        ("density", args.density, "--density"),
+        ("frame_spacing", args.frame_interval, "--frame-interval"),
+        ("fov", args.plane_fov if args.plane is not None else None, "--plane-fov"),
+        ("voxel_size", args.plane_voxel, "--plane-voxel"),
+        ("slice_spacing", args.plane_spacing, "--plane-spacing"),
+    ):
+        if value is not None and (note := ranges.check(name, value, flag, allow)):
+            print(f"wss-nlp: warning: {note}", file=sys.stderr)
+    if args.plane is not None and not 1 <= args.plane_slices <= 500:
+        raise InputError(f"--plane-slices {args.plane_slices}: must be a whole number in 1-500")
     options = scanner.ImportOptions(
         venc_m_s=args.venc,
         viscosity_pa_s=args.viscosity,
         density_kg_m3=args.density,
         flip_through_plane=args.flip_through_plane,
+        allow_unphysical=allow,
     )
     plane = None
     if args.plane is not None:

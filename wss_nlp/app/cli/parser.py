@@ -17,8 +17,30 @@ from .studies import cmd_plot, cmd_sweep, cmd_table
 from .arguments import _add_reconstruction_arguments, options_from_args  # noqa: F401
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its usage errors as one ``wss-nlp: error:`` line naming the command, the argument and where
+    the help is (exit code 2), like every other refusal."""
+
+    def error(self, message: str):
+        command = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""
+        self.exit(2, f"wss-nlp: error: {command}{message}; see '{self.prog} --help'\n")
+
+
+def _add_allow(p: argparse.ArgumentParser) -> None:
+    """``--allow-unphysical [QUANTITY,...]`` for commands whose options are physical quantities
+    (:mod:`wss_nlp.io.ranges`; reconstruct has it from its options' declaration)."""
+    p.add_argument(
+        "--allow-unphysical",
+        nargs="?",
+        const="all",
+        default="",
+        metavar="QUANTITY,...",
+        help="use values outside the plausible ranges of the docs page 'Input checks' as given (all, or those named)",
+    )
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="wss-nlp",
         description="Vessel geometry, velocity and wall shear stress from phase-contrast MRI "
         "(Egger & Teschner), with every Tikhonov problem posed in CasADi.",
@@ -112,6 +134,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ph.add_argument("--nifti", default=None, metavar="FOLDER", help="also write NIfTI files with JSON sidecars")
     schema.add_arguments(ph, AcquisitionOptions)  # acquire in k-space: --acquisition kspace --kspace-filter ...
+    _add_allow(ph)
     ph.set_defaults(func=cmd_phantom)
 
     a = sub.add_parser(
@@ -185,6 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="mm between slices (default: the result's slice_spacing_mm, stored by reconstruct)",
     )
+    _add_allow(ex)
     ex.set_defaults(func=cmd_export)
 
     im = sub.add_parser(
@@ -229,6 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
     im.add_argument(
         "--plane-spacing", type=float, default=None, metavar="MM", help="between those slices (default: the voxel)"
     )
+    _add_allow(im)
     im.set_defaults(func=cmd_import)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")

@@ -7,7 +7,7 @@ import sys
 import time
 import numpy as np
 from ...io import files as wio
-from ...io import outputs
+from ...io import outputs, ranges
 from ...pipeline.driver import reconstruct
 from .arguments import options_from_args
 
@@ -49,6 +49,7 @@ def _reconstruct_cine(args, options) -> int:
     from ...pipeline import cine
 
     frames, times, period = wio.read_frames(args.input)
+    timing_notes = ranges.check_frames(times, period, args.input, options.screen.allow_unphysical)
     acq = frames[0]
     print(
         f"{args.input}: {len(frames)} frames over {period:g} ms, {acq.nz} slice(s) of {acq.magnitude.shape[2]} x "
@@ -72,6 +73,8 @@ def _reconstruct_cine(args, options) -> int:
         for r in frame:
             for msg in r.warnings:
                 sys.stderr.write(f"wss-nlp: warning: frame {k}: {msg}\n")
+    for note in timing_notes:
+        sys.stderr.write(f"wss-nlp: warning: {note}\n")
     for s in series:
         for note in s.notes:
             sys.stderr.write(f"wss-nlp: warning: slice {s.index}: {note}\n")

@@ -30,7 +30,25 @@ def _errors_rows(err: metrics.Errors):
     ]
 
 
+def _refuse_time_resolved(path: str, role: str) -> None:
+    """compare takes single-frame results and truths; a cine's are refused by name, not by a traceback."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            cine = "trigger_times_ms" in f.attrs
+    except OSError:
+        return  # the readers below name what is wrong with the file
+    if cine:
+        raise InputError(
+            f"{path}: a time-resolved (cine) {role}; 'compare' compares single-frame results with a phantom's truth "
+            "(a cine's TAWSS and OSI against its truth: scripts/cine.py)"
+        )
+
+
 def cmd_compare(args) -> int:
+    _refuse_time_resolved(args.result, "result")
+    _refuse_time_resolved(args.truth, "truth")
     truths = metrics.TruthTable.all_from_file(args.truth)
     rec = wio.read_result(args.result)
     if len(truths) > 1 and len(truths) != len(rec):

@@ -149,6 +149,38 @@ class Progress:
         self.stream.flush()
 
 
+# ---- issue 42: worker processes never outlive the sweep (begin) ----
+def _die_with_parent(parent: int) -> None:
+    """Worker initializer: end this worker when the sweep's process ends, even by SIGKILL.
+
+    Linux: the kernel sends SIGKILL when the parent dies (``prctl(PR_SET_PDEATHSIG)``; the workers are started
+    from the sweep's main thread). Elsewhere, and as a guard against a parent that died before the call, a daemon
+    thread compares the parent's id every half second.
+    """
+    import signal
+    import threading
+
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the thread below does it
+        pass
+    if os.getppid() != parent:
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="wss-nlp-parent-watch", daemon=True).start()
+
+
+# ---- issue 42 (end) ----
+
+
 def _local_results(pending, base_dir, workers):
     """Yield ``(record, blob)`` as cases finish, in worker processes (in-process for one worker)."""
     if workers <= 1:
@@ -162,7 +194,12 @@ def _local_results(pending, base_dir, workers):
     saved = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
     os.environ.update(dict.fromkeys(saved, "1"))
     try:
-        pool = ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+        pool = ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=_die_with_parent,  # issue 42: no worker outlives a killed sweep
+            initargs=(os.getpid(),),
+        )
     finally:
         for k, v in saved.items():
             if v is None:
@@ -175,6 +212,13 @@ def _local_results(pending, base_dir, workers):
             yield fut.result()
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
+
+
+def _require_dask() -> None:
+    try:
+        import dask.distributed  # noqa: F401
+    except ImportError:
+        raise InputError("--scheduler needs dask.distributed: pip install 'wss-nlp[dask]'") from None
 
 
 def _dask_results(pending, base_dir, scheduler):
@@ -203,6 +247,8 @@ def run_study(
     stream=None,
 ) -> Summary:
     """Run every case of ``study`` not yet done in ``outdir``; write results.csv, tables and plots."""
+    if scheduler:  # issue 42: refuse a backend that cannot run before anything is written
+        _require_dask()
     t0 = time.perf_counter()
     cases_dir = os.path.join(outdir, "cases")
     os.makedirs(cases_dir, exist_ok=True)
