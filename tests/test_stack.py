@@ -125,7 +125,7 @@ def test_corrupt_slices_are_reported_and_the_rest_solved(tmp_path, capsys):
         m[2, 5, 5] = np.nan  # a corrupt voxel
         m[4] = 1.0  # a slice without a vessel
         f["magnitude"][...] = m
-    from wss_nlp.app.cli import _write_truth
+    from wss_nlp.app.cli.phantom import _write_truth
 
     _write_truth(str(tfile), truth)
     for extra in ([], ["--z-smoothing", "0"]):
@@ -153,13 +153,9 @@ def test_stack_segments_and_options():
     with pytest.raises(InputError, match="strategy"):
         stack.StackOptions(strategy="magic")
     acq, _ = phantoms.make_stack("tapered", nz=2, h_mm=1.5, spacing_mm=2.0, snr=25, seed=0)
+    # a classical baseline has no velocity model to tie along z: asked for z-regularization, it is refused
     with pytest.raises(InputError, match="z-regularization"):
-        reconstruct(
-            acq,
-            ReconstructionOptions(
-                stack=stack.StackOptions(z_smoothing_mm=2.0), choice=ChoiceOptions(alpha_rule="balance")
-            ),
-        )
+        reconstruct(acq, ReconstructionOptions(method="oyre", stack=stack.StackOptions(z_smoothing_mm=2.0)))
     # with the default (no explicit smoothing) an unsupported method falls back to independent slices
     res = reconstruct(acq, ReconstructionOptions(method="oyre"))
     assert res.stack is None and len(res) == 2

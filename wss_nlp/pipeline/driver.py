@@ -89,6 +89,11 @@ def blas_threads(n: int):
         from threadpoolctl import threadpool_limits
     except ImportError:  # pragma: no cover - threadpoolctl is a dependency; tolerate its absence
         return contextlib.nullcontext()
+    # threadpoolctl limits only the libraries already loaded: SciPy ships its own OpenBLAS, loaded on the
+    # first import of scipy.linalg, which would otherwise run the first solve of a process unlimited (and
+    # with other rounding than every later one)
+    import scipy.linalg  # noqa: F401
+
     return threadpool_limits(limits=n, user_api="blas")
 
 
