@@ -61,13 +61,16 @@ def test_leftovers_of_dead_writers_go_and_those_of_live_ones_stay(tmp_path):
         live.wait()
 
 
-def test_a_failed_write_leaves_nothing_and_names_the_file(tmp_path, monkeypatch):
+@pytest.mark.parametrize(
+    "code, words", [(errno.ENOSPC, "the disk is full"), (errno.EDQUOT, "quota"), (errno.EIO, "input/output error")]
+)
+def test_a_failed_write_leaves_nothing_and_names_the_file(code, words, tmp_path, monkeypatch):
     def fail(fd):
-        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        raise OSError(code, os.strerror(code))
 
     monkeypatch.setattr(outputs.os, "fsync", fail)
     (tmp_path / "keep.h5").write_bytes(b"the previous result")
-    with pytest.raises(InputError, match=r"keep\.h5: cannot write .*the disk is full.*nothing was written"):
+    with pytest.raises(InputError, match=rf"keep\.h5: cannot write .*{words}.*nothing was written"):
         wio.write_acquisition(tmp_path / "keep.h5", _acquisition())
     assert sorted(os.listdir(tmp_path)) == ["keep.h5"] and (tmp_path / "keep.h5").read_bytes() == b"the previous result"
 

@@ -117,3 +117,12 @@ def test_every_quantity_has_a_source_and_a_usual_range_inside_the_plausible_one(
         for s in q.slips:  # a slip takes a typical value out of the usual range: refused, or at least noted
             assert not q.usual[0] <= q.reference / s.factor <= q.usual[1], (q.name, s.unit)
     assert len(ranges.table_markdown()) == 2 + len(ranges.QUANTITIES)
+
+
+def test_the_input_checks_page_lists_every_range_as_the_module_has_it():
+    """docs/guide/input-checks.md holds the table the module makes: every quantity's ranges, slips and source."""
+    import pathlib
+
+    page = (pathlib.Path(__file__).parent.parent / "docs" / "guide" / "input-checks.md").read_text()
+    for line in ranges.table_markdown():
+        assert line in page, line

@@ -396,12 +396,13 @@ def _prior_wall_shear(model: CycleModel, prior, problems: list, n_phi: int, mu: 
         model.walls[k] = np.r_[c, problem.disk_map.center]
 
 
-def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[CineSeries]:
+def write_result(path: str, cine: CineResult, options: dict, argv=None, notes=()) -> list[CineSeries]:
     """Write the time-resolved result layout of ``shared/spec/data-format.md`` (atomic); returns the series.
 
     Each slice group holds the contract's per-frame datasets with a leading time axis, ``wss/time_ms``,
     ``wss/mean_pa_t``, ``wss/tawss_pa``, ``wss/osi`` and ``wss`` attribute ``mean_pa`` (the cycle average of
-    the per-frame mean), and every frame's complete single-frame record in ``frames/frame_NNN``.
+    the per-frame mean), and every frame's complete single-frame record in ``frames/frame_NNN``. ``notes``
+    (what the whole series was read as, e.g. the timing's range notes) go to the file's ``warnings`` attribute.
     """
     from ..io.files import atomic_h5, provenance, write_slice_group
 
@@ -414,6 +415,8 @@ def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[
         f.attrs["trigger_times_ms"] = cine.times_ms
         f.attrs["cardiac_period_ms"] = cine.period_ms
         f.attrs["all_converged"] = bool(all(r.converged for frame in cine.frames for r in frame))
+        if notes:  # the readings taken and what was allowed are the result's, not only the terminal's
+            f.attrs["warnings"] = json.dumps(list(notes))
         for s in series:
             g = f.create_group(f"slice_{s.index:03d}")
             g["geometry/center_mm"] = s.center

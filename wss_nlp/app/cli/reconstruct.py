@@ -63,7 +63,9 @@ def _reconstruct_cine(args, options) -> int:
 
     result = cine.reconstruct_cine(frames, times, period, options, progress=progress)
     with outputs.StagedFolder(args.figures) as staged:
-        series = cine.write_result(args.output, result, options.as_dict(), argv=["wss-nlp", *args.argv])
+        series = cine.write_result(
+            args.output, result, options.as_dict(), argv=["wss-nlp", *args.argv], notes=timing_notes
+        )
         if staged.path:
             from ..plotting import save_cine_figures
 
