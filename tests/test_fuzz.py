@@ -1069,8 +1069,49 @@ def test_a_killed_sweep_leaves_no_workers(tmp_path):
     assert len(workers) >= 2
     proc.kill()
     proc.wait()
-    time.sleep(3)
-    alive = [
-        p for p in workers if os.path.exists(f"/proc/{p}") and "Z" not in open(f"/proc/{p}/stat").read().split()[2]
-    ]
-    assert not alive
+
+    def alive():
+        return [p for p in workers if os.path.exists(f"/proc/{p}") and "Z" not in _state(p)]
+
+    # a worker killed with the sweep ends at once (PR_SET_PDEATHSIG); one still starting (a fresh interpreter
+    # importing the package, seconds on a loaded machine) ends when its initializer finds its parent gone, and the
+    # multiprocessing resource tracker when the last of them has: 120 s bounds that on a machine 10x overloaded
+    deadline = time.monotonic() + 120
+    while alive() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert not alive()
+
+
+def test_a_worker_mid_case_ends_with_its_sweep(tmp_path):
+    """The workers' initializer (``sweep.run._die_with_parent``) in a process whose parent is killed with SIGKILL
+    while it is busy (a 120 s sleep stands for a long case): it ends within 10 s, not when its case is done."""
+    import time
+
+    worker = (
+        "import os, time; from wss_nlp.app.sweep.run import _die_with_parent; _die_with_parent(os.getppid()); "
+        "print('ready', flush=True); time.sleep(120)"
+    )
+    parent = (
+        "import subprocess, sys, time; c = subprocess.Popen([sys.executable, '-c', sys.argv[1]], "
+        "stdout=subprocess.PIPE, text=True); print(c.pid, flush=True); print(c.stdout.readline().strip(), "
+        "flush=True); time.sleep(120)"
+    )
+    proc = subprocess.Popen([sys.executable, "-c", parent, worker], stdout=subprocess.PIPE, text=True)
+    try:
+        pid = int(proc.stdout.readline())
+        assert proc.stdout.readline().strip() == "ready"
+    finally:
+        proc.kill()
+        proc.wait()
+    deadline = time.monotonic() + 10  # the kernel's SIGKILL is immediate; 10 s for a loaded machine
+    while os.path.exists(f"/proc/{pid}") and _state(pid) != "Z" and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not os.path.exists(f"/proc/{pid}") or _state(pid) == "Z"
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[1].split()[0]
+    except OSError:  # gone between the two looks
+        return "Z"
