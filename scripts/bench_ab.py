@@ -40,19 +40,20 @@ from wss_nlp.reconstruct import ReconstructionOptions as O, reconstruct
 acq = {acq}[0]
 options = {options}
 reconstruct(acq, options)
-t0 = time.perf_counter()
+t0, c0 = time.perf_counter(), time.process_time()
 reconstruct(acq, options)
-print(json.dumps(time.perf_counter() - t0))
+print(json.dumps([time.perf_counter() - t0, time.process_time() - c0]))
 """
 
 
-def time_case(checkout: str, acq: str, options: str) -> float:
+def time_case(checkout: str, acq: str, options: str) -> list[float]:
+    """``[wall seconds, CPU seconds]`` of the second reconstruction of the case in a fresh interpreter."""
     env = dict(os.environ, PYTHONPATH=os.path.abspath(checkout), OMP_NUM_THREADS="1")
     out = subprocess.run(
         [sys.executable, "-c", RUN.format(acq=acq, options=options)], env=env, check=True, capture_output=True,
         text=True,
     )  # fmt: skip
-    return float(json.loads(out.stdout.strip().splitlines()[-1]))
+    return [float(t) for t in json.loads(out.stdout.strip().splitlines()[-1])]
 
 
 def main() -> None:
@@ -68,18 +69,19 @@ def main() -> None:
         "# A/B timing of two checkouts (scripts/bench_ab.py)",
         "",
         f"A = {args.label_a}, B = {args.label_b}; medians of {args.repeats} fresh-process runs each, A and B "
-        "alternating; the second reconstruction of each run is timed (seconds, 1 BLAS thread).",
+        "alternating; the second reconstruction of each run is timed (seconds, 1 BLAS thread). CPU seconds of the "
+        "process are the fairer measure on a shared machine (another job's load lengthens wall time, not CPU time).",
         "",
-        "| case | A [s] | B [s] | B / A |",
-        "|---|---|---|---|",
+        "| case | A wall [s] | B wall [s] | B / A wall | A CPU [s] | B CPU [s] | B / A CPU |",
+        "|---|---|---|---|---|---|---|",
     ]
     for name, (acq, options) in CASES.items():
         times: dict = {"a": [], "b": []}
         for _ in range(args.repeats):
             for key in ("a", "b"):
                 times[key].append(time_case(getattr(args, key), acq, options))
-        a, b = statistics.median(times["a"]), statistics.median(times["b"])
-        lines.append(f"| {name} | {a:.3f} | {b:.3f} | {b / a:.3f} |")
+        (aw, ac), (bw, bc) = ([statistics.median(t[i] for t in times[k]) for i in (0, 1)] for k in ("a", "b"))
+        lines.append(f"| {name} | {aw:.3f} | {bw:.3f} | {bw / aw:.3f} | {ac:.3f} | {bc:.3f} | {bc / ac:.3f} |")
         print(lines[-1], flush=True)
     write_report(args.out, "bench_ab.md", lines)
 

@@ -1083,12 +1083,12 @@ def test_a_killed_sweep_leaves_no_workers(tmp_path):
 
 
 def test_a_worker_mid_case_ends_with_its_sweep(tmp_path):
-    """The workers' initializer (``sweep.run._die_with_parent``) in a process whose parent is killed with SIGKILL
+    """The workers' initializer (``app.executor._die_with_parent``) in a process whose parent is killed with SIGKILL
     while it is busy (a 120 s sleep stands for a long case): it ends within 10 s, not when its case is done."""
     import time
 
     worker = (
-        "import os, time; from wss_nlp.app.sweep.run import _die_with_parent; _die_with_parent(os.getppid()); "
+        "import os, time; from wss_nlp.app.executor import _die_with_parent; _die_with_parent(os.getppid()); "
         "print('ready', flush=True); time.sleep(120)"
     )
     parent = (

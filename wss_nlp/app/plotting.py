@@ -287,11 +287,11 @@ def figure_band_check(phi, linearized, sampled, n_draws: int):
     return fig
 
 
-def save_figure(fig, path: str) -> str:
-    """Write one figure as PNG."""
+def save_figure(fig, path: str, dpi: int = 120) -> str:
+    """Write one figure as PNG (``dpi``: dots per inch; thumbnails take fewer)."""
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     tmp = path + ".part.png"  # never a half-written figure under the final name
-    fig.savefig(tmp, dpi=120)
+    fig.savefig(tmp, dpi=dpi)
     os.replace(tmp, path)
     return path
 
@@ -453,3 +453,32 @@ def save_cine_figures(series, result, folder: str, truth_tau=None) -> list[str]:
         fig = figure_cine(s, result.times_ms, truth_tau)
         paths.append(save_figure(fig, os.path.join(folder, f"cine_slice_{s.index:03d}.png")))
     return paths
+
+
+def figure_cohort(values: dict, flagged=None):
+    """Distributions across the exams of a batch: one panel per quantity, every exam a point over a box plot.
+
+    ``values``: ``{label: {exam id: value}}`` (NaN values are left out: a steady exam has no TAWSS); ``flagged``:
+    the ids of exams with flags, drawn as open orange circles.
+    """
+    flagged = set(flagged or ())
+    panels = [(label, {k: v for k, v in vals.items() if np.isfinite(v)}) for label, vals in values.items()]
+    fig, axes = _subplots(1, len(panels), figsize=(4.2 * len(panels), 4.0), squeeze=False)
+    rng = np.random.default_rng(0)  # the points' sideways jitter, the same in every report
+    for ax, (label, vals) in zip(axes[0], panels):
+        ax.set(title=label, xticks=[])
+        if not vals:
+            ax.text(0.5, 0.5, "no exam has it", ha="center", va="center", transform=ax.transAxes, color="0.4")
+            continue
+        data = np.array(list(vals.values()), dtype=float)
+        ax.boxplot(data, widths=0.5, showfliers=False)
+        x = 1 + rng.uniform(-0.15, 0.15, data.size)
+        bad = np.array([k in flagged for k in vals])
+        ax.plot(x[~bad], data[~bad], "o", color="C0", ms=4, label="exam")
+        if bad.any():
+            ax.plot(x[bad], data[bad], "o", mfc="none", color="C1", ms=6, label="flagged exam")
+        ax.set_xticks([])  # after the box plot, which sets its own
+        ax.set_xlabel(f"{data.size} exam(s): median {np.median(data):.4g}")
+        ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    return fig

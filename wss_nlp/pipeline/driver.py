@@ -24,6 +24,7 @@ baselines (:mod:`wss_nlp.models.baselines`) are fits of their own, slice by slic
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import functools
 import time
 
@@ -95,6 +96,28 @@ def blas_threads(n: int):
     import scipy.linalg  # noqa: F401
 
     return threadpool_limits(limits=n, user_api="blas")
+
+
+#: How the independent segments of a reconstruction are mapped (None: one after the other); see segments_in_parallel.
+_SEGMENT_MAP: contextvars.ContextVar = contextvars.ContextVar("wss_nlp_segment_map", default=None)
+
+
+@contextlib.contextmanager
+def segments_in_parallel(map_in_order):
+    """A context in which every reconstruction solves its independent segments through ``map_in_order``.
+
+    ``map_in_order(fn, items)`` returns ``fn(item)`` for every item in the items' order, running them where it
+    likes (``wss_nlp.app.executor.Executor.map``: worker processes or a Dask cluster); ``fn`` and the items are
+    picklable. Only slices each a segment of their own are mapped (independent slices, the classical baselines'
+    fits excepted): segments tied along z keep one fitter across the stack, and deferred bands hold closures,
+    so those run in the loop as before. A slice is solved by the same steps either way, so the results are the
+    serial ones, bit for bit.
+    """
+    token = _SEGMENT_MAP.set(map_in_order)
+    try:
+        yield
+    finally:
+        _SEGMENT_MAP.reset(token)
 
 
 def reconstruct(
@@ -203,6 +226,11 @@ def _reconstruct(
     independent = Independent(options, mu, density)
     dz = float(acq.slice_spacing_mm or 1.0)
     first_of = {seg[0]: seg for seg in segments}
+    mapper = _SEGMENT_MAP.get()
+    ahead = None  # independent slices solved elsewhere, in slice order (segments_in_parallel)
+    if mapper is not None and not tied and not defer_band and len(segments) > 1:
+        alone = functools.partial(solve_alone, options=options, mu=mu, density=density, dz=dz)
+        ahead = iter(mapper(alone, [prepared[seg[0]] for seg in segments]))
     done = 0
     for iz in range(acq.nz):  # in slice order, each segment when its first slice comes
         if iz in failed:
@@ -211,7 +239,10 @@ def _reconstruct(
             seg = first_of[iz]
             fitter: Fitter = zc if tied and (len(seg) > 1 or tie) else independent
             try:
-                seg_results = run_segment([prepared[k] for k in seg], fitter, options, mu, dz, defer_band)
+                if ahead is not None:
+                    seg_results = _raised(next(ahead))
+                else:
+                    seg_results = run_segment([prepared[k] for k in seg], fitter, options, mu, dz, defer_band)
             except WssNlpError as exc:
                 if acq.nz == 1:
                     raise
@@ -260,6 +291,26 @@ def _range_notes(acq: Acquisition, options: ReconstructionOptions, radius_mm: fl
         if value is not None and (note := ranges.check(name, value, flag, allow)) and note not in notes:
             notes.append(note)
     return notes
+
+
+def solve_alone(data: steps.SliceData, options: ReconstructionOptions, mu: float, density, dz: float):
+    """One slice as a segment of its own (:func:`run_segment` with an :class:`Independent` fitter), where a worker
+    of :func:`segments_in_parallel` runs it; a :class:`~wss_nlp.errors.WssNlpError` is returned, not raised, so
+    that the driver fails this slice as its own loop would."""
+    with blas_threads(options.blas_threads):
+        try:
+            out = run_segment([data], Independent(options, mu, density), options, mu, dz)
+        except WssNlpError as exc:
+            return exc
+    for r in out:
+        r.problem = None  # the driver drops it too; here it would also travel back
+    return out
+
+
+def _raised(got):
+    if isinstance(got, WssNlpError):
+        raise got
+    return got
 
 
 def _prepare(acq: Acquisition, options: ReconstructionOptions, psf, boxes: dict):

@@ -8,8 +8,10 @@ from ... import __version__
 from ...synthetic import phantoms
 from ...core import schema
 from ...models.kspace import AcquisitionOptions
+from .batch import cmd_batch
 from .demo import cmd_demo
-from .exchange import cmd_export, cmd_import
+from .exchange import add_allow as _add_allow
+from .exchange import add_import_arguments, cmd_export, cmd_import
 from .phantom import cmd_phantom
 from .reconstruct import cmd_reconstruct
 from .report import cmd_analyze, cmd_compare, cmd_sensitivity
@@ -24,19 +26,6 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str):
         command = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""
         self.exit(2, f"wss-nlp: error: {command}{message}; see '{self.prog} --help'\n")
-
-
-def _add_allow(p: argparse.ArgumentParser) -> None:
-    """``--allow-unphysical [QUANTITY,...]`` for commands whose options are physical quantities
-    (:mod:`wss_nlp.io.ranges`; reconstruct has it from its options' declaration)."""
-    p.add_argument(
-        "--allow-unphysical",
-        nargs="?",
-        const="all",
-        default="",
-        metavar="QUANTITY,...",
-        help="use values outside the plausible ranges of the docs page 'Input checks' as given (all, or those named)",
-    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -74,6 +63,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("input", help='input HDF5 file (format: docs, "File formats")')
     r.add_argument("-o", "--output", required=True, help="result HDF5 file")
     r.add_argument("--figures", default=None, help="folder for PNG figures of every slice")
+    r.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="independent slices (and the slices of each cine frame) in this many processes (default 1: serial)",
+    )
+    r.add_argument("--scheduler", default=None, help="run them on the Dask scheduler at this address instead")
     _add_reconstruction_arguments(r)
     r.set_defaults(func=cmd_reconstruct)
 
@@ -165,6 +161,32 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--retry-failed", action="store_true", help="run again the cases that failed before")
     sw.set_defaults(func=cmd_sweep)
 
+    b = sub.add_parser(
+        "batch",
+        help="reconstruct many exams from a manifest (local processes or Dask), resumable, with a cohort report",
+        description="Run every exam of MANIFEST (CSV or TOML: id, input, and per-exam options by their long flag "
+        "names) into DIR/<id>/ (result, VTK, thumbnail), then write DIR/summary.csv, DIR/report.html and "
+        "DIR/batch.log; a rerun skips what is done. Exit 1 if any exam failed. Docs: 'Cohorts'.",
+    )
+    b.add_argument("manifest", help="manifest file (.csv, or .toml with [[exam]] tables)")
+    b.add_argument("-o", "--output-dir", required=True, help="output folder DIR")
+    b.add_argument("--workers", type=int, default=None, help="local processes (default: all cores), or LocalCluster's")
+    b.add_argument("--scheduler", default=None, help="address of a Dask scheduler (tcp://HOST:PORT) to run on")
+    b.add_argument(
+        "--cluster",
+        choices=["local", "slurm", "pbs"],
+        default=None,
+        help="start a Dask cluster: local (a LocalCluster of --workers processes), slurm or pbs (dask-jobqueue, "
+        "keywords from --cluster-config)",
+    )
+    b.add_argument("--cluster-config", default=None, metavar="FILE", help="TOML file of dask-jobqueue keywords")
+    b.add_argument("--job-script", action="store_true", help="print the job script --cluster would submit, and stop")
+    b.add_argument("--figures", action="store_true", help="also every figure of every exam (DIR/<id>/figures)")
+    b.add_argument("--no-vtk", action="store_true", help="skip the VTK wall (DIR/<id>/wall.vtu; needs meshio)")
+    b.add_argument("--retry-failed", action="store_true", help="run again the exams that failed on their input")
+    _add_reconstruction_arguments(b)  # every exam's defaults; the manifest's columns override them per exam
+    b.set_defaults(func=cmd_batch)
+
     tb = sub.add_parser(
         "table",
         help="a paper-style table from a sweep's results.csv",
@@ -221,39 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     im.add_argument("paths", nargs="+", metavar="PATH", help="DICOM folders or files, or NIfTI files")
     im.add_argument("-o", "--output", required=True, help="input file to write (.h5)")
-    im.add_argument("--venc", type=float, default=None, metavar="M_S", help="velocity encoding in m/s (overrides)")
-    im.add_argument("--viscosity", type=float, default=None, metavar="PA_S", help="dynamic viscosity to store")
-    im.add_argument("--density", type=float, default=None, metavar="KG_M3", help="fluid density to store")
-    im.add_argument(
-        "--flip-through-plane", action="store_true", help="negate the through-plane velocity (forward flow negative)"
-    )
-    im.add_argument(
-        "--phase-units",
-        default=None,
-        choices=["rad", "siemens", "cm/s", "mm/s", "m/s"],
-        help="units of the phase images' values when the headers do not state them",
-    )
-    im.add_argument(
-        "--frame-interval", type=float, default=None, metavar="MS", help="ms between NIfTI frames (if not in header)"
-    )
-    im.add_argument(
-        "--plane",
-        type=float,
-        nargs=6,
-        default=None,
-        metavar=("X", "Y", "Z", "NX", "NY", "NZ"),
-        help="4D flow (NIfTI magnitude + *_vx/_vy/_vz files): cut the volume by the plane through (X, Y, Z) mm "
-        "with normal (NX, NY, NZ), in the affine's world frame",
-    )
-    im.add_argument("--plane-fov", type=float, default=40.0, metavar="MM", help="side of the plane (default 40)")
-    im.add_argument(
-        "--plane-voxel", type=float, default=None, metavar="MM", help="plane voxel (default: the volume's largest)"
-    )
-    im.add_argument("--plane-slices", type=int, default=1, metavar="N", help="parallel slices (a stack; default 1)")
-    im.add_argument(
-        "--plane-spacing", type=float, default=None, metavar="MM", help="between those slices (default: the voxel)"
-    )
-    _add_allow(im)
+    add_import_arguments(im)
     im.set_defaults(func=cmd_import)
 
     c = sub.add_parser("compare", help="errors of a result file against a truth file")

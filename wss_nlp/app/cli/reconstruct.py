@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
 import numpy as np
 from ...io import files as wio
 from ...io import outputs, ranges
-from ...pipeline.driver import reconstruct
+from ...pipeline import methods
+from ...pipeline.driver import reconstruct, segments_in_parallel, stack_applies
 from .arguments import options_from_args
 
 
@@ -61,7 +63,9 @@ def _reconstruct_cine(args, options) -> int:
         sys.stderr.write(f"  frame {done}/{total}: {seconds:.1f} s elapsed\n")
         sys.stderr.flush()
 
-    result = cine.reconstruct_cine(frames, times, period, options, progress=progress)
+    parallel = acq.nz > 1 and not stack_applies(acq, options) and methods.of(options).ties_slices
+    with _segments_in_parallel(args, parallel, "each frame's geometry starts from the previous frame's wall"):
+        result = cine.reconstruct_cine(frames, times, period, options, progress=progress)
     with outputs.StagedFolder(args.figures) as staged:
         series = cine.write_result(
             args.output, result, options.as_dict(), argv=["wss-nlp", *args.argv], notes=timing_notes
@@ -104,7 +108,9 @@ def cmd_reconstruct(args) -> int:
         f"h = {acq.grid.h:g} mm",
         file=sys.stderr,
     )
-    results = reconstruct(acq, options, progress=_progress(sys.stderr))
+    parallel = acq.nz > 1 and not stack_applies(acq, options) and methods.of(options).ties_slices
+    with _segments_in_parallel(args, parallel):
+        results = reconstruct(acq, options, progress=_progress(sys.stderr))
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
             _slice_figures(results, acq, staged.path)
@@ -140,3 +146,28 @@ def _slice_figures(results, acq, folder: str) -> None:
             save_figures(r, folder, prefix=f"slice_{r.index:03d}_")
     if len(results) > 1:
         save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, "stack_wall_maps.png"))
+
+
+@contextlib.contextmanager
+def _segments_in_parallel(args, parallel: bool, frames: str = ""):
+    """``--workers N`` / ``--scheduler``: the independent slices in parallel (:mod:`wss_nlp.app.executor`), the
+    rest serial with a note saying why."""
+    workers, scheduler = args.workers, args.scheduler
+    if workers <= 1 and not scheduler:
+        yield
+        return
+    if frames:
+        print(f"wss-nlp: note: cine frames run one after another ({frames})", file=sys.stderr)
+    if not parallel:
+        print(
+            "wss-nlp: note: --workers: nothing here runs in parallel (one slice, slices tied along z by one solve "
+            "per segment, or a classical baseline, which fits slice by slice); --z-smoothing 0 makes the slices of "
+            "a stack independent",
+            file=sys.stderr,
+        )
+        yield
+        return
+    from .. import executor
+
+    with executor.Executor(executor.backend(workers, scheduler)) as ex, segments_in_parallel(ex.map):
+        yield

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import sys
@@ -16,6 +17,8 @@ from ...io import files as wio
 from ...analysis import metrics as met
 from ...errors import InputError, WssNlpError
 from ...pipeline.driver import reconstruct
+from .. import executor
+from ..progress import Progress
 from .spec import METRICS, Study, _acquisition, case_id, expand, options_for
 from .tables import flat_row, write_csv, write_views
 
@@ -100,6 +103,14 @@ def run_case(params: dict, base_dir: str = ".") -> tuple[dict, bytes | None]:
 
 
 # ------------------------------------------------------------------ running
+
+
+def _case_in(base_dir: str, params: dict) -> tuple[dict, bytes | None]:
+    """:func:`run_case` with the study's folder bound first (a picklable task for the executor); ``run_case`` is
+    looked up when the task runs, as ``run_case(params, base_dir)``."""
+    return run_case(params, base_dir)
+
+
 def _done(cases_dir: str, cid: str, retry_failed: bool) -> dict | None:
     """The finished record of a case, or None if it has to run (missing, unreadable or, if asked, failed)."""
     path = os.path.join(cases_dir, cid + ".json")
@@ -115,127 +126,11 @@ def _done(cases_dir: str, cid: str, retry_failed: bool) -> dict | None:
     return rec
 
 
-class Progress:
-    """Progress over a study's cases: a tqdm bar on a terminal, a line per case otherwise (logs, CI)."""
-
-    def __init__(self, total: int, stream=None, skipped: int = 0):
-        self.total, self.done, self.failed = total, skipped, 0
-        self.stream = stream if stream is not None else sys.stderr
-        self.t0 = time.perf_counter()
-        self.ran = 0
-        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.bar = None
-        if self.tty:
-            from tqdm import tqdm  # only where a bar is drawn: the line form needs nothing
-
-            self.bar = tqdm(total=total, initial=skipped, file=self.stream, unit="case", dynamic_ncols=True)
-
-    def update(self, record: dict) -> None:
-        self.done += 1
-        self.ran += 1
-        self.failed += record["status"] != "ok"
-        if self.bar is not None:
-            self.bar.set_postfix_str(f"{self.failed} not ok, last {record['id']}: {record['status']}", refresh=False)
-            self.bar.update(1)
-            if self.done >= self.total:
-                self.bar.close()
-            return
-        el = time.perf_counter() - self.t0
-        eta = el / self.ran * (self.total - self.done)
-        self.stream.write(
-            f"{self.done}/{self.total} cases, {self.failed} not ok, {el:.0f} s elapsed, about {eta:.0f} s left  "
-            f"({record['id']}: {record['status']})\n"
-        )
-        self.stream.flush()
-
-
-# ---- issue 42: worker processes never outlive the sweep (begin) ----
-def _die_with_parent(parent: int) -> None:
-    """Worker initializer: end this worker when the sweep's process ends, even by SIGKILL.
-
-    Linux: the kernel sends SIGKILL when the parent dies (``prctl(PR_SET_PDEATHSIG)``; the workers are started
-    from the sweep's main thread). Elsewhere, and as a guard against a parent that died before the call, a daemon
-    thread compares the parent's id every half second.
-    """
-    import signal
-    import threading
-
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux: the thread below does it
-        pass
-    if os.getppid() != parent:
-        os._exit(1)
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="wss-nlp-parent-watch", daemon=True).start()
-
-
-# ---- issue 42 (end) ----
-
-
-def _local_results(pending, base_dir, workers):
-    """Yield ``(record, blob)`` as cases finish, in worker processes (in-process for one worker)."""
-    if workers <= 1:
-        for params in pending:
-            yield run_case(params, base_dir)
-        return
-    import multiprocessing as mp
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
-    # one BLAS thread per process: the cases are the parallelism
-    saved = {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")}
-    os.environ.update(dict.fromkeys(saved, "1"))
-    try:
-        pool = ProcessPoolExecutor(
-            max_workers=workers,
-            mp_context=mp.get_context("spawn"),
-            initializer=_die_with_parent,  # issue 42: no worker outlives a killed sweep
-            initargs=(os.getpid(),),
-        )
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    futures = [pool.submit(run_case, p, base_dir) for p in pending]
-    try:
-        for fut in as_completed(futures):
-            yield fut.result()
-    finally:
-        pool.shutdown(wait=False, cancel_futures=True)
-
-
 def _require_dask() -> None:
     try:
         import dask.distributed  # noqa: F401
     except ImportError:
         raise InputError("--scheduler needs dask.distributed: pip install 'wss-nlp[dask]'") from None
-
-
-def _dask_results(pending, base_dir, scheduler):
-    try:
-        from dask.distributed import Client, as_completed
-    except ImportError as exc:
-        raise InputError("--scheduler needs dask.distributed: pip install 'wss-nlp[dask]'") from exc
-    try:
-        client = Client(scheduler, timeout="20s")
-    except (OSError, TimeoutError) as exc:
-        raise InputError(f"cannot reach the Dask scheduler at {scheduler}: {exc}") from exc
-    try:
-        futures = [client.submit(run_case, p, base_dir, key=f"wss-nlp-{case_id(p)}", pure=False) for p in pending]
-        for fut in as_completed(futures):
-            yield fut.result()
-    finally:
-        client.close()
 
 
 def run_study(
@@ -267,11 +162,9 @@ def run_study(
     )
     progress = Progress(len(cases), stream, skipped=len(cases) - len(pending))
     workers = workers or os.cpu_count() or 1
-    results = (
-        _dask_results(pending, study.base_dir, scheduler)
-        if scheduler
-        else _local_results(pending, study.base_dir, min(workers, max(len(pending), 1)))
-    )
+    where = executor.backend(workers=min(workers, max(len(pending), 1)), scheduler=scheduler)
+    task = functools.partial(_case_in, study.base_dir)
+    results = executor.results(where, task, pending, keys=[f"wss-nlp-{case_id(p)}" for p in pending])
     for record, blob in results:
         cid = record["id"]
         if blob is not None:
