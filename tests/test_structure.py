@@ -149,6 +149,8 @@ def test_blas_threads_limit_is_applied_and_restored():
     def blas():
         return [i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]
 
+    import scipy.linalg  # noqa: F401  (SciPy's own BLAS, which blas_threads loads before limiting)
+
     before = blas()
     if not before:
         pytest.skip("no BLAS visible to threadpoolctl")
@@ -157,3 +159,19 @@ def test_blas_threads_limit_is_applied_and_restored():
     assert blas() == before
     with blas_threads(0):
         assert blas() == before
+
+
+def test_blas_threads_limits_a_blas_loaded_after_the_call():
+    # a fresh process: SciPy's BLAS is not loaded yet when the limit is asked for; the first solve of a sweep or a
+    # batch ran unlimited (and rounded differently from every later one) until blas_threads loaded it first
+    pytest.importorskip("threadpoolctl")
+    code = (
+        "import numpy, threadpoolctl\n"
+        "from wss_nlp.pipeline.driver import blas_threads\n"
+        "with blas_threads(1):\n"
+        "    import scipy.linalg\n"
+        "    n = [i['num_threads'] for i in threadpoolctl.threadpool_info() if i['user_api'] == 'blas']\n"
+        "print(n)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert set(eval(out)) == {1}

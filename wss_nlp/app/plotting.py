@@ -455,6 +455,90 @@ def save_cine_figures(series, result, folder: str, truth_tau=None) -> list[str]:
     return paths
 
 
+def save_tissue_figures(res, raw, folder, prefix: str = "") -> list[str]:
+    """Write ``surround.png`` (:func:`figure_surround`) and ``offset.png`` (:func:`figure_offset`) of a slice the
+    surround model or the offset correction looked at (``res.lumen.tissue``; none otherwise); returns the paths.
+
+    ``raw``: the slice's measured magnitude (the result keeps the magnitude the geometry fitted)."""
+    rec = getattr(getattr(res, "lumen", None), "tissue", None) or {}
+    sm, o = rec.get("surround") or {}, rec.get("offset") or {}
+    paths = []
+    if sm.get("kind") == "tissue" or o.get("static_voxels", 0) > 0:
+        os.makedirs(folder, exist_ok=True)
+        for name, make in (("surround.png", figure_surround), ("offset.png", figure_offset)):
+            path = os.path.join(folder, prefix + name)
+            save_figure(make(res, np.asarray(raw, float)), path)
+            paths.append(path)
+    return paths
+
+
+def figure_surround(res, raw):
+    """Vessel in tissue: the raw magnitude with the wall, and the fitted outside level (issue 39).
+
+    ``raw``: the slice's measured magnitude; the outside model comes from ``res.lumen.tissue``
+    (:func:`wss_nlp.models.surround.model_images`).
+    """
+    from ..models import surround
+
+    outside, _ = surround.model_images(res.lumen.tissue or {}, res.grid)
+    if outside is not None:  # shown where it was fitted and used: up to the outer edge of the outside ring
+        outside = np.where(surround.model_reach(res.lumen.mask, res.grid), outside, np.nan)
+    fig, ax = _subplots(1, 2, figsize=(11, 4.5))
+    fig.set_layout_engine("constrained")
+    im = _image(ax[0], raw, res.grid, cmap="gray")
+    _contour(ax[0], res, color="r", lw=1)
+    fig.colorbar(im, ax=ax[0], label="magnitude (raw)")
+    ax[0].set_title("magnitude and the reconstructed wall")
+    if outside is None:
+        ax[1].set_axis_off()
+        ax[1].set_title("two-level model (Appendix B): no outside model")
+    else:
+        im = _image(ax[1], outside, res.grid, cmap="viridis")
+        _contour(ax[1], res, color="w", lw=1)
+        fig.colorbar(im, ax=ax[1], label="outside level (raw)")
+        sm = (res.lumen.tissue or {}).get("surround", {})
+        wall = (
+            f"; wall ring {sm['wall_mm']:g} mm at {sm['wall_level']:.2f}"
+            if np.isfinite(sm.get("wall_level", np.nan))
+            else ""
+        )
+        ax[1].set_title("fitted outside level" + wall)
+    for a in ax:
+        a.set_xlabel("x [mm]")
+        a.set_ylabel("y [mm]")
+    return fig
+
+
+def figure_offset(res, raw):
+    """The static tissue the offset was fitted to and the removed offset in % of the venc (issue 39)."""
+    from ..models import offset as off
+    from ..models import surround
+
+    rec = res.lumen.tissue or {}
+    _, offset = surround.model_images(rec, res.grid)
+    sigma = rec.get("sigma_lumen_plateau", float("nan"))
+    static = off.static_mask(raw, sigma, res.lumen.noise_mask) if np.isfinite(sigma) else np.zeros_like(raw, bool)
+    fig, ax = _subplots(1, 2, figsize=(11, 4.5))
+    fig.set_layout_engine("constrained")
+    _image(ax[0], static.astype(float), res.grid, cmap="gray")
+    _contour(ax[0], res, color="r", lw=1)
+    ax[0].set_title(f"static tissue ({int(static.sum())} voxels)")
+    o = rec.get("offset") or {}
+    venc = o.get("at_vessel_m_s", float("nan")) / o.get("at_vessel_fraction_of_venc", float("nan"))
+    if offset is None or not np.isfinite(venc):
+        ax[1].set_axis_off()
+        ax[1].set_title("offset not corrected: " + str(o.get("reason", ""))[:60])
+    else:
+        im = _image(ax[1], 100 * offset / venc, res.grid, cmap="RdBu_r")
+        _contour(ax[1], res, color="k", lw=1)
+        fig.colorbar(im, ax=ax[1], label="removed offset [% of venc]")
+        ax[1].set_title(f"removed offset (degree {o['order']})")
+    for a in ax:
+        a.set_xlabel("x [mm]")
+        a.set_ylabel("y [mm]")
+    return fig
+
+
 def figure_cohort(values: dict, flagged=None):
     """Distributions across the exams of a batch: one panel per quantity, every exam a point over a box plot.
 

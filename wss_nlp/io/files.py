@@ -582,6 +582,8 @@ def write_slice_group(s, r) -> None:
     _write_core(s, r)
     if getattr(r, "screen", None):
         s.attrs["screen_json"] = json.dumps(r.screen, default=float)
+    if getattr(getattr(r, "lumen", None), "tissue", None):  # hook (issue 39): surround model, offset correction
+        s.attrs["tissue_json"] = json.dumps(r.lumen.tissue, default=float)
     if getattr(r, "near_wall", None) is not None:
         s.attrs["near_wall_json"] = json.dumps(r.near_wall.as_dict(), default=float)
     if isinstance(r, BaselineResult):  # a classical method: no velocity model to store

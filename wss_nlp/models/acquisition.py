@@ -41,6 +41,17 @@ class MeasurementModel:
     #: one; a PSF mixes phases further than a wall voxel, so its passes repeat, each judged by how well it
     #: explains the magnitude.
     dephasing_passes = 1
+    #: Why the surround model (:mod:`wss_nlp.models.surround`: lumen, wall ring and outside levels mixed by the
+    #: lumen fraction) may not replace Appendix B's two-level normalization on this acquisition; "": it may
+    #: (each voxel the mean of the complex signal over the voxel, the surround model's own assumption).
+    two_level_only = ""
+
+    @property
+    def blur_voxels(self) -> float:
+        """How many image voxels one voxel's signal spreads over (1 for voxel means; a zero-filled acquisition's
+        acquired voxel spans ``zero_fill`` image voxels): the reach of a vessel's signal, and phase, beyond its
+        wall, which the static tissue of the offset correction keeps away from (:mod:`wss_nlp.models.offset`)."""
+        return 1.0
 
     @property
     def psf(self) -> kspace.PSF | None:
@@ -70,6 +81,22 @@ class MeasurementModel:
     def correlation_factors(self, grid_shape):
         """``(R_y, R_x, shape)``: the noise correlation's separable factors (None: independent voxels)."""
         return None
+
+    def highpass_noise_variance(self, grid_shape) -> float:
+        """Variance, per unit noise variance, of ``a - (mean of the 4 neighbours)`` on pure noise: 1.25 for
+        independent voxels, less where the noise is correlated (``sum_ab c_a c_b rho(x_a - x_b)`` over the
+        stencil ``c``): what a noise estimate from such residuals (:func:`wss_nlp.models.surround.lumen_noise_sigma`)
+        divides by."""
+        factors = self.correlation_factors(grid_shape)
+        if factors is None:
+            return 1.25
+        ry, rx, _ = factors
+        stencil = [((0, 0), 1.0)] + [((dy, dx), -0.25) for dy, dx in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+        # the correlations depend on the offset alone (periodic tables): read them off row 0
+        return float(
+            sum(ca * cb * ry[0, (a[0] - b[0]) % ry.shape[1]] * rx[0, (a[1] - b[1]) % rx.shape[1]]
+                for a, ca in stencil for b, cb in stencil)
+        )  # fmt: skip
 
     def describe(self) -> dict:
         """What the result records about the acquisition model."""
@@ -102,10 +129,15 @@ class KSpace(MeasurementModel):
     clip_upper = False
     background_tails = True
     dephasing_passes = 3
+    two_level_only = "k-space acquisition (its PSF tails are modelled with two levels)"
 
     @property
     def psf(self) -> kspace.PSF:
         return self.point_spread
+
+    @property
+    def blur_voxels(self) -> float:
+        return float(max(self.point_spread.zero_fill))
 
     def magnitude_setup(self, grid, center, r0, r1, q, gamma):
         return kspace.magnitude_setup(grid, center, r0, r1, q, gamma, self.point_spread)

@@ -128,6 +128,8 @@ class Lumen:
     # predicted noise-free magnitude (raw units) where a k-space PSF carries the vessel's signal into the
     # background; the noise estimates subtract it (wss_nlp.parameters.noise.complex_noise_sigma). None: box model
     signal: np.ndarray | None = None
+    # what the surround model and the offset correction found and did (wss_nlp.models.surround); None: not run
+    tissue: dict | None = None
 
     @property
     def noise_mask(self) -> np.ndarray:

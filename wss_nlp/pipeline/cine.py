@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..models import preprocess as pp
+from ..models import surround
 from ..core import radius as rad
 from ..models import acquisition as acq_model
 from ..models import temporal, womersley
@@ -188,13 +189,22 @@ def shared_boxes(frames: list[Acquisition], options: ReconstructionOptions) -> d
     boxes = {}
     for iz in range(ref.nz):
         lumens = []
+        # hook (issue 39): a region is a vessel if it flows in some frame (fat never does)
+        speed = None if options.tissue.off else np.stack([np.asarray(f.velocity_images()[iz], float) for f in frames])
         clip = acq_model.of(psf).clip_upper
         for frame in frames:
             image = frame.magnitude[iz]
             if not np.all(np.isfinite(image)):
                 continue
             try:
-                lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, clip)[2])
+                if speed is None:
+                    lumens.append(pp.preprocess(image, frame.grid, "", options.screen.vessel, clip)[2])
+                else:
+                    lumens.append(
+                        surround.screen_preprocess(
+                            image, speed, frame.grid, "", options.screen.vessel, frame.venc_m_s, clip
+                        )[2]
+                    )
             except WssNlpError:
                 continue
         if lumens:

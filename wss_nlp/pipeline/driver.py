@@ -328,7 +328,7 @@ def _prepare(acq: Acquisition, options: ReconstructionOptions, psf, boxes: dict)
             prepared[iz] = steps.prepare(
                 acq.magnitude[iz], velocity[iz], acq.grid, iz, acq.source, options.screen.vessel, psf,
                 acq.venc_m_s, acq.noise_venc_m_s, boxes.get(iz),
-                None if acq.velocity_inplane is None else acq.velocity_inplane[:, iz],
+                None if acq.velocity_inplane is None else acq.velocity_inplane[:, iz], options.tissue,
             )  # fmt: skip
             prepared[iz].seconds = time.perf_counter() - t0
         except WssNlpError as exc:

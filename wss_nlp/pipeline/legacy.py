@@ -54,8 +54,9 @@ def reconstruct_slice(
     from .fitters import Independent
 
     data = steps.prepare(
-        magnitude, velocity_image, grid, index, source, options.screen.vessel, psf, venc, noise_venc, box
-    )
+        magnitude, velocity_image, grid, index, source, options.screen.vessel, psf, venc, noise_venc, box,
+        tissue=options.tissue,
+    )  # fmt: skip
     return run_segment([data], Independent(options, viscosity_pa_s, density), options, viscosity_pa_s,
                        defer_band=defer_band)[0]  # fmt: skip
 

@@ -19,6 +19,7 @@ from ..models import coupled as cpl
 from ..models import geometry as geo
 from ..models import kspace
 from ..models import stack as stk
+from ..models import surround
 from ..models import velocity as vel
 from ..models import womersley
 from ..parameters.options import ChoiceOptions
@@ -36,8 +37,10 @@ class ReconstructionOptions:
     Each part goes to the layer that uses it: ``geometry`` (:class:`~wss_nlp.models.geometry.GeometryOptions`),
     ``velocity`` (:class:`~wss_nlp.models.velocity.VelocityOptions`), ``choice`` (how alpha and beta are
     chosen, :class:`~wss_nlp.parameters.options.ChoiceOptions`), ``coupled``, ``baseline``, ``stack``,
-    ``screen``, ``acquisition`` (box or k-space measurement model), ``cine``; the fields on the root are
-    the driver's own (method, WSS angles, viscosity and density overrides, the dephasing pass, the band).
+    ``screen``, ``acquisition`` (box or k-space measurement model), ``cine``, ``tissue`` (the model of what
+    surrounds the lumen and the background phase correction, :class:`~wss_nlp.models.surround.TissueOptions`);
+    the fields on the root are the driver's own (method, WSS angles, viscosity and density overrides, the
+    dephasing pass, the band).
 
     The choice fields were on the root before 0.2: ``ReconstructionOptions(beta_rule="gcv")`` still works
     (with a :class:`DeprecationWarning`), and ``options.beta_rule`` reads ``options.choice.beta_rule``.
@@ -63,6 +66,7 @@ class ReconstructionOptions:
     screen: plaus.ScreenOptions = field(default_factory=plaus.ScreenOptions)  # vessel choice, unwrapping
     acquisition: kspace.AcquisitionOptions = field(default_factory=kspace.AcquisitionOptions)  # box or k-space PSF
     cine: womersley.CineModelOptions = field(default_factory=womersley.CineModelOptions)  # frames tied in time
+    tissue: surround.TissueOptions = field(default_factory=surround.TissueOptions)  # surround model, phase offset
     n_phi: int = option(360, "angles at which tau is reported, >= 360", cli="--n-phi", toml=("n_phi",), group=WSS_GROUP)
     viscosity_pa_s: float | None = option(
         None,

@@ -42,6 +42,7 @@ import numpy as np
 from .._lazy import scipy
 from ..parameters import noise as nl
 from ..models import preprocess as pp
+from ..models import surround
 from ..errors import InputError, WssNlpError
 from ..core.schema import option
 from ..io import ranges
@@ -311,6 +312,8 @@ def _screen_slice(
         notes.append(radius_note)
     if lumen.others:
         notes.append(lumen.others_note())
+    if lumen.tissue and lumen.tissue.get("static_bright"):  # hook (issue 39)
+        record["static_bright_regions"] = lumen.tissue["static_bright"]
     venc, out = acq.venc_m_s, velocity
     if venc is not None:
         region = (scipy.ndimage.binary_dilation(lumen.mask) & (m > UNWRAP_MAGNITUDE)) | lumen.mask
@@ -377,17 +380,23 @@ def screen(acq, options: ScreenOptions | None = None):
                 f"and their neighbours (up to {worst:.4g}): corrupt values, replaced by their neighbours' median"
             )
         try:
-            norm, m, lumen = pp.preprocess(mag_iz, acq.grid, f"{acq.source} slice {iz}", options.vessel)
-            offset = background_offset(mag_iz, lumen)
-            if offset > 0:
+            # hook (issue 39): the lumen among the bright regions that flow; static bright tissue (fat) is
+            # neither the vessel nor "another vessel in view" (wss_nlp.models.surround.screen_preprocess)
+            _, m, lumen = surround.screen_preprocess(
+                mag_iz, velocity[iz], acq.grid, f"{acq.source} slice {iz}", options.vessel, acq.venc_m_s
+            )
+            offset = background_offset(mag_iz, lumen) if not (lumen.tissue or {}).get("static_bright") else 0.0
+            if offset > 0:  # issue 42: a constant offset in air (tissue is the surround model's: issue 39)
                 repairs.setdefault(iz, []).append(
                     f"the magnitude's background is not noise alone (its spread is under {OFFSET_SPREAD:g} of its "
                     f"mean; pure noise: {RAYLEIGH_STD / RAYLEIGH_MEAN:.2f}): a constant offset of {offset:.4g} "
-                    "(a scanner baseline, a shifted export, static tissue) was subtracted, else the noise levels "
-                    "would be the offset's size"
+                    "(a scanner baseline, a shifted export) was subtracted, else the noise levels would be the "
+                    "offset's size"
                 )
                 mag_iz = np.maximum(mag_iz - offset, 0.0)
-                norm, m, lumen = pp.preprocess(mag_iz, acq.grid, f"{acq.source} slice {iz}", options.vessel)
+                _, m, lumen = surround.screen_preprocess(
+                    mag_iz, velocity[iz], acq.grid, f"{acq.source} slice {iz}", options.vessel, acq.venc_m_s
+                )
         except WssNlpError:  # no vessel, lumen on the border: a stack reports the slice as failed later
             if acq.nz == 1:
                 raise

@@ -7,6 +7,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..models import surround
+
 if TYPE_CHECKING:
     from ..models import geometry as geo
     from ..models import near_wall as nw
@@ -69,7 +71,8 @@ class SliceState:
 
     @classmethod
     def start(cls, data: SliceData) -> SliceState:
-        return cls(data, data.problem, data.lumen, data.velocity)
+        # the surround model's and the offset correction's notes (issue 39) come with the preprocessing
+        return cls(data, data.problem, data.lumen, data.velocity, notes=surround.notes(data.lumen.tissue))
 
     def snapshot(self) -> SliceState:
         """A copy to return to when a pass is undone (the arrays and results themselves are not modified)."""

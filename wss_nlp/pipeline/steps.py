@@ -25,6 +25,7 @@ from ..models import geometry as geo
 from ..models import acquisition as acq_model
 from ..models import kspace
 from ..models import preprocess as pp
+from ..models import surround
 from ..models import velocity as vel
 from ..errors import InputError
 from ..models.measurement import VoxelGrid
@@ -78,16 +79,24 @@ def prepare(
     noise_venc: float | None = None,
     box: pp.LumenBox | None = None,
     inplane: np.ndarray | None = None,
+    tissue: surround.TissueOptions | None = None,
 ) -> SliceData:
-    """Preprocess one slice (:func:`wss_nlp.models.preprocess.preprocess`) into its :class:`SliceData`.
+    """Preprocess one slice (:func:`wss_nlp.models.surround.preprocess`) into its :class:`SliceData`.
 
     ``box`` replaces the lumen's own origin and radius box (cine frames) and may carry a warm start;
     ``inplane``: the slice's in-plane velocity components (4D flow). ``noise_venc`` sets the velocity
     noise when there is no ``venc`` and the lumen has no plateau to measure it on (the plateau's level is
-    preferred: it also holds what the data's placement adds).
+    preferred: it also holds what the data's placement adds). ``tissue``: the surround model and the offset
+    correction (:func:`wss_nlp.models.surround.preprocess`; None: their defaults).
     """
     where = f"{source} slice {index}"
-    norm, m, lumen = pp.preprocess(raw, grid, where, vessel, clip_upper=acq_model.of(psf).clip_upper)
+    # hook (issue 39): the surround model, flow-aware lumen and background offset correction; the velocity the
+    # fits use comes back with the offset removed and the partial-volume voxels' lumen phase, and the raw
+    # magnitude with the magnitude that carries that phase (the noise estimates' |d_i|)
+    near = None if box is None else box.center  # cine: the series' vessel, also in a frame of slow flow
+    norm, m, lumen, velocity, raw = surround.preprocess(
+        raw, velocity, grid, where, vessel, venc, acq_model.of(psf), tissue, near
+    )
     if box is not None:
         lumen = box.apply(lumen)
     nvenc = venc

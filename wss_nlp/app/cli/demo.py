@@ -11,7 +11,7 @@ from ... import __version__
 from ...io import files as wio
 from ...analysis import metrics
 from ...io import outputs
-from ...synthetic import phantoms
+from ...synthetic import invivo, phantoms
 from ...pipeline.driver import reconstruct
 from .arguments import options_from_args
 from .phantom import _write_truth
@@ -81,9 +81,14 @@ def _demo(args, options, out: str) -> None:
     if args.case == "cine":
         return _demo_cine(args, options, out)
     snr = None if args.snr <= 0 else args.snr
-    print(f"wss-nlp {__version__} demo: phantom '{args.case}' ({phantoms.CASES[args.case][1]})")
+    tissue = args.case in invivo.INVIVO_CASES  # the vessel in tissue (issue 39)
+    what = (invivo.INVIVO_CASES if tissue else phantoms.CASES)[args.case][1]
+    print(f"wss-nlp {__version__} demo: phantom '{args.case}' ({what})")
     print(f"  voxel size h = {args.h} mm, SNR {args.snr:g}, seed {args.seed}")
-    acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=snr, seed=args.seed)
+    if tissue:
+        acq, truth = invivo.make_case(args.case, h_mm=args.h, snr=snr, seed=args.seed)
+    else:
+        acq, truth = phantoms.make_phantom(args.case, h_mm=args.h, snr=snr, seed=args.seed)
     in_path, truth_path, res_path = (os.path.join(out, n) for n in ("input.h5", "truth.h5", "result.h5"))
     wio.write_acquisition(in_path, acq)
     _write_truth(truth_path, truth)
@@ -111,8 +116,8 @@ def _demo(args, options, out: str) -> None:
         rows.insert(4, ("mean WSS std (linearized) [Pa]", f"{res.wss.mean_std:.2g}"))
     print()
     print(_error_table(rows))
-    from ..plotting import save_figures
+    from ..plotting import save_figures, save_tissue_figures
 
-    figs = save_figures(res, out, truth=truth)
+    figs = save_figures(res, out, truth=truth) + save_tissue_figures(res, acq.magnitude[0], out)
     print()
     print("figures: " + ", ".join(os.path.basename(f) for f in figs))

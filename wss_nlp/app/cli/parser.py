@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 from ... import __version__
-from ...synthetic import phantoms
+from ...synthetic import invivo, phantoms
 from ...core import schema
 from ...models.kspace import AcquisitionOptions
 from .batch import cmd_batch
@@ -44,9 +44,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     d.add_argument(
         "--case",
-        choices=[*phantoms.CASES, "cine"],
+        choices=[*phantoms.CASES, *invivo.INVIVO_CASES, "cine"],
         default="laminar",
-        help="phantom (default %(default)s); cine: Womersley flow over a cycle, TAWSS and OSI",
+        help="phantom (default %(default)s); cine: Womersley flow over a cycle, TAWSS and OSI; invivo, "
+        "invivo-turbulent: the vessel in tissue (wall, fat, other vessels, a 2 %% venc phase offset)",
     )
     d.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
     d.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none (default %(default)g)")

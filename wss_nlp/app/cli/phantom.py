@@ -10,7 +10,7 @@ from ...io import files as wio
 from ...analysis import metrics
 from ...io import outputs, ranges
 from ...pipeline import limits
-from ...synthetic import phantoms
+from ...synthetic import invivo, phantoms
 from ...core import schema
 from ...errors import InputError
 from ...models.kspace import AcquisitionOptions
@@ -22,7 +22,7 @@ def _write_truth(path, truth) -> None:
 
     stack = isinstance(truth, phantoms.StackTruth)
     slices = truth.slices if stack else [truth]
-    cases = phantoms.STACK_CASES if stack else phantoms.CASES
+    cases = phantoms.STACK_CASES if stack else {**phantoms.CASES, **invivo.INVIVO_CASES}
     with wio.atomic_h5(path) as f:
         for k, v in wio.provenance({"truth": truth.parameters}).items():
             f.attrs[k] = v

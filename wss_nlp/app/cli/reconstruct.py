@@ -139,11 +139,12 @@ def cmd_reconstruct(args) -> int:
 
 
 def _slice_figures(results, acq, folder: str) -> None:
-    from ..plotting import figure_stack, save_figure, save_figures
+    from ..plotting import figure_stack, save_figure, save_figures, save_tissue_figures
 
     for r in results:
         if not isinstance(r, wio.FailedSlice):
             save_figures(r, folder, prefix=f"slice_{r.index:03d}_")
+            save_tissue_figures(r, acq.magnitude[r.index], folder, prefix=f"slice_{r.index:03d}_")
     if len(results) > 1:
         save_figure(figure_stack(results, acq.slice_spacing_mm), os.path.join(folder, "stack_wall_maps.png"))
 

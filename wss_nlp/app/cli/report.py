@@ -6,6 +6,7 @@ import numpy as np
 from ...io import files as wio
 from ...analysis import metrics
 from ...models import near_wall as nw
+from ...models import surround
 from ...io import outputs
 from ...errors import InputError
 from ...models.measurement import DEPHASING_THRESHOLD
@@ -104,6 +105,9 @@ def cmd_analyze(args) -> int:
             print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
     for name, rec in wio.read_dephasing(args.result).items():
         print(f"{name}: {_dephasing_text(rec)}")
+    for name, rec in surround.read_tissue(args.result).items():  # the surround model, the phase offset (issue 39)
+        for line in surround.report_lines(rec):
+            print(f"{name}: {line}")
     if args.figures:
         from ..plotting import save_parameter_figures
 

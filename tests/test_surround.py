@@ -1,0 +1,171 @@
+"""The surround model (wss_nlp.models.surround): two-level data give today's results exactly, the lumen fraction
+is recovered in tissue, fat is not a vessel, the noise comes from the lumen plateau."""
+
+import functools
+
+import numpy as np
+import pytest
+
+from wss_nlp.core import radius as rad
+from wss_nlp.models import geometry as geo
+from wss_nlp.models import surround
+from wss_nlp.models.measurement import VoxelGrid
+from wss_nlp.pipeline import plausibility as plaus
+from wss_nlp.pipeline import ReconstructionOptions, reconstruct
+from wss_nlp.synthetic import invivo, phantoms
+
+OFF = surround.TissueOptions(surround="two-level", offset_correction=False)
+
+
+def _same(a, b):
+    # the same computation; the pipeline's solver and basis caches make the first run of a process differ from
+    # later ones in the last bits (1e-17 mm, seen with the new code off in both runs), hence 1e-12, not ==
+    for x, y in ((a.geometry.coefficients, b.geometry.coefficients), (a.velocity.coefficients, b.velocity.coefficients),
+                 (a.wss.tau, b.wss.tau)):  # fmt: skip
+        assert np.allclose(x, y, rtol=1e-12, atol=1e-12)
+    assert a.notes == b.notes and a.beta_choice.chosen == b.beta_choice.chosen
+
+
+@pytest.mark.parametrize("make", [lambda: phantoms.make_phantom("laminar", 1.5, seed=7),
+                                  lambda: phantoms.make_two_vessels(1.5, seed=7)])  # fmt: skip
+def test_two_level_data_reproduce_appendix_b_exactly(make):
+    # tubes in air: the outside ring is noise, no static tissue: the new code must change nothing, bit for bit
+    acq, _ = make()
+    geo.clear_solvers()
+    new = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+    geo.clear_solvers()
+    old = reconstruct(acq, ReconstructionOptions(uncertainty=False, tissue=OFF))[0]
+    _same(new, old)
+    rec = new.lumen.tissue
+    assert rec["surround"]["kind"] == "two-level" and "noise" in rec["surround"]["reason"]
+    assert not rec["offset"]["applied"] and rec["offset"]["static_voxels"] == 0
+
+
+def test_off_is_appendix_b():
+    acq, _ = phantoms.make_phantom("laminar", 1.5, seed=8)
+    from wss_nlp.models import preprocess as pp
+
+    norm, m, lumen = pp.preprocess(acq.magnitude[0], acq.grid, "x")
+    n2, m2, l2, u2, raw2 = surround.preprocess(acq.magnitude[0], acq.velocity_images()[0], acq.grid, "x", options=OFF)
+    assert n2 == norm and np.array_equal(m, m2) and np.array_equal(lumen.mask, l2.mask) and l2.tissue is None
+    assert np.array_equal(u2, acq.velocity_images()[0]) and np.array_equal(raw2, acq.magnitude[0])
+
+
+@functools.lru_cache(maxsize=1)
+def _noise_free_tissue():
+    """The laminar vessel in tissue without noise (built once for the tests that share it)."""
+    return invivo.make_invivo("laminar", 1.0, snr=None, seed=invivo.DEV_SEEDS[1], max_points=12)
+
+
+def test_noise_free_lumen_fraction_and_wall_in_tissue():
+    # the laminar vessel in tissue without noise (wall 1.2 mm, texture, shading, inflow, offset): the normalized
+    # magnitude must follow the true lumen fraction where Appendix B's is biased by the wall and the tissue
+    acq, truth = _noise_free_tissue()
+    raw, u = acq.magnitude[0], acq.velocity_images()[0]
+    _, m, lumen, _, _ = surround.preprocess(raw, u, acq.grid, "x", None, acq.venc_m_s)
+    _, m_old, _, _, _ = surround.preprocess(raw, u, acq.grid, "x", None, acq.venc_m_s, options=OFF)
+    f = truth.flowing_fraction
+    xc, yc = acq.grid.centers()
+    pv = (f > 0.02) & (f < 0.98) & (np.hypot(xc - truth.center[0], yc - truth.center[1]) < 16)  # not the vein
+    err_new, err_old = (m - f)[pv], (np.clip(m_old, 0, 1) - f)[pv]
+    assert lumen.tissue["surround"]["kind"] == "tissue"
+    # measured (dev seed 102): mean -0.005, rms 0.03 (texture beyond the wall, which no smooth model holds);
+    # Appendix B's: mean -0.1. Bounds: a mean bias of 0.02 moves the wall by 0.02 h = 0.02 mm
+    assert abs(err_new.mean()) < 0.02 and np.sqrt(np.mean(err_new**2)) < 0.06
+    assert abs(err_old.mean()) > 3 * abs(err_new.mean())
+
+
+def test_noise_free_radius_in_tissue():
+    acq, truth = _noise_free_tissue()
+    res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+    phi = rad.uniform_angles(180)
+    dr = res.geometry.radius(phi) - truth.radius_about(res.geometry.center, phi)
+    old = reconstruct(acq, ReconstructionOptions(uncertainty=False, tissue=OFF))[0]
+    dr_old = old.geometry.radius(phi) - truth.radius_about(old.geometry.center, phi)
+    # measured: mean +0.006 mm (Appendix B's: -0.11 mm); 0.03 mm = 3 % of a voxel
+    assert abs(dr.mean()) < 0.03 and abs(dr_old.mean()) > 3 * abs(dr.mean())
+
+
+def _fat_and_vessel(n=60, h=1.0, seed=0):
+    """A bright static blob (fat, larger than the vessel) beside a flowing vessel, in tissue."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:n, 0:n] * h - (n - 1) * h / 2
+    mag = np.full((n, n), 0.3)
+    fat = np.hypot(x + 12, y - 10) < 10
+    vessel = np.hypot(x - 12, y + 8) < 7
+    mag[fat], mag[vessel] = 0.85, 1.0
+    venc = 0.5
+    u = np.where(vessel, 0.35 * (1 - ((x - 12) ** 2 + (y + 8) ** 2) / 49), 0.0)
+    d = mag * np.exp(1j * np.pi * u / venc) + 0.03 * (rng.standard_normal((n, n)) + 1j * rng.standard_normal((n, n)))
+    grid = VoxelGrid((n, n), (h, h), (-(n - 1) * h / 2, -(n - 1) * h / 2))
+    return np.abs(d), venc * np.angle(d) / np.pi, grid, venc
+
+
+def test_fat_is_not_a_vessel():
+    raw, u, grid, venc = _fat_and_vessel()
+    from wss_nlp.models import preprocess as pp
+
+    old = pp.preprocess(raw, grid, "x")[2]
+    assert old.center[0] < 0  # Appendix B takes the larger bright region: the fat
+    _, _, lumen = surround.screen_preprocess(raw, u, grid, "x", None, venc)
+    assert abs(lumen.center[0] - 12) < 1 and abs(lumen.center[1] + 8) < 1
+    assert lumen.others == []  # fat is not "another vessel in view"
+    (fat,) = lumen.tissue["static_bright"]
+    assert abs(fat["center_mm"][0] + 12) < 1.5
+
+
+def test_screen_reports_only_flowing_vessels():
+    acq, _ = invivo.make_invivo("laminar", 1.5, seed=invivo.DEV_SEEDS[0], max_points=12)
+    _, found = plaus.screen(acq)
+    rec = found[0].record
+    centres = sorted(tuple(round(c) for c in o["center_mm"]) for o in rec["other_vessels"])
+    assert len(centres) == 2  # the artery and the vein; the fat layer and deposits are static bright regions
+    assert len(rec["static_bright_regions"]) >= 1
+
+
+def test_lumen_noise_sigma_from_the_plateau():
+    rng = np.random.default_rng(1)
+    n, sigma = 50, 0.04
+    y, x = np.mgrid[0:n, 0:n] - (n - 1) / 2
+    mask = np.hypot(x, y) < 18
+    # smooth inflow-like level and shading: a constant Laplacian and a slow trend do not count as noise
+    level = (1 + 0.2 * (1 - (x**2 + y**2) / 18**2)) * np.exp(0.005 * x)
+    raw = np.abs(level + sigma * (rng.standard_normal((n, n)) + 1j * rng.standard_normal((n, n))))
+    # ~700 plateau voxels: the trimmed deviation's relative error is ~3 %; 10 % is the test's margin
+    assert abs(surround.lumen_noise_sigma(raw, mask) / sigma - 1) < 0.1
+
+
+def _highpass_ratio(seeds) -> tuple[float, float]:
+    """``(measured, predicted)`` variance of ``a - (mean of 4 neighbours)`` per unit noise variance, k-space noise."""
+    from wss_nlp.models import acquisition as am
+    from wss_nlp.models import kspace
+
+    psf = kspace.PSF("hamming", (2.0, 2.0))
+    ratios = []
+    for seed in seeds:  # the same seed draws the same sub-voxel shift: the difference is the noise alone
+        noisy = phantoms.make_phantom("laminar", 1.0, 25, seed, psf=psf)[0]
+        clean = phantoms.make_phantom("laminar", 1.0, None, seed, psf=psf)[0]
+        n = noisy.magnitude[0] * np.exp(1j * noisy.phase[0]) - clean.magnitude[0] * np.exp(1j * clean.phase[0])
+        hp = n - 0.25 * (np.roll(n, 1, 0) + np.roll(n, -1, 0) + np.roll(n, 1, 1) + np.roll(n, -1, 1))
+        inner = (slice(2, -2), slice(2, -2))
+        ratios.append(np.var(hp.real[inner]) / np.var(n.real[inner]))
+    return float(np.mean(ratios)), am.KSpace(psf).highpass_noise_variance(n.shape)
+
+
+def test_highpass_noise_variance_of_kspace_noise_matches_the_phantoms_noise():
+    # the noise estimate from the lumen plateau divides by the variance of a - (mean of 4 neighbours) per unit
+    # noise variance: 1.25 for independent voxels; a Hamming-filtered, twice zero-filled acquisition correlates
+    # neighbours and leaves about 0.024. Checked against the noise the k-space phantom adds (white k-space noise
+    # filtered and zero-filled by FFT, an independent computation) on one image of ~1300 voxels, about 1/13 of
+    # them effectively independent: the ratio's sampling error is ~15 %, hence 25 % (the slow test: 3 seeds, 15 %)
+    from wss_nlp.models import acquisition as am
+
+    measured, predicted = _highpass_ratio((3,))
+    assert abs(measured / predicted - 1) < 0.25
+    assert am.VoxelMeans().highpass_noise_variance((39, 39)) == 1.25
+
+
+@pytest.mark.slow
+def test_highpass_noise_variance_of_kspace_noise_over_seeds():
+    measured, predicted = _highpass_ratio((3, 4, 5))  # ~9 % sampling error over three images: 15 %
+    assert abs(measured / predicted - 1) < 0.15
