@@ -811,7 +811,7 @@ STUDIES = {
         # export and compare
         (["export", "{d}/in.h5", "--vtk", "{d}/w.vtu", "--slice-spacing", "0"], "error:--slice-spacing"),
         (["export", "{d}/in.h5", "--vtk", "{d}/w.vtu", "--slice-spacing", "-2"], "error:--slice-spacing"),
-        (["compare", "{d}/cine_result.h5", "{d}/in.h5"], "error:time-resolved (cine) result"),
+        (["compare", "{d}/cine_result.h5", "{d}/truth.h5"], "error:time-resolved truth for a time-resolved result"),
         # import: the user's numbers in their ranges before any file is read
         (["import", "{d}/scan", "-o", "{d}/x.h5", "--venc", "150"], "error:--venc|cm/s given? pass 1.5"),
         (["import", "{d}/scan", "-o", "{d}/x.h5", "--viscosity", "3.5"], "error:--viscosity|mPa s"),
@@ -837,6 +837,7 @@ STUDIES = {
 )
 def test_fuzz_other_commands(argv, expect, base, tmp_path, capsys):
     shutil.copy(base["slice"], tmp_path / "in.h5")
+    shutil.copy(base["slice"].parent / "slice_truth.h5", tmp_path / "truth.h5")  # a single-slice truth
     (tmp_path / "study.toml").write_text(STUDY)
     for name, text in STUDIES.items():
         (tmp_path / name).write_text(text)

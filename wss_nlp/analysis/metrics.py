@@ -162,3 +162,63 @@ def velocity_error(velocity_result, truth, n_rho: int = 64, n_t: int = 128) -> f
     v_ref = flow.velocity(x, y).ravel()
     w = rr.ravel()
     return float(np.sqrt(np.sum(w * (v - v_ref) ** 2) / np.sum(w * v_ref**2)))
+
+
+@dataclass
+class CineErrors:
+    """Errors of one slice of a time-resolved result against a time-resolved truth (wall means).
+
+    The reference is the truth's WSS times ``scale``, the viscosity the result states over the truth's (the
+    stress scales with the viscosity it is told; 1 where either file does not record it).
+    """
+
+    frames: int
+    scale: float  # stated over true viscosity
+    worst_frame_rel_peak: float  # max_k |mean tau_k - reference_k| / max_k |reference_k|
+    rms_frame_rel_peak: float
+    worst_frame_time_ms: float
+    tawss_rel: float  # (wall-mean TAWSS - reference) / reference, signed; NaN where not computed
+    osi_abs: float  # wall-mean OSI - truth's, signed
+    radius_max_mm: float  # largest |mean radius - truth's| over the frames
+    nu_rel: float = float("nan")  # fitted / true kinematic viscosity - 1 (NaN without a fit or a truth)
+    nu_inside: bool | None = None  # the fit's interval holds the true kinematic viscosity
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def compare_cine(result: dict, truth: dict, model: dict | None = None, true_nu: float | None = None) -> CineErrors:
+    """Errors of a slice of a time-resolved result (:func:`wss_nlp.io.files.read_result`) against a
+    time-resolved truth's slice; ``model`` the slice's cycle-model record
+    (:func:`wss_nlp.io.files.read_cine_models`), ``true_nu`` the truth's kinematic viscosity (m^2/s)."""
+    from ..errors import InputError
+
+    t_res, t_true = np.asarray(result["time_ms"], float), np.asarray(truth["time_ms"], float)
+    if t_res.shape != t_true.shape or not np.allclose(t_res, t_true, atol=1e-6):
+        raise InputError(
+            f"the result's {t_res.size} frames and the truth's {t_true.size} are not at the same trigger times"
+        )
+    stated, true = result.get("viscosity_pa_s"), truth.get("viscosity_pa_s")
+    scale = float(stated / true) if stated and true else 1.0
+    reference = scale * np.asarray(truth["mean_tau_t"], dtype=float)
+    mean = np.asarray(result["mean_tau_t"], dtype=float)
+    peak = float(np.max(np.abs(reference)))
+    err = np.abs(mean - reference) / peak
+    worst = int(np.nanargmax(err)) if np.any(np.isfinite(err)) else 0
+    tawss = np.asarray(result.get("tawss", np.nan), dtype=float)
+    truth_tawss = scale * float(np.mean(truth["tawss"]))
+    tawss_rel = float(np.mean(tawss) / truth_tawss - 1) if np.all(np.isfinite(tawss)) else float("nan")
+    osi = np.asarray(result.get("osi", np.nan), dtype=float)
+    osi_abs = float(np.mean(osi) - np.mean(truth["osi"])) if np.all(np.isfinite(osi)) else float("nan")
+    radius = np.nanmean(np.atleast_2d(result["radius"]), axis=1)
+    radius_true = np.mean(np.atleast_2d(truth["radius"]), axis=1)
+    out = CineErrors(
+        int(t_res.size), scale, float(err[worst]), float(np.sqrt(np.nanmean(err**2))), float(t_res[worst]),
+        tawss_rel, osi_abs, float(np.nanmax(np.abs(radius - radius_true))),
+    )  # fmt: skip
+    viscosity = (model or {}).get("viscosity", {})
+    if true_nu and viscosity.get("mode") == "fit":
+        out.nu_rel = float(viscosity["nu_m2_s"] / true_nu - 1)
+        lo, hi = viscosity["nu_interval_m2_s"]
+        out.nu_inside = bool(lo <= true_nu <= hi)
+    return out

@@ -768,11 +768,12 @@ def _write_sensitivity(group, sen, shape, h_mm: float) -> None:
 
 
 def read_sensitivity(path) -> dict:
-    """``{slice name: {"names", "d_mean", "d_tau", "mean_std_*", "h_mm", "alpha", "beta", "gamma", "mean_pa"}}``."""
+    """``{slice name: {"names", "d_mean", "d_tau", "mean_std_*", "h_mm", "alpha", "beta", "gamma", "mean_pa"}}``.
+
+    A time-resolved result's frames that kept their own fit (and band) appear as ``slice_NNN/frame_KKK``."""
     out = {}
     with _open_result(str(path)) as f:
-        for name in sorted(k for k in f if k.startswith("slice_")):
-            s = f[name]
+        for name, s in _record_groups(f):
             if "sensitivity" not in s:
                 continue
             g = s["sensitivity"]
@@ -792,12 +793,65 @@ def read_sensitivity(path) -> dict:
     return out
 
 
+def _record_groups(f):
+    """``(name, group)`` of every single-slice record of a result: each slice group, or in a time-resolved
+    result each frame's record ``slice_NNN/frame_KKK`` (the slice groups hold the series)."""
+    for name in sorted(k for k in f if k.startswith("slice_")):
+        s = f[name]
+        if "frames" in s:
+            for frame in sorted(s["frames"]):
+                yield f"{name}/{frame}", s["frames"][frame]
+        else:
+            yield name, s
+
+
+def _per_frame(value):
+    """A slice attribute that is a scalar, or one value per frame in a time-resolved result."""
+    array = np.asarray(value, dtype=float)
+    return float(array) if array.ndim == 0 else array
+
+
+def result_layout(path) -> str:
+    """What a result (or truth) file holds: ``"slice"``, ``"stack"``, ``"cine"`` or ``"stack of cines"``."""
+    with _open_result(str(path)) as f:
+        names = [k for k in f if k.startswith("slice_")]
+        if not names:
+            raise InputError(f"{path}: no 'slice_NNN' groups; not a wss-nlp result file")
+        cine = "trigger_times_ms" in f.attrs
+    if cine:
+        return "stack of cines" if len(names) > 1 else "cine"
+    return "stack" if len(names) > 1 else "slice"
+
+
+def read_cine_models(path) -> dict:
+    """``{slice name: record}``: each slice's velocity model over the cycle (``cine_model_json``: the model chosen
+    and why, the candidates' criteria, the walls, the viscosity the frames imply), with ``failed_frames``,
+    ``time_ms``, the per-frame ``alpha`` and ``beta``, ``warnings`` and ``tawss_note`` where the frames do not
+    cover the cycle."""
+    out = {}
+    with _open_result(str(path)) as f:
+        for name in sorted(k for k in f if k.startswith("slice_")):
+            s = f[name]
+            rec = json.loads(s.attrs["cine_model_json"]) if "cine_model_json" in s.attrs else {}
+            rec["failed_frames"] = [int(k) for k in np.atleast_1d(s.attrs.get("failed_frames", []))]
+            rec["time_ms"] = s["wss/time_ms"][()] if "wss/time_ms" in s else np.array([])
+            rec["alpha"] = np.atleast_1d(np.asarray(s.attrs.get("alpha", np.nan), dtype=float))
+            rec["beta"] = np.atleast_1d(np.asarray(s.attrs.get("beta", np.nan), dtype=float))
+            rec["warnings"] = json.loads(s.attrs.get("warnings", "[]"))
+            if "wss" in s and "tawss_note" in s["wss"].attrs:
+                rec["tawss_note"] = str(s["wss"].attrs["tawss_note"])
+            out[name] = rec
+    return out
+
+
 def read_result(path) -> list[dict]:
     """Read a result (or truth) file into one dictionary per slice.
 
     Keys: ``center``, ``coefficients``, ``phi``, ``radius``, ``tau``,
     ``mean_tau``, ``alpha``, ``beta``, ``converged`` and, where present,
-    ``wall_x``, ``wall_y``, ``tau_std``, ``mean_std``.
+    ``wall_x``, ``wall_y``, ``tau_std``, ``mean_std``. A time-resolved result (or truth) gives the slice's
+    series: ``tau (nt, nphi)``, ``radius (nt, nphi)``, ``alpha`` and ``beta`` per frame, and ``time_ms``,
+    ``mean_tau_t``, ``tawss``, ``osi``, ``viscosity_pa_s`` where present.
     """
     src = str(path)
     out = []
@@ -821,13 +875,19 @@ def read_result(path) -> list[dict]:
                     "radius": s["geometry/radius_mm"][()],
                     "tau": s["wss/tau_pa"][()],
                     "mean_tau": float(s["wss"].attrs["mean_pa"]),
-                    "alpha": float(s.attrs.get("alpha", np.nan)),
-                    "beta": float(s.attrs.get("beta", np.nan)),
-                    "converged": bool(s.attrs.get("converged", True)),
+                    "alpha": _per_frame(s.attrs.get("alpha", np.nan)),
+                    "beta": _per_frame(s.attrs.get("beta", np.nan)),
+                    "converged": bool(np.all(s.attrs.get("converged", True))),
                     "failed": bool(s.attrs.get("failed", False)),
                 }
             except KeyError as exc:
                 raise InputError(f"{src}: group {name} lacks {exc}") from exc
+            for key, ds in (("time_ms", "wss/time_ms"), ("mean_tau_t", "wss/mean_pa_t"), ("tawss", "wss/tawss_pa"),
+                            ("osi", "wss/osi"), ("mean_std_t", "wss/mean_std_pa_t")):  # fmt: skip
+                if ds in s:
+                    d[key] = s[ds][()]
+            if "viscosity_pa_s" in s["wss"].attrs:
+                d["viscosity_pa_s"] = float(s["wss"].attrs["viscosity_pa_s"])
             for key, ds in (
                 ("wall_x", "wss/wall_x_mm"),
                 ("wall_y", "wss/wall_y_mm"),
@@ -855,13 +915,13 @@ def read_choices(path) -> dict:
     read_result(path)  # validates the file and its slices
     out: dict = {}
     with h5py.File(path, "r") as f:
-        for name in sorted(k for k in f if k.startswith("slice_")):
+        for name, s in _record_groups(f):
             out[name] = {}
             for which in ("alpha", "beta"):
-                key = f"{name}/analysis/{which}"
-                if key not in f:
+                key = f"analysis/{which}"
+                if key not in s:
                     continue
-                g = f[key]
+                g = s[key]
                 a = g.attrs
                 out[name][which] = ParameterChoice(
                     which,
@@ -890,8 +950,8 @@ def read_dephasing(path) -> dict:
 
     out = {}
     with h5py.File(path, "r") as f:
-        for name in sorted(k for k in f if k.startswith("slice_")):
-            attrs = f[name].attrs
+        for name, s in _record_groups(f):
+            attrs = s.attrs
             if "dephasing_json" in attrs:
                 rec = json.loads(attrs["dephasing_json"])
             else:
@@ -917,7 +977,5 @@ def read_near_wall(path) -> dict:
 
     with h5py.File(path, "r") as f:
         return {
-            name: json.loads(f[name].attrs["near_wall_json"])
-            for name in sorted(k for k in f if k.startswith("slice_"))
-            if "near_wall_json" in f[name].attrs
+            name: json.loads(s.attrs["near_wall_json"]) for name, s in _record_groups(f) if "near_wall_json" in s.attrs
         }

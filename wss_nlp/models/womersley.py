@@ -49,7 +49,7 @@ fits to be taken.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -67,6 +67,9 @@ MODELS = ("auto", "independent", "temporal", "momentum")
 
 #: How the momentum model takes the frames' walls (:func:`smooth_walls`).
 WALLS = ("auto", "frames", "shared")
+
+#: Where the momentum model's kinematic viscosity comes from (:mod:`wss_nlp.parameters.viscosity`).
+VISCOSITIES = ("fit", "stated")
 
 #: Most harmonics the model tries (fewer when the frames cannot carry them: ``K <= n_frames / 2``).
 MAX_HARMONICS = 12
@@ -88,6 +91,10 @@ class CineModelOptions:
         Most temporal harmonics of the momentum model (the BIC chooses how many).
     walls : {"auto", "frames", "shared"}
         The walls the momentum model and the temporal prior are fitted on (:func:`smooth_walls`).
+    viscosity : {"fit", "stated"}
+        The momentum model's kinematic viscosity (the Stokes layer's thickness): fitted to the frames with
+        its interval (:mod:`wss_nlp.parameters.viscosity`), or the stated viscosity over the density. The
+        stress takes the stated viscosity either way.
     """
 
     schema_group = "time-resolved (cine) data"
@@ -114,12 +121,21 @@ class CineModelOptions:
         cli="--cine-walls",
         choices=WALLS,
     )
+    viscosity: str = option(
+        "fit",
+        "the momentum model's Stokes layer: fit = its kinematic viscosity fitted to the frames (reported with "
+        "its interval; the stress keeps the stated viscosity), stated = from the stated viscosity and density",
+        cli="--cine-viscosity",
+        choices=VISCOSITIES,
+    )
 
     def __post_init__(self):
         if self.model not in MODELS:
             raise InputError(f"cine model must be one of {MODELS}, got {self.model!r}")
         if self.walls not in WALLS:
             raise InputError(f"cine walls must be one of {WALLS}, got {self.walls!r}")
+        if self.viscosity not in VISCOSITIES:
+            raise InputError(f"cine viscosity must be one of {VISCOSITIES}, got {self.viscosity!r}")
         if not 0 <= self.max_harmonics <= 64:
             raise InputError(f"max_harmonics must lie in 0..64, got {self.max_harmonics}")
 
@@ -165,10 +181,83 @@ def normal_gradient_function(n_fourier: int) -> ca.Function:
     return ca.Function("n_grad_sigma", [phi, c], [ca.dot(normal, grad(wall, c))])
 
 
-#: Points of the per-frame table of each shape function on sigma in [0, 1] (cubic spline; the layer of
-#: harmonic n is about 1/|Lambda_n| wide in sigma, >= 0.01 for any harmonic a 20-frame series carries at
-#: Womersley numbers below 30, so the spline's error is below 1e-8 of the shape's scale: tests).
-TABLE_POINTS = 4097
+@functools.lru_cache(maxsize=8)
+def normal_gradient_offset_function(n_fourier: int) -> ca.Function:
+    r"""``(phi, c_R) -> (n . grad sigma, its derivative in c_R[0])``: the wall moved outward by ``epsilon`` (mm) is
+    ``c_R[0] + epsilon`` (CasADi's exact derivative of :func:`normal_gradient_function`)."""
+    phi, c = ca.SX.sym("phi"), ca.SX.sym("c_R", rad.n_coefficients(n_fourier))
+    value = normal_gradient_function(n_fourier)(phi, c)
+    return ca.Function("n_grad_sigma_offset", [phi, c], [value, ca.jacobian(value, c)[0]])
+
+
+#: Node spacing of a shape's table times :math:`|\Lambda|` (cubic Hermite interpolation from exact values and
+#: sigma-derivatives at the nodes: error about :math:`(h|\Lambda|)^4/384` of the shape's scale, 2e-9 here;
+#: the layer of harmonic n is about :math:`1/|\Lambda_n|` wide in sigma), and the fewest and most nodes.
+TABLE_STEP, TABLE_MIN, TABLE_MAX = 0.03, 256, 16384
+
+
+def _nodes(lam: complex) -> int:
+    """Intervals of the table of the shape of parameter ``lam`` on sigma in [0, 1] (:data:`TABLE_STEP`)."""
+    return int(np.clip(np.ceil(abs(lam) / TABLE_STEP), TABLE_MIN, TABLE_MAX))
+
+
+@functools.lru_cache(maxsize=128)
+def _table(lam: complex) -> tuple:
+    r"""Exact values at the table's nodes: :math:`S`, :math:`\partial_\sigma S`, :math:`\partial_\theta S` and
+    :math:`\partial_\sigma\partial_\theta S` with :math:`\theta = \ln\nu` (:func:`shape_derivative`)."""
+    n = _nodes(lam)
+    x = np.linspace(0.0, 1.0, n + 1)
+    j0, j1 = scipy.special.jv(0, lam * x), scipy.special.jv(1, lam * x)
+    big0, big1 = scipy.special.jv(0, lam), scipy.special.jv(1, lam)
+    value, slope = 1.0 - j0 / big0, lam * j1 / big0
+    d_lam = x * j1 / big0 - j0 * big1 / big0**2  # dS / dLambda
+    d_lam_slope = lam * x * j0 / big0 + lam * j1 * big1 / big0**2  # d^2 S / dsigma dLambda
+    to_theta = -0.5 * lam  # dLambda / d ln(nu): Lambda is proportional to nu^(-1/2)
+    return n, value, slope, to_theta * d_lam, to_theta * d_lam_slope
+
+
+def _hermite(n: int, values: np.ndarray, slopes: np.ndarray, sigma: np.ndarray, derivative: bool = False):
+    """Cubic Hermite interpolation of a table on ``n`` equal intervals of [0, 1] at ``sigma`` (in [0, 1]); with
+    ``derivative`` also the interpolant's sigma-derivative."""
+    u = sigma * n
+    j = np.minimum(u.astype(int), n - 1)
+    t = u - j
+    t2 = t * t
+    t3 = t2 * t
+    h = 1.0 / n
+    f0, f1, d0, d1 = values[j], values[j + 1], h * slopes[j], h * slopes[j + 1]
+    value = (2 * t3 - 3 * t2 + 1) * f0 + (t3 - 2 * t2 + t) * d0 + (3 * t2 - 2 * t3) * f1 + (t3 - t2) * d1
+    if not derivative:
+        return value
+    slope = ((6 * t2 - 6 * t) * (f0 - f1) + (3 * t2 - 4 * t + 1) * d0 + (3 * t2 - 2 * t) * d1) / h
+    return value, slope
+
+
+def shape_derivative(sigma, lam: complex) -> np.ndarray:
+    r""":math:`\partial S_n/\partial\theta` with :math:`\theta = \ln\nu` (:math:`\Lambda_n \propto \nu^{-1/2}`):
+
+    .. math::
+
+        \frac{\partial S}{\partial\theta} = -\frac{\Lambda}{2}\Big(\frac{\sigma J_1(\Lambda\sigma)}{J_0(\Lambda)}
+        - \frac{J_0(\Lambda\sigma) J_1(\Lambda)}{J_0(\Lambda)^2}\Big),
+
+    from :math:`J_0' = -J_1` (exact; 0 for Poiseuille's :math:`\Lambda = 0`).
+    """
+    sigma = np.asarray(sigma, dtype=float)
+    if lam == 0:
+        return np.zeros_like(sigma, dtype=complex)
+    j0, j1 = scipy.special.jv(0, lam * sigma), scipy.special.jv(1, lam * sigma)
+    big0, big1 = scipy.special.jv(0, lam), scipy.special.jv(1, lam)
+    return -0.5 * lam * (sigma * j1 / big0 - j0 * big1 / big0**2)
+
+
+def wall_slope_derivative(lam: complex) -> complex:
+    r""":math:`\partial S_n'(1)/\partial\theta = -\tfrac{\Lambda^2}{2}\big(1 + J_1(\Lambda)^2/J_0(\Lambda)^2\big)`
+    (:math:`\theta = \ln\nu`; from :math:`J_1' = J_0 - J_1/z`), 0 for :math:`\Lambda = 0`."""
+    if lam == 0:
+        return 0.0
+    ratio = scipy.special.jv(1, lam) / scipy.special.jv(0, lam)
+    return complex(-0.5 * lam**2 * (1.0 + ratio**2))
 
 
 @dataclass
@@ -208,23 +297,38 @@ def columns_at(sigma: np.ndarray, lams: list[complex], phase: np.ndarray) -> np.
     return _columns(shapes_at(sigma, lams), phase)
 
 
-def shapes_at(sigma: np.ndarray, lams: list[complex]) -> np.ndarray:
-    """``S_0, S_1, ..., S_K`` at ``sigma`` (complex, shape ``(n, K + 1)``).
+def shapes_at(sigma: np.ndarray, lams: list[complex], derivative: bool = False):
+    r"""``S_0, S_1, ..., S_K`` at ``sigma`` (complex, shape ``(n, K + 1)``); with ``derivative`` also their
+    derivatives in :math:`\theta = \ln\nu` (column 0, Poiseuille's, is 0).
 
-    Each complex shape is tabulated on :data:`TABLE_POINTS` values of sigma and interpolated by a cubic
-    spline (built once per ``Lambda``): the Bessel functions of complex argument cost about a microsecond
-    each and a frame has ten thousand sub-voxel points.
+    Each complex shape is tabulated with its sigma-derivative at :func:`_nodes` equal intervals of [0, 1]
+    (exact values, :func:`_table`, built once per ``Lambda``) and interpolated by cubic Hermite polynomials:
+    the Bessel functions of complex argument cost about a microsecond each and a frame has ten thousand
+    sub-voxel points.
     """
-    sigma = np.clip(np.asarray(sigma, dtype=float), 0.0, 1.0)
-    return np.column_stack([shape(sigma, 0).astype(complex)] + [_spline(complex(lam))(sigma) for lam in lams])
+    value, _, d_theta = shape_parts(sigma, lams, slopes=False, theta=derivative)
+    return (value, d_theta) if derivative else value
 
 
-@functools.lru_cache(maxsize=64)
-def _spline(lam: complex):
-    import scipy.interpolate  # here: a slow import (0.1 s) the command line should not pay at start-up
-
-    table = np.linspace(0.0, 1.0, TABLE_POINTS)
-    return scipy.interpolate.CubicSpline(table, shape(table, lam))
+def shape_parts(sigma: np.ndarray, lams: list[complex], slopes: bool = True, theta: bool = True):
+    r"""``(S, dS/dsigma, dS/dtheta)`` of ``S_0 .. S_K`` at ``sigma`` (complex ``(n, K + 1)`` each; None where
+    not asked for), :math:`\theta = \ln\nu`, from the tables (:func:`shapes_at`)."""
+    sigma = np.clip(np.asarray(sigma, dtype=float).ravel(), 0.0, 1.0)
+    value = np.empty((sigma.size, len(lams) + 1), dtype=complex)
+    value[:, 0] = 1.0 - sigma**2
+    slope = np.zeros_like(value) if slopes else None
+    d_theta = np.zeros_like(value) if theta else None
+    if slope is not None:
+        slope[:, 0] = -2.0 * sigma
+    for i, lam in enumerate(lams, start=1):
+        n, v, s, dv, ds = _table(complex(lam))
+        if slope is not None:
+            value[:, i], slope[:, i] = _hermite(n, v, s, sigma, derivative=True)
+        else:
+            value[:, i] = _hermite(n, v, s, sigma)
+        if d_theta is not None:
+            d_theta[:, i] = _hermite(n, dv, ds, sigma)
+    return value, slope, d_theta
 
 
 def _columns(shapes: np.ndarray, phase: np.ndarray) -> np.ndarray:
@@ -238,17 +342,25 @@ def _columns(shapes: np.ndarray, phase: np.ndarray) -> np.ndarray:
 
 def wall_shapes(problem: vel.VelocityProblem, k_max: int, omega: float, nu_m2_s: float, radius_mm: float):
     """The voxel values of ``S_0 .. S_K`` on ``problem``'s wall (complex ``(n_vox, K + 1)``): frames on one wall
-    share them, each frame's columns are these times its phases (the voxel values are linear)."""
-    vox = problem.voxels
-    coefficients, center = problem.disk_map.coefficients, problem.disk_map.center
-    s = ray_coordinate(coefficients, center, vox.px[vox.inside], vox.py[vox.inside])
-    shapes = shapes_at(s, lambdas(k_max, radius_mm, omega, nu_m2_s))
-    return vel.voxel_values(problem, shapes.real) + 1j * vel.voxel_values(problem, shapes.imag)
+    share them, each frame's columns are these times its phases (the voxel values are linear). Each point's
+    cell integrated along its ray (:func:`offset_columns` with no offset)."""
+    return offset_columns(WallPoints.of(problem), k_max, omega, nu_m2_s, radius_mm, 0.0, derivative=False)
+
+
+#: The model's nonlinear parameters where they are fitted (:mod:`wss_nlp.parameters.viscosity`): the log of the
+#: kinematic viscosity over the stated one, and the walls' outward offset (mm).
+NONLINEAR = ("ln_nu", "wall_offset_mm")
 
 
 @dataclass
 class MomentumFit:
-    """The momentum model of one cine slice fitted with ``harmonics`` harmonics."""
+    """The momentum model of one cine slice fitted with ``harmonics`` harmonics.
+
+    Where the viscosity and the walls' offset were fitted too (:mod:`wss_nlp.parameters.viscosity`),
+    ``offset_mm`` moves every wall outward (``c_R[0] + offset``, and the cycle's radius with it) and ``joint``
+    is the covariance of the coefficients and of :data:`NONLINEAR`: the band then carries their uncertainty
+    (:meth:`joint_covariance`).
+    """
 
     harmonics: int
     coefficients: np.ndarray  # a_0, Re a_1, Im a_1, ... (m/s)
@@ -257,6 +369,22 @@ class MomentumFit:
     n_data: int
     omega: float  # rad/s
     nu_m2_s: float
+    offset_mm: float = 0.0
+    joint: np.ndarray | None = None  # Cov(a, ln nu, offset) where fitted
+
+    def joint_covariance(self) -> np.ndarray:
+        """Covariance of ``(a, ln nu, offset)`` (the last two rows and columns 0 where they were not fitted)."""
+        if self.joint is not None:
+            return self.joint
+        p = self.coefficients.size
+        out = np.zeros((p + 2, p + 2))
+        out[:p, :p] = self.covariance
+        return out
+
+
+#: Condition number of a (diagonally scaled) normal matrix beyond which more harmonics are not fitted: frames
+#: that leave part of the cycle empty cannot carry them.
+MAX_CONDITION = 1e10
 
 
 def fit(terms: list[FrameTerms], omega: float, nu_m2_s: float) -> list[MomentumFit]:
@@ -268,40 +396,315 @@ def fit(terms: list[FrameTerms], omega: float, nu_m2_s: float) -> list[MomentumF
     normal = np.sum([t.normal for t in terms], axis=0)
     rhs = np.sum([t.rhs for t in terms], axis=0)
     usu, n_data = sum(t.usu for t in terms), sum(t.n_data for t in terms)
+    return fits_from_normal(normal, rhs, usu, n_data, omega, nu_m2_s)
+
+
+def fits_from_normal(
+    normal, rhs, usu: float, n_data: int, omega: float, nu_m2_s: float, offset_mm: float = 0.0
+) -> list[MomentumFit]:
+    """The fits with ``K = 0, 1, ...`` harmonics from the summed normal equations of ``K_max``'s columns; stops
+    before a ``K`` whose normal matrix is ill-conditioned (:data:`MAX_CONDITION`: e.g. frames with a gap)."""
     out = []
     for k in range((normal.shape[0] - 1) // 2 + 1):
         j = 2 * k + 1
-        try:
-            covariance = np.linalg.inv(normal[:j, :j])
-        except np.linalg.LinAlgError as exc:
-            raise InputError(f"the momentum model's normal matrix is singular ({exc}); too few frames") from exc
+        block = normal[:j, :j]
+        scale = np.sqrt(np.abs(np.diag(block)))
+        if np.any(scale == 0) or np.linalg.cond(block / np.outer(scale, scale)) > MAX_CONDITION:
+            break
+        covariance = np.linalg.inv(block)
         coef = covariance @ rhs[:j]
-        chi2 = float(coef @ normal[:j, :j] @ coef - 2 * coef @ rhs[:j] + usu)
-        out.append(MomentumFit(k, coef, covariance, chi2, n_data, omega, nu_m2_s))
+        chi2 = float(coef @ block @ coef - 2 * coef @ rhs[:j] + usu)
+        out.append(MomentumFit(k, coef, covariance, chi2, n_data, omega, nu_m2_s, offset_mm))
+    if not out:
+        raise InputError("the momentum model's normal matrix is singular; too few frames or no flow")
     return out
+
+
+@dataclass
+class WallPoints:
+    """A wall's quadrature points for the model's columns on the wall moved outward by an offset.
+
+    ``r`` is each point's distance from the centre and ``wall`` the wall's radius in its direction (mm, shape
+    ``(n_vox, q^2)``: the problem's points), ``cell`` the side of a point's quadrature cell (mm).
+    """
+
+    problem: vel.VelocityProblem
+    r: np.ndarray
+    wall: np.ndarray
+    cell: float
+
+    @classmethod
+    def of(cls, problem: vel.VelocityProblem) -> WallPoints:
+        vox, dm = problem.voxels, problem.disk_map
+        dx, dy = vox.px - dm.center[0], vox.py - dm.center[1]
+        wall = rad.evaluate(np.asarray(dm.coefficients, float), np.arctan2(dy, dx).ravel()).reshape(dx.shape)
+        q = int(round(np.sqrt(vox.px.shape[1])))
+        cell = float(np.sqrt(problem.cell_mm[0] * problem.cell_mm[1])) if problem.cell_mm else _spacing(vox.px, q)
+        return cls(problem, np.hypot(dx, dy), wall, cell)
+
+    def aggregate(self, values: np.ndarray) -> np.ndarray:
+        """Point values ``(n_vox, q^2, m)`` to voxel sums (box) or PSF-weighted sums (k-space)."""
+        if self.problem.averager is None:
+            return values.sum(axis=1)
+        return self.problem.averager(values)
+
+
+def _spacing(px: np.ndarray, q: int) -> float:
+    """The spacing of a voxel's ``q x q`` points along x (mm)."""
+    return float(abs(px[0, 1] - px[0, 0])) if q > 1 else float("nan")
+
+
+def _integral(n: int, values: np.ndarray, slopes: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    r""":math:`\int_0^\sigma` of the cubic Hermite interpolant of a table (:func:`_hermite`), exactly."""
+    h = 1.0 / n
+    d = h * slopes
+    cumulative = np.r_[0.0, np.cumsum(h * ((values[:-1] + values[1:]) / 2 + (d[:-1] - d[1:]) / 12))]
+    u = sigma * n
+    j = np.minimum(u.astype(int), n - 1)
+    t = u - j
+    t2 = t * t
+    t3, t4 = t2 * t, t2 * t2
+    part = (values[j] * (t4 / 2 - t3 + t) + d[j] * (t4 / 4 - 2 * t3 / 3 + t2 / 2)
+            + values[j + 1] * (t3 - t4 / 2) + d[j + 1] * (t4 / 4 - t3 / 3))  # fmt: skip
+    return cumulative[j] + h * part
+
+
+def offset_columns(
+    points: WallPoints, k: int, omega: float, nu_m2_s: float, radius_mm: float, offset_mm: float,
+    derivative: bool = True,
+):  # fmt: skip
+    r"""Voxel values of ``S_0 .. S_K`` on the wall moved outward by ``offset_mm`` (complex ``(n_vox, K + 1)``),
+    and with ``derivative`` their derivatives in :math:`\theta = \ln\nu` and in the offset.
+
+    Notes
+    -----
+    Each quadrature point stands for its cell (side :math:`c`), whose integral of a radial profile is taken
+    along the ray, over the radial segment :math:`[r - c/2, \min(r + c/2, R(\phi) + \epsilon)]`: exactly, from
+    the antiderivative of the tabulated shape (:func:`_integral`). A square's second moment is the same in
+    every direction, so this matches the cell's own integral to fourth order, where the midpoint value
+    misses the Stokes layer by :math:`(c/\delta)^2/24` (one per cent at 1.5 mm voxels and 4 x 4 points); the
+    segment's inside length is the cell's smooth partial volume :math:`w`. In :math:`\sigma = r/(R(\phi) +
+    \epsilon)`,
+
+    .. math::
+
+        c\,v_p = (R_\epsilon)\big[I(\sigma_+) - I(\sigma_-)\big], \qquad
+        c\,\partial_\epsilon v_p = I(\sigma_+) - I(\sigma_-) + R_\epsilon\big[S(\sigma_+)\sigma_+' -
+        S(\sigma_-)\sigma_-'\big] - \frac{2R_\epsilon}{R + \epsilon}\big[I_\theta(\sigma_+) - I_\theta(\sigma_-)\big],
+
+    :math:`R_\epsilon = R(\phi) + \epsilon`, :math:`\sigma_\pm' = -\sigma_\pm/R_\epsilon` (0 where the
+    segment ends at the wall), :math:`I` and :math:`I_\theta` the antiderivatives of :math:`S` and
+    :math:`\partial_\theta S`, the last term because :math:`\Lambda_n \propto R + \epsilon` (the cycle's
+    radius). A voxel's value is :math:`\sum_p v_p / \sum_p w_p` over its points (box means), or the PSF's
+    weighted sums of both (k-space). Cells at the centre (:math:`r < c/2`) take their midpoint value.
+    """
+    eff = points.wall + offset_mm
+    c = points.cell
+    lo_r = points.r - c / 2
+    hi_r = np.minimum(points.r + c / 2, eff)
+    w = np.clip((hi_r - lo_r) / c, 0.0, 1.0)
+    centre = lo_r < 0
+    lo = np.clip(lo_r / eff, 0.0, 1.0)
+    hi = np.clip(hi_r / eff, 0.0, 1.0)
+    mid = np.clip(points.r / eff, 0.0, 1.0)
+    big_r = radius_mm + offset_mm
+    lams = lambdas(k, big_r, omega, nu_m2_s)
+    shape = points.r.shape + (k + 1,)
+    value = np.zeros(shape, dtype=complex)
+    d_theta = np.zeros(shape, dtype=complex)
+    d_eps = np.zeros(shape, dtype=complex)
+    at_wall = hi_r >= eff  # the segment ends at the wall: sigma_+ = 1 whatever the offset
+    d_lo, d_hi = -lo / eff, np.where(at_wall, 0.0, -hi / eff)
+    # Poiseuille's S_0 = 1 - sigma^2: I_0 = sigma - sigma^3 / 3
+    i0 = (hi - hi**3 / 3) - (lo - lo**3 / 3)
+    value[..., 0] = np.where(centre, w * (1 - mid**2), eff * i0 / c)
+    d_eps[..., 0] = np.where(centre, w * 2 * mid**2 / eff, (i0 + eff * ((1 - hi**2) * d_hi - (1 - lo**2) * d_lo)) / c)
+    for i, lam in enumerate(lams, start=1):
+        n, v, sl, dv, dsl = _table(complex(lam))
+        big_i = _integral(n, v, sl, hi) - _integral(n, v, sl, lo)
+        s_hi, s_lo = _hermite(n, v, sl, hi), _hermite(n, v, sl, lo)
+        s_mid, slope_mid = _hermite(n, v, sl, mid, derivative=True)
+        value[..., i] = np.where(centre, w * s_mid, eff * big_i / c)
+        if derivative:
+            big_it = _integral(n, dv, dsl, hi) - _integral(n, dv, dsl, lo)
+            t_mid = _hermite(n, dv, dsl, mid)
+            d_theta[..., i] = np.where(centre, w * t_mid, eff * big_it / c)
+            along = (big_i + eff * (s_hi * d_hi - s_lo * d_lo)) / c
+            d_eps[..., i] = np.where(
+                centre, w * (-mid / eff * slope_mid - 2 / big_r * t_mid), along - 2 / big_r * eff * big_it / c
+            )
+    den = points.aggregate(w[..., None].astype(complex))
+    keep = np.abs(den) > 1e-12 * np.max(np.abs(den))
+    den = np.where(keep, den, 1.0)
+    columns = np.where(keep, points.aggregate(value) / den, 0.0)
+    if not derivative:
+        return columns
+    dw = np.where(at_wall & (w > 0) & (w < 1), 1.0 / c, 0.0)[..., None]
+    c_theta = np.where(keep, points.aggregate(d_theta) / den, 0.0)
+    c_eps = np.where(keep, (points.aggregate(d_eps) - columns * points.aggregate(dw.astype(complex))) / den, 0.0)
+    return columns, c_theta, c_eps
+
+
+@dataclass
+class NormalBlocks:
+    r"""The normal equations of the model with ``2K + 1`` columns :math:`\Phi` and their derivatives
+    :math:`\Phi_j` in the nonlinear parameters (:data:`NONLINEAR`), summed over the frames (weights
+    :math:`W = \Sigma^{-1}`): ``A`` :math:`= \Phi^\top W\Phi`, ``B[j]`` :math:`= \Phi^\top W\Phi_j`,
+    ``C[j][l]`` :math:`= \Phi_j^\top W\Phi_l`, ``b`` :math:`= \Phi^\top W u`, ``c[j]`` :math:`= \Phi_j^\top W u`,
+    ``usu`` :math:`= u^\top W u`."""
+
+    A: np.ndarray
+    B: list
+    C: list
+    b: np.ndarray
+    c: list
+    usu: float
+    n_data: int
+
+
+@dataclass
+class CycleData:
+    r"""The voxel data of a cine slice's frames for the momentum model at any viscosity and wall offset.
+
+    ``problems[k]`` is frame ``k``'s plain velocity problem on the wall the model uses, ``sigmas[k]`` its
+    per-voxel velocity noise (m/s), ``times_s[k]`` its trigger time; ``radius_mm`` the cycle's radius in
+    :math:`\Lambda_n`. Frames on one wall (the same voxels and map) share its columns.
+    """
+
+    problems: list
+    sigmas: list
+    times_s: np.ndarray
+    omega: float
+    radius_mm: float
+    voxel_mm: float = 1.0  # the voxel size (bounds the walls' offset)
+    groups: list = field(default_factory=list)  # per frame, the index of its wall among the distinct ones
+
+    def __post_init__(self):
+        self.times_s = np.asarray(self.times_s, dtype=float)
+        walls: list = []
+        self.groups = []
+        for p in self.problems:
+            same = [i for i, q in enumerate(walls) if _same_wall(p, q)]
+            if same:
+                self.groups.append(same[0])
+            else:
+                self.groups.append(len(walls))
+                walls.append(p)
+        self.points = [WallPoints.of(p) for p in walls]
+
+    @property
+    def n_data(self) -> int:
+        return int(sum(p.data.size for p in self.problems))
+
+    def blocks(self, nu_m2_s: float, harmonics: int, offset_mm: float = 0.0, derivative: bool = True):
+        r"""The summed normal equations at viscosity ``nu_m2_s`` and wall offset ``offset_mm`` (:class:`NormalBlocks`;
+        ``B``, ``C``, ``c`` empty without ``derivative``).
+
+        Per frame one Gram matrix of :math:`[\Phi, \Phi_\theta, \Phi_\epsilon, u]`: the columns cost far more
+        than these products.
+        """
+        k, p = harmonics, 2 * harmonics + 1
+        parts = [offset_columns(w, k, self.omega, nu_m2_s, self.radius_mm, offset_mm, derivative) for w in self.points]
+        n_nl = len(NONLINEAR) if derivative else 0
+        size = p * (1 + n_nl) + 1
+        total = np.zeros((size, size))
+        for problem, sigma, t, g in zip(self.problems, self.sigmas, self.times_s, self.groups):
+            phase = time_factors(k, self.omega, t)
+            blocks = parts[g] if derivative else (parts[g],)
+            cols = np.hstack([_columns(v, phase) for v in blocks] + [problem.data[:, None]])
+            weighted = cols / np.asarray(sigma, dtype=float)[:, None]
+            total += weighted.T @ weighted
+        span = [slice(p * (1 + j), p * (2 + j)) for j in range(n_nl)]
+        return NormalBlocks(
+            total[:p, :p], [total[:p, sj] for sj in span], [[total[sj, sl] for sl in span] for sj in span],
+            total[:p, -1], [total[sj, -1] for sj in span], float(total[-1, -1]), self.n_data,
+        )  # fmt: skip
+
+    def fits(self, nu_m2_s: float, k_max: int, offset_mm: float = 0.0) -> list[MomentumFit]:
+        """The fits with ``K = 0 .. k_max`` harmonics at one viscosity and offset (:func:`fits_from_normal`)."""
+        b = self.blocks(nu_m2_s, k_max, offset_mm, derivative=False)
+        return fits_from_normal(b.A, b.b, b.usu, b.n_data, self.omega, nu_m2_s, offset_mm)
+
+
+def _same_wall(p: vel.VelocityProblem, q: vel.VelocityProblem) -> bool:
+    """Two frames' problems on one wall and voxel set (their model columns are the same)."""
+    return (
+        p.voxels is q.voxels
+        and np.array_equal(p.disk_map.coefficients, q.disk_map.coefficients)
+        and tuple(p.disk_map.center) == tuple(q.disk_map.center)
+        and p.averager is q.averager
+    )
 
 
 def wall_rows(fitted: MomentumFit, frame: FrameTerms, phi: np.ndarray, viscosity_pa_s: float):
     """``D`` with ``tau(phi) = D a`` on a frame's wall at its time (Pa per m/s), shape ``(n_phi, 2K + 1)``."""
-    coefficients, time_s = frame.coefficients, frame.time_s
-    n_fourier = rad.n_fourier_from_size(coefficients.size)
-    grad = np.asarray(normal_gradient_function(n_fourier).map(phi.size)(phi[None, :], coefficients)).ravel()
+    return rows_at(fitted, frame.coefficients, frame.time_s, frame.radius_mm, phi, viscosity_pa_s)[0]
+
+
+def rows_at(fitted: MomentumFit, wall, time_s: float, radius_mm: float, phi: np.ndarray, viscosity_pa_s: float):
+    r"""``(D, d_tau)``: ``tau(phi) = D a`` on a wall (radius coefficients, mm; moved outward by the fit's
+    ``offset_mm``) at any time of the cycle (Pa per m/s, ``(n_phi, 2K + 1)``), and the derivatives of ``tau`` in
+    :data:`NONLINEAR` (Pa, ``(n_phi, 2)``).
+
+    :math:`\tau = -\mu\,(n\cdot\nabla\sigma) \sum_j a_j S_j'(1) e_j(t)`; in the offset both factors move:
+    :math:`n\cdot\nabla\sigma` (CasADi's exact derivative, :func:`normal_gradient_offset_function`) and
+    :math:`\Lambda_n \propto R + \epsilon` (:math:`\partial_\epsilon S'(1) = -\tfrac{2}{R+\epsilon}
+    \partial_\theta S'(1)`, :func:`wall_slope_derivative`)."""
+    wall = np.array(wall, dtype=float)
+    wall[0] += fitted.offset_mm
+    radius = radius_mm + fitted.offset_mm
+    grad, d_grad = normal_gradient(wall, phi, derivative=True)
     k = fitted.harmonics
-    lams = lambdas(k, frame.radius_mm, fitted.omega, fitted.nu_m2_s)
-    slopes = [wall_slope(0)]
+    lams = lambdas(k, radius, fitted.omega, fitted.nu_m2_s)
+    slopes, d_slopes = [wall_slope(0)], [0.0]
     for lam, e in zip(lams, time_factors(k, fitted.omega, time_s)):
-        value = wall_slope(lam) * e
+        value, d_value = wall_slope(lam) * e, wall_slope_derivative(lam) * e
         slopes += [value.real, -value.imag]
+        d_slopes += [d_value.real, -d_value.imag]
+    s, ds = np.real(np.array(slopes)), np.real(np.array(d_slopes))
     # tau = -mu d_n u with u in m/s and grad sigma in 1/mm
-    return -viscosity_pa_s * 1e3 * grad[:, None] * np.real(np.array(slopes))[None, :]
+    scale = -viscosity_pa_s * 1e3
+    rows = scale * grad[:, None] * s[None, :]
+    a = fitted.coefficients
+    d_theta = scale * grad * (ds @ a)
+    d_offset = scale * (d_grad * (s @ a) + grad * (-2.0 / radius) * (ds @ a))
+    return rows, np.column_stack([d_theta, d_offset])
+
+
+def normal_gradient(wall, phi: np.ndarray, derivative: bool = False):
+    r""":math:`n\cdot\nabla\sigma` at the wall points of angles ``phi`` of the wall ``R(phi)`` (1/mm); with
+    ``derivative`` also its derivative in an outward offset of the wall (1/mm^2)."""
+    wall = np.asarray(wall, dtype=float)
+    phi = np.asarray(phi, dtype=float)
+    value, d_value = _normal_gradient(wall.tobytes(), phi.tobytes())
+    return (value.copy(), d_value.copy()) if derivative else value.copy()
+
+
+@functools.lru_cache(maxsize=64)
+def _normal_gradient(wall: bytes, phi: bytes) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`normal_gradient` once per wall and angles (a rigid wall's at every instant of the cycle)."""
+    c, angles = np.frombuffer(wall), np.frombuffer(phi)
+    fun = normal_gradient_offset_function(rad.n_fourier_from_size(c.size)).map(angles.size)
+    value, d_value = fun(angles[None, :], c)
+    return np.asarray(value).ravel(), np.asarray(d_value).ravel()
 
 
 def wall_shear(
     fitted: MomentumFit, frame: FrameTerms, phi: np.ndarray, viscosity_pa_s: float
 ) -> tuple[np.ndarray, np.ndarray, float, float]:
-    """``(tau, tau_std, mean, mean_std)`` of the fitted model on a frame's wall (Pa; std: the velocity noise's)."""
-    rows = wall_rows(fitted, frame, phi, viscosity_pa_s)
-    return linear_wall_shear(rows, fitted.coefficients, fitted.covariance, frame.coefficients, phi)
+    """``(tau, tau_std, mean, mean_std)`` of the fitted model on a frame's wall (Pa; std: the velocity noise's,
+    through the fitted viscosity and wall offset too where they were fitted)."""
+    return shear_at(fitted, frame.coefficients, frame.time_s, frame.radius_mm, phi, viscosity_pa_s)
+
+
+def shear_at(fitted: MomentumFit, wall, time_s: float, radius_mm: float, phi, viscosity_pa_s: float):
+    """:func:`wall_shear` on any wall at any time of the cycle (:func:`rows_at`); the mean over the moved wall."""
+    rows, d_tau = rows_at(fitted, wall, time_s, radius_mm, phi, viscosity_pa_s)
+    full = np.hstack([rows, d_tau])  # tau is linear in a; the nonlinear parameters enter to first order
+    coefficients = np.r_[fitted.coefficients, 0.0, 0.0]
+    moved = np.array(wall, dtype=float)
+    moved[0] += fitted.offset_mm
+    return linear_wall_shear(full, coefficients, fitted.joint_covariance(), moved, phi)
 
 
 def linear_wall_shear(rows: np.ndarray, coefficients, covariance, wall, phi: np.ndarray):
@@ -309,10 +712,10 @@ def linear_wall_shear(rows: np.ndarray, coefficients, covariance, wall, phi: np.
     ``c``'s covariance; the mean is the arc-length mean over uniform angles ``phi`` of the wall ``R(phi)``
     (radius coefficients ``wall``; :func:`wss_nlp.core.radius.arc_length_mean`)."""
     tau = rows @ coefficients
-    tau_std = np.sqrt(np.einsum("ij,jk,ik->i", rows, covariance, rows))
+    tau_std = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", rows, covariance, rows), 0.0))
     ds = np.hypot(rad.evaluate(wall, phi), rad.evaluate(wall, phi, 1))
     mean_row = (ds / np.sum(ds)) @ rows
-    return tau, tau_std, float(mean_row @ coefficients), float(np.sqrt(mean_row @ covariance @ mean_row))
+    return tau, tau_std, float(mean_row @ coefficients), float(np.sqrt(max(mean_row @ covariance @ mean_row, 0.0)))
 
 
 def max_harmonics(n_frames: int, limit: int) -> int:

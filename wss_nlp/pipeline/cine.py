@@ -5,9 +5,12 @@ with its own parameter choices (the frames of a slice share its lumen box, built
 bands wait until the cycle's model is chosen). Then each slice's velocity over the cycle is chosen by the BIC
 (:func:`cycle_models`, :func:`wss_nlp.parameters.cycle.choose`) among the frames' own fits, a periodic temporal
 prior (:mod:`wss_nlp.models.temporal`) and the momentum balance of pulsatile flow (:mod:`wss_nlp.models.womersley`),
-on the frames' walls regularized in time; TAWSS and OSI integrate the chosen WSS over the cycle
-(:mod:`wss_nlp.core.periodic`, which also bridges a failed frame by linear interpolation in time, and the result
-says so).
+on the frames' walls regularized in time, with the momentum model's kinematic viscosity fitted to the frames
+(:mod:`wss_nlp.parameters.viscosity`); TAWSS and OSI integrate the chosen WSS over the cycle: the momentum model's
+on :data:`CYCLE_SAMPLES` instants of the whole cycle (it is a model in continuous time), the frames' own fits by
+the frames' trapezoid rule (:mod:`wss_nlp.core.periodic`, which also bridges a failed frame by linear
+interpolation in time, and the result says so). Frames that leave part of the cycle without data
+(:func:`coverage`) give no TAWSS and OSI, and the result says why.
 """
 
 from __future__ import annotations
@@ -59,6 +62,7 @@ class CineSeries:
     tau_std: np.ndarray | None = None  # (nt, nphi), Pa: the band of the chosen model (NaN where unknown)
     mean_std: np.ndarray | None = None  # (nt,), Pa
     model: cycle.CineModelChoice | None = None  # the velocity model over the cycle and why
+    incomplete: str | None = None  # why TAWSS and OSI were not computed (frames not covering the cycle)
 
 
 @dataclass
@@ -66,11 +70,56 @@ class CycleModel:
     """The velocity model of one slice over the cycle: the choice, and the momentum model's WSS if chosen."""
 
     choice: cycle.CineModelChoice
-    tau: np.ndarray | None = None  # (nt, nphi), Pa; NaN rows for frames the model was not fitted on
+    tau: np.ndarray | None = None  # (nt, nphi), Pa; NaN rows for frames the model gives no value at
     tau_std: np.ndarray | None = None
     mean: np.ndarray | None = None  # (nt,)
     mean_std: np.ndarray | None = None
     walls: np.ndarray | None = None  # (nt, 2N+3): the walls the model used, radius coefficients then centre (mm)
+    cycle_tau: np.ndarray | None = None  # (CYCLE_SAMPLES, nphi): a model in continuous time over the whole cycle
+    cycle_mean: np.ndarray | None = None  # (CYCLE_SAMPLES,)
+    filled: list = field(default_factory=list)  # frames without data of their own whose WSS the model gives
+
+
+#: Instants over the cycle at which a model in continuous time (the momentum model) is integrated for TAWSS
+#: and OSI (trapezoid rule on a periodic function: exact for its trigonometric part; |tau| has kinks where the
+#: flow reverses, an error of order (T / CYCLE_SAMPLES)^2 there).
+CYCLE_SAMPLES = 256
+
+#: Frames cover the cycle (:func:`coverage`) with at least COVERAGE_FRAMES frames holding data and no gap longer
+#: than COVERAGE_GAP mean frame spacings (T / frames of the series) nor COVERAGE_FRACTION of the period; a gap
+#: over NOTE_GAP spacings is said (one missing frame leaves two).
+COVERAGE_FRAMES, COVERAGE_GAP, COVERAGE_FRACTION, NOTE_GAP = 3, 3.0, 1.0 / 3.0, 1.5
+
+
+def coverage(times_ms, good, period_ms: float) -> tuple[str | None, str | None]:
+    """``(refusal, note)``: why TAWSS and OSI cannot be computed from frames at ``times_ms`` (those with data:
+    ``good``) over a cycle of ``period_ms`` (None where they cover it), and a note on a gap that is bridged.
+
+    Frames over part of the cycle, or one or two frames, would give a time average of part of the cycle
+    as if it were the whole (issue 42); a longer gap than the limits is refused, not averaged over."""
+    times = np.asarray(times_ms, dtype=float)
+    t = times[np.asarray(good, dtype=bool)]
+    fix = "state cardiac_period_ms if the cycle is shorter, or acquire frames over the whole cycle"
+    if t.size < COVERAGE_FRAMES:
+        return (
+            f"{t.size} frame(s) with data over a {period_ms:g} ms cycle: TAWSS and OSI need frames over the whole "
+            f"cycle (at least {COVERAGE_FRAMES}); not computed",
+            None,
+        )
+    gaps = np.diff(np.r_[t, t[0] + period_ms])
+    i = int(np.argmax(gaps))
+    spacing = period_ms / times.size
+    limit = min(COVERAGE_GAP * spacing, COVERAGE_FRACTION * period_ms)
+    where = f"between the frames at {t[i]:g} and {t[(i + 1) % t.size]:g} ms"
+    if gaps[i] > limit:
+        return (
+            f"the frames leave {gaps[i]:g} ms of the {period_ms:g} ms cycle without data ({where}; at most "
+            f"{limit:.3g} ms is bridged): TAWSS and OSI need frames over the whole cycle; not computed ({fix})",
+            None,
+        )
+    if gaps[i] > NOTE_GAP * spacing:
+        return None, f"a gap of {gaps[i]:g} ms {where} ({gaps[i] / spacing:.1f} frame spacings) is bridged"
+    return None, None
 
 
 @dataclass
@@ -87,6 +136,7 @@ class CineResult:
     weights: np.ndarray
     notes: list = field(default_factory=list)
     models: dict = field(default_factory=dict)
+    slice_spacing_mm: float | None = None
 
     @property
     def n_slices(self) -> int:
@@ -115,9 +165,9 @@ class CineResult:
         beta = rows(lambda r: [r.velocity.beta], 1)[:, 0]
         notes = list(self.notes)
         model = self.models.get(iz)
+        valued = good.copy()  # frames with a WSS value (the momentum model's covers the frames without data)
         if model is not None and model.tau is not None:
-            # the momentum model's WSS on the frames it was fitted on; the others count as failed
-            good = good & np.all(np.isfinite(model.tau), axis=1)
+            valued = np.all(np.isfinite(model.tau), axis=1)
             tau, tau_std, mean, mean_std = model.tau, model.tau_std, model.mean, model.mean_std
             if model.walls is not None:  # the walls its WSS lives on (regularized in time)
                 coefficients, center = model.walls[:, :n_coef], model.walls[:, n_coef:]
@@ -125,18 +175,43 @@ class CineResult:
                                    for c in coefficients])  # fmt: skip
         if model is not None:
             notes.append(model_note(model.choice))
-        if not good.all():
-            bad = np.nonzero(~good)[0].tolist()
-            why = "; ".join(getattr(results[k], "reason", "not in the momentum model's fit") for k in bad[:3])
-            notes.append(f"frame(s) {bad} failed ({why}); TAWSS and OSI bridge them by linear interpolation in time")
-        bridged = bridge(np.where(good[:, None], tau, 0.0), good, self.times_ms, self.period_ms)
-        tawss, osi = tawss_osi(bridged, self.weights)
-        mean_bridged = bridge(np.where(good, mean, 0.0)[:, None], good, self.times_ms, self.period_ms)[:, 0]
-        average = float(np.sum(self.weights * mean_bridged) / np.sum(self.weights))
+            if model.choice.model == "momentum" and viscosity_flag(model.choice.viscosity):
+                notes.append(str(viscosity_flag(model.choice.viscosity)))
+
+        def reasons(ks):
+            return "; ".join(getattr(results[k], "reason", "not in the momentum model's fit") for k in ks[:3])
+
+        filled = np.nonzero(~good & valued)[0].tolist()
+        if filled:
+            notes.append(f"frame(s) {filled} failed ({reasons(filled)}); their WSS is the momentum model's at their "
+                         "times (fitted to the other frames)")  # fmt: skip
+        unvalued = np.nonzero(~valued)[0].tolist()
+        if unvalued:
+            notes.append(f"frame(s) {unvalued} failed ({reasons(unvalued)}); TAWSS and OSI bridge them by linear "
+                         "interpolation in time")  # fmt: skip
+        refusal, gap_note = coverage(self.times_ms, good, self.period_ms)
+        nan = np.full(phi.size, np.nan)
+        if refusal is not None:
+            notes.append(refusal)
+            tawss, osi, average = nan, nan.copy(), float("nan")
+        elif model is not None and model.cycle_tau is not None:
+            if gap_note:
+                notes.append(gap_note + " by the momentum model")
+            uniform = np.full(model.cycle_tau.shape[0], self.period_ms / model.cycle_tau.shape[0])
+            tawss, osi = tawss_osi(model.cycle_tau, uniform)
+            average = float(np.mean(model.cycle_mean))
+        else:
+            if gap_note:
+                notes.append(gap_note + " by the frames' trapezoid rule")
+            ok = valued
+            bridged = bridge(np.where(ok[:, None], tau, 0.0), ok, self.times_ms, self.period_ms)
+            tawss, osi = tawss_osi(bridged, self.weights)
+            mean_bridged = bridge(np.where(ok, mean, 0.0)[:, None], ok, self.times_ms, self.period_ms)[:, 0]
+            average = float(np.sum(self.weights * mean_bridged) / np.sum(self.weights))
         return CineSeries(
-            iz, phi, np.where(good[:, None], tau, np.nan), np.where(good, mean, np.nan), center, coefficients,
+            iz, phi, np.where(valued[:, None], tau, np.nan), np.where(valued, mean, np.nan), center, coefficients,
             radius, alpha, beta, ~good, tawss, osi, average, notes, tau_std, mean_std,
-            None if model is None else model.choice,
+            None if model is None else model.choice, refusal,
         )  # fmt: skip
 
 
@@ -150,6 +225,7 @@ def model_note(choice: cycle.CineModelChoice) -> str:
             f"{choice.harmonics} harmonic(s), fitted to frames {choice.frames_used}, {how}"
             + (f" (BIC margin {choice.margin:.0f})" if np.isfinite(choice.margin) else "")
             + f"; walls: {walls}; each frame's own fit is in frames/frame_NNN"
+            + viscosity_note(choice.viscosity)
         )
     if choice.model == "temporal":
         prior = choice.walls.get("temporal_prior", {})
@@ -167,6 +243,53 @@ def model_note(choice: cycle.CineModelChoice) -> str:
         f"velocity over the cycle: each frame's own fit; the momentum model (Womersley) did not fit the data "
         f"{'well enough' if np.isfinite(choice.margin) else '(forced off)'}"
         + (f" (BIC margin {choice.margin:.0f})" if np.isfinite(choice.margin) else "")
+    )
+
+
+def viscosity_note(record: dict) -> str:
+    """What the momentum model's viscosity record says, for its note (empty without a record)."""
+    if not record:
+        return ""
+    stated = f"{1e3 * record['stated_pa_s']:.3g} mPa s"
+    if record.get("mode") != "fit":
+        return (
+            f"; Stokes layer from the stated viscosity {stated} and density {record['density_kg_m3']:g} kg/m^3 "
+            f"(Womersley number {record['womersley_number']:.3g}; --cine-viscosity stated)"
+        )
+    lo, hi = (1e3 * v for v in record["implied_interval_pa_s"])
+    implied = (
+        f"{1e3 * record['implied_pa_s']:.3g} mPa s ({100 * record['level']:.0f} % interval {lo:.3g}-{hi:.3g} at the "
+        f"stated density {record['density_kg_m3']:g} kg/m^3; kinematic {record['nu_m2_s']:.3g} m^2/s, Womersley "
+        f"number {record['womersley_number']:.3g})"
+    )
+    if record["at_bound"]:
+        return (
+            f"; the frames' Stokes layer points to a viscosity at the bound of the fit ({implied}): the flow may not "
+            "be Womersley flow; the stress takes the stated viscosity " + stated
+        )
+    if not record["determined"]:
+        return (
+            f"; the frames do not determine the viscosity ({implied}; the profile hardly depends on it at this "
+            f"Womersley number); the stress takes the stated viscosity {stated}"
+        )
+    agree = "inside" if record["agrees"] else "OUTSIDE"
+    return (
+        f"; Stokes layer fitted: the frames imply a viscosity of {implied}; the stated {stated} lies {agree} the "
+        "interval; the stress takes the stated viscosity"
+    )
+
+
+def viscosity_flag(record: dict) -> str | None:
+    """A warning where the stated viscosity lies outside the interval the frames imply (None otherwise)."""
+    if not record or record.get("mode") != "fit" or record["agrees"] or record["at_bound"]:
+        return None
+    lo, hi = (1e3 * v for v in record["implied_interval_pa_s"])
+    ratio = record["implied_pa_s"] / record["stated_pa_s"]
+    return (
+        f"viscosity disagreement: the frames' Stokes layer implies {1e3 * record['implied_pa_s']:.3g} mPa s "
+        f"({lo:.3g}-{hi:.3g}, {100 * record['level']:.0f} %; {ratio:.2f} x the stated "
+        f"{1e3 * record['stated_pa_s']:.3g} mPa s at the stated density {record['density_kg_m3']:g} kg/m^3): the "
+        "WSS scales with the stated viscosity; check it (or the density: the data give their ratio)"
     )
 
 
@@ -271,6 +394,8 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
     if all(isinstance(r, FailedSlice) for frame in out for r in frame):
         raise WssNlpError(f"every frame failed; the first: {out[0][0].reason}")
     result = CineResult(out, np.asarray(times_ms, dtype=float), float(period_ms), weights, notes)
+    spacing = frames[0].slice_spacing_mm
+    result.slice_spacing_mm = None if spacing is None else float(spacing)
     psf = next((p for p in psfs if p is not None), None)
     result.models = cycle_models(result, frames, options, omega, psf)
     for iz, model in result.models.items():
@@ -306,15 +431,17 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
     """Each slice's velocity model over the cycle (:func:`wss_nlp.parameters.cycle.choose`) and its WSS per frame.
 
     The momentum model is fitted on the frames' walls regularized in time
-    (:func:`~wss_nlp.parameters.cycle.smooth_walls`),
-    with the Womersley parameters at those walls' mean equal-area radius (:func:`equal_area_radius`).
+    (:func:`~wss_nlp.parameters.cycle.smooth_walls`), with the Womersley parameters at those walls' mean
+    equal-area radius (:func:`equal_area_radius`) and its kinematic viscosity fitted to the frames
+    (``options.cine.viscosity``, :mod:`wss_nlp.parameters.viscosity`); its WSS takes the stated viscosity.
     """
     if options.cine.model == "independent":
         choice = cycle.CineModelChoice("independent", criterion="independent frames (--cine-model independent)")
         return {iz: CycleModel(choice) for iz in range(result.n_slices)}
     ref = frames[0]
     mu = ref.viscosity(options.viscosity_pa_s)
-    nu = mu / ref.density(options.density_kg_m3)[0]
+    rho = ref.density(options.density_kg_m3)[0]
+    nu = mu / rho
     k_max = womersley.max_harmonics(len(frames), options.cine.max_harmonics)
     models = {}
     for iz in range(result.n_slices):
@@ -346,31 +473,112 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
             models[iz] = CycleModel(cycle.CineModelChoice("independent", criterion=why))
             continue
         prior = None
-        if len(usable) == len(result.frames) >= 3 and _equally_spaced(result):
+        # the prior only competes in the choice: a forced momentum model does not need it (its criterion costs
+        # as much as the frames' fits)
+        if options.cine.model != "momentum" and len(usable) == len(result.frames) >= 3 and _equally_spaced(result):
             scale, log_n = cycle.criterion_scale(usable)
             prior = temporal.fit(problems, betas, sigmas, scale, log_n)
-        choice, fitted = cycle.choose(usable, omega, nu, options.cine, None if prior is None else prior.bic)
+        data = womersley.CycleData(problems, sigmas, np.array([t.time_s for t in usable]), omega, radius,
+                                   voxel_mm=float(ref.grid.h))  # fmt: skip
+        choice, fitted = cycle.choose(usable, omega, nu, options.cine, None if prior is None else prior.bic, data)
         choice.walls = wall_choice.as_dict()
         if prior is not None:
             choice.walls["temporal_prior"] = prior.as_dict()
+        if choice.fitted_viscosity is not None:
+            choice.viscosity = choice.fitted_viscosity.as_dict(mu, rho, radius, omega)
+        else:
+            choice.viscosity = {
+                "mode": "stated", "stated_pa_s": float(mu), "density_kg_m3": float(rho), "nu_m2_s": float(nu),
+                "womersley_number": float(radius * 1e-3 * np.sqrt(omega / nu)), "radius_mm": float(radius),
+            }  # fmt: skip
         model = CycleModel(choice)
         if choice.model == "temporal" and prior is not None:
             _prior_wall_shear(model, prior, problems, options.n_phi, mu)
         if fitted is not None:
-            n_t, n_phi = len(result.frames), options.n_phi
-            phi = good[0][1].wss.phi
-            model.tau, model.tau_std = np.full((n_t, n_phi), np.nan), np.full((n_t, n_phi), np.nan)
-            model.mean, model.mean_std = np.full(n_t, np.nan), np.full(n_t, np.nan)
-            model.walls = np.full((n_t, own.shape[1]), np.nan)
-            for t in usable:
-                k = t.index
-                model.tau[k], model.tau_std[k], model.mean[k], model.mean_std[k] = womersley.wall_shear(
-                    fitted, t, phi, mu
-                )
-                model.walls[k] = np.r_[t.coefficients, t.center]
+            period_s = result.period_ms / 1000.0
+            _momentum_wall_shear(model, fitted, result, usable, wall_choice, omega, period_s, options.n_phi, mu,
+                                 fill=fitted.harmonics < k_max)  # fmt: skip
         log.debug("slice %d: %s", iz, model_note(choice))  # the series' note says it (the CLI prints notes once)
         models[iz] = model
     return models
+
+
+def _momentum_wall_shear(
+    model: CycleModel, fitted, result: CineResult, usable: list, wall_choice, omega: float, period_s: float,
+    n_phi: int, mu: float, fill: bool = True,
+) -> None:  # fmt: skip
+    """The momentum model's WSS at every frame (on the walls it was fitted on, moved by its offset; a frame
+    without data of its own on the walls' temporal fit at its time) and on :data:`CYCLE_SAMPLES` instants of
+    the whole cycle.
+
+    ``fill`` False leaves frames without data of their own NaN (bridged for TAWSS and OSI): the caller's rule
+    is to fill only where the BIC chose fewer harmonics than the frames allow, since a model at that cap may
+    be truncating the waveform (4 frames of the 4-harmonic phantom, one failed: the fill missed by 36 % of the
+    peak), while its value at a frame it was fitted on is still checked by that frame's data."""
+    phi = rad.uniform_angles(n_phi)
+    used = {t.index: t for t in usable}
+    known_t = np.array([t.time_s for t in usable])
+    known = np.array([np.r_[t.coefficients, t.center] for t in usable])
+    n_r = known.shape[1] - 2
+    radius = usable[0].radius_mm
+
+    def walls_at(times_s: np.ndarray) -> np.ndarray:
+        at = wall_choice.at(times_s, omega)
+        return _periodic_interpolation(known_t, known, times_s, period_s) if at is None else at
+
+    n_t = len(result.frames)
+    times_all = result.times_ms / 1000.0
+    missing = [k for k in range(n_t) if k not in used] if fill else []
+    filled = dict(zip(missing, walls_at(times_all[missing]))) if missing else {}
+    model.tau, model.tau_std = np.full((n_t, n_phi), np.nan), np.full((n_t, n_phi), np.nan)
+    model.mean, model.mean_std = np.full(n_t, np.nan), np.full(n_t, np.nan)
+    model.walls = np.full((n_t, known.shape[1]), np.nan)
+    for k in sorted(used) + missing:
+        wall = np.r_[used[k].coefficients, used[k].center] if k in used else filled[k]
+        model.tau[k], model.tau_std[k], model.mean[k], model.mean_std[k] = womersley.shear_at(
+            fitted, wall[:n_r], float(times_all[k]), radius, phi, mu
+        )
+        model.walls[k] = wall
+        model.walls[k, 0] += fitted.offset_mm  # the walls the model's WSS lives on
+    model.filled = missing
+    grid = np.arange(CYCLE_SAMPLES) * period_s / CYCLE_SAMPLES
+    cycle_tau, cycle_mean = np.empty((CYCLE_SAMPLES, n_phi)), np.empty(CYCLE_SAMPLES)
+    # derivatives in (a, ln nu, offset) of the cycle-averaged mean WSS and of the wall-mean TAWSS
+    d_mean, d_tawss = np.zeros(fitted.coefficients.size + 2), np.zeros(fitted.coefficients.size + 2)
+    tawss = 0.0
+    for m, (t, wall) in enumerate(zip(grid, walls_at(grid))):
+        rows, d_tau = womersley.rows_at(fitted, wall[:n_r], float(t), radius, phi, mu)
+        cycle_tau[m] = rows @ fitted.coefficients
+        moved = np.array(wall[:n_r])
+        moved[0] += fitted.offset_mm
+        ds = np.hypot(rad.evaluate(moved, phi), rad.evaluate(moved, phi, 1))
+        cycle_mean[m] = float(ds @ cycle_tau[m] / np.sum(ds))
+        full = np.hstack([rows, d_tau])
+        d_mean += (ds / np.sum(ds)) @ full / CYCLE_SAMPLES
+        d_tawss += (ds * np.sign(cycle_tau[m]) / np.sum(ds)) @ full / CYCLE_SAMPLES
+        tawss += float(ds @ np.abs(cycle_tau[m]) / np.sum(ds)) / CYCLE_SAMPLES
+    model.cycle_tau, model.cycle_mean = cycle_tau, cycle_mean
+    joint = fitted.joint_covariance()
+    p = fitted.coefficients.size
+    model.choice.sensitivity = {
+        "std_ln_nu": float(np.sqrt(max(joint[p, p], 0.0))),
+        "std_offset_mm": float(np.sqrt(max(joint[p + 1, p + 1], 0.0))),
+    }
+    for name, value, gradient in (("time_mean", float(np.mean(cycle_mean)), d_mean), ("tawss", tawss, d_tawss)):
+        model.choice.sensitivity.update({
+            f"{name}_pa": value,
+            f"{name}_std_pa": float(np.sqrt(max(gradient @ joint @ gradient, 0.0))),
+            f"{name}_d_ln_nu_pa": float(gradient[p]),
+            f"{name}_d_offset_pa_per_mm": float(gradient[p + 1]),
+        })  # fmt: skip
+
+
+def _periodic_interpolation(times: np.ndarray, values: np.ndarray, at: np.ndarray, period: float) -> np.ndarray:
+    """Rows of ``values`` (one per time of ``times``, increasing) linearly interpolated at ``at``, periodically."""
+    ext_t = np.concatenate([times - period, times, times + period])
+    ext_v = np.concatenate([values] * 3)
+    at = np.mod(np.asarray(at, dtype=float) - times[0], period) + times[0]
+    return np.column_stack([np.interp(at, ext_t, ext_v[:, j]) for j in range(values.shape[1])])
 
 
 def equal_area_radius(coefficients: np.ndarray) -> float:
@@ -411,8 +619,11 @@ def write_result(path: str, cine: CineResult, options: dict, argv=None, notes=()
 
     Each slice group holds the contract's per-frame datasets with a leading time axis, ``wss/time_ms``,
     ``wss/mean_pa_t``, ``wss/tawss_pa``, ``wss/osi`` and ``wss`` attribute ``mean_pa`` (the cycle average of
-    the per-frame mean), and every frame's complete single-frame record in ``frames/frame_NNN``. ``notes``
-    (what the whole series was read as, e.g. the timing's range notes) go to the file's ``warnings`` attribute.
+    the per-frame mean), and every frame's complete single-frame record in ``frames/frame_NNN``. Beyond the
+    contract: the cycle model's record ``cine_model_json`` (with the viscosity the frames imply), the band,
+    ``wss`` attribute ``viscosity_pa_s`` (the stated viscosity the stress takes), and ``tawss_note`` where
+    the frames do not cover the cycle (TAWSS and OSI are then NaN); ``notes`` (what the whole series was read
+    as, e.g. the timing's range notes) go to the file's ``warnings`` attribute.
     """
     from ..io.files import atomic_h5, provenance, write_slice_group
 
@@ -424,6 +635,8 @@ def write_result(path: str, cine: CineResult, options: dict, argv=None, notes=()
         f.attrs["n_frames"] = len(cine.frames)
         f.attrs["trigger_times_ms"] = cine.times_ms
         f.attrs["cardiac_period_ms"] = cine.period_ms
+        if cine.slice_spacing_mm is not None:
+            f.attrs["slice_spacing_mm"] = cine.slice_spacing_mm
         f.attrs["all_converged"] = bool(all(r.converged for frame in cine.frames for r in frame))
         if notes:  # the readings taken and what was allowed are the result's, not only the terminal's
             f.attrs["warnings"] = json.dumps(list(notes))
@@ -445,17 +658,84 @@ def write_result(path: str, cine: CineResult, options: dict, argv=None, notes=()
             g["wss/tawss_pa"] = s.tawss
             g["wss/osi"] = s.osi
             g["wss"].attrs["mean_pa"] = s.time_average_mean
+            viscosity = next((r[s.index].wss.viscosity_pa_s for r in cine.frames
+                              if not isinstance(r[s.index], FailedSlice)), None)  # fmt: skip
+            if viscosity is not None:
+                g["wss"].attrs["viscosity_pa_s"] = float(viscosity)
+            if s.incomplete is not None:
+                g["wss"].attrs["tawss_note"] = s.incomplete
             g.attrs["alpha"] = s.alpha
             g.attrs["beta"] = s.beta
             g.attrs["failed_frames"] = np.nonzero(s.failed)[0].astype(int)
             g.attrs["converged"] = np.array([r[s.index].converged for r in cine.frames], dtype=bool)
-            warnings = [
-                w for k, frame in enumerate(cine.frames) for w in (f"frame {k}: {x}" for x in frame[s.index].warnings)
-            ]
-            g.attrs["warnings"] = json.dumps(s.notes + warnings)
+            g.attrs["warnings"] = json.dumps(s.notes + frame_warnings(cine, s.index))
             for k, frame in enumerate(cine.frames):
                 write_slice_group(g.create_group(f"frames/frame_{k:03d}"), frame[s.index])
     return series
+
+
+def frame_warnings(cine: CineResult, iz: int) -> list[str]:
+    """The warnings of slice ``iz``'s frames, each said once with the frames it applies to
+    (:func:`group_warnings`)."""
+    return group_warnings([(k, w) for k, frame in enumerate(cine.frames) for w in frame[iz].warnings], len(cine.frames))
+
+
+def group_warnings(items: list, total: int, what: str = "frame") -> list[str]:
+    """``(index, message)`` pairs as one line per kind of message with the indices it came from.
+
+    Messages that differ only in their numbers (a slice's prefix, a chosen parameter) are one kind; the
+    line keeps the first one's text: ``frames 0-19 (20 of 20): slice 0: no band ...``.
+    """
+    import re
+
+    kinds: dict = {}
+    for index, message in items:
+        key = re.sub(r"[-+]?\d[\d.eE+-]*", "#", message)
+        kinds.setdefault(key, (message, []))[1].append(index)
+    out = []
+    for message, indices in kinds.values():
+        indices = sorted(set(indices))
+        if len(indices) == 1:
+            out.append(f"{what} {indices[0]}: {message}")
+        else:
+            out.append(f"{what}s {_ranges(indices)} ({len(indices)} of {total}): {message}")
+    return out
+
+
+def cycle_warnings(cine: CineResult, series: list) -> list[str]:
+    """Every warning of a cine result for the command line: the slices' notes and their frames' warnings, each
+    kind said once with the slices and frames it applies to (:func:`group_warnings`)."""
+    import re
+
+    items: list[tuple[int, int | None, str]] = [(s.index, None, note) for s in series for note in s.notes]
+    for s in series:
+        prefix = f"slice {s.index}: "
+        for k, frame in enumerate(cine.frames):
+            items += [(s.index, k, w[len(prefix) :] if w.startswith(prefix) else w) for w in frame[s.index].warnings]
+    kinds: dict = {}
+    for iz, frame_index, message in items:
+        key = (frame_index is None, re.sub(r"[-+]?\d[\d.eE+-]*", "#", message))
+        kinds.setdefault(key, (message, []))[1].append((iz, frame_index))
+    out = []
+    for (per_slice, _), (message, where) in kinds.items():
+        slices = sorted({iz for iz, _ in where})
+        head = f"slice {slices[0]}" if len(slices) == 1 else f"slices {_ranges(slices)}"
+        if not per_slice:
+            frames = sorted({k for _, k in where})
+            count = f" ({len(frames)} of {len(cine.frames)})"
+            head += f", frame {frames[0]}" if len(frames) == 1 else f", frames {_ranges(frames)}{count}"
+        out.append(f"{head}: {message}")
+    return out
+
+
+def _ranges(indices: list) -> str:
+    """``[0, 1, 2, 5, 7, 8]`` as ``0-2, 5, 7-8``."""
+    parts, start = [], indices[0]
+    for a, b in zip(indices, indices[1:] + [None]):
+        if b is None or b != a + 1:
+            parts.append(f"{start}" if a == start else f"{start}-{a}")
+            start = b
+    return ", ".join(parts)
 
 
 def velocity_sigma(

@@ -32,9 +32,43 @@ def _progress(stream):
 
 
 def _warn(results, stream) -> None:
-    for r in results:
-        for msg in r.warnings:
-            stream.write(f"wss-nlp: warning: {msg}\n")
+    """Every slice's warnings, each kind said once with the slices it applies to."""
+    from ...pipeline.cine import group_warnings
+
+    items = [(r.index, _strip_slice(msg, r.index)) for r in results for msg in r.warnings]
+    for line in group_warnings(items, len(results), what="slice"):
+        stream.write(f"wss-nlp: warning: {line}\n")
+
+
+def _strip_slice(message: str, index: int) -> str:
+    """A slice's warning without its ``slice N: `` prefix (the grouped line names the slices)."""
+    prefix = f"slice {index}: "
+    return message[len(prefix) :] if message.startswith(prefix) else message
+
+
+def _cycle_summary(s, times) -> str:
+    """One line per slice of a cine result: the cycle's WSS, TAWSS, OSI and the model over the cycle."""
+    if np.all(np.isfinite(s.tawss)):
+        cycle = (f"time-averaged WSS {s.time_average_mean:.4g} Pa, TAWSS {np.mean(s.tawss):.4g} Pa (wall mean), "
+                 f"OSI {np.min(s.osi):.3f}-{np.max(s.osi):.3f}")  # fmt: skip
+    else:
+        cycle = "TAWSS and OSI not computed (the frames do not cover the cycle)"
+    peak = int(np.nanargmax(np.abs(s.mean)))
+    model = s.model.model if s.model is not None else "independent"
+    if model == "momentum":
+        how = f"the momentum model ({s.model.harmonics} harmonics"
+        v = s.model.viscosity
+        if v.get("mode") == "fit":
+            lo, hi = v["implied_interval_pa_s"]
+            how += (f"; the frames imply {1e3 * v['implied_pa_s']:.3g} mPa s, 95 % {1e3 * lo:.3g}-{1e3 * hi:.3g}, "
+                    f"stated {1e3 * v['stated_pa_s']:.3g}" + ("" if v["agrees"] else " OUTSIDE"))  # fmt: skip
+        how += ")"
+    elif model == "temporal":
+        how = "the frames' fits tied by a temporal prior"
+    else:
+        how = "the frames' own fits"
+    return (f"slice {s.index}: {cycle}, peak mean WSS {s.mean[peak]:.4g} Pa at {times[peak]:g} ms; velocity over the "
+            f"cycle: {how}")  # fmt: skip
 
 
 def _is_time_resolved(path: str) -> bool:
@@ -75,22 +109,12 @@ def _reconstruct_cine(args, options) -> int:
 
             save_cine_figures(series, result, staged.path)
         staged.commit()
-    for k, frame in enumerate(result.frames):
-        for r in frame:
-            for msg in r.warnings:
-                sys.stderr.write(f"wss-nlp: warning: frame {k}: {msg}\n")
+    for line in cine.cycle_warnings(result, series):  # each kind once, with the slices and frames it applies to
+        sys.stderr.write(f"wss-nlp: warning: {line}\n")
     for note in timing_notes:
         sys.stderr.write(f"wss-nlp: warning: {note}\n")
     for s in series:
-        for note in s.notes:
-            sys.stderr.write(f"wss-nlp: warning: slice {s.index}: {note}\n")
-        print(
-            f"slice {s.index}: time-averaged WSS {s.time_average_mean:.4g} Pa, TAWSS {np.mean(s.tawss):.4g} Pa "
-            f"(wall mean), OSI {np.min(s.osi):.3f}-{np.max(s.osi):.3f}, peak mean WSS {np.max(s.mean):.4g} Pa at "
-            f"{times[int(np.nanargmax(s.mean))]:g} ms; velocity over the cycle: "
-            + (f"momentum model ({s.model.harmonics} harmonics)" if s.model and s.model.model == "momentum" else
-               "the frames' own fits")
-        )  # fmt: skip
+        print(_cycle_summary(s, times))
     print(f"wrote {args.output}")
     if args.figures:
         print(f"figures in {args.figures}")

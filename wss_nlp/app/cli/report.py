@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 from ...io import files as wio
 from ...analysis import metrics
@@ -31,25 +33,15 @@ def _errors_rows(err: metrics.Errors):
     ]
 
 
-def _refuse_time_resolved(path: str, role: str) -> None:
-    """compare takes single-frame results and truths; a cine's are refused by name, not by a traceback."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as f:
-            cine = "trigger_times_ms" in f.attrs
-    except OSError:
-        return  # the readers below name what is wrong with the file
-    if cine:
-        raise InputError(
-            f"{path}: a time-resolved (cine) {role}; 'compare' compares single-frame results with a phantom's truth "
-            "(a cine's TAWSS and OSI against its truth: scripts/cine.py)"
-        )
-
-
 def cmd_compare(args) -> int:
-    _refuse_time_resolved(args.result, "result")
-    _refuse_time_resolved(args.truth, "truth")
+    layout, truth_layout = wio.result_layout(args.result), wio.result_layout(args.truth)
+    if ("cine" in layout) != ("cine" in truth_layout):
+        raise InputError(
+            f"{args.result} is a {layout} result but {args.truth} a {truth_layout} truth: compare needs a "
+            "time-resolved truth for a time-resolved result (wss-nlp phantom --case womersley --truth)"
+        )
+    if "cine" in layout:
+        return _compare_cine(args)
     truths = metrics.TruthTable.all_from_file(args.truth)
     rec = wio.read_result(args.result)
     if len(truths) > 1 and len(truths) != len(rec):
@@ -69,9 +61,79 @@ def cmd_compare(args) -> int:
     return 0
 
 
+def _compare_cine(args) -> int:
+    """``compare`` of a time-resolved result: the frames' mean WSS, TAWSS, OSI, radius and the fitted viscosity."""
+    import h5py
+
+    rec, truths = wio.read_result(args.result), wio.read_result(args.truth)
+    models = wio.read_cine_models(args.result)
+    if len(truths) > 1 and len(truths) != len(rec):
+        raise InputError(f"{args.truth} has {len(truths)} slices but {args.result} has {len(rec)}")
+    with h5py.File(args.truth, "r") as f:
+        true_mu, rho = f.attrs.get("viscosity_pa_s"), f.attrs.get("density_kg_m3")
+    true_nu = float(true_mu / rho) if true_mu is not None and rho is not None else None
+    for i, d in enumerate(rec):
+        truth = truths[i] if len(truths) > 1 else truths[0]
+        for key in ("time_ms", "mean_tau_t"):
+            if key not in d or key not in truth:
+                raise InputError(f"{args.result} or {args.truth}: {d['name']} lacks the time-resolved {key}")
+        try:
+            err = metrics.compare_cine(d, truth, models.get(d["name"]), true_nu)
+        except InputError as exc:
+            raise InputError(f"{args.result} against {args.truth}: {exc}") from None
+        rows = [
+            ("frames", f"{err.frames}"),
+            ("worst frame |mean WSS err| / peak", f"{err.worst_frame_rel_peak:.2%}"),
+            ("  at [ms]", f"{err.worst_frame_time_ms:g}"),
+            ("rms frame error / peak", f"{err.rms_frame_rel_peak:.2%}"),
+            ("TAWSS rel. error (wall mean)", "not computed" if np.isnan(err.tawss_rel) else f"{err.tawss_rel:+.2%}"),
+            ("OSI error (wall mean)", "not computed" if np.isnan(err.osi_abs) else f"{err.osi_abs:+.4f}"),
+            ("radius max. error [mm]", f"{err.radius_max_mm:.4f}"),
+        ]
+        if err.scale != 1.0:
+            rows.insert(1, ("stated / true viscosity", f"{err.scale:.4g}"))
+        if np.isfinite(err.nu_rel):
+            rows += [("fitted kinematic viscosity rel. error", f"{err.nu_rel:+.2%}"),
+                     ("  truth inside its 95 % interval", "yes" if err.nu_inside else "NO")]  # fmt: skip
+        scaled = " (reference: the truth's WSS times the stated over the true viscosity: the stress scales with it)"
+        print(f"{d['name']} against {args.truth}" + (scaled if err.scale != 1.0 else "") + ":")
+        print(_error_table(rows))
+    return 0
+
+
 def cmd_analyze(args) -> int:
     outputs.check_outputs(folders={"--figures": args.figures}, inputs=[args.result])
+    layout = wio.result_layout(args.result)
     choices = wio.read_choices(args.result)
+    if "cine" in layout:
+        _analyze_cycle(args.result, choices)
+    else:
+        _analyze_choices(choices)
+    for name, rec in wio.read_near_wall(args.result).items():
+        print(f"{name}: near-wall model '{rec['model']}'" + _layer_text(rec))
+        print(f"    {rec['criterion']}")
+        for model, value in sorted(rec["values"].items(), key=lambda kv: kv[1]):
+            print(f"    {model:>12}: {value:12.2f}" + ("  <- chosen" if model == rec["model"] else ""))
+        if rec["ambiguous"]:
+            print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
+    for name, rec in wio.read_dephasing(args.result).items():
+        print(f"{name}: {_dephasing_text(rec)}")
+    for name, rec in surround.read_tissue(args.result).items():  # the surround model, the phase offset (issue 39)
+        for line in surround.report_lines(rec):
+            print(f"{name}: {line}")
+    if args.figures:
+        from ..plotting import save_parameter_figures
+
+        flat = {name.replace("/", "_"): per for name, per in choices.items()}  # one figure file per record
+        with outputs.StagedFolder(args.figures) as staged:
+            save_parameter_figures(flat, str(staged.path))
+            paths = staged.commit()
+        print(f"{len(paths)} figure(s) in {args.figures}")
+    return 0
+
+
+def _analyze_choices(choices: dict) -> None:
+    """Each record's alpha and beta choice with its curve (a slice or a stack's slices)."""
     for name, per in choices.items():
         print(f"{name}:")
         if not per:
@@ -96,26 +158,65 @@ def cmd_analyze(args) -> int:
                     mark = "  <- chosen" if p == ch.chosen else ""
                     crit = f" {ch.criterion[i]:12.4g}" if ch.criterion.size else ""
                     print(f"    {p:12.4g} {ch.residuals[i]:12.4g}{crit}{mark}")
-    for name, rec in wio.read_near_wall(args.result).items():
-        print(f"{name}: near-wall model '{rec['model']}'" + _layer_text(rec))
-        print(f"    {rec['criterion']}")
-        for model, value in sorted(rec["values"].items(), key=lambda kv: kv[1]):
-            print(f"    {model:>12}: {value:12.2f}" + ("  <- chosen" if model == rec["model"] else ""))
-        if rec["ambiguous"]:
-            print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
-    for name, rec in wio.read_dephasing(args.result).items():
-        print(f"{name}: {_dephasing_text(rec)}")
-    for name, rec in surround.read_tissue(args.result).items():  # the surround model, the phase offset (issue 39)
-        for line in surround.report_lines(rec):
-            print(f"{name}: {line}")
-    if args.figures:
-        from ..plotting import save_parameter_figures
 
-        with outputs.StagedFolder(args.figures) as staged:
-            save_parameter_figures(choices, str(staged.path))
-            paths = staged.commit()
-        print(f"{len(paths)} figure(s) in {args.figures}")
-    return 0
+
+def _analyze_cycle(path: str, choices: dict) -> None:
+    """A time-resolved result: each slice's model over the cycle and why, the viscosity the frames imply, and
+    one line per frame for its alpha and beta (the frames' full curves: ``--figures``)."""
+    for name, rec in wio.read_cine_models(path).items():
+        print(f"{name}: velocity over the cycle: {_cycle_model_text(rec)}")
+        if rec.get("criterion"):
+            print(f"    {rec['criterion']}")
+        chosen = {"momentum": f"momentum K={rec.get('harmonics')}"}.get(rec.get("model", ""), rec.get("model"))
+        for model, value in sorted(rec.get("bic", {}).items(), key=lambda kv: kv[1]):
+            print(f"    {model:>34}: {value:14.1f}" + ("  <- chosen" if model == chosen else ""))
+        if rec.get("margin") is not None:
+            print(f"    margin {rec['margin']:.1f} beyond the {rec.get('evidence_required', 10):g} BIC units required")
+        walls = rec.get("walls", {})
+        if walls:
+            print(f"    walls: {walls.get('how', '')}")
+        viscosity = rec.get("viscosity", {})
+        if viscosity:
+            print(f"    viscosity: {_viscosity_text(viscosity)}")
+        if rec.get("tawss_note"):
+            print(f"    TAWSS and OSI: {rec['tawss_note']}")
+        if rec["failed_frames"]:
+            print(f"    failed frames: {rec['failed_frames']}")
+        print(f"    {'frame':>6} {'t [ms]':>9} {'alpha':>10} {'beta':>10}  rules")
+        for k, t in enumerate(rec["time_ms"]):
+            per = choices.get(f"{name}/frame_{k:03d}", {})
+            rules = ", ".join(f"{c.name} {c.rule}" + ("" if c.satisfied else " (not reached)") for c in per.values())
+            alpha = rec["alpha"][k] if k < rec["alpha"].size else np.nan
+            beta = rec["beta"][k] if k < rec["beta"].size else np.nan
+            print(f"    {k:>6} {t:>9.4g} {alpha:>10.4g} {beta:>10.4g}  {rules}")
+
+
+def _cycle_model_text(rec: dict) -> str:
+    model = rec.get("model", "independent")
+    if model == "momentum":
+        return (f"the momentum model (Womersley) with {rec.get('harmonics')} harmonic(s), fitted to frames "
+                f"{rec.get('frames_used')}")  # fmt: skip
+    if model == "temporal":
+        return "the frames' fits tied by a periodic temporal prior"
+    return "each frame's own fit"
+
+
+def _viscosity_text(v: dict) -> str:
+    stated = f"stated {1e3 * v['stated_pa_s']:.4g} mPa s, density {v['density_kg_m3']:g} kg/m^3"
+    if v.get("mode") != "fit":
+        return f"{stated}; the Stokes layer from it (Womersley number {v['womersley_number']:.3g})"
+    lo, hi = v["implied_interval_pa_s"]
+    text = (
+        f"{stated}; the frames imply {1e3 * v['implied_pa_s']:.4g} mPa s ({100 * v['level']:.0f} % interval "
+        f"{1e3 * lo:.4g}-{1e3 * hi:.4g}; kinematic {v['nu_m2_s']:.4g} m^2/s, Womersley number "
+        f"{v['womersley_number']:.3g}), walls moved {1e3 * v['wall_offset_mm']:+.3g} um "
+        f"(+- {1e3 * v['wall_offset_std_mm']:.2g} um); "
+    )
+    if v.get("at_bound"):
+        return text + "AT THE BOUND of the fit: the flow may not be Womersley flow"
+    if not v.get("determined"):
+        return text + "the data do not determine it"
+    return text + ("the stated value lies inside the interval" if v["agrees"] else "the stated value lies OUTSIDE")
 
 
 def _dephasing_text(rec: dict) -> str:
@@ -170,12 +271,67 @@ def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
 
 
 def cmd_sensitivity(args) -> int:
+    layout = wio.result_layout(args.result)
     recs = wio.read_sensitivity(args.result)
-    if not recs:
-        raise InputError(f"{args.result}: no sensitivity records; reconstruct without --no-uncertainty")
+    if "cine" in layout:
+        _cycle_sensitivity(args.result)
+    elif not recs:
+        import h5py
+
+        with h5py.File(args.result, "r") as f:
+            options = json.loads(f.attrs.get("options_json", "{}"))
+            stack = "stack_json" in f.attrs
+        if options.get("uncertainty", True) is False:
+            raise InputError(f"{args.result}: reconstructed with --no-uncertainty: no band or sensitivity records; "
+                             "reconstruct without it")  # fmt: skip
+        if stack:
+            return _stack_band(args.result)
+        raise InputError(f"{args.result}: no sensitivity records (a baseline method, or written by an older version)")
     for name, rec in recs.items():
         print(f"{name}: mean WSS {rec['mean_pa']:.4g} Pa +- {rec['mean_std_pa']:.2g} Pa (1 std, linearized)")
         print(f"  {'what changes':<26} {'mean WSS change [Pa]':>22} {'relative':>10}")
         for cause, delta in sensitivity_table(rec):
             print(f"  {cause:<26} {delta:>+22.3e} {delta / rec['mean_pa']:>+10.2%}")
     return 0
+
+
+def _stack_band(path: str) -> int:
+    """A z-coupled stack: its joint band per slice; per-parameter derivatives exist for slices solved alone."""
+    print(
+        f"{path}: a z-coupled stack: its band is the stack's joint linearization (wss/tau_std_pa); the "
+        "per-parameter sensitivities are computed for slices reconstructed alone (reconstruct one slice for them)"
+    )
+    for d in wio.read_result(path):
+        if d.get("failed"):
+            print(f"{d['name']}: FAILED slice")
+            continue
+        std = d.get("mean_std", float("nan"))
+        print(f"{d['name']}: mean WSS {d['mean_tau']:.4g} Pa +- {std:.2g} Pa (1 std, the stack's joint band)")
+    return 0
+
+
+def _cycle_sensitivity(path: str) -> None:
+    """A time-resolved result: what moves each slice's cycle-averaged WSS (the momentum model's record), before the
+    tables of the frames that kept their own fit."""
+    for name, rec in wio.read_cine_models(path).items():
+        sens = rec.get("sensitivity")
+        if rec.get("model") != "momentum" or not sens:
+            why = "each frame's own fit: the tables of those frames follow" if rec.get("model") != "temporal" else \
+                "the temporal prior: its band (wss/tau_std_pa) holds the velocity noise only"  # fmt: skip
+            print(f"{name}: velocity over the cycle from {why}")
+            continue
+        print(f"{name}: the momentum model's sensitivities (linearized; the velocity noise through the model, its "
+              "viscosity and wall offset included)")  # fmt: skip
+        for what, key in (("cycle-averaged mean WSS", "time_mean"), ("TAWSS (wall mean)", "tawss")):
+            value = sens[f"{key}_pa"]
+            print(f"  {what} {value:.4g} Pa +- {sens[f'{key}_std_pa']:.2g} Pa (1 std)")
+            print(f"    {'what changes':<32} {'change [Pa]':>14} {'relative':>10}")
+            rows = [
+                ("stated viscosity +10 %", 0.1 * value),
+                ("fitted viscosity + 1 std", sens[f"{key}_d_ln_nu_pa"] * sens["std_ln_nu"]),
+                ("wall offset + 1 std", sens[f"{key}_d_offset_pa_per_mm"] * sens["std_offset_mm"]),
+                ("viscosity's layer +10 %", sens[f"{key}_d_ln_nu_pa"] * np.log(1.1)),
+                ("velocity noise (1 std)", sens[f"{key}_std_pa"]),
+            ]
+            for cause, delta in sorted(rows, key=lambda r: -abs(r[1])):
+                print(f"    {cause:<32} {delta:>+14.3e} {delta / value if value else np.nan:>+10.2%}")
