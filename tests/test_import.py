@@ -258,12 +258,14 @@ def test_too_small_venc_is_refused(phantom, tmp_path, capsys):
     folder = _siemens(tmp_path, acq)
     # Siemens phase is in radians whatever the venc; a Philips velocity image is not
     se.write_dicom(str(tmp_path / "philips"), _scan(acq), "philips")
-    _fails(
-        capsys,
-        ["import", str(tmp_path / "philips"), "-o", str(tmp_path / "in.h5"), "--venc", str(acq.venc_m_s / 3)],
-        "beyond the venc",
-    )
-    assert main(["import", str(folder), "-o", str(tmp_path / "in.h5"), "--venc", str(acq.venc_m_s / 3)]) == 0
+    philips = ["import", str(tmp_path / "philips"), "-o", str(tmp_path / "in.h5"), "--venc", str(acq.venc_m_s / 3)]
+    # a --venc that disagrees with the header's scales every velocity by the ratio (issue 42: -80 % went unflagged)
+    _fails(capsys, philips, "disagrees with the venc", "--allow-unphysical venc")
+    _fails(capsys, [*philips, "--allow-unphysical", "venc"], "beyond the venc")
+    siemens = ["import", str(folder), "-o", str(tmp_path / "in.h5"), "--venc", str(acq.venc_m_s / 3)]
+    _fails(capsys, siemens, "disagrees with the venc")
+    assert main([*siemens, "--allow-unphysical", "venc"]) == 0  # a header known to be wrong: overridden, and said
+    assert "overrides the venc" in capsys.readouterr().err
 
 
 def test_in_plane_encoding_and_ge_phase_difference_are_refused(phantom, tmp_path, capsys):

@@ -241,6 +241,35 @@ def _finished(index: int, fut) -> Finished:
         return Finished(index, error=exc)
 
 
+def _die_with_parent(parent: int) -> None:
+    """Worker initializer: end this worker when the process that started it ends, even by SIGKILL.
+
+    Linux: the kernel sends SIGKILL when the parent dies (``prctl(PR_SET_PDEATHSIG)``; the workers are started
+    from the parent's main thread). Elsewhere, and as a guard against a parent that died before the call, a daemon
+    thread compares the parent's id every half second.
+    """
+    import signal
+    import threading
+    import time
+
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux: the thread below does it
+        pass
+    if os.getppid() != parent:
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="wss-nlp-parent-watch", daemon=True).start()
+
+
 def _process_pool(workers: int):
     """``workers`` spawned processes with one BLAS thread each (the environment is restored for this process)."""
     import multiprocessing as mp
@@ -249,7 +278,12 @@ def _process_pool(workers: int):
     saved = {k: os.environ.get(k) for k in BLAS_ENV}
     os.environ.update(dict.fromkeys(saved, "1"))
     try:
-        return ProcessPoolExecutor(max_workers=workers, mp_context=mp.get_context("spawn"))
+        return ProcessPoolExecutor(
+            max_workers=workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=_die_with_parent,  # issue 42: no worker outlives a killed sweep, batch or reconstruct
+            initargs=(os.getpid(),),
+        )
     finally:
         for k, v in saved.items():
             if v is None:

@@ -38,6 +38,8 @@ def option(
     parse: Callable | None = None,
     metavar: str | None = None,
     flag_off: bool = False,
+    flag_on: bool = False,
+    const: Any = None,
     also: tuple = (),
     group: str | None = None,
     default_text: str | None = None,
@@ -62,6 +64,11 @@ def option(
         Text (or TOML value) -> value, or -> ``{field path: value}``.
     flag_off : bool
         A boolean that is on by default: the CLI flag (``--no-...``) turns it off.
+    flag_on : bool
+        A boolean that is off by default: the CLI flag turns it on.
+    const : object
+        The value the CLI flag stands for when it is given without one (``--allow-unphysical`` alone:
+        ``"all"``); None: the flag takes a value.
     also : tuple of str
         Paths of further fields (from the root options) set to the same value.
     group : str or None
@@ -79,6 +86,8 @@ def option(
             "parse": parse,
             "metavar": metavar,
             "flag_off": flag_off,
+            "flag_on": flag_on,
+            "const": const,
             "also": tuple(also),
             "group": group,
             "default_text": default_text,
@@ -104,12 +113,34 @@ def _default(f):
     return f.default_factory() if f.default_factory is not MISSING else f.default
 
 
+def integer(text) -> int:
+    """An integer from text or a number, written as one may type it: ``360``, ``3.6e2``; ``2.5`` is refused."""
+    if isinstance(text, bool):
+        raise ValueError(f"{text!r} is not a whole number")
+    if not isinstance(text, float):
+        try:
+            return int(text)
+        except (TypeError, ValueError):
+            pass
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise ValueError(f"invalid integer {text!r}") from None
+    if not value.is_integer():
+        raise ValueError(f"{text!r} is not a whole number")
+    return int(value)
+
+
+integer.__name__ = "int"  # argparse's message: "invalid int value"
+
+
 def _type_parser(f) -> Callable:
-    """int, float or str from the annotation (``float | None`` -> float)."""
+    """int (:func:`integer`), float or str from the annotation (``float | None`` -> float)."""
     if f.type in (bool, int, float):  # evaluated annotations
-        return f.type
+        return integer if f.type is int else f.type
     first = str(f.type).split("|")[0].strip()  # postponed ones are strings: "float | None"
-    return {"bool": bool, "int": int, "float": float}.get(first, str)
+    parsers: dict[str, Callable] = {"bool": bool, "int": integer, "float": float}
+    return parsers.get(first, str)
 
 
 def add_arguments(parser: argparse.ArgumentParser, cls) -> None:
@@ -127,12 +158,17 @@ def add_arguments(parser: argparse.ArgumentParser, cls) -> None:
         if meta["flag_off"]:
             grp.add_argument(meta["cli"], dest=dest, action="store_false", default=True, help=text)
             continue
+        if meta["flag_on"]:
+            grp.add_argument(meta["cli"], dest=dest, action="store_true", default=False, help=text)
+            continue
         shown = meta["default_text"] if meta["default_text"] is not None else default
         if shown is not None:
             text += f" (default {shown})"
         kwargs = {"dest": dest, "default": None, "help": text}
         if meta["parse"] is None:
             kwargs["type"] = _type_parser(f)
+        if meta["const"] is not None:
+            kwargs.update(nargs="?", const=meta["const"])
         if meta["choices"] is not None:
             kwargs["choices"] = list(meta["choices"])
         else:
@@ -153,23 +189,38 @@ def _parsed(path: str, f, value, where: str) -> dict:
             value = _type_parser(f)(value)
         except ValueError:
             raise InputError(f"{where}: {value!r} is not a valid {_type_parser(f).__name__}") from None
+    elif _type_parser(f) is integer and isinstance(value, float):
+        try:
+            value = integer(value)
+        except ValueError:
+            raise InputError(f"{where}: {value!r} is not a whole number") from None
     return {p: value for p in (path, *meta["also"])}
 
 
-def from_args(cls, args: argparse.Namespace):
-    """Options of class ``cls`` from the arguments :func:`add_arguments` added (unset ones keep their defaults)."""
+def from_args(cls, args: argparse.Namespace, check: Callable | None = None):
+    """Options of class ``cls`` from the arguments :func:`add_arguments` added (unset ones keep their defaults).
+
+    ``check(values, spelled)``, if given, sees the values set (``{path: value}``) and how the user spelled each
+    (``{path: "--n-fourier"}``) before the options are built, to refuse a value in the user's own words.
+    """
     values: dict = {}
+    spelled: dict = {}
     for path, f, _ in _leaves(cls):
         meta = f.metadata[_KEY]
         if not meta["cli"]:
             continue
         value = getattr(args, "opt__" + path.replace(".", "__"))
-        if meta["flag_off"]:
-            if value is False:
-                values[path] = False
+        if meta["flag_off"] or meta["flag_on"]:
+            if value is (not meta["flag_off"]):
+                values[path] = value
+                spelled[path] = meta["cli"]
             continue
         if value is not None:
-            values.update(_parsed(path, f, value, meta["cli"]))
+            got = _parsed(path, f, value, meta["cli"])
+            values.update(got)
+            spelled.update(dict.fromkeys(got, meta["cli"]))
+    if check is not None:
+        check(values, spelled)
     return assemble(cls, values)
 
 
@@ -182,15 +233,23 @@ def toml_keys(cls) -> dict:
     return out
 
 
-def build(cls, params: dict, where: str = ""):
-    """Options of class ``cls`` from study keys ``{key: value}`` (see :func:`toml_keys`); unknown keys are errors."""
+def build(cls, params: dict, where: str = "", check: Callable | None = None):
+    """Options of class ``cls`` from study keys ``{key: value}`` (see :func:`toml_keys`); unknown keys are errors.
+
+    ``check`` as for :func:`from_args` (the spellings are the study keys).
+    """
     keys = toml_keys(cls)
     values: dict = {}
+    spelled: dict = {}
     for key, value in params.items():
         if key not in keys:
             raise InputError(f"{where}: unknown option key {key!r}; known: {', '.join(keys)}")
         path, f = keys[key]
-        values.update(_parsed(path, f, value, f"{where}: {key}"))
+        got = _parsed(path, f, value, f"{where}: {key}")
+        values.update(got)
+        spelled.update(dict.fromkeys(got, key))
+    if check is not None:
+        check(values, spelled)
     return assemble(cls, values)
 
 

@@ -13,7 +13,6 @@ import datetime as _dt
 import json
 import os
 import sys
-import tempfile
 from ..models.baselines import BaselineResult
 from dataclasses import dataclass, field
 
@@ -148,8 +147,11 @@ class Acquisition:
             finite_phase = np.abs(self.phase[np.isfinite(self.phase)])
             if finite_phase.size and float(finite_phase.max()) > np.pi + 1e-6:
                 big = float(finite_phase.max())
+                low = float(np.min(self.phase[np.isfinite(self.phase)]))
                 hint = (
-                    "; the values look like degrees (multiply by pi/180)"
+                    "; the values lie in [0, 2 pi) radians: wrap them to (-pi, pi] (subtract 2 pi where phase > pi)"
+                    if big <= 2 * np.pi + 1e-6 and low >= -1e-6
+                    else "; the values look like degrees (multiply by pi/180)"
                     if big <= 180 + 1e-6
                     else "; the values look like raw scanner integers (apply the rescale slope and intercept "
                     "to radians, or use 'wss-nlp import')"
@@ -174,12 +176,12 @@ DEFAULT_DENSITY = 1060.0
 
 
 def check_density(rho: float | None, what: str) -> None:
-    """InputError unless ``rho`` is None or a plausible liquid density in kg/m^3 (500-3000)."""
-    if rho is None:
-        return
-    if not 500 <= rho <= 3000:
-        hint = " (it looks like g/cm^3: multiply by 1000)" if 0.5 <= rho <= 3 else ""
-        raise InputError(f"{what} must be a liquid's density in kg/m^3 (500-3000), got {rho:g}{hint}")
+    """InputError unless ``rho`` is None or a plausible liquid density in kg/m^3 (:mod:`wss_nlp.io.ranges`:
+    500-3000; g/cm^3 named as the likely slip)."""
+    from . import ranges
+
+    if rho is not None:
+        ranges.check("density", rho, what, fix="store" if "'" in what else "pass")
 
 
 def _attr(f, name, src, required=False, size=None):
@@ -191,8 +193,8 @@ def _attr(f, name, src, required=False, size=None):
         val = np.asarray(f.attrs[name], dtype=float).ravel()
     except (TypeError, ValueError):
         raise InputError(f"{src}: attribute '{name}' must be numeric, got {f.attrs[name]!r}") from None
-    if size is not None and val.size != size:
-        raise InputError(f"{src}: attribute '{name}' must have {size} values, got {val.size}")
+    if val.size != (size or 1):
+        raise InputError(f"{src}: attribute '{name}' must have {size or 1} value(s), got {val.size}")
     if not np.all(np.isfinite(val)):
         raise InputError(f"{src}: attribute '{name}' is not finite: {val}")
     return tuple(val.tolist()) if size and size > 1 else float(val[0])
@@ -242,7 +244,22 @@ def _open_input(path):
     try:
         return src, h5py.File(src, "r")
     except OSError as exc:
-        raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
+        raise InputError(_open_error(src, exc)) from None
+
+
+def _open_error(src: str, exc: OSError) -> str:
+    """Why an existing file would not open for reading, in one line."""
+    text = " ".join(str(exc).split())
+    if "lock" in text.lower():
+        return (
+            f"{src}: is open for writing by another program (HDF5 file locking: {text}); wait until it is closed "
+            "(or, if it is not being written, set HDF5_USE_FILE_LOCKING=FALSE)"
+        )
+    if os.path.isdir(src):
+        return f"{src}: is a folder; name an HDF5 file"
+    if not os.access(src, os.R_OK) or "permission" in text.lower():
+        return f"{src}: cannot be read (permission denied); check its permissions"
+    return f"{src}: not an HDF5 file ({text})"
 
 
 def read_acquisition(path) -> Acquisition:
@@ -284,16 +301,31 @@ def _numeric_dataset(f, name: str, src: str) -> np.ndarray | None:
     """Dataset ``name`` as floats, or None if absent; groups, complex and text data are errors."""
     import h5py
 
-    if name not in f:
+    link = f.get(name, getlink=True)
+    if link is None:
         return None
-    obj = f[name]
+    try:
+        obj = f[name]
+    except (KeyError, OSError) as exc:  # a soft or external link whose target is missing or unreadable
+        kind = "an external link" if isinstance(link, h5py.ExternalLink) else "a link"
+        target = f" to {link.filename}:{link.path}" if isinstance(link, h5py.ExternalLink) else (
+            f" to {link.path}" if isinstance(link, h5py.SoftLink) else "")  # fmt: skip
+        raise InputError(
+            f"{src}: '{name}' is {kind}{target} that cannot be followed ({' '.join(str(exc).split())}); store the "
+            "data in the file itself"
+        ) from None
     if not isinstance(obj, h5py.Dataset):
         raise InputError(f"{src}: '{name}' must be a dataset")
     kind = obj.dtype.kind
+    if kind == "b":
+        raise InputError(
+            f"{src}: '{name}' is boolean (a mask?); store the {'magnitude image' if name == 'magnitude' else 'values'}"
+            " as numbers"
+        )
     if kind == "c":
         fix = "its modulus (np.abs)" if name == "magnitude" else "real values (np.angle of the complex image)"
         raise InputError(f"{src}: '{name}' is complex ({obj.dtype}); store {fix}")
-    if kind not in "fiub":
+    if kind not in "fiu":
         raise InputError(f"{src}: '{name}' must hold numbers, got dtype {obj.dtype}")
     return np.asarray(obj[()], dtype=float)
 
@@ -333,7 +365,13 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
     with f:
         if "trigger_times_ms" not in f.attrs:
             raise InputError(f"{src}: not time-resolved (no attribute 'trigger_times_ms'); use read_acquisition")
-        times = np.asarray(f.attrs["trigger_times_ms"], dtype=float).ravel()
+        try:
+            times = np.asarray(f.attrs["trigger_times_ms"], dtype=float).ravel()
+        except (TypeError, ValueError):
+            raise InputError(
+                f"{src}: attribute 'trigger_times_ms' must be numbers (ms, one per frame), got "
+                f"{f.attrs['trigger_times_ms']!r}"
+            ) from None
         if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) <= 0):
             raise InputError(f"{src}: 'trigger_times_ms' must be finite and increasing, got {times.tolist()}")
         nt = times.size
@@ -381,36 +419,36 @@ def read_frames(path) -> tuple[list[Acquisition], np.ndarray, float]:
 
 @contextlib.contextmanager
 def atomic_h5(path):
-    """Open a temporary HDF5 file next to ``path``; rename on success only."""
+    """An HDF5 file built in memory and written to ``path`` only when complete (:func:`wss_nlp.io.outputs.write_bytes`).
+
+    The HDF5 library never touches the disk: a full disk or any other OS error surfaces once, from the final
+    write, as one :class:`InputError` line naming ``path``, and leaves nothing behind (neither a partial file nor
+    a temporary one); an existing ``path`` that is not a regular file (a device, a FIFO) is refused, never
+    replaced.
+    """
+    import io
+
     import h5py
+
+    from .outputs import check_replaceable, write_bytes
 
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(folder):
         raise InputError(f"{path}: output folder {folder} does not exist")
-    fd, tmp = tempfile.mkstemp(suffix=".h5.part", dir=folder)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            yield f
-        umask = os.umask(0)  # mkstemp creates 0600; give the file the permissions a plain open() would
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    check_replaceable(path)
+    buffer = io.BytesIO()
+    with h5py.File(buffer, "w") as f:
+        yield f
+    write_bytes(path, buffer.getvalue())
 
 
 def atomic_write(path, data) -> None:
-    """Write text or bytes to ``path`` through a temporary ``.part`` file, renamed only when complete."""
-    path = os.fspath(path)
-    tmp = path + ".part"
-    with open(tmp, "wb") as fh:
-        fh.write(data.encode() if isinstance(data, str) else data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    """Write text or bytes to ``path`` through a temporary file, renamed only when complete
+    (:func:`wss_nlp.io.outputs.write_bytes`)."""
+    from .outputs import write_bytes
+
+    write_bytes(path, data.encode() if isinstance(data, str) else data)
 
 
 def write_acquisition(path, acq: Acquisition) -> None:
@@ -700,7 +738,7 @@ def _open_result(src: str):
     try:
         return h5py.File(src, "r")
     except OSError as exc:
-        raise InputError(f"{src}: not an HDF5 file ({exc})") from exc
+        raise InputError(_open_error(src, exc)) from None
 
 
 def _write_sensitivity(group, sen, shape, h_mm: float) -> None:
@@ -821,6 +859,11 @@ def read_result(path) -> list[dict]:
         names = sorted(k for k in f if k.startswith("slice_"))
         if not names:
             raise InputError(f"{src}: no 'slice_NNN' groups; not a wss-nlp result file")
+        if "trigger_times_ms" in f.attrs:
+            raise InputError(
+                f"{src}: a time-resolved (cine) result (frames per slice, TAWSS and OSI); this reads single-frame "
+                "results ('wss-nlp export' reads both)"
+            )
         for name in names:
             s = f[name]
             try:

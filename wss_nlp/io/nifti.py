@@ -37,7 +37,7 @@ import logging
 
 from .dicom import PHASE_UNITS, siemens_venc, to_physical
 from ..errors import InputError
-from .plane import Plane, sample, voxel_index
+from .plane import TILT_THRESHOLD_DEG, Plane, sample, tilt, voxel_index
 from .scanner import Image2D
 
 log = logging.getLogger(__name__)
@@ -126,16 +126,21 @@ def require_nibabel(what: str = "reading"):
     return nibabel
 
 
-def _load(path: str):
-    """``(image, data (x, y, z, t), sidecar)`` of one NIfTI file."""
+def _load(path: str, data: bool = True):
+    """``(image, data (x, y, z, t), sidecar)`` of one NIfTI file; ``data=False``: the header alone (a placeholder
+    of the data's shape that holds no memory)."""
     nibabel = require_nibabel()
     if not os.path.isfile(path):
         raise InputError(f"{path}: no such file")
     try:
         img: Any = nibabel.load(path)
-        data = np.asarray(img.get_fdata(), dtype=np.float64)
+        values = np.asarray(img.get_fdata(), dtype=np.float64) if data else np.broadcast_to(np.float64(0), img.shape)
     except Exception as exc:  # nibabel raises several types for unreadable files
         raise InputError(f"{path}: not a readable NIfTI file ({type(exc).__name__}: {exc})") from None
+    return _as_4d(path, img, values)
+
+
+def _as_4d(path: str, img, data: np.ndarray):
     if data.ndim == 2:
         data = data[:, :, None]
     if data.ndim == 3:
@@ -265,8 +270,11 @@ def plane_images(
 ) -> list[Image2D]:
     """A magnitude file and three velocity-component files (4D flow), resampled on ``plane`` (see wss_nlp.plane)."""
     plane.check()
+    # the headers alone first: which file is which, and a plane that leaves the volume, before any voxel is read
+    magnitude, components = flow_files({str(p): _load(str(p), data=False) for p in paths}, "--plane")
+    header = _load(magnitude, data=False)
+    plane.check_inside(np.asarray(header[0].affine, dtype=np.float64), header[1].shape, magnitude)
     loaded = {str(p): _load(str(p)) for p in paths}
-    magnitude, components = flow_files(loaded, "--plane")
     img, mag, meta = loaded[magnitude]
     affine = np.asarray(img.affine, dtype=np.float64)
     velocity = {
@@ -303,20 +311,29 @@ def plane_images(
                         vendor=vendor,
                     )
                 )
-    _check_perpendicular(out)
     return out
 
 
-def _check_perpendicular(images: list[Image2D]) -> None:
-    """Warn when the in-plane velocity in the vessel exceeds the through-plane one (a tilted plane, wrong axes)."""
+def _check_perpendicular(images: list[Image2D]) -> dict:
+    """How far the plane is off the vessel's axis, from the in-plane velocity (:func:`wss_nlp.io.plane.tilt`).
+
+    Returns the record (``tilt_deg``, the axis it implies in the world frame, the fit's residual); warns above
+    :data:`~wss_nlp.io.plane.TILT_THRESHOLD_DEG` with the angle and the normal of a perpendicular plane, and when
+    the in-plane velocity exceeds the through-plane one (a plane far off the vessel, or component files whose
+    axes or signs are not the affine's world axes).
+    """
     by: dict[str, dict[str, np.ndarray]] = {}
+    frame_of: dict[str, Image2D] = {}
     for im in images:
         by.setdefault(im.where, {})[im.role] = im.pixels
-    peak = max(by.values(), key=lambda d: float(np.abs(d["velocity"]).mean()))
+        if im.role == "magnitude":
+            frame_of[im.where] = im
+    where = max(by, key=lambda k: float(np.abs(by[k]["velocity"]).mean()))
+    peak = by[where]
     mag = peak["magnitude"]
     lumen = mag > 0.5 * (np.percentile(mag, 10) + np.percentile(mag, 99))
     if lumen.sum() < 4:
-        return
+        return {}
     through = float(np.median(np.abs(peak["velocity"][lumen])))
     inplane = float(np.median(np.hypot(peak["velocity_x"][lumen], peak["velocity_y"][lumen])))
     if inplane > through:
@@ -327,6 +344,24 @@ def _check_perpendicular(images: list[Image2D]) -> None:
             inplane,
             through,
         )
+    found = tilt(peak["velocity"], peak["velocity_x"], peak["velocity_y"], lumen)
+    if found is None:
+        return {}
+    theta, e, residual = found
+    im = frame_of[where]
+    n = np.cross(im.row_dir, im.col_dir)
+    d = np.cos(theta) * n + np.sin(theta) * (e[0] * np.asarray(im.row_dir) + e[1] * np.asarray(im.col_dir))
+    d = d * np.sign(float(np.sum(peak["velocity"][lumen])) or 1.0)
+    record = {"tilt_deg": float(np.degrees(theta)), "axis_from_velocity": [round(float(v), 6) for v in d],
+              "tilt_fit_residual": residual}  # fmt: skip
+    if np.degrees(theta) > TILT_THRESHOLD_DEG:
+        log.warning(
+            "the plane is %.1f degrees off the vessel's axis (its in-plane velocity leans that way); 'reconstruct' "
+            "corrects the WSS for it and flags it; a plane perpendicular to the vessel has the normal %s",
+            np.degrees(theta),
+            " ".join(f"{v:.4f}" for v in d),
+        )
+    return record
 
 
 def read_images(
@@ -341,6 +376,7 @@ def read_images(
     images: list[Image2D] = []
     if plane is not None:
         images = plane_images(paths, plane, phase_units, frame_interval_ms, venc_m_s)
+        tilt_record = _check_perpendicular(images)
         record["plane"] = {
             "point": [float(v) for v in plane.point],
             "normal": [round(float(v), 6) for v in np.cross(images[0].row_dir, images[0].col_dir)],
@@ -348,6 +384,7 @@ def read_images(
             "voxel_mm": images[0].spacing[0],
             "slices": plane.slices,
             "interpolation": "nearest voxel" if plane.order == 0 else "trilinear",
+            **tilt_record,
         }
         return images, record
     for path in paths:

@@ -93,6 +93,17 @@ class Plane:
         m = max(int(round(self.fov_mm / h)), 8)
         return h, m, float(self.spacing_mm if self.spacing_mm is not None else h)
 
+    def check_inside(self, affine: np.ndarray, shape, where: str) -> None:
+        """InputError unless the plane's field of view lies inside the volume: its corners are checked, from the
+        header alone, before any voxel is read or resampled (a plane is convex, and so is the volume's box)."""
+        e1, e2, n = self.axes()
+        h, m, delta = self.sampling(affine)
+        half, depth = (m - 1) / 2 * h, (self.slices - 1) / 2 * delta
+        p = np.asarray(self.point, dtype=float)
+        corners = np.array([p + a * half * e1 + b * half * e2 + c * depth * n
+                            for a in (-1, 1) for b in (-1, 1) for c in (-1, 1)])  # fmt: skip
+        voxel_index(affine, corners, shape, where)
+
     def centres(self, affine: np.ndarray) -> np.ndarray:
         """Voxel centres ``(K, m, m, 3)`` in world mm, indexed ``[k, i (rows, e_2), j (columns, e_1)]``."""
         e1, e2, n = self.axes()
@@ -133,3 +144,38 @@ def sample(volume: np.ndarray, index: np.ndarray, order: int = 1) -> np.ndarray:
 def resample(volume: np.ndarray, affine: np.ndarray, points: np.ndarray, where: str, order: int = 1) -> np.ndarray:
     """Values of ``volume[i, j, k]`` at world ``points (..., 3)`` (:func:`voxel_index`, :func:`sample`)."""
     return sample(volume, voxel_index(affine, points, volume.shape, where), order).reshape(points.shape[:-1])
+
+
+#: Tilts (degrees) below this are left alone: the WSS error of a tilt theta is at most 1 - cos^2 theta (0.8 % at 5
+#: degrees; module :mod:`wss_nlp.pipeline.obliquity`), within what the reconstruction resolves.
+TILT_THRESHOLD_DEG = 5.0
+
+
+def tilt(through: np.ndarray, inplane_x: np.ndarray, inplane_y: np.ndarray, mask: np.ndarray):
+    """The angle between a plane's normal and the vessel's axis, from the in-plane velocity.
+
+    Notes
+    -----
+    Axial flow ``u = w_3 d`` along the axis ``d = cos(theta) n + sin(theta) e`` (``n`` the plane's normal, ``e``
+    a unit vector in the plane) has through-plane component ``w = w_3 cos(theta)`` and in-plane components
+    ``w_3 sin(theta) e``: their ratio ``tan(theta) e`` is the same in every voxel. It is taken by least squares
+    over the voxels of ``mask`` (the lumen), ``tan(theta) e = sum(u_in w) / sum(w^2)``; a rotation about the
+    centre (swirl) averages out of it. The relative residual of that fit says how axial the flow is.
+
+    Returns
+    -------
+    (theta in radians, e as (ex, ey) in the image frame, relative residual of the fit), or None without flow.
+    """
+    w = np.asarray(through, dtype=float)[mask]
+    ux = np.asarray(inplane_x, dtype=float)[mask]
+    uy = np.asarray(inplane_y, dtype=float)[mask]
+    ok = np.isfinite(w) & np.isfinite(ux) & np.isfinite(uy)
+    w, ux, uy = w[ok], ux[ok], uy[ok]
+    ww = float(np.sum(w * w))
+    if w.size < 4 or not ww > 0:
+        return None
+    a, b = float(np.sum(ux * w)) / ww, float(np.sum(uy * w)) / ww
+    lean = float(np.hypot(a, b))
+    residual = float(np.sqrt(np.sum((ux - a * w) ** 2 + (uy - b * w) ** 2) / max(np.sum(ux**2 + uy**2), 1e-300)))
+    e = (a / lean, b / lean) if lean > 0 else (1.0, 0.0)
+    return float(np.arctan(lean)), e, residual

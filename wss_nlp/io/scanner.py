@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from . import ranges
 from .files import Acquisition, write_acquisition, write_frames
 
 log = logging.getLogger(__name__)
@@ -81,6 +82,7 @@ class ImportOptions:
     viscosity_pa_s: float | None = None
     density_kg_m3: float | None = None
     flip_through_plane: bool = False
+    allow_unphysical: tuple = ()  # quantities whose values are used as given (wss_nlp.io.ranges)
 
 
 @dataclass
@@ -381,11 +383,23 @@ def _venc(phase_images: list[Image2D], options: ImportOptions) -> tuple[float, s
         if not options.venc_m_s > 0:
             raise InputError(f"--venc {options.venc_m_s}: the velocity encoding must be > 0 m/s")
         if values and not np.isclose(values[0], options.venc_m_s, rtol=1e-2):
+            # the phase was encoded with the header's venc: another one scales every velocity (and the WSS) by the
+            # ratio; only a header known to be wrong justifies it
+            if not ranges.allowed("venc", options.allow_unphysical):
+                ratio = options.venc_m_s / values[0]
+                raise InputError(
+                    f"--venc {options.venc_m_s:g} m/s disagrees with the venc {values[0]:g} m/s stated by "
+                    f"{sorted(stated)[0][1]} ({ratio:.3g}x): the phase was encoded with the header's, and another "
+                    f"venc scales every velocity and the WSS by {ratio:.3g}; drop --venc, or pass "
+                    "--allow-unphysical venc if the header is wrong"
+                )
             log.warning(
-                "--venc %g m/s overrides the venc %g m/s stated by %s",
+                "--venc %g m/s overrides the venc %g m/s stated by %s (--allow-unphysical): velocities and WSS "
+                "scale by %.3g",
                 options.venc_m_s,
                 values[0],
                 sorted(stated)[0][1],
+                options.venc_m_s / values[0],
             )
         return float(options.venc_m_s), "given (--venc)"
     if not values:
@@ -418,9 +432,11 @@ def _to_phase(im: Image2D, venc: float) -> np.ndarray:
 
 def write_import(path: str, imp: Imported, argv=None) -> None:
     """Write ``imp`` as an input file of the contract (atomic); several frames in the time-resolved layout."""
-    frames = [imp.frame(it, f"{path} (frame {it})") for it in range(imp.nt)]
+    paths = imp.record.get("paths") or ["the imported files"]
+    inputs = paths[0] if len(paths) == 1 else f"{paths[0]} (and {len(paths) - 1} more)"
+    frames = [imp.frame(it, f"{inputs}{f' (frame {it})' if imp.nt > 1 else ''}") for it in range(imp.nt)]
     for acq in frames:  # every frame obeys the single-frame rules (shapes, finiteness, phase range, ...)
-        acq.validate()
+        acq.validate()  # messages name the files read, never the one about to be written
     frames[0].extra_attrs.update(import_json=json.dumps(imp.record, default=str), import_command=" ".join(argv or []))
     if imp.trigger_times_ms is None:
         write_acquisition(path, frames[0])

@@ -614,7 +614,9 @@ def _prior_wall_shear(model: CycleModel, prior, problems: list, n_phi: int, mu: 
         model.walls[k] = np.r_[c, problem.disk_map.center]
 
 
-def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[CineSeries]:
+def write_result(
+    path: str, cine: CineResult, options: dict, argv=None, notes=(), attrs: dict | None = None
+) -> list[CineSeries]:
     """Write the time-resolved result layout of ``shared/spec/data-format.md`` (atomic); returns the series.
 
     Each slice group holds the contract's per-frame datasets with a leading time axis, ``wss/time_ms``,
@@ -622,7 +624,9 @@ def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[
     the per-frame mean), and every frame's complete single-frame record in ``frames/frame_NNN``. Beyond the
     contract: the cycle model's record ``cine_model_json`` (with the viscosity the frames imply), the band,
     ``wss`` attribute ``viscosity_pa_s`` (the stated viscosity the stress takes), and ``tawss_note`` where
-    the frames do not cover the cycle (TAWSS and OSI are then NaN).
+    the frames do not cover the cycle (TAWSS and OSI are then NaN); ``notes`` (what the whole series was read
+    as, e.g. the timing's range notes) go to the file's ``warnings`` attribute; ``attrs`` are further root
+    attributes (the input's import record, for export in world coordinates), written in the same atomic step.
     """
     from ..io.files import atomic_h5, provenance, write_slice_group
 
@@ -637,6 +641,10 @@ def write_result(path: str, cine: CineResult, options: dict, argv=None) -> list[
         if cine.slice_spacing_mm is not None:
             f.attrs["slice_spacing_mm"] = cine.slice_spacing_mm
         f.attrs["all_converged"] = bool(all(r.converged for frame in cine.frames for r in frame))
+        if notes:  # the readings taken and what was allowed are the result's, not only the terminal's
+            f.attrs["warnings"] = json.dumps(list(notes))
+        for k, v in (attrs or {}).items():
+            f.attrs[k] = v
         for s in series:
             g = f.create_group(f"slice_{s.index:03d}")
             g["geometry/center_mm"] = s.center

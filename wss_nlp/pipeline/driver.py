@@ -32,6 +32,7 @@ import numpy as np
 
 from ..core import radius as rad
 from ..errors import InputError, WssNlpError
+from ..io import ranges
 from ..io.files import Acquisition, FailedSlice
 from ..models import acquisition as acq_model
 from ..models import dephasing as deph
@@ -41,7 +42,7 @@ from ..models import near_wall as nw
 from ..models import stack as stk
 from ..models import wss as wss_mod
 from ..parameters.kspace_filter import kspace_filter
-from . import methods
+from . import limits, methods, obliquity
 from . import plausibility as plaus
 from . import steps
 from .fitters import Band, Fitter, Independent, ZCoupled, wss_vectors
@@ -182,9 +183,15 @@ def _reconstruct(
     acq: Acquisition, options: ReconstructionOptions, progress, boxes: dict, defer_band: bool, tie: bool = False
 ) -> Results:
     acq.validate()
+    range_notes = _range_notes(acq, options)
     mu = acq.viscosity(options.viscosity_pa_s)
     density = acq.density(options.density_kg_m3)
     acq, screens = plaus.screen(acq, options.screen)
+    lumen = max((f.record.get("lumen_voxels", 0) for f in screens.values()), default=None) or None
+    radius = max((f.record.get("lumen_radius_mm", 0.0) for f in screens.values()), default=0.0)
+    if radius:  # the lumen as read rules out length slips that would make it wider than any vessel
+        range_notes = _range_notes(acq, options, radius)
+    limits.check_cost(options, acq.magnitude.shape, acq.source, lumen, min(acq.nz, stk.COUPLED_MAX_SLICES))
     psf = options.acquisition.psf(acq.voxel_size_mm, acq.acquired_voxel_size_mm, f"{acq.source}: ")
     if psf is not None and psf.filter == "auto":
         psf = kspace_filter(acq.magnitude, acq.grid, psf, options.geometry, options.screen.vessel, f"{acq.source}: ")
@@ -194,7 +201,7 @@ def _reconstruct(
     tied = tie or stack_applies(acq, options)  # first: refuses z-regularization asked of a method without it
     if isinstance(method, methods.Baseline):
         out.extend(method.reconstruct(acq, mu, options, progress))
-        return _with_screens(out, screens, acq, psf)
+        return _with_screens(out, screens, acq, psf, range_notes)
     results: list = [None] * acq.nz
     t0 = time.perf_counter()
     prepared, failed = _prepare(acq, options, psf, boxes)
@@ -264,7 +271,26 @@ def _reconstruct(
     out.extend(results)
     if all(isinstance(r, FailedSlice) for r in out):
         raise WssNlpError(f"{acq.source}: no slice could be reconstructed: " + "; ".join(r.reason for r in out))
-    return _with_screens(out, screens, acq, psf)
+    return _with_screens(out, screens, acq, psf, range_notes)
+
+
+def _range_notes(acq: Acquisition, options: ReconstructionOptions, radius_mm: float | None = None) -> list[str]:
+    """The plausibility ranges of the file's fields and of the physical options (:mod:`wss_nlp.io.ranges`): a value
+    outside its range is refused (unless allowed); the notes say which reading was taken where a unit slip cannot
+    be told from a real value, and what was allowed."""
+    allow = options.screen.allow_unphysical
+    notes = ranges.check_acquisition(
+        acq,
+        allow,
+        viscosity_given=options.viscosity_pa_s is not None,
+        density_given=options.density_kg_m3 is not None,
+        radius_mm=radius_mm,
+    )
+    for name, value, flag in (("viscosity", options.viscosity_pa_s, "--viscosity"),
+                              ("density", options.density_kg_m3, "--density")):  # fmt: skip
+        if value is not None and (note := ranges.check(name, value, flag, allow)) and note not in notes:
+            notes.append(note)
+    return notes
 
 
 def solve_alone(data: steps.SliceData, options: ReconstructionOptions, mu: float, density, dz: float):
@@ -540,7 +566,7 @@ RESAMPLED_NOTE = (
 RESAMPLED_MIN_RADIUS_VOXELS = 5.0
 
 
-def _with_screens(results, screens: dict, acq: Acquisition, psf=None):
+def _with_screens(results, screens: dict, acq: Acquisition, psf=None, range_notes=()):
     """Attach what the plausibility screen found, and the fit's consistency check, to each slice.
 
     Also what the acquisition model implies: a file that states zero-filling (``acquired_voxel_size_mm``
@@ -568,6 +594,9 @@ def _with_screens(results, screens: dict, acq: Acquisition, psf=None):
         if found is not None:
             r.notes.extend(n for n in found.notes if n not in r.notes)
             r.screen = dict(found.record)
+        if range_notes:  # the readings taken and what was allowed, on every slice (docs, "Input checks")
+            r.notes.extend(n for n in range_notes if n not in r.notes)
+            r.screen = {**(r.screen or {}), "ranges": list(range_notes)}
         coarse = False
         if acq.resampled_from and RESAMPLED_NOTE not in r.notes:
             r.notes.append(RESAMPLED_NOTE)
@@ -586,4 +615,5 @@ def _with_screens(results, screens: dict, acq: Acquisition, psf=None):
             r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect)
             if warning:
                 r.notes.append(warning)
+        obliquity.apply(r, acq)  # a plane off the vessel's axis: corrected (in-plane velocity) or flagged
     return results

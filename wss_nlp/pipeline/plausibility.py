@@ -45,6 +45,7 @@ from ..models import preprocess as pp
 from ..models import surround
 from ..errors import InputError, WssNlpError
 from ..core.schema import option
+from ..io import ranges
 
 #: Fastest plausible blood velocity: jets through severe valve stenoses reach 5-6 m/s.
 MAX_BLOOD_SPEED_M_S = 10.0
@@ -58,6 +59,14 @@ MAX_RESIDUAL_JUMPS = 2
 MAX_RESIDUAL_TO_NOISE = 3.0
 #: Normalized magnitude above which a voxel joins the unwrapping region (its phase noise is below ~0.4 rad at SNR 10).
 UNWRAP_MAGNITUDE = 0.25
+#: A magnitude voxel this many times above both the image's 97th percentile and its neighbours' median is a
+#: corrupt value (a spike), not signal: inflow-enhanced blood and fat stay within a few times the 99th percentile.
+SPIKE_FACTOR = 10.0
+#: Mean / standard deviation of a Rayleigh-distributed background (pure noise): sqrt(pi/2) / sqrt(2 - pi/2).
+RAYLEIGH_MEAN, RAYLEIGH_STD = float(np.sqrt(np.pi / 2)), float(np.sqrt(2 - np.pi / 2))
+#: A background whose spread is below this fraction of its mean is not noise alone (Rayleigh: 0.52; the sample
+#: value over the >= 20 background voxels required stays above 0.35 at three standard errors).
+OFFSET_SPREAD = 0.25
 
 
 def parse_point(text) -> tuple[float, float]:
@@ -77,7 +86,10 @@ class ScreenOptions:
     view (default: the largest lumen). ``unwrap``: unwrap aliased phase
     (default); False uses the velocities as given (they were unwrapped
     elsewhere, or the user accepts them), with a warning where wraps are seen,
-    and skips the ``[-venc, venc]`` range check.
+    and skips the ``[-venc, venc]`` range check. ``allow_unphysical``: the quantities
+    (:data:`wss_nlp.io.ranges.QUANTITIES`, or ``("all",)``) whose values are used as given outside their plausible
+    range. ``allow_large``: run options estimated to take longer than :data:`wss_nlp.pipeline.limits.TIME_LIMIT_S`
+    a slice (:mod:`wss_nlp.pipeline.limits`).
     """
 
     schema_group = "input checks"
@@ -98,8 +110,30 @@ class ScreenOptions:
         cli="--no-unwrap",
         flag_off=True,
     )
+    allow_unphysical: tuple[str, ...] = option(
+        (),
+        "use values outside the plausible ranges of the docs page 'Input checks' as given (all quantities, or "
+        "those named: viscosity, density, voxel_size, fov, slice_spacing, venc, velocity, radius, frame_spacing, "
+        "period, snr); recorded in the result",
+        cli="--allow-unphysical",
+        toml=("allow_unphysical",),
+        metavar="QUANTITY,...",
+        parse=ranges.parse_allow,
+        const="all",
+        default_text="none",
+    )
+    allow_large: bool = option(
+        False,
+        "run options estimated to need more than the time limit per slice (docs, 'Input checks'); what would not "
+        "fit in memory is refused anyway",
+        cli="--allow-large",
+        toml=("allow_large",),
+        flag_on=True,
+    )
 
     def __post_init__(self):
+        object.__setattr__(self, "allow_unphysical", ranges.parse_allow(self.allow_unphysical) if
+                           self.allow_unphysical else ())  # fmt: skip
         if self.vessel is not None:
             v = np.asarray(self.vessel, dtype=float)
             if v.shape != (2,) or not np.all(np.isfinite(v)):
@@ -191,17 +225,64 @@ def check_velocity_range(acq, name: str, velocity: np.ndarray) -> None:
         )
 
 
-def _check_speed(acq, iz: int, name: str, velocity: np.ndarray, lumen_mask: np.ndarray) -> None:
+def _check_speed(acq, iz: int, name: str, velocity: np.ndarray, lumen_mask: np.ndarray, allow=()) -> str:
+    """Refuse a lumen velocity beyond any blood flow; without venc, say which reading an unusual peak took."""
     vals = np.abs(velocity[lumen_mask])
     peak = float(np.percentile(vals, 99)) if vals.size else 0.0
-    if peak > MAX_BLOOD_SPEED_M_S:
+    where = f"{acq.source} slice {iz}: '{name}'"
+    if peak > MAX_BLOOD_SPEED_M_S and not ranges.allowed("velocity", allow):
         venc_hint = (
             f"; the venc is given as venc_m_s = {acq.venc_m_s:g}: is it in cm/s?" if acq.phase is not None else ""
         )
         raise InputError(
-            f"{acq.source} slice {iz}: '{name}' reaches {peak:.4g} m/s in the lumen, implausible for blood flow "
+            f"{where} reaches {peak:.4g} m/s in the lumen, implausible for blood flow "
             f"(> {MAX_BLOOD_SPEED_M_S:g} m/s); {_unit_hint(peak, MAX_BLOOD_SPEED_M_S)}{venc_hint}"
         )
+    if acq.venc_m_s is None:  # with a venc the velocity is in the venc's unit, whose range was checked
+        return ranges.check("velocity", peak, f"{where} (99th percentile in the lumen)", allow, "store")
+    return ""
+
+
+def repair_spikes(magnitude: np.ndarray) -> tuple[np.ndarray, int, float]:
+    """Isolated corrupt magnitude voxels (:data:`SPIKE_FACTOR`) replaced by their 3 x 3 neighbours' median.
+
+    Returns ``(magnitude, number replaced, the largest)``; the input is not modified.
+    """
+    mag = np.asarray(magnitude, dtype=float)
+    finite = mag[np.isfinite(mag)]
+    if finite.size < 16:
+        return mag, 0, 0.0
+    level = float(np.percentile(finite, 97))  # robust to spikes in up to 3 % of the voxels
+    if not level > 0:
+        return mag, 0, 0.0
+    around = scipy.ndimage.median_filter(mag, size=3, mode="nearest")
+    spikes = np.isfinite(mag) & (mag > SPIKE_FACTOR * level) & (mag > SPIKE_FACTOR * np.abs(around))
+    if not spikes.any():
+        return mag, 0, 0.0
+    out = np.where(spikes, around, mag)
+    return out, int(spikes.sum()), float(mag[spikes].max())
+
+
+def background_offset(magnitude: np.ndarray, lumen: pp.Lumen) -> float:
+    """The constant added to a magnitude whose background is not noise alone (module notes), or 0.
+
+    A background of pure noise is Rayleigh distributed, its spread 0.52 of its mean. A spread below
+    :data:`OFFSET_SPREAD` of the mean is a constant offset (a scanner baseline, an export that shifted the values)
+    or a signal in the background (static tissue): either way the noise level taken from the background's power
+    would be that level's size, not the noise's. The offset is ``mean - sqrt(pi/2) sigma`` with ``sigma`` the
+    Rayleigh scale of the spread; removing it leaves the normalized magnitude as it was (an affine change of the
+    raw values) and the noise estimates their noise.
+    """
+    outer = ~scipy.ndimage.binary_dilation(lumen.noise_mask, iterations=2)
+    bg = np.asarray(magnitude, dtype=float)[outer]
+    bg = bg[np.isfinite(bg)]
+    if bg.size < 20:
+        return 0.0
+    mean, spread = float(np.mean(bg)), float(np.std(bg))
+    if not (mean > 0 and spread < OFFSET_SPREAD * mean):
+        return 0.0
+    sigma = spread / RAYLEIGH_STD
+    return max(mean - RAYLEIGH_MEAN * sigma, 0.0)
 
 
 @dataclass
@@ -217,7 +298,18 @@ def _screen_slice(
 ) -> tuple[np.ndarray, SliceScreen]:
     where = f"{acq.source} slice {iz}"
     notes: list[str] = []
-    record: dict[str, Any] = {"other_vessels": lumen.others, "vessel_chosen_by": lumen.chosen_by}
+    record: dict[str, Any] = {
+        "other_vessels": lumen.others,
+        "vessel_chosen_by": lumen.chosen_by,
+        "lumen_voxels": int(lumen.mask.sum()),
+        "lumen_radius_mm": float(lumen.r_area),
+    }
+    radius_note = ranges.check(
+        "radius", lumen.r_area, f"{where}: the lumen ({int(lumen.mask.sum())} voxels of 'voxel_size_mm' "
+        f"{acq.voxel_size_mm[0]:g} x {acq.voxel_size_mm[1]:g} mm)", options.allow_unphysical,
+    )  # fmt: skip
+    if radius_note:
+        notes.append(radius_note)
     if lumen.others:
         notes.append(lumen.others_note())
     if lumen.tissue and lumen.tissue.get("static_bright"):  # hook (issue 39)
@@ -251,7 +343,11 @@ def _screen_slice(
                 f"velocity aliasing suspected: {changed} lumen voxel(s) differ from their neighbours by "
                 f"about 2 venc = {2 * venc:g} m/s; used as measured (--no-unwrap)"
             )
-    _check_speed(acq, iz, "velocity" if acq.phase is None else "venc_m_s x phase / pi", out, lumen.mask)
+    speed_note = _check_speed(
+        acq, iz, "velocity" if acq.phase is None else "venc_m_s x phase / pi", out, lumen.mask, options.allow_unphysical
+    )
+    if speed_note:
+        notes.append(speed_note)
     return out, SliceScreen(notes, record)
 
 
@@ -272,27 +368,55 @@ def screen(acq, options: ScreenOptions | None = None):
     if options.unwrap:
         check_velocity_range(acq, "velocity" if acq.phase is None else "phase", velocity)
     bad = set(acq.nonfinite_slices())
-    found, fixed = {}, None
+    found, fixed, magnitude = {}, None, None
+    repairs: dict[int, list[str]] = {}
     for iz in range(acq.nz):
         if iz in bad:
             continue
+        mag_iz, spikes, worst = repair_spikes(acq.magnitude[iz])
+        if spikes:
+            repairs.setdefault(iz, []).append(
+                f"{spikes} isolated magnitude voxel(s) exceeded {SPIKE_FACTOR:g}x both the image's 97th percentile "
+                f"and their neighbours (up to {worst:.4g}): corrupt values, replaced by their neighbours' median"
+            )
         try:
             # hook (issue 39): the lumen among the bright regions that flow; static bright tissue (fat) is
             # neither the vessel nor "another vessel in view" (wss_nlp.models.surround.screen_preprocess)
             _, m, lumen = surround.screen_preprocess(
-                acq.magnitude[iz], velocity[iz], acq.grid, f"{acq.source} slice {iz}", options.vessel, acq.venc_m_s
+                mag_iz, velocity[iz], acq.grid, f"{acq.source} slice {iz}", options.vessel, acq.venc_m_s
             )
+            offset = background_offset(mag_iz, lumen) if not (lumen.tissue or {}).get("static_bright") else 0.0
+            if offset > 0:  # issue 42: a constant offset in air (tissue is the surround model's: issue 39)
+                repairs.setdefault(iz, []).append(
+                    f"the magnitude's background is not noise alone (its spread is under {OFFSET_SPREAD:g} of its "
+                    f"mean; pure noise: {RAYLEIGH_STD / RAYLEIGH_MEAN:.2f}): a constant offset of {offset:.4g} "
+                    "(a scanner baseline, a shifted export) was subtracted, else the noise levels would be the "
+                    "offset's size"
+                )
+                mag_iz = np.maximum(mag_iz - offset, 0.0)
+                _, m, lumen = surround.screen_preprocess(
+                    mag_iz, velocity[iz], acq.grid, f"{acq.source} slice {iz}", options.vessel, acq.venc_m_s
+                )
         except WssNlpError:  # no vessel, lumen on the border: a stack reports the slice as failed later
             if acq.nz == 1:
                 raise
             continue
+        if iz in repairs:
+            if magnitude is None:
+                magnitude = np.array(acq.magnitude, dtype=float, copy=True)
+            magnitude[iz] = mag_iz
         v_iz, found[iz] = _screen_slice(acq, iz, np.asarray(velocity[iz], dtype=float), lumen, m, options)
+        if iz in repairs:
+            found[iz].notes[:0] = repairs[iz]
+            found[iz].record["magnitude_repaired"] = repairs[iz]
         if found[iz].record.get("unwrapped"):
             if fixed is None:
                 fixed = np.array(velocity, dtype=float, copy=True)
             fixed[iz] = v_iz
     if fixed is not None:
         acq = replace(acq, velocity=fixed, phase=None)
+    if magnitude is not None:
+        acq = replace(acq, magnitude=magnitude)
     return acq, found
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from ...core import schema
+from ...pipeline import limits
 from ...pipeline.options import ReconstructionOptions
 
 
@@ -14,4 +15,5 @@ def _add_reconstruction_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def options_from_args(args) -> ReconstructionOptions:
-    return schema.from_args(ReconstructionOptions, args)
+    """The options the arguments set, each value checked first in the user's words (:mod:`wss_nlp.pipeline.limits`)."""
+    return schema.from_args(ReconstructionOptions, args, check=limits.check_values)

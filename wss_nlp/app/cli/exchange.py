@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 
 import numpy as np
 
 from ...io import files as wio
-from ...io import outputs
+from ...io import outputs, ranges
 from ...errors import InputError
 
 
@@ -24,8 +25,24 @@ def cmd_export(args) -> int:
             "time series) file"
         )
     outputs.check_outputs(files={"--vtk": args.vtk}, inputs=[args.result])
+    if args.slice_spacing is not None:
+        ranges.check("slice_spacing", args.slice_spacing, "--slice-spacing", ranges.parse_allow(args.allow_unphysical)
+                     if args.allow_unphysical else ())  # fmt: skip
     print(f"wrote {export.write_vtk(args.result, args.vtk, args.slice_spacing)}")
     return 0
+
+
+def add_allow(p: argparse.ArgumentParser) -> None:
+    """``--allow-unphysical [QUANTITY,...]`` for commands whose options are physical quantities
+    (:mod:`wss_nlp.io.ranges`; reconstruct has it from its options' declaration)."""
+    p.add_argument(
+        "--allow-unphysical",
+        nargs="?",
+        const="all",
+        default="",
+        metavar="QUANTITY,...",
+        help="use values outside the plausible ranges of the docs page 'Input checks' as given (all, or those named)",
+    )
 
 
 def add_import_arguments(p: argparse.ArgumentParser) -> None:
@@ -68,6 +85,7 @@ def add_import_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--plane-spacing", type=float, default=None, metavar="MM", help="between those slices (default: the voxel)"
     )
+    add_allow(p)
 
 
 def venc_values(text: str | None) -> tuple[float, ...] | None:
@@ -106,16 +124,29 @@ def import_settings(args) -> dict:
     from ...io import scanner
 
     wio.check_density(args.density, "--density")
-    if args.viscosity is not None and not args.viscosity > 0:
-        raise InputError(f"--viscosity {args.viscosity}: must be > 0 Pa*s (e.g. 3.5e-3 for blood)")
     venc = venc_values(args.venc)
     if venc is not None and len(venc) != 1:
         raise InputError(f"--venc {args.venc}: three values are for a 4D flow volume; slices and planes take one")
+    allow = ranges.parse_allow(args.allow_unphysical) if getattr(args, "allow_unphysical", "") else ()
+    for name, value, flag in (  # the user's numbers in their ranges before any file is read (issue 42)
+        ("venc", None if venc is None else venc[0], "--venc"),
+        ("viscosity", args.viscosity, "--viscosity"),
+        ("density", args.density, "--density"),
+        ("frame_spacing", args.frame_interval, "--frame-interval"),
+        ("fov", args.plane_fov if args.plane is not None else None, "--plane-fov"),
+        ("voxel_size", args.plane_voxel, "--plane-voxel"),
+        ("slice_spacing", args.plane_spacing, "--plane-spacing"),
+    ):
+        if value is not None and (note := ranges.check(name, value, flag, allow)):
+            print(f"wss-nlp: warning: {note}", file=sys.stderr)
+    if args.plane is not None and not 1 <= args.plane_slices <= 500:
+        raise InputError(f"--plane-slices {args.plane_slices}: must be a whole number in 1-500")
     options = scanner.ImportOptions(
         venc_m_s=None if venc is None else venc[0],
         viscosity_pa_s=args.viscosity,
         density_kg_m3=args.density,
         flip_through_plane=args.flip_through_plane,
+        allow_unphysical=allow,
     )
     plane = None
     if args.plane is not None:

@@ -6,11 +6,37 @@ file system that refused), 3 internal error. A closed pipe (``wss-nlp analyze ou
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import sys
+import threading
 from ...errors import WssNlpError
+from ...io.outputs import os_error_text
 from .parser import build_parser
+
+
+class Terminated(BaseException):
+    """SIGTERM arrived: unwinds like KeyboardInterrupt, so that every ``with`` and ``finally`` removes what the run
+    had staged (temporary files, staged figure folders) before the process exits."""
+
+
+@contextlib.contextmanager
+def _terminate_as_exception():
+    """SIGTERM raises :class:`Terminated` in the main thread while the command runs (the previous handler after)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv=None) -> int:
@@ -30,17 +56,28 @@ def _main(argv: list[str]) -> int:
     args.argv = argv
     _show_library_log(logging.WARNING if args.quiet else logging.DEBUG if args.verbose else logging.INFO)
     try:
-        return int(args.func(args) or 0)
+        with _terminate_as_exception():
+            return int(args.func(args) or 0)
     except BrokenPipeError:
         raise  # main's: not a file system error
     except WssNlpError as exc:
         print(f"wss-nlp: error: {_one_line(exc)}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print("wss-nlp: interrupted", file=sys.stderr)
+        print("wss-nlp: interrupted; nothing half-written was left", file=sys.stderr)
         return 130
+    except Terminated:
+        print("wss-nlp: terminated (SIGTERM); nothing half-written was left", file=sys.stderr)
+        return 128 + signal.SIGTERM
+    except MemoryError:
+        print(
+            "wss-nlp: error: out of memory; reduce the options that scale the problem (--degree, --n-fourier, "
+            "--quad-order, --n-phi) or the image, or run on a machine with more memory",
+            file=sys.stderr,
+        )
+        return 2
     except OSError as exc:  # the file system refused (disk full, permissions changed during the run)
-        print(f"wss-nlp: error: {_one_line(exc)}", file=sys.stderr)
+        print(f"wss-nlp: error: {_one_line(os_error_text(exc))}", file=sys.stderr)
         return 2
     except Exception as exc:  # a bug: one line for the user, the traceback for the report
         if os.environ.get("WSS_NLP_DEBUG"):
@@ -87,7 +124,7 @@ def _show_library_log(level: int = logging.INFO) -> None:
     logger.setLevel(level)
 
 
-def _one_line(exc: BaseException) -> str:
+def _one_line(exc: BaseException | str) -> str:
     return " ".join(str(exc).split())
 
 

@@ -11,6 +11,7 @@ from ...models.kspace import AcquisitionOptions
 from ..plotting import DEFAULT_DPI, FIGURE_FORMATS
 from .batch import cmd_batch
 from .demo import cmd_demo
+from .exchange import add_allow as _add_allow
 from .exchange import add_import_arguments, cmd_export, cmd_import
 from .phantom import cmd_phantom
 from .reconstruct import cmd_reconstruct
@@ -128,8 +129,17 @@ def _add_figure_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its usage errors as one ``wss-nlp: error:`` line naming the command, the argument and where
+    the help is (exit code 2), like every other refusal."""
+
+    def error(self, message: str):
+        command = self.prog.split(" ", 1)[1] + ": " if " " in self.prog else ""
+        self.exit(2, f"wss-nlp: error: {command}{message}; see '{self.prog} --help'\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="wss-nlp",
         description="Vessel geometry, velocity and wall shear stress from phase-contrast MRI "
         "(Egger & Teschner), with every Tikhonov problem posed in CasADi.",
@@ -256,6 +266,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ph.add_argument("--nifti", default=None, metavar="FOLDER", help="also write NIfTI files with JSON sidecars")
     schema.add_arguments(ph, AcquisitionOptions)  # acquire in k-space: --acquisition kspace --kspace-filter ...
+    _add_allow(ph)
     ph.set_defaults(func=cmd_phantom)
 
     a = sub.add_parser(
@@ -369,6 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="mm between slices (default: the result's slice_spacing_mm, stored by reconstruct)",
     )
+    _add_allow(ex)
     ex.set_defaults(func=cmd_export)
 
     im = sub.add_parser(

@@ -8,7 +8,8 @@ import sys
 import numpy as np
 from ...io import files as wio
 from ...analysis import metrics
-from ...io import outputs
+from ...io import outputs, ranges
+from ...pipeline import limits
 from ...synthetic import invivo, phantoms
 from ...core import schema
 from ...errors import InputError
@@ -173,6 +174,34 @@ def _acquired_text(psf) -> str:
     return f"k-space acquisition, {psf.filter} filter, zero-filling {psf.zero_fill[1]:g} x {psf.zero_fill[0]:g}"
 
 
+def _check_phantom_options(args) -> None:
+    """Every physical option in its plausible range (:mod:`wss_nlp.io.ranges`), counts in theirs, and the images'
+    memory, before anything is built; ``--snr`` 0 or below means noise-free."""
+    allow = ranges.parse_allow(args.allow_unphysical) if args.allow_unphysical else ()
+    notes = [ranges.check("voxel_size", args.h, "--h", allow)]
+    if not np.isfinite(args.snr):
+        raise InputError(f"--snr {args.snr}: must be a finite number (0 or below: no noise)")
+    if args.snr > 0:
+        notes.append(ranges.check("snr", args.snr, "--snr", allow))
+    for name, value, flag in (("venc", args.venc, "--venc"), ("slice_spacing", args.spacing, "--spacing"),
+                              ("radius", args.pipe_radius, "--pipe-radius")):  # fmt: skip
+        if value is not None:
+            notes.append(ranges.check(name, value, flag, allow))
+    for flag, value, lo, hi in (("--nz", args.nz, 1, 500), ("--frames", args.frames, 1, 500)):
+        if not lo <= value <= hi:
+            raise InputError(f"{flag} {value}: must be a whole number in {lo}-{hi}")
+    if args.swirl is not None and not (np.isfinite(args.swirl) and abs(args.swirl) <= 1000):
+        raise InputError(f"--swirl {args.swirl}: must be a swirl rate in 1/s within +-1000")
+    if args.distension is not None and not 0 <= args.distension < 0.3:
+        raise InputError(f"--distension {args.distension}: must lie in [0, 0.3)")
+    images = args.frames if args.case == "cine" else (args.nz if args.stack else 1)
+    half_fov = 2.0 * (args.pipe_radius or 10.0) if args.case == "cine" else 25.0  # every case: 15-21 mm
+    limits.check_phantom(half_fov, args.h, images, "--h")
+    for note in notes:
+        if note:
+            print(f"wss-nlp: warning: {note}", file=sys.stderr)
+
+
 def cmd_phantom(args) -> int:
     outputs.check_outputs(
         files={"-o": args.output, "--truth": args.truth}, folders={"--dicom": args.dicom, "--nifti": args.nifti}
@@ -181,6 +210,7 @@ def cmd_phantom(args) -> int:
         return _phantom_volume(args)
     if args.output is None:
         raise InputError("phantom: name the input file to write (-o FILE.h5)")
+    _check_phantom_options(args)
     if args.case == "cine":
         return _phantom_cine(args)
     cine_only = [f for f, v in (("--distension", args.distension), ("--shape", args.shape),

@@ -8,8 +8,8 @@ import sys
 import time
 import numpy as np
 from ...io import files as wio
-from ...io import outputs
 from ...errors import InputError
+from ...io import outputs, ranges
 from ...pipeline import methods
 from ...pipeline.driver import reconstruct, segments_in_parallel, stack_applies
 from .arguments import options_from_args
@@ -111,6 +111,7 @@ def _reconstruct_cine(args, options) -> int:
     from ...pipeline import cine
 
     frames, times, period = wio.read_frames(args.input)
+    timing_notes = ranges.check_frames(times, period, args.input, options.screen.allow_unphysical)
     acq = frames[0]
     if not args.quiet:
         print(
@@ -129,12 +130,14 @@ def _reconstruct_cine(args, options) -> int:
     with _segments_in_parallel(args, parallel, "each frame's geometry starts from the previous frame's wall"):
         result = cine.reconstruct_cine(frames, times, period, options, progress=progress)
     with outputs.StagedFolder(args.figures) as staged:
-        series = cine.write_result(args.output, result, options.as_dict(), argv=["wss-nlp", *args.argv])
-        import h5py
-
-        with h5py.File(args.output, "a") as f:  # the input's frame, for export in world coordinates
-            for k, v in _input_frame(args.input).items():
-                f.attrs[k] = v
+        series = cine.write_result(
+            args.output,
+            result,
+            options.as_dict(),
+            argv=["wss-nlp", *args.argv],
+            notes=timing_notes,
+            attrs=_input_frame(args.input),  # the input's frame, for export in world coordinates
+        )
         if staged.path:
             from ..plotting import save_cine_figures
 
@@ -142,6 +145,8 @@ def _reconstruct_cine(args, options) -> int:
         staged.commit()
     for line in cine.cycle_warnings(result, series):  # each kind once, with the slices and frames it applies to
         sys.stderr.write(f"wss-nlp: warning: {line}\n")
+    for note in timing_notes:
+        sys.stderr.write(f"wss-nlp: warning: {note}\n")
     for s in series:
         print(_cycle_summary(s, times))
     print(f"wrote {args.output}")

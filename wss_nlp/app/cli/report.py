@@ -42,7 +42,7 @@ def cmd_compare(args) -> int:
     if ("cine" in layout) != ("cine" in truth_layout):
         raise InputError(
             f"{args.result} is a {layout} result but {args.truth} a {truth_layout} truth: compare needs a "
-            "time-resolved truth for a time-resolved result (wss-nlp phantom --case womersley --truth)"
+            "time-resolved truth for a time-resolved result (wss-nlp phantom --case cine --truth)"
         )
     if "cine" in layout:
         return _compare_cine(args)

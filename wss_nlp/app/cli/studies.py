@@ -6,7 +6,7 @@ import os
 import sys
 from ...io import files as wio
 from ...io import outputs
-from ...errors import InputError
+from ...errors import InputError, WssNlpError
 
 
 def _where(items) -> dict:
@@ -22,11 +22,18 @@ def _where(items) -> dict:
 def cmd_sweep(args) -> int:
     from .. import sweep
 
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers {args.workers}: must be a whole number >= 1 (default: all cores)")
     study = sweep.load_study(args.study)
     out = args.output_dir or os.path.join("runs", study.name)
     outputs.check_outputs(folders={"-o": out}, inputs=[args.study])
+    fresh = not os.path.exists(out)
     try:
         s = sweep.run_study(study, out, workers=args.workers, scheduler=args.scheduler, retry_failed=args.retry_failed)
+    except WssNlpError:  # issue 42: a refused sweep leaves no study folder behind (one it made, with no case in it)
+        if fresh:
+            _remove_unused(out)
+        raise
     except KeyboardInterrupt:
         print(
             f"\nwss-nlp: interrupted; finished cases are kept in {out}/cases; run the same command again to resume",
@@ -39,13 +46,24 @@ def cmd_sweep(args) -> int:
     )
     for path in s.outputs:
         print(f"wrote {path}")
-    if s.failed:
+    if s.failed:  # issue 42: a sweep with failed cases exits 1
         print(
             f"wss-nlp: warning: {s.failed} case(s) failed or did not converge; see the 'status' and 'message' "
             f"columns of {s.csv_path}",
             file=sys.stderr,
         )
+        return 1
     return 0
+
+
+def _remove_unused(out: str) -> None:
+    """Remove the output folder a refused sweep created, if it holds nothing but the study's copy and no case."""
+    import shutil
+
+    cases = os.path.join(out, "cases")
+    names = set(os.listdir(out)) if os.path.isdir(out) else set()
+    if names <= {"study.toml", "cases"} and not (os.path.isdir(cases) and os.listdir(cases)):
+        shutil.rmtree(out, ignore_errors=True)
 
 
 def cmd_table(args) -> int:

@@ -15,7 +15,7 @@ import numpy as np
 from ... import __version__
 from ...io import files as wio
 from ...analysis import metrics as met
-from ...errors import WssNlpError
+from ...errors import InputError, WssNlpError
 from ...pipeline.driver import reconstruct
 from .. import executor
 from ..progress import Progress
@@ -126,6 +126,13 @@ def _done(cases_dir: str, cid: str, retry_failed: bool) -> dict | None:
     return rec
 
 
+def _require_dask() -> None:
+    try:
+        import dask.distributed  # noqa: F401
+    except ImportError:
+        raise InputError("--scheduler needs dask.distributed: pip install 'wss-nlp[dask]'") from None
+
+
 def run_study(
     study: Study,
     outdir: str,
@@ -135,6 +142,8 @@ def run_study(
     stream=None,
 ) -> Summary:
     """Run every case of ``study`` not yet done in ``outdir``; write results.csv, tables and plots."""
+    if scheduler:  # issue 42: refuse a backend that cannot run before anything is written
+        _require_dask()
     t0 = time.perf_counter()
     cases_dir = os.path.join(outdir, "cases")
     os.makedirs(cases_dir, exist_ok=True)
