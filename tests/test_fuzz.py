@@ -936,7 +936,7 @@ def test_sigterm_unwinds_staged_figures(tmp_path, monkeypatch):
     acq, _ = phantoms.make_phantom("circle", h_mm=1.5, snr=25, seed=61)
     wio.write_acquisition(tmp_path / "in.h5", acq)
 
-    def figures_then_term(results, acq, folder):
+    def figures_then_term(results, acq, folder, *figure_options):
         open(os.path.join(folder, "slice_000_half.png"), "wb").close()
         os.kill(os.getpid(), signal.SIGTERM)
 

@@ -272,9 +272,12 @@ def test_magnitude_noise_within_20_percent_on_phantoms(case, h, snr, seed):
 def test_noise_free_data_fall_back_to_the_fixed_values_and_say_so(fourier_noise_free):
     """Zero estimated noise: nothing to balance against; the fixed value is used and the result says why."""
     from wss_nlp.pipeline import ReconstructionOptions, reconstruct
+    from wss_nlp.pipeline.plausibility import ScreenOptions
 
     acq, _ = fourier_noise_free  # no noise added: the Rayleigh background is exactly zero, so is epsilon
-    res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+    # its venc (100 m/s, far above the flow: no dephasing) is outside the plausible range on purpose
+    options = ReconstructionOptions(uncertainty=False, screen=ScreenOptions(allow_unphysical=("venc",)))
+    res = reconstruct(acq, options)[0]
     ch = res.beta_choice
     assert ch.rule == "fixed" and ch.chosen == pytest.approx(5e-8) and ch.noise == 0
     assert sum("balance needs noise" in w for w in res.warnings) == 1

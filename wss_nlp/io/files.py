@@ -12,6 +12,7 @@ import contextlib
 import datetime as _dt
 import json
 import os
+import re
 import sys
 from ..models.baselines import BaselineResult
 from dataclasses import dataclass, field
@@ -194,7 +195,8 @@ def _attr(f, name, src, required=False, size=None):
     except (TypeError, ValueError):
         raise InputError(f"{src}: attribute '{name}' must be numeric, got {f.attrs[name]!r}") from None
     if val.size != (size or 1):
-        raise InputError(f"{src}: attribute '{name}' must have {size or 1} value(s), got {val.size}")
+        n = size or 1
+        raise InputError(f"{src}: attribute '{name}' must have {n} value{'s' if n > 1 else ''}, got {val.size}")
     if not np.all(np.isfinite(val)):
         raise InputError(f"{src}: attribute '{name}' is not finite: {val}")
     return tuple(val.tolist()) if size and size > 1 else float(val[0])
@@ -250,7 +252,9 @@ def _open_input(path):
 def _open_error(src: str, exc: OSError) -> str:
     """Why an existing file would not open for reading, in one line."""
     text = " ".join(str(exc).split())
-    if "lock" in text.lower():
+    if "truncated file" in text.lower():  # HDF5's own words; its message also holds "sblock", not a lock
+        return f"{src}: not an HDF5 file: truncated, an interrupted copy or write ({text})"
+    if re.search(r"\b(file locking|unable to lock)\b", text.lower()):
         return (
             f"{src}: is open for writing by another program (HDF5 file locking: {text}); wait until it is closed "
             "(or, if it is not being written, set HDF5_USE_FILE_LOCKING=FALSE)"
@@ -859,11 +863,6 @@ def read_result(path) -> list[dict]:
         names = sorted(k for k in f if k.startswith("slice_"))
         if not names:
             raise InputError(f"{src}: no 'slice_NNN' groups; not a wss-nlp result file")
-        if "trigger_times_ms" in f.attrs:
-            raise InputError(
-                f"{src}: a time-resolved (cine) result (frames per slice, TAWSS and OSI); this reads single-frame "
-                "results ('wss-nlp export' reads both)"
-            )
         for name in names:
             s = f[name]
             try:

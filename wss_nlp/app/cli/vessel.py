@@ -59,7 +59,10 @@ def _set(args) -> dict:
         if not meta["cli"]:
             continue
         value = getattr(args, "opt__" + path.replace(".", "__"), None)
-        if (meta["flag_off"] and value is False) or (not meta["flag_off"] and value is not None):
+        if meta["flag_off"] or meta["flag_on"]:  # store_false / store_true: given when it differs from its default
+            if value is (not meta["flag_off"]):
+                given[path] = (meta["cli"], value)
+        elif value is not None:
             given[path] = (meta["cli"], value)
     return given
 
