@@ -271,6 +271,7 @@ def test_demo_cine_prints_the_cycle_against_the_truth(tmp_path, capsys):
     )
 
 
+@pytest.mark.slow  # CI budget: 19 s; the cine phantom CLI round trip of test_cli_polish stays in CI
 def test_phantom_cli_writes_breathing_elliptic_and_small_pipes_and_refuses_what_does_not_apply(tmp_path, capsys):
     """`phantom --case womersley` with --pipe-radius / --distension / --shape: the truth file's Womersley number
     is R sqrt(omega rho / mu) of the radius asked for (3 mm: 4.14), the breathing pipe's per-frame radius

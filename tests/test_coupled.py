@@ -410,6 +410,7 @@ def test_voxels_beyond_the_indicators_reach_hold_no_points_and_change_nothing(la
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-15 * np.max(np.abs(np.asarray(b))))
 
 
+@pytest.mark.slow  # CI budget: 50 s; the coupled gradient's Taylor test and the chain-rule Jacobian tests stay in CI
 def test_the_exact_hessian_fallback_equals_casadis_hessian_of_the_functional(laminar_coarse):
     """The fallback's exact Hessian, Gauss-Newton plus 2 sum_i r_i hess r_i along the c_R directions
     (coupled.residual_curvature; nlpsol's own exhausted 24 GB on a turbulent slice at h = 1 mm), equals

@@ -452,6 +452,7 @@ def test_kspace_band_agrees_with_monte_carlo():
     assert banded.wss.mean_std == pytest.approx(np.std(means, ddof=1), rel=0.25)
 
 
+@pytest.mark.slow  # CI budget: 46 s; the SNR-definition and PSF-tail noise tests stay in CI
 def test_noise_correlation_matches_sampled_kspace_noise():
     """The separable noise correlation of filtered, zero-filled k-space noise (what the band uses) against
     400 sampled noise images: neighbours 0-3 voxels apart within 0.02 (the sampling error is about 0.005)."""

@@ -117,6 +117,7 @@ def _midpoint_layer_means(problem, basis):
     return np.asarray(vox.mean_matrix() @ values.T)
 
 
+@pytest.mark.slow  # CI budget: 52 s; the cell-mean trapezoid tests of every family stay in CI
 def test_layer_quadrature_matches_a_fine_midpoint_rule(turbulent550):
     """Exact cell means on the 6 x 6 rule vs a 100 x 100 rule (the layer is 23 um, cells 250 um): 0.3 %."""
     acq, truth, res = turbulent550

@@ -477,6 +477,7 @@ def test_stacks_honour_the_dephasing_beta_rule(monkeypatch):
             assert all(used is not v and used.beta != v.beta for v, used in seen[:3])
 
 
+@pytest.mark.slow  # CI budget: 28 s; the exact Hessian is checked against CasADi's in test_coupled (slow)
 def test_a_failed_gauss_newton_segment_solve_falls_back_to_the_exact_hessian(monkeypatch):
     """As for one slice: if IPOPT with the Gauss-Newton Hessian fails on a coupled segment, the segment is solved
     again with CasADi's exact Hessian, which reaches the same minimizer (1e-4 relative, IPOPT tol 1e-6)."""
