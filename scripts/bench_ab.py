@@ -64,6 +64,7 @@ def main() -> None:
     p.add_argument("--label-a", default="A")
     p.add_argument("--label-b", default="B")
     p.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results"))
+    p.add_argument("--only", default="", help="run only the cases whose name contains this text")
     args = p.parse_args()
     lines = [
         "# A/B timing of two checkouts (scripts/bench_ab.py)",
@@ -76,6 +77,8 @@ def main() -> None:
         "|---|---|---|---|---|---|---|",
     ]
     for name, (acq, options) in CASES.items():
+        if args.only not in name:
+            continue
         times: dict = {"a": [], "b": []}
         for _ in range(args.repeats):
             for key in ("a", "b"):
