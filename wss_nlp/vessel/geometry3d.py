@@ -62,22 +62,13 @@ from ..core import radius as rad
 from ..core.solver import SolverStats, gauss_newton_ipopt, run_nlpsol
 from ..errors import InputError, NoVesselError
 from ..models import measurement as meas
+from ..models.geometry import WARM_START  # the 2D warm re-solve's IPOPT options serve the outside level's updates
 from . import tube
 
 log = logging.getLogger(__name__)
 
 #: Kernel width (standard deviation, in voxels) of the magnitude levels along s.
 LEVEL_BANDWIDTH_VOXELS = 3.0
-#: IPOPT options of a re-solve from a solution (the outside level's updates): the iterate and the multipliers are
-#: taken as given and the barrier starts small (as the 2D geometry's warm solver,
-#: :data:`wss_nlp.models.geometry.WARM_START`).
-WARM_START = {
-    "ipopt.warm_start_init_point": "yes",
-    "ipopt.mu_init": 1e-9,
-    "ipopt.warm_start_bound_push": 1e-9,
-    "ipopt.warm_start_mult_bound_push": 1e-9,
-    "ipopt.warm_start_slack_bound_push": 1e-9,
-}
 #: The outside level's updates stop when it changes by less than this (relative to the lumen's level).
 OUTSIDE_TOL = 0.01
 #: Over-relaxation of the outside level's updates: the alternation with the wall fit converges linearly (the wall

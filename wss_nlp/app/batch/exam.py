@@ -64,20 +64,7 @@ def run_exam(task: ExamTask) -> dict:
     os.makedirs(staging, exist_ok=True)
     stage = tempfile.mkdtemp(prefix=f"{exam.id}.", dir=staging)
     os.chmod(stage, 0o777 & ~_umask())  # mkdtemp's 0700 would make the exam's folder private
-    record: dict = {
-        "id": exam.id,
-        "status": "ok",
-        "error": "",
-        "failure": "",
-        "input": exam.input_text,
-        "inputs": list(exam.inputs),
-        "columns": dict(exam.columns),
-        "key": task.key,
-        "input_sha256": task.input_sha256,
-        "input_stat": task.input_stat,
-        "options": exam.options.as_dict(),
-        "wss_nlp_version": __version__,
-    }
+    record = _record(task, "ok", "", "")
     logger = logging.getLogger("wss_nlp")
     handler = logging.FileHandler(os.path.join(stage, "exam.log"), encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
@@ -135,14 +122,14 @@ def commit(stage: str, final: str) -> None:
     raise OSError(f"{final}: could not move the finished exam into place")
 
 
-def failed_record(task: ExamTask, error: str) -> dict:
-    """The record of an exam whose worker was lost (``failure`` ``crash``: a later run tries it again)."""
+def _record(task: ExamTask, status: str, error: str, failure: str) -> dict:
+    """The part of an exam's record that says which exam, input, options and version it is, and how it ended."""
     exam = task.exam
     return {
         "id": exam.id,
-        "status": "failed",
+        "status": status,
         "error": error,
-        "failure": "crash",
+        "failure": failure,
         "input": exam.input_text,
         "inputs": list(exam.inputs),
         "columns": dict(exam.columns),
@@ -151,6 +138,13 @@ def failed_record(task: ExamTask, error: str) -> dict:
         "input_stat": task.input_stat,
         "options": exam.options.as_dict(),
         "wss_nlp_version": __version__,
+    }
+
+
+def failed_record(task: ExamTask, error: str) -> dict:
+    """The record of an exam whose worker was lost (``failure`` ``crash``: a later run tries it again)."""
+    return {
+        **_record(task, "failed", error, "crash"),
         "metrics": {},
         "flags": [],
         "warnings": [],
