@@ -38,6 +38,52 @@ from ..core import radius as rad
 PER_MM = 1000.0
 
 
+@dataclass(frozen=True)
+class _WallGeometry:
+    """The wall's symbolic map ``x(sigma, rho, theta)`` about the centreline (``sigma`` the arc-length offset from
+    the point, substituted by 0 once differentiated), its Jacobian, normal, area element and circumferential unit
+    vector; ``inputs``/``names`` the geometry's inputs shared by :func:`point_function` and
+    :func:`wall_function`."""
+
+    sigma: ca.SX
+    rho: ca.SX
+    theta: ca.SX
+    t: ca.SX
+    q: ca.SX
+    x: ca.SX
+    jac_x: ca.SX
+    normal: ca.SX
+    area: ca.SX
+    e_c: ca.SX
+    inputs: list
+    names: list
+
+
+def _wall_geometry(n_fourier: int) -> _WallGeometry:
+    sx = ca.SX
+    rho, theta, sigma = sx.sym("rho"), sx.sym("theta"), sx.sym("sigma")
+    c, t, n1, n2, dn1, dn2 = (sx.sym(k, 3) for k in ("c", "t", "n1", "n2", "dn1", "dn2"))
+    nf = rad.n_coefficients(n_fourier)
+    r_i, r_s = sx.sym("R_i", nf), sx.sym("R_s", nf)
+    rin, rin_s = sx.sym("r_in"), sx.sym("r_in_s")
+    big_r = rad.symbolic(r_i + sigma * r_s, theta)
+    r_in = rin + sigma * rin_s
+    radius = r_in * rho + (big_r - r_in) * rho**2
+    e_r = ca.cos(theta) * (n1 + sigma * dn1) + ca.sin(theta) * (n2 + sigma * dn2)
+    x = c + sigma * t + radius * e_r
+    q = ca.vertcat(sigma, rho, theta)
+    jac_x = ca.jacobian(x, q)  # (3, 3): columns d/dsigma, d/drho, d/dtheta
+    x_s, x_th = jac_x[:, 0], jac_x[:, 2]
+    cross = ca.cross(x_th, x_s)
+    area = ca.norm_2(cross)
+    normal = cross / area
+    e_a = t - ca.dot(t, normal) * normal
+    e_c = ca.cross(e_a / ca.norm_2(e_a), normal)
+    inputs = [rho, theta, c, t, n1, n2, dn1, dn2, r_i, r_s, rin, rin_s]
+    names = ["rho", "theta", "c", "t", "n1", "n2", "dn1", "dn2", "R_i", "R_s", "r_in", "r_in_s"]
+    return _WallGeometry(sigma, rho, theta, t, q, x, jac_x, normal, area, e_c, inputs, names)
+
+
 @functools.lru_cache(maxsize=8)
 def point_function(disk, n_fourier: int) -> ca.Function:
     """CasADi ``Function`` of one point ``(rho, theta)`` near the wall point ``s_i`` (module notes).
@@ -49,40 +95,21 @@ def point_function(disk, n_fourier: int) -> ca.Function:
     ``tau`` (3, Pa, tangential), ``axial``, ``circumferential``, ``normal_part`` (Pa), ``area`` (``|x_theta x
     x_s|``, mm^2 per mm and rad), ``e_c`` (the circumferential unit vector).
     """
-    sx = ca.SX
-    rho, theta, sigma = sx.sym("rho"), sx.sym("theta"), sx.sym("sigma")
-    c, t, n1, n2, dn1, dn2 = (sx.sym(k, 3) for k in ("c", "t", "n1", "n2", "dn1", "dn2"))
-    nf = rad.n_coefficients(n_fourier)
-    r_i, r_s = sx.sym("R_i", nf), sx.sym("R_s", nf)
-    rin, rin_s = sx.sym("r_in"), sx.sym("r_in_s")
+    g = _wall_geometry(n_fourier)
+    sigma, rho, theta, t, normal = g.sigma, g.rho, g.theta, g.t, g.normal
     nz = disk.size
-    a, a_s = sx.sym("A", nz, 3), sx.sym("A_s", nz, 3)
-    mu = sx.sym("mu")
-    big_r = rad.symbolic(r_i + sigma * r_s, theta)
-    r_in = rin + sigma * rin_s
-    radius = r_in * rho + (big_r - r_in) * rho**2
-    e_r = ca.cos(theta) * (n1 + sigma * dn1) + ca.sin(theta) * (n2 + sigma * dn2)
-    x = c + sigma * t + radius * e_r
-    xi = ca.vertcat(rho * ca.cos(theta), rho * ca.sin(theta))
-    w = disk.symbolic(xi)
+    a, a_s = ca.SX.sym("A", nz, 3), ca.SX.sym("A_s", nz, 3)
+    mu = ca.SX.sym("mu")
+    w = disk.symbolic(ca.vertcat(rho * ca.cos(theta), rho * ca.sin(theta)))
     u = ca.mtimes((a + sigma * a_s).T, w)  # (3,)
-    q = ca.vertcat(sigma, rho, theta)
-    jac_x = ca.jacobian(x, q)  # (3, 3): columns d/dsigma, d/drho, d/dtheta
-    jac_u = ca.jacobian(u, q)
-    grad = ca.mtimes(jac_u, ca.inv(jac_x)) * PER_MM  # d u_a / d x_b, 1/s
-    x_s, x_th = jac_x[:, 0], jac_x[:, 2]
-    cross = ca.cross(x_th, x_s)
-    area = ca.norm_2(cross)
-    normal = cross / area
+    jac_u = ca.jacobian(u, g.q)
+    grad = ca.mtimes(jac_u, ca.inv(g.jac_x)) * PER_MM  # d u_a / d x_b, 1/s
     traction = -mu * ca.mtimes(grad + grad.T, normal)
     normal_part = ca.dot(traction, normal)
     tau = traction - normal_part * normal
-    e_a = t - ca.dot(t, normal) * normal
-    e_a = e_a / ca.norm_2(e_a)
-    e_c = ca.cross(e_a, normal)
-    inputs = [rho, theta, c, t, n1, n2, dn1, dn2, r_i, r_s, rin, rin_s, a, a_s, mu]
-    names = ["rho", "theta", "c", "t", "n1", "n2", "dn1", "dn2", "R_i", "R_s", "r_in", "r_in_s", "A", "A_s", "mu"]
-    outputs = [u, grad, x, normal, tau, ca.dot(tau, t), ca.dot(tau, e_c), normal_part, area, e_c]
+    inputs = [*g.inputs, a, a_s, mu]
+    names = [*g.names, "A", "A_s", "mu"]
+    outputs = [u, grad, g.x, normal, tau, ca.dot(tau, t), ca.dot(tau, g.e_c), normal_part, g.area, g.e_c]
     outputs = [ca.substitute(o, sigma, 0) for o in outputs]
     out_names = ["u", "grad", "x", "normal", "tau", "axial", "circumferential", "normal_part", "area", "e_c"]
     return ca.Function("vessel_wss_point", inputs, outputs, names, out_names)
@@ -99,30 +126,12 @@ def wall_function(disk, n_fourier: int) -> ca.Function:
     ``grad u = 1000 (d u / d(s, rho, theta)) minv`` (:func:`traction`), so every frame costs a few products.
     Inputs: :func:`point_function`'s without ``A``, ``A_s``, ``mu``.
     """
-    sx = ca.SX
-    rho, theta, sigma = sx.sym("rho"), sx.sym("theta"), sx.sym("sigma")
-    c, t, n1, n2, dn1, dn2 = (sx.sym(k, 3) for k in ("c", "t", "n1", "n2", "dn1", "dn2"))
-    nf = rad.n_coefficients(n_fourier)
-    r_i, r_s = sx.sym("R_i", nf), sx.sym("R_s", nf)
-    rin, rin_s = sx.sym("r_in"), sx.sym("r_in_s")
-    big_r = rad.symbolic(r_i + sigma * r_s, theta)
-    r_in = rin + sigma * rin_s
-    radius = r_in * rho + (big_r - r_in) * rho**2
-    e_r = ca.cos(theta) * (n1 + sigma * dn1) + ca.sin(theta) * (n2 + sigma * dn2)
-    x = c + sigma * t + radius * e_r
-    q = ca.vertcat(sigma, rho, theta)
-    jac_x = ca.jacobian(x, q)
-    x_s, x_th = jac_x[:, 0], jac_x[:, 2]
-    cross = ca.cross(x_th, x_s)
-    area = ca.norm_2(cross)
-    normal = cross / area
-    e_a = t - ca.dot(t, normal) * normal
-    e_c = ca.cross(e_a / ca.norm_2(e_a), normal)
+    g = _wall_geometry(n_fourier)
+    rho, theta = g.rho, g.theta
     w = disk.symbolic(ca.vertcat(rho * ca.cos(theta), rho * ca.sin(theta)))
-    outputs = [x, normal, area, e_c, ca.inv(jac_x), w, ca.jacobian(w, rho), ca.jacobian(w, theta)]
-    outputs = [ca.substitute(o, sigma, 0) for o in outputs]
-    inputs = [rho, theta, c, t, n1, n2, dn1, dn2, r_i, r_s, rin, rin_s]
-    names = ["rho", "theta", "c", "t", "n1", "n2", "dn1", "dn2", "R_i", "R_s", "r_in", "r_in_s"]
+    outputs = [g.x, g.normal, g.area, g.e_c, ca.inv(g.jac_x), w, ca.jacobian(w, rho), ca.jacobian(w, theta)]
+    outputs = [ca.substitute(o, g.sigma, 0) for o in outputs]
+    inputs, names = g.inputs, g.names
     return ca.Function("vessel_wall_point", inputs, outputs, names,
                        ["x", "normal", "area", "e_c", "minv", "w", "w_rho", "w_theta"])  # fmt: skip
 
