@@ -266,7 +266,7 @@ def check(u, sigma, x_mm, y_mm, coefficients, center, voxel_mm: float, reynolds:
                 f"r = {CORE_RADIUS:g} R, the parabola by {100 * out.parabola_drop:.0f} %)"
             )
     else:
-        scale = laminar_layer(near)
+        scale = laminar_layer(near, radius)
         if np.isfinite(scale) and np.isfinite(out.core_drop):
             out.langhaar_drop = ring_drop(langhaar(1.0 / (LAYER_SLACK * scale)), rings)
             excess = out.core_drop - out.langhaar_drop - CORE_MARGIN
@@ -280,20 +280,14 @@ def check(u, sigma, x_mm, y_mm, coefficients, center, voxel_mm: float, reynolds:
     return out
 
 
-def laminar_layer(near) -> float:
-    """``l / R`` of the laminar layer the near-wall choice found (the ``exponential`` family), NaN without one.
-
-    The chosen layer, or the best one tried when it beat the plain basis by the evidence but was set aside as
-    unresolved (thinner than the voxel allows: the slice is SUSPECT anyway)."""
-    from . import near_wall as nw
-
+def laminar_layer(near, radius_mm: float) -> float:
+    """``l / R`` of the laminar layer the near-wall choice found (the ``exponential`` family), NaN without one:
+    the chosen layer, or the one it set aside as too thin for the voxels (``unresolved_mm``: the best model, but
+    the slice is SUSPECT and takes the plain basis)."""
     if near is None:
         return float("nan")
     if near.model == "exponential":
         return float(near.scale_ratio)
-    plain = near.values.get("plain", np.inf)
-    tried = [(crit, ratio) for model, ratio, crit in near.tried if model == "exponential" and np.isfinite(crit)]
-    if not tried:
-        return float("nan")
-    crit, ratio = min(tried)
-    return float(ratio) if crit < plain - nw.LAYER_EVIDENCE else float("nan")
+    if np.isfinite(near.unresolved_mm):
+        return float(near.unresolved_mm / radius_mm)
+    return float("nan")
