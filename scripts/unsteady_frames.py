@@ -91,7 +91,7 @@ def main() -> None:
         "[bands] (% of peak) |",
         "|---|---|---|---|---|",
     ]
-    for h in [float(v) for v in args.h.split(",")]:
+    for h in [float(v) for v in args.h.split(",") if v]:
         rows = frame_rows(h, seeds, args.verbose)
         big = [r for r in rows if r[1] > 2]
         small = [r for r in rows if r[1] <= 2]

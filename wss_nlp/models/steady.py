@@ -49,7 +49,8 @@ from .._lazy import scipy
 from ..core import radius as rad
 
 #: A chi-square gain of the free ring means over the constrained ones above this contradicts the constraint
-#: (5 standard deviations of one constrained direction).
+#: (5 standard deviations where one constraint is active; noise alone exceeds it with probability 1.4e-4 even
+#: with five active, as on a nearly flat core; the steady phantoms reached 14.3, scripts/results/unsteady_frames.md).
 SHAPE_CHI2 = 25.0
 
 #: A ring mean this many of its standard deviations against the bulk's direction is a reversal.
