@@ -25,7 +25,8 @@ def test_sampling_reads_the_harmonic_amplitudes_and_flags_only_a_slow_decay_at_t
     transform of 256 samples is exact for degree 3). At the frames' limit (3 harmonics, 6 frames) with the
     decay 0.5 / 0.8 the harmonics beyond are estimated at 0.5 x 0.625 / 0.375 = 0.833 (of the peak 3.3: flagged);
     the same waveform below the limit (12 frames carry 6) is not flagged; at the limit with a fast decay
-    (1e-3 after 0.1: beyond 1e-5) it is not flagged either."""
+    (1e-3 after 0.1: beyond 1e-5) it is not flagged either; at the option's limit (--max-harmonics) the note
+    names the option instead of the frames."""
     wave = _waveform([1.0, 0.8, 0.5])
     at_limit = cine.sampling(wave, 3, 3, 6)
     assert np.allclose(at_limit["amplitudes_pa"], [1.0, 0.8, 0.5], atol=1e-12)
@@ -33,6 +34,10 @@ def test_sampling_reads_the_harmonic_amplitudes_and_flags_only_a_slow_decay_at_t
     assert at_limit["beyond_fraction"] == pytest.approx(0.5 * 0.625 / 0.375 / peak, rel=1e-12)
     assert at_limit["flagged"] and "at least 8" in cine.sampling_note(at_limit)
     assert not cine.sampling(wave, 3, 6, 12)["flagged"]
+    # the same at the option's limit (--max-harmonics 3) with 12 frames: flagged, the note names the option
+    capped = cine.sampling(wave, 3, 3, 12, limit=3)
+    assert capped["flagged"] and capped["limited_by"] == "max_harmonics"
+    assert "--max-harmonics" in cine.sampling_note(capped)
     fast = cine.sampling(_waveform([1.0, 0.1, 1e-3]), 3, 3, 6)
     assert fast["at_cap"] and not fast["flagged"] and fast["beyond_fraction"] < 1e-4
 

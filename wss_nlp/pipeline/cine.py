@@ -304,14 +304,15 @@ SAMPLING_LIMIT = 0.02
 SAMPLING_DECAY_CAP = 0.9
 
 
-def sampling(cycle_mean: np.ndarray, harmonics: int, carried: int, n_frames: int) -> dict:
+def sampling(cycle_mean: np.ndarray, harmonics: int, carried: int, n_frames: int, limit: int | None = None) -> dict:
     r"""Whether the frames resolve the waveform: the momentum model's highest harmonic against what the frames
     can carry.
 
     ``cycle_mean``: the model's wall-mean WSS at equally spaced instants of the whole cycle (Pa);
     ``harmonics``: the harmonics the BIC chose; ``carried``: the most the frames can carry (the Nyquist
-    harmonic, :func:`wss_nlp.models.womersley.max_harmonics`). Below that the BIC stopped adding harmonics
-    because the data did not need them: resolved. At it, harmonics beyond may exist and alias onto the
+    harmonic, :func:`wss_nlp.models.womersley.max_harmonics`), or the option's ``limit`` (``--max-harmonics``)
+    where that is lower (then the harmonics beyond are left out rather than aliased). Below that the BIC
+    stopped adding harmonics because the data did not need them: resolved. At it, harmonics beyond may exist and alias onto the
     fitted ones (6 frames of the 4-harmonic phantom: the model chose 3 and missed by 20 % of the peak): with
     the mean WSS's harmonic amplitudes :math:`A_n` (its discrete Fourier transform) decaying like
     :math:`q = \min(A_K / A_{K-1}, 0.9)`, the harmonics beyond sum to about :math:`A_K q / (1 - q)`;
@@ -333,19 +334,28 @@ def sampling(cycle_mean: np.ndarray, harmonics: int, carried: int, n_frames: int
         )
         beyond = top * q / (1.0 - q)
     record.update(at_cap=bool(at_cap), beyond_fraction=float(beyond / peak) if peak > 0 else 0.0)
+    record["limited_by"] = "max_harmonics" if limit is not None and carried >= limit else "frames"
     record["flagged"] = bool(at_cap and peak > 0 and beyond > SAMPLING_LIMIT * peak)
     return record
 
 
 def sampling_note(record: dict) -> str:
-    """The warning of a series whose frames may not resolve the waveform (:func:`sampling`)."""
+    """The warning of a series whose frames or harmonic limit may not resolve the waveform (:func:`sampling`)."""
     k = record["harmonics"]
+    share = 100 * record["amplitudes_pa"][-1] / record["peak_pa"]
+    beyond = f"about {100 * record['beyond_fraction']:.0f} % of the peak, from the decay of the fitted ones"
+    if record.get("limited_by") == "max_harmonics":
+        return (
+            f"waveform cut off? the momentum model needed all {k} harmonic(s) --max-harmonics allows, and its "
+            f"highest holds {share:.0f} % of the peak mean WSS: harmonics beyond it ({beyond}) are left out, and the "
+            f"WSS can be off by about that much; raise --max-harmonics (the {record['frames']} frames carry up to "
+            f"{record['frames'] // 2})"
+        )
     return (
         f"undersampled waveform? the momentum model needed the {k} harmonic(s) {record['frames']} frames can carry "
-        f"at most, and its highest holds {100 * record['amplitudes_pa'][-1] / record['peak_pa']:.0f} % of the peak "
-        f"mean WSS: harmonics beyond it (about {100 * record['beyond_fraction']:.0f} % of the peak, from the decay "
-        "of the fitted ones) alias onto the fitted ones, and the WSS at and between the frames can be off by about "
-        f"that much; acquire more frames (at least {2 * k + 2}), or read the frames' own fits (frames/frame_NNN)"
+        f"at most, and its highest holds {share:.0f} % of the peak mean WSS: harmonics beyond it ({beyond}) alias "
+        "onto the fitted ones, and the WSS at and between the frames can be off by about that much; acquire more "
+        f"frames (at least {2 * k + 2}), or read the frames' own fits (frames/frame_NNN)"
     )
 
 
@@ -556,7 +566,7 @@ def cycle_models(result: CineResult, frames: list[Acquisition], options, omega: 
                                  fill=fitted.harmonics < k_max)  # fmt: skip
             if model.cycle_mean is not None:
                 choice.sampling = sampling(model.cycle_mean, fitted.harmonics, min(k_max, len(usable) // 2),
-                                           len(usable))  # fmt: skip
+                                           len(usable), options.cine.max_harmonics)  # fmt: skip
         log.debug("slice %d: %s", iz, model_note(choice))  # the series' note says it (the CLI prints notes once)
         models[iz] = model
     return models
