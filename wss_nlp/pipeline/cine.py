@@ -308,15 +308,15 @@ def sampling(cycle_mean: np.ndarray, harmonics: int, carried: int, n_frames: int
     r"""Whether the frames resolve the waveform: the momentum model's highest harmonic against what the frames
     can carry.
 
-    ``cycle_mean``: the model's wall-mean WSS at equally spaced instants of the whole cycle (Pa);
-    ``harmonics``: the harmonics the BIC chose; ``carried``: the most the frames can carry (the Nyquist
-    harmonic, :func:`wss_nlp.models.womersley.max_harmonics`), or the option's ``limit`` (``--max-harmonics``)
-    where that is lower (then the harmonics beyond are left out rather than aliased). Below that the BIC
-    stopped adding harmonics because the data did not need them: resolved. At it, harmonics beyond may exist and alias onto the
-    fitted ones (6 frames of the 4-harmonic phantom: the model chose 3 and missed by 20 % of the peak): with
-    the mean WSS's harmonic amplitudes :math:`A_n` (its discrete Fourier transform) decaying like
-    :math:`q = \min(A_K / A_{K-1}, 0.9)`, the harmonics beyond sum to about :math:`A_K q / (1 - q)`;
-    above :data:`SAMPLING_LIMIT` of the peak the result is flagged.
+    ``cycle_mean``: the model's wall-mean WSS at equally spaced instants of the whole cycle (Pa); ``harmonics``: the
+    harmonics the BIC chose; ``carried``: the most the frames can carry (the Nyquist harmonic,
+    :func:`wss_nlp.models.womersley.max_harmonics`), or the option's ``limit`` (``--max-harmonics``) where that is
+    lower (then the harmonics beyond are left out rather than aliased). Below that the BIC stopped adding harmonics
+    because the data did not need them: resolved. At it, harmonics beyond may exist and alias onto the fitted ones
+    (6 frames of the 4-harmonic phantom: the model chose 3 and missed by 20 % of the peak): with the mean WSS's
+    harmonic amplitudes :math:`A_n` (its discrete Fourier transform) decaying like :math:`q = \min(A_K / A_{K-1},
+    0.9)`, the harmonics beyond sum to about :math:`A_K q / (1 - q)`; above :data:`SAMPLING_LIMIT` of the peak the
+    result is flagged.
     """
     m = cycle_mean.size
     amplitudes = 2.0 * np.abs(np.fft.rfft(np.asarray(cycle_mean, dtype=float)))[: harmonics + 1] / m
