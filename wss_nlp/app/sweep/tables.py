@@ -267,7 +267,7 @@ def write_views(study: Study, rows: list, outdir: str) -> list[str]:
     says how to get them; ``results.csv`` and the plots are written all the same.
     """
     out: list[str] = []
-    tables = study.tables
+    tables = list(study.tables)
     if tables and not _have_study_extra():
         logger.warning(
             "%d study table(s) not written: they need pandas and jinja2 (%s; then 'wss-nlp table %s ...')",
