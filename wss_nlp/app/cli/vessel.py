@@ -53,18 +53,7 @@ def parse_point3(text) -> tuple[float, float, float]:
 
 def _set(args) -> dict:
     """``{schema path: (flag, value)}`` of the reconstruction options given on the command line."""
-    given = {}
-    for path, f, _ in schema._leaves(ReconstructionOptions):
-        meta = f.metadata[schema._KEY]
-        if not meta["cli"]:
-            continue
-        value = getattr(args, "opt__" + path.replace(".", "__"), None)
-        if meta["flag_off"] or meta["flag_on"]:  # store_false / store_true: given when it differs from its default
-            if value is (not meta["flag_off"]):
-                given[path] = (meta["cli"], value)
-        elif value is not None:
-            given[path] = (meta["cli"], value)
-    return given
+    return schema.given(ReconstructionOptions, args)
 
 
 def _number(flag: str, value) -> float:
@@ -126,10 +115,7 @@ def vessel_options(args):
 
 
 def given_flag(path: str) -> str:
-    for p, f, _ in schema._leaves(ReconstructionOptions):
-        if p == path:
-            return str(f.metadata[schema._KEY]["cli"])
-    return path
+    return schema.cli_flag(ReconstructionOptions, path)
 
 
 def reconstruct_volume(args) -> int:
