@@ -21,7 +21,13 @@ was the better one, and each one's signed error of the mean WSS; a noise-free ro
 sub-voxel offset as the first seed, each family at the true viscous length R/Re_tau: the data cannot choose a scale
 without noise) separates the models' bias from the noise. Writes ``scripts/results/low_re_paired.md``.
 
-    python scripts/low_re.py [--part accuracy|viscosity|paired] [--seeds 5] [--first-seed 100] [--name ...]
+``--part scale``: where the default's mean WSS error comes from: for the default and ``--near-wall wall_law`` on
+the same acquisitions, the chosen scale over the DNS's viscous length ``R/Re_tau`` (mean and seed-to-seed standard
+deviation), what that scale alone does to the WSS of a law-of-the-wall layer, whose wall stress at the root of
+``u_tau l = nu`` is ``rho nu^2 / l^2`` (``(l_true/l)^2 - 1``, mean), and the signed error of the mean WSS.
+Writes ``scripts/results/low_re_scale.md``.
+
+    python scripts/low_re.py [--part accuracy|viscosity|paired|scale] [--seeds 5] [--first-seed 100] [--name ...]
 """
 
 import sys
@@ -165,16 +171,51 @@ def paired(args, seeds) -> list[str]:
     return lines
 
 
+def scale(args, seeds) -> list[str]:
+    models = {
+        "default": ReconstructionOptions(uncertainty=False),
+        "wall_law": ReconstructionOptions(uncertainty=False, velocity=vel.VelocityOptions(near_wall="wall_law")),
+    }
+    lines = [
+        f"Seeds {seeds[0]}-{seeds[-1]} (the same acquisition for both models); mean +- seed-to-seed standard "
+        "deviation of the chosen scale l over the DNS's viscous length R/Re_tau; (l_true/l)^2 - 1, the WSS error "
+        "the scale alone makes (a layer's wall stress at u_tau l = nu is rho nu^2/l^2); signed error of the mean WSS.",
+        "",
+        "| phantom | h [mm] | SNR | model | l / l_true | (l_true/l)^2 - 1 | mean WSS error |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for case in args.cases.split(","):
+        for h in (float(x) for x in args.h.split(",")):
+            for snr in (float(s) for s in args.snr.split(",")):
+                ratios: dict = {name: [] for name in models}
+                means: dict = {name: [] for name in models}
+                for seed in seeds:
+                    acq, truth = phantoms.make_phantom(case, h_mm=h, snr=snr, seed=seed)
+                    ell = truth.flow.radius_mm / truth.flow.re_tau
+                    for name, opts in models.items():
+                        res = reconstruct(acq, opts)[0]
+                        ratios[name].append(res.near_wall.scale_mm / ell)
+                        means[name].append(metrics.compare_slice(res, truth).mean_wss_rel)
+                for name in models:
+                    r = np.asarray(ratios[name])
+                    lines.append(
+                        f"| {case} | {h:g} | {snr:g} | {name} | {np.mean(r):.4f} +- {np.std(r, ddof=1):.4f} | "
+                        f"{100 * np.mean(r**-2 - 1):+.2f}% | {100 * np.mean(means[name]):+.2f}% |"
+                    )
+                    print(lines[-1], flush=True)
+    return lines
+
+
 def main(argv=None) -> None:
     p = study_parser(__doc__, seeds=5, h="1.5,1.0,0.6,0.3", snr="25,10")
     p.set_defaults(cases=CASES)
-    p.add_argument("--part", choices=("accuracy", "viscosity", "paired"), default="accuracy")
+    p.add_argument("--part", choices=("accuracy", "viscosity", "paired", "scale"), default="accuracy")
     p.add_argument("--first-seed", type=int, default=100, help="report seeds 100..; development used 1-3")
     p.add_argument("--name", default=None, help="file name of the table in --out")
     args = p.parse_args(argv)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     t0 = time.perf_counter()
-    lines = {"accuracy": accuracy, "viscosity": viscosity, "paired": paired}[args.part](args, seeds)
+    lines = {"accuracy": accuracy, "viscosity": viscosity, "paired": paired, "scale": scale}[args.part](args, seeds)
     made = "Made by `python scripts/low_re.py" + "".join(f" {a}" for a in (argv or sys.argv[1:])) + "`."
     lines = [made, ""] + lines + ["", f"({time.perf_counter() - t0:.0f} s)"]
     name = (
