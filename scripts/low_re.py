@@ -27,7 +27,12 @@ deviation), what that scale alone does to the WSS of a law-of-the-wall layer, wh
 ``u_tau l = nu`` is ``rho nu^2 / l^2`` (``(l_true/l)^2 - 1``, mean), and the signed error of the mean WSS.
 Writes ``scripts/results/low_re_scale.md``.
 
-    python scripts/low_re.py [--part accuracy|viscosity|paired|scale] [--seeds 5] [--first-seed 100] [--name ...]
+``--part profiles`` (no reconstruction, a second): the mean profiles themselves at y+ 5-150: each pipe DNS, the
+channel DNS of the calibration nearest in Re_tau, the ``low_re`` member at the pipe's Re_tau and Reichardt's law
+(``wall_law``), with their differences from the pipe. Writes ``scripts/results/low_re_profiles.md``.
+
+    python scripts/low_re.py [--part accuracy|viscosity|paired|scale|profiles] [--seeds 5] [--first-seed 100]
+        [--name ...]
 """
 
 import sys
@@ -206,22 +211,48 @@ def scale(args, seeds) -> list[str]:
     return lines
 
 
+def profiles(args, seeds) -> list[str]:
+    from wss_nlp.models import near_wall as nw
+    from wss_nlp.models.families import low_re
+
+    lines = [
+        "U+ at y+ of the pipe DNS (Yao et al.), the channel DNS of the calibration nearest in Re_tau (Hoyas & "
+        "Jimenez), the low_re member at the pipe's Re_tau and Reichardt's law; the last three also as differences "
+        "from the pipe.",
+        "",
+        "| pipe Re_tau | y+ | pipe | channel | low_re | wall_law | channel - pipe | low_re - pipe | wall_law - pipe |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for pipe, channel in (("re180", "re180"), ("re550", "re550"), ("re1000", "re950")):
+        yp, up, re_tau = phantoms.dns_profile(pipe)
+        yc, uc, _ = low_re.channel_profile(channel)
+        for y in (5, 10, 15, 20, 30, 50, 70, 100, 150):
+            p, c = float(np.interp(y, yp, up)), float(np.interp(y, yc, uc))
+            lo = float(nw.profile(f"low_re@{re_tau!r}", np.array([float(y)]))[0])
+            wl = float(nw.profile("wall_law", np.array([float(y)]))[0])
+            lines.append(
+                f"| {re_tau:.1f} | {y} | {p:.2f} | {c:.2f} | {lo:.2f} | {wl:.2f} | {c - p:+.2f} | {lo - p:+.2f} | "
+                f"{wl - p:+.2f} |"
+            )
+    return lines
+
+
 def main(argv=None) -> None:
     p = study_parser(__doc__, seeds=5, h="1.5,1.0,0.6,0.3", snr="25,10")
     p.set_defaults(cases=CASES)
-    p.add_argument("--part", choices=("accuracy", "viscosity", "paired", "scale"), default="accuracy")
+    p.add_argument("--part", choices=("accuracy", "viscosity", "paired", "scale", "profiles"), default="accuracy")
     p.add_argument("--first-seed", type=int, default=100, help="report seeds 100..; development used 1-3")
     p.add_argument("--name", default=None, help="file name of the table in --out")
     args = p.parse_args(argv)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     t0 = time.perf_counter()
-    lines = {"accuracy": accuracy, "viscosity": viscosity, "paired": paired, "scale": scale}[args.part](args, seeds)
+    parts = {"accuracy": accuracy, "viscosity": viscosity, "paired": paired, "scale": scale, "profiles": profiles}
+    lines = parts[args.part](args, seeds)
     made = "Made by `python scripts/low_re.py" + "".join(f" {a}" for a in (argv or sys.argv[1:])) + "`."
     lines = [made, ""] + lines + ["", f"({time.perf_counter() - t0:.0f} s)"]
-    name = (
-        args.name
-        or {"accuracy": "low_re.md", "viscosity": "viscosity_check.md", "paired": "low_re_paired.md"}[args.part]
-    )
+    names = {"accuracy": "low_re.md", "viscosity": "viscosity_check.md", "paired": "low_re_paired.md"}
+    names.update(scale="low_re_scale.md", profiles="low_re_profiles.md")
+    name = args.name or names[args.part]
     write_report(args.out, name, lines)
 
 
