@@ -211,7 +211,7 @@ def test_the_viscosity_note_says_which_check_the_voxels_allow():
 
 
 def test_voxels_in_the_log_layer_say_the_stated_viscosity_is_unchecked():
-    """Re_tau 549 pipe DNS, h = 1.5 mm (h+ about 70 with the true viscous length R/Re_tau), SNR 25, seed 412 (not
+    """Re_tau 549 pipe DNS, h = 1.5 mm (h+ about 64 with the true viscous length R/Re_tau), SNR 25, seed 412 (not
     used in development), default options: low_re at its self-consistent scale, the voxel in viscous units of that
     scale recorded (within 10 % of the truth's: the scale came out 0.996 x R/Re_tau on report seed 100), and the
     slice says that the data cannot check the viscosity; the Re_tau 180 slice at h+ <= 25 gets no such note
