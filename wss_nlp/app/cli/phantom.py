@@ -227,7 +227,7 @@ def _phantom_vessel(args) -> int:
         raise InputError(f"--frames {frames}: a vessel phantom takes 1-100 frames")
     for note in notes:
         if note:
-            print(f"wss-nlp: warning: {note}", file=sys.stderr)
+            log.warning(note)
     snr = None if args.snr <= 0 else args.snr
     vol, truth = vessels.make_vessel_phantom(
         args.volume_case, h_mm=args.h, snr=snr, seed=args.seed, tissue=args.tissue, frames=frames
