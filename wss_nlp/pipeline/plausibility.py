@@ -22,6 +22,14 @@ wrong number.
   is small. Unwrapped data that still jump by more than ``venc`` between
   bright neighbours are refused (the venc is too low for the resolution).
 * **Several vessels.** Reported from :attr:`wss_nlp.models.preprocess.Lumen.others`.
+* **Intravoxel dephasing** (:func:`check_dephasing`, after the solve). A wall voxel's phase averages
+  ``exp(i pi u / venc)`` over the velocities inside it; the box model corrects the magnitude's loss to first
+  order and takes the phase as the voxel's mean velocity. Where the velocity varies by about venc or more within
+  a wall voxel (a venc below the peak velocity, unwrapped, and a steep boundary layer) neither holds, and the
+  WSS comes out 10-60 % off with a residual of about the noise level, which :func:`check_fit` cannot see. The
+  predicted magnitude factor ``D_i = |mean exp(i pi u / venc)|`` of the wall voxels tells: the slice is flagged
+  when the smallest is below :data:`MIN_DEPHASING_FACTOR_ALIASED` (phase unwrapped) or
+  :data:`MIN_DEPHASING_FACTOR` (not).
 * **Consistency of the fit** (:func:`check_fit`, after the solve). A smooth
   no-slip velocity fitted at a parameter chosen for the noise leaves a
   residual of about the noise level. A residual far above it
@@ -57,6 +65,16 @@ MAX_RESIDUAL_JUMPS = 2
 #: res/eps): at most 1.55 on laminar, manufactured, circle and turbulent phantoms, unaliased or correctly unwrapped,
 #: h 0.6-1.5 mm; 4.8-9.3 where a hidden wrap survived. 3 leaves a factor of about 2 on both sides.
 MAX_RESIDUAL_TO_NOISE = 3.0
+#: Smallest predicted dephasing factor D = |mean exp(i pi u / venc)| of a wall voxel (box model) a slice may have
+#: before it is flagged (:func:`check_dephasing`). A linear velocity ramp of width du across a voxel gives
+#: D = sin(x) / x with x = pi du / (2 venc) (:func:`dephasing_spread`). Without aliasing (|u| <= venc) a wall
+#: voxel's ramp stays below venc: D >= 2 / pi, and at the default venc (1.25 x peak) D >= 0.76; below 2 / pi the
+#: velocity varies by more than venc inside a wall voxel, which no unaliased one-directional flow does.
+MIN_DEPHASING_FACTOR = 2 / np.pi
+#: The same bound for a slice whose phase was unwrapped (venc below the peak velocity): D = 0.75 is a ramp of
+#: 0.8 venc. Chosen on scripts/aliasing.py (development seeds 300-301; scripts/results/aliasing.md, column
+#: "D min"): the aliased inputs more than 10 % off reach D 0.40-0.71, unaliased inputs stay above 0.76.
+MIN_DEPHASING_FACTOR_ALIASED = 0.75
 #: Normalized magnitude above which a voxel joins the unwrapping region (its phase noise is below ~0.4 rad at SNR 10).
 UNWRAP_MAGNITUDE = 0.25
 #: A magnitude voxel this many times above both the image's 97th percentile and its neighbours' median is a
@@ -456,3 +474,34 @@ def check_fit(result, raw_magnitude: np.ndarray, venc: float | None) -> tuple[st
         f"{MAX_RESIDUAL_TO_NOISE:g}): the data contradict a smooth no-slip flow in this lumen; likely {cause}, "
         "or a wrong lumen; this slice's WSS is not trustworthy"
     ), ratio
+
+
+def dephasing_spread(factor: float) -> float:
+    """The velocity range ``du / venc`` across a voxel that a linear ramp needs to give dephasing ``factor``.
+
+    ``|mean_{t in [0, 1]} exp(i pi du t / venc)| = |sin(x) / x|`` with ``x = pi du / (2 venc)``, inverted on
+    its first lobe (``0 < x <= pi``: factors 1 to 0, spreads 0 to 2 venc); a reading of the factor in words.
+    """
+    x = np.linspace(1e-9, np.pi, 2001)
+    d = np.sin(x) / x  # decreasing from 1 to 0 on the first lobe
+    return float(2 / np.pi * np.interp(min(max(factor, 0.0), 1.0), d[::-1], x[::-1]))
+
+
+def check_dephasing(min_factor: float, venc: float | None, unwrapped: bool) -> str:
+    """A SUSPECT warning (or ``""``) when a wall voxel's predicted dephasing factor is below
+    :data:`MIN_DEPHASING_FACTOR` (module notes, "Intravoxel dephasing").
+
+    ``min_factor``: the smallest ``D_i`` of the slice's first dephasing check (``SliceResult.dephasing``; 1 when
+    none was predicted); ``unwrapped``: the screen unwrapped aliasing in the slice (named in the message).
+    """
+    bound = MIN_DEPHASING_FACTOR_ALIASED if unwrapped else MIN_DEPHASING_FACTOR
+    if venc is None or not (np.isfinite(min_factor) and min_factor < bound):
+        return ""
+    cause = "the venc is below the peak velocity (the phase was unwrapped)" if unwrapped else "a low venc"
+    return (
+        f"SUSPECT: intravoxel dephasing: a wall voxel keeps {min_factor:.0%} of its magnitude (the fitted velocity "
+        f"varies by about {dephasing_spread(min_factor):.2g} x venc inside it; flagged below {bound:.0%}"
+        f"{' after unwrapping' if unwrapped else ''}): the voxel-mean model's dephasing correction and its reading "
+        f"of the wall voxels' phase as their mean velocity do not hold there, and the WSS is biased; cause: {cause}; "
+        f"re-acquire with a higher venc (venc_m_s = {venc:g}) or smaller voxels; this slice's WSS is not trustworthy"
+    )
