@@ -376,6 +376,51 @@ def test_interrupted_run_resumes_to_the_same_summary(small, tmp_path, monkeypatc
         assert {k: v for k, v in a[i].items() if k != "seconds"} == {k: v for k, v in b[i].items() if k != "seconds"}
 
 
+def test_worker_killed_mid_exam_the_batch_ends_with_the_same_summary(small, cluster, tmp_path):
+    """A LocalCluster worker process SIGKILLed while it runs an exam (its half-made exam in the staging folder):
+    Dask runs the exam again on a live worker, the batch ends with the uninterrupted run's summary (seconds
+    aside), no half-made exam is left behind, and the nanny brings the worker back."""
+    import threading
+
+    from dask.distributed import Client
+
+    d, _, first, _ = small
+    out = tmp_path / "out"
+    killed: list = []
+    with Client(cluster.scheduler_address, timeout=60) as client:
+        pids = client.run(os.getpid)  # worker address -> its process
+
+        def kill_one_mid_exam():
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline and not killed:
+                staged = {p.name.split(".")[0] for p in (out / ".staging").glob("*") if (p / "exam.log").exists()}
+                busy = {w: ks for w, ks in client.processing().items() if ks}
+                for address, keys in busy.items():
+                    running = [i for i in ("a", "b") if i in staged and any(f"wss-nlp-exam-{i}-" in k for k in keys)]
+                    if running and address in pids:
+                        os.kill(pids[address], signal.SIGKILL)
+                        killed.append((running[0], address))
+                        return
+                time.sleep(0.005)
+
+        watcher = threading.Thread(target=kill_one_mid_exam, daemon=True)
+        watcher.start()
+        where = executor.Backend("scheduler", address=cluster.scheduler_address)
+        summary = batch.run_batch(str(d / "m.csv"), str(out), where, defaults=DEFAULTS, stream=open(os.devnull, "w"))
+        watcher.join(timeout=5)
+        assert killed, "no worker was caught running an exam: nothing was tested"
+        client.wait_for_workers(2, timeout=120)  # the nanny restarted it (later tests share the cluster)
+    assert (summary.total, summary.ran, summary.failed) == (3, 3, 1)
+    assert not (out / ".staging").exists() or not os.listdir(out / ".staging")  # the killed exam's half is gone
+    a, b = _rows(first), _rows(out)
+    assert a.keys() == b.keys()
+    for i in a:  # identical, seconds aside: the same arithmetic on single-threaded BLAS in any worker process
+        assert {k: v for k, v in a[i].items() if k != "seconds"} == {k: v for k, v in b[i].items() if k != "seconds"}
+    for i in ("a", "b"):  # an exam folder exists only whole
+        record = json.loads((out / i / "exam.json").read_text())
+        assert set(record["files"]) <= set(os.listdir(out / i))
+
+
 def test_independent_slices_mapped_elsewhere_give_the_serial_result(tmp_path):
     """The driver's parallel path (``segments_in_parallel``, what ``reconstruct --workers`` uses) on two
     independent slices, each slice and each result sent through pickle as to a worker: every dataset and

@@ -101,3 +101,34 @@ def test_demo_records_the_offset_and_analyze_reports_it(tmp_path, capsys, monkey
                                             "--surround", "two-level"])  # fmt: skip
     tissue = cli.options_from_args(parsed).tissue
     assert tissue.offset_correction is False and tissue.surround == "two-level"
+
+
+def test_phantom_command_writes_the_invivo_case_and_its_truth(tmp_path, monkeypatch, capsys):
+    # `wss-nlp phantom --case invivo` writes what make_case builds (same images, same exact WSS, bit for bit), and
+    # refuses the options the in-vivo scene sets itself (one line, exit 2) before writing anything
+    import functools
+
+    import h5py
+
+    from wss_nlp.analysis import metrics
+    from wss_nlp.app import cli
+    from wss_nlp.io import files as wio
+
+    monkeypatch.setattr(invivo, "make_case", functools.partial(invivo.make_case, max_points=FAST))
+    seed = invivo.DEV_SEEDS[1]
+    out, truth_path = tmp_path / "in.h5", tmp_path / "truth.h5"
+    args = ["phantom", "--case", "invivo-turbulent", "--h", "2", "--seed", str(seed)]
+    assert cli.main([*args, "-o", str(out), "--truth", str(truth_path)]) == 0
+    acq, truth = invivo.make_case("invivo-turbulent", h_mm=2.0, seed=seed)
+    read = wio.read_acquisition(str(out))
+    assert np.array_equal(read.magnitude, acq.magnitude) and np.array_equal(read.phase, acq.phase)
+    assert read.venc_m_s == acq.venc_m_s
+    with h5py.File(truth_path, "r") as f:
+        assert f.attrs["case"] == "invivo-turbulent"
+        assert np.array_equal(f["slice_000/wss/tau_pa"][()], metrics.truth_samples(truth)["tau"])
+    capsys.readouterr()
+    for extra in (["--venc", "2"], ["--acquisition", "kspace"], ["--velocity"]):
+        assert cli.main([*args, *extra, "-o", str(tmp_path / "no.h5")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "not for the in-vivo cases" in err[0] and extra[0] in err[0]
+        assert not (tmp_path / "no.h5").exists()

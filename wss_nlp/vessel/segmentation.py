@@ -23,7 +23,9 @@ tissue and blood), and Otsu's threshold of ``P`` is taken over the rest, where i
 flowing blood.
 Then an opening by reconstruction (the parts that survive one 6-neighbour erosion and dilation, restored whole
 within the thresholded set) removes noise speckles without thinning thin vessels (a plain opening split a
-PC-MRA core two voxels across into pieces on ``scripts/vessel_segmentation.py``'s 4 mm tubes at 2 mm voxels);
+PC-MRA core two voxels across into pieces on ``scripts/vessel_segmentation.py``'s 4 mm tubes at 2 mm voxels;
+a core two voxels across and aligned with the grid has no voxel that survives the erosion: when nothing survives,
+the thresholded voxels are kept unopened and the record says so);
 hole filling closes voids in the lumen (flow voids of dephasing), and the voxels are grouped in face-connected
 components. The
 vessel is the largest component, or the one containing (or nearest, within two voxels) a seed point in world mm.
@@ -243,8 +245,15 @@ def segment_vessel(
     level = float(threshold) if threshold is not None else otsu_threshold(p[signal] if signal.sum() > 1 else p)
     raw = (p > level) & signal
     mask = raw
+    opened = int(opening)
     if opening > 0:  # opening by reconstruction: what survives the opening, restored whole within ``raw``
         mask = ndi.binary_propagation(ndi.binary_opening(raw, _structure(1), iterations=opening), _structure(1), raw)
+        if not mask.any() and raw.any():
+            # a vessel two voxels across, aligned with the grid, has no voxel with all four in-plane neighbours:
+            # the erosion removes all of it (a radius-6 mm tube at 2.5 mm voxels did). Nothing survived, so no
+            # speckle is told from a vessel by the opening: keep what was thresholded, largest component first
+            mask, opened = raw, 0
+            log.info("vessel: nothing survived the opening (a vessel about two voxels across); no opening")
     mask = ndi.binary_fill_holes(mask)
     labels, comps = _components(mask, vol)
     if not comps:
@@ -266,7 +275,8 @@ def segment_vessel(
         "magnitude_floor": floor,
         "above_floor_voxels": int(signal.sum()),
         "above_threshold_voxels": int(raw.sum()),
-        "opening_iterations": int(opening),
+        "opening_iterations": opened,
+        **({"opening_skipped": "nothing survived it (a vessel about two voxels across)"} if opened < opening else {}),
         "selected_by": how,
         "vessel": chosen,
         "others": [c for c in comps if c is not chosen][:LISTED_COMPONENTS],

@@ -175,6 +175,9 @@ def _run(exams, outdir, where, figures, vtk, retry_failed, stream, t0, log_path)
     except BaseException:
         progress.close()
         raise
+    # every exam of this run is committed: what is left in the staging folder is the half of an exam whose worker
+    # was lost (Dask ran the exam again elsewhere)
+    shutil.rmtree(os.path.join(outdir, STAGING), ignore_errors=True)
     rows = summary_rows(exams, records)
     csv_path, parquet_path = write_summary(outdir, rows)
     from .report import write_report

@@ -205,10 +205,11 @@ def build_parser() -> argparse.ArgumentParser:
     ph = sub.add_parser("phantom", help="write a synthetic acquisition (and its truth)")
     ph.add_argument(
         "--case",
-        choices=[*phantoms.CASES, "cine"],
+        choices=[*phantoms.CASES, *invivo.INVIVO_CASES, "cine"],
         type=_case_name,
         default="laminar",
-        help="one slice's phantom, or cine (default %(default)s; the cases are listed below)",
+        help="one slice's phantom (in air, or invivo: in tissue), or cine (default %(default)s; the cases are "
+        "listed below)",
     )
     ph.add_argument("--frames", type=int, default=20, help="cine: frames over the cycle (default %(default)s)")
     ph.add_argument(
@@ -405,7 +406,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     cases = {
         "demo": _case_list({**phantoms.CASES, **invivo.INVIVO_CASES}, {"cine": _CINE_TEXT}),
-        "phantom": _case_list(phantoms.CASES, {"cine": _CINE_TEXT})
+        "phantom": _case_list({**phantoms.CASES, **invivo.INVIVO_CASES}, {"cine": _CINE_TEXT})
         + "\n\nstacks (--stack):\n"
         + _case_list(phantoms.STACK_CASES),
     }

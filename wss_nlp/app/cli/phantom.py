@@ -218,9 +218,19 @@ def cmd_phantom(args) -> int:
     if cine_only:
         raise InputError(f"{', '.join(cine_only)}: only for --case cine (the time-resolved phantom)")
     snr = None if args.snr <= 0 else args.snr
-    psf = _phantom_psf(args)
+    tissue = args.case in invivo.INVIVO_CASES and not args.stack
+    if tissue:  # the in-vivo scene sets its own venc (1.25 x its peak) and is sampled on the voxels (box model)
+        kspace = schema.from_args(AcquisitionOptions, args).model == "kspace"
+        fixed = [f for f, given in (("--venc", args.venc is not None), ("--velocity", args.velocity),
+                                    ("--acquisition kspace", kspace)) if given]  # fmt: skip
+        if fixed:
+            raise InputError(f"{', '.join(fixed)}: not for the in-vivo cases ({args.case}), which set the venc and "
+                             "the voxel model themselves; leave them out or choose a phantom in air")  # fmt: skip
+    psf = None if tissue else _phantom_psf(args)
     truth: phantoms.Truth | phantoms.StackTruth
-    if args.stack:
+    if tissue:
+        acq, truth = invivo.make_case(args.case, h_mm=args.h, snr=snr, seed=args.seed)
+    elif args.stack:
         acq, truth = phantoms.make_stack(
             args.stack,
             nz=args.nz,
