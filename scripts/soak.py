@@ -19,15 +19,15 @@ Then a study with a failing case goes through ``wss-nlp sweep``. Writes ``script
 
 all of which must be none, and the WSS errors by case with the largest ones and what their runs said.
 
-The full soak, which writes ``scripts/results/soak.md`` (about 70 minutes on an idle machine in one process,
-about 40 with two)::
+The full soak, which writes ``scripts/results/soak.md`` (70 minutes on an idle machine in one process;
+``--jobs 2`` runs two inputs at a time)::
 
     nice -n 10 python scripts/soak.py --n 200 --seed 2026 --jobs 2
 
-``--jobs N`` runs N inputs at a time, each in a process of its own (the table is the same as in one process: each
-input is drawn before any runs). ``--seeds S1,S2,...`` reruns only the draws of ``--n``/``--seed`` whose phantom
-seed is listed (the seeds the report names), and ``--n 40`` runs the first 40 of the same 200 draws; such partial
-runs write ``--report`` (default ``soak_rerun.md``), never ``soak.md``::
+``--jobs N`` runs N inputs at a time, each in a process of its own (a row does not depend on N: each input is
+drawn before any runs and runs alone in its process). ``--seeds S1,S2,...`` reruns only the draws of
+``--n``/``--seed`` whose phantom seed is listed (the seeds the report names), and ``--n 40`` runs the first 40 of
+the same 200 draws; such partial runs write ``--report`` (default ``soak_rerun.md``), never ``soak.md``::
 
     python scripts/soak.py --seeds 209416,937534,321337,777039,174966 --report soak_failures.md
     nice -n 10 python scripts/soak.py --n 40 --jobs 2 --report soak_40.md

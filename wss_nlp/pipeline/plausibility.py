@@ -67,13 +67,17 @@ MAX_RESIDUAL_JUMPS = 2
 MAX_RESIDUAL_TO_NOISE = 3.0
 #: Smallest predicted dephasing factor D = |mean exp(i pi u / venc)| of a wall voxel (box model) a slice may have
 #: before it is flagged (:func:`check_dephasing`). A linear velocity ramp of width du across a voxel gives
-#: D = sin(x) / x with x = pi du / (2 venc) (:func:`dephasing_spread`). Without aliasing (|u| <= venc) a wall
-#: voxel's ramp stays below venc: D >= 2 / pi, and at the default venc (1.25 x peak) D >= 0.76; below 2 / pi the
-#: velocity varies by more than venc inside a wall voxel, which no unaliased one-directional flow does.
+#: D = sin(x) / x with x = pi du / (2 venc) (:func:`dephasing_spread`); 2 / pi is a ramp of venc, which an
+#: unaliased wall layer (|u| <= venc) exceeds only where it is steeper than linear. Unaliased, the accuracy
+#: phantoms (circle, laminar, turbulent, turbulent-ellipse, h 0.6-1.5 mm, SNR 10 and 25, seeds 500-502) keep
+#: D >= 0.83 (none of 72 flagged); the entrance flow, the steepest layer, reaches 0.70 at h 1.5 mm
+#: (scripts/results/aliasing_clean.md and aliasing_dephasing.md).
 MIN_DEPHASING_FACTOR = 2 / np.pi
-#: The same bound for a slice whose phase was unwrapped (venc below the peak velocity): D = 0.75 is a ramp of
-#: 0.8 venc. Chosen on scripts/aliasing.py (development seeds 300-301; scripts/results/aliasing.md, column
-#: "D min"): the aliased inputs more than 10 % off reach D 0.40-0.71, unaliased inputs stay above 0.76.
+#: The bound for a slice whose phase was unwrapped (venc below the peak velocity): D = 0.75 is a ramp of 0.8 venc.
+#: Chosen on the soak's five silent wrong results (D 0.02-0.71, scripts/results/soak_failures.md) and on
+#: scripts/aliasing.py's seed 300 (scripts/results/aliasing_dephasing.md: every unwrapped slice more than 10 % off
+#: has D <= 0.68 or a residual flag; it also flags 5 of 14 aliased slices within 10 %, at D 0.47-0.72). Wraps the
+#: screen cannot see (entrance flow at venc 0.35 x peak, 63-65 % off) are neither unwrapped nor flagged.
 MIN_DEPHASING_FACTOR_ALIASED = 0.75
 #: Normalized magnitude above which a voxel joins the unwrapping region (its phase noise is below ~0.4 rad at SNR 10).
 UNWRAP_MAGNITUDE = 0.25
