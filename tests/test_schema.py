@@ -116,6 +116,13 @@ def test_a_new_option_is_one_declaration():
     assert schema.from_args(Outer, p.parse_args(["--width", "3", "--quiet"])) == Outer(Inner(3.0), False)
     assert schema.from_args(Outer, p.parse_args([])) == Outer()
     assert schema.build(Outer, {"width": 5}) == Outer(Inner(5.0))
+    # what the user set, by path, with the flag as written and the value argparse read: switches only when flipped
+    assert schema.given(Outer, p.parse_args(["--width", "3", "--quiet"])) == {
+        "inner.width": ("--width", 3.0),
+        "verbose": ("--quiet", False),
+    }
+    assert schema.given(Outer, p.parse_args([])) == {}
+    assert schema.cli_flag(Outer, "inner.width") == "--width" and schema.cli_flag(Outer, "nowhere") == "nowhere"
 
 
 def test_the_study_file_docs_list_exactly_the_declared_keys():

@@ -169,3 +169,23 @@ def test_highpass_noise_variance_of_kspace_noise_matches_the_phantoms_noise():
 def test_highpass_noise_variance_of_kspace_noise_over_seeds():
     measured, predicted = _highpass_ratio((3, 4, 5))  # ~9 % sampling error over three images: 15 %
     assert abs(measured / predicted - 1) < 0.15
+
+
+def test_an_ambiguous_surround_is_noted_with_its_reason():
+    # each of the three ambiguity tests of SurroundModel reaches the slice's notes with its reason, and a model
+    # clear of every threshold gives no note: a ring mean at the noise floor's threshold, a ring spread at the
+    # uniform background's, a tissue ring with more outliers than AMBIGUOUS_OUTLIERS
+    sigma = 2.0
+    clear = dict(kind="tissue", reason="", sigma=sigma, ring_mean=5 * surround.NOISE_FLOOR * sigma,
+                 ring_spread=5 * surround.UNIFORM_SPREAD * sigma, ring_outliers=0.0)  # fmt: skip
+    assert surround.notes({"surround": clear}) == []
+    cases = {
+        "at the noise floor's threshold": dict(ring_mean=1.05 * surround.NOISE_FLOOR * sigma),
+        "at the uniform background's threshold": dict(ring_spread=0.95 * surround.UNIFORM_SPREAD * sigma),
+        "does not follow a smooth level": dict(ring_outliers=surround.AMBIGUOUS_OUTLIERS + 0.05),
+    }
+    for reason, change in cases.items():
+        (note,) = surround.notes({"surround": {**clear, **change}})
+        assert "ambiguous (tissue chosen)" in note and reason in note, note
+    # the outliers test is about fitted tissue: a two-level model has no outside polynomial to be off
+    assert surround.notes({"surround": {**clear, "kind": "two-level", "ring_outliers": 0.5}}) == []

@@ -197,6 +197,34 @@ def _parsed(path: str, f, value, where: str) -> dict:
     return {p: value for p in (path, *meta["also"])}
 
 
+def given(cls, args: argparse.Namespace) -> dict:
+    """``{path: (flag, value)}`` of the options of class ``cls`` set on the command line (values as argparse read).
+
+    A value option counts when it was given (not None); a switch (``store_true`` / ``store_false``) when it differs
+    from its default. Options without a command-line flag, or whose arguments ``args`` lacks, are left out.
+    """
+    out: dict = {}
+    for path, f, _ in _leaves(cls):
+        meta = f.metadata[_KEY]
+        if not meta["cli"]:
+            continue
+        value = getattr(args, "opt__" + path.replace(".", "__"), None)
+        if meta["flag_off"] or meta["flag_on"]:
+            if value is (not meta["flag_off"]):
+                out[path] = (meta["cli"], value)
+        elif value is not None:
+            out[path] = (meta["cli"], value)
+    return out
+
+
+def cli_flag(cls, path: str) -> str:
+    """The command-line flag of the option at ``path`` of class ``cls`` (``path`` itself when it has none)."""
+    for p, f, _ in _leaves(cls):
+        if p == path and f.metadata[_KEY]["cli"]:
+            return str(f.metadata[_KEY]["cli"])
+    return path
+
+
 def from_args(cls, args: argparse.Namespace, check: Callable | None = None):
     """Options of class ``cls`` from the arguments :func:`add_arguments` added (unset ones keep their defaults).
 
@@ -205,20 +233,16 @@ def from_args(cls, args: argparse.Namespace, check: Callable | None = None):
     """
     values: dict = {}
     spelled: dict = {}
-    for path, f, _ in _leaves(cls):
-        meta = f.metadata[_KEY]
-        if not meta["cli"]:
-            continue
-        value = getattr(args, "opt__" + path.replace(".", "__"))
+    leaves = {path: f for path, f, _ in _leaves(cls)}
+    for path, (flag, value) in given(cls, args).items():
+        meta = leaves[path].metadata[_KEY]
         if meta["flag_off"] or meta["flag_on"]:
-            if value is (not meta["flag_off"]):
-                values[path] = value
-                spelled[path] = meta["cli"]
+            values[path] = value
+            spelled[path] = flag
             continue
-        if value is not None:
-            got = _parsed(path, f, value, meta["cli"])
-            values.update(got)
-            spelled.update(dict.fromkeys(got, meta["cli"]))
+        got = _parsed(path, leaves[path], value, flag)
+        values.update(got)
+        spelled.update(dict.fromkeys(got, flag))
     if check is not None:
         check(values, spelled)
     return assemble(cls, values)

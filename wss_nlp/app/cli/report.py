@@ -34,9 +34,10 @@ def _errors_rows(err: metrics.Errors):
 
 
 def cmd_compare(args) -> int:
-    from .vessel import refuse_on_volume
+    from .vessel import compare_volume, is_vessel_result
 
-    refuse_on_volume("compare", args.result)
+    if is_vessel_result(args.result):
+        return compare_volume(args)
 
     layout, truth_layout = wio.result_layout(args.result), wio.result_layout(args.truth)
     if ("cine" in layout) != ("cine" in truth_layout):

@@ -53,18 +53,7 @@ def parse_point3(text) -> tuple[float, float, float]:
 
 def _set(args) -> dict:
     """``{schema path: (flag, value)}`` of the reconstruction options given on the command line."""
-    given = {}
-    for path, f, _ in schema._leaves(ReconstructionOptions):
-        meta = f.metadata[schema._KEY]
-        if not meta["cli"]:
-            continue
-        value = getattr(args, "opt__" + path.replace(".", "__"), None)
-        if meta["flag_off"] or meta["flag_on"]:  # store_false / store_true: given when it differs from its default
-            if value is (not meta["flag_off"]):
-                given[path] = (meta["cli"], value)
-        elif value is not None:
-            given[path] = (meta["cli"], value)
-    return given
+    return schema.given(ReconstructionOptions, args)
 
 
 def _number(flag: str, value) -> float:
@@ -126,10 +115,7 @@ def vessel_options(args):
 
 
 def given_flag(path: str) -> str:
-    for p, f, _ in schema._leaves(ReconstructionOptions):
-        if p == path:
-            return str(f.metadata[schema._KEY]["cli"])
-    return path
+    return schema.cli_flag(ReconstructionOptions, path)
 
 
 def reconstruct_volume(args) -> int:
@@ -247,6 +233,50 @@ def analyze_volume(args) -> int:
         print(f"  {name}: {float(sec):.1f} s")
     for note in res.notes:
         print(f"note: {note}")
+    return 0
+
+
+def compare_volume(args) -> int:
+    """``wss-nlp compare RESULT TRUTH`` for a vessel result and a vessel phantom's truth file: the measures of
+    :func:`wss_nlp.vessel.metrics.accuracy` (issue 38), the truth interpolated from its samples
+    (:class:`wss_nlp.vessel.metrics.SampledTruth`)."""
+    import h5py
+
+    from ...vessel.metrics import accuracy, read_truth
+    from ...vessel.reconstruct import read_result
+
+    with h5py.File(args.truth, "r") as f:
+        layout = f.attrs.get("layout")
+    if layout != "vessel-truth":
+        raise InputError(
+            f"{args.truth}: not a vessel truth file (layout {layout!r}); a vessel result is compared with the truth "
+            "of 'wss-nlp phantom --volume-case CASE --truth FILE'"
+        )
+    res = read_result(args.result)
+    truth = read_truth(args.truth)
+    if res.nt > 1 and truth.times_ms.size != res.nt:
+        raise InputError(f"{args.result} has {res.nt} frames but {args.truth} {truth.times_ms.size}")
+    try:
+        acc = accuracy(res, truth)
+    except ValueError as exc:  # a frame time the truth does not have
+        raise InputError(f"{args.truth}: {exc}") from None
+    h = float(np.min(np.linalg.norm(np.asarray(res.affine_mm, float)[:3, :3], axis=0)))  # the smallest voxel edge
+    rows = [
+        ("WSS vector rel. L2 error (covered visible wall, all frames)", f"{acc.wss_rel_l2:.2%}"),
+        ("axial WSS rel. L2 error", f"{acc.axial_rel_l2:.2%}"),
+        ("wall RMS distance [mm]", f"{acc.wall_rms_mm:.4f}" + (f" ({acc.wall_rms_mm / h:.3f} h)" if h > 0 else "")),
+        ("wall mean signed distance [mm] (+ outside)", f"{acc.wall_bias_mm:+.4f}"),
+        ("coverage of the visible wall", f"{acc.coverage:.1%}"),
+        ("mean |WSS| reconstructed [Pa] (first frame)", f"{acc.mean_wss_pa:.5g}"),
+        ("mean |WSS| true [Pa]", f"{acc.true_mean_wss_pa:.5g}"),
+    ]
+    if np.isfinite(acc.tawss_rel_l2):
+        rows += [("TAWSS rel. L2 error", f"{acc.tawss_rel_l2:.2%}"), ("OSI RMS error", f"{acc.osi_rms:.4f}"),
+                 ("OSI max. error", f"{acc.osi_max:.4f}")]  # fmt: skip
+    width = max(len(k) for k, _ in rows)
+    print(f"vessel against {args.truth} ({truth.case}, {acc.points} wall points):")
+    for k, v in rows:
+        print(f"{k:<{width}}  {v:>12}")
     return 0
 
 
