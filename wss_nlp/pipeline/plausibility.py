@@ -62,7 +62,7 @@ VENC_TOLERANCE = 0.02
 #: Bright neighbour pairs that may still differ by more than venc after unwrapping (noise) before we refuse.
 MAX_RESIDUAL_JUMPS = 2
 #: Velocity-fit residual / noise level above which a slice is flagged. Measured (scripts/aliasing.py, column
-#: res/eps): at most 1.55 on laminar, manufactured, circle and turbulent phantoms, unaliased or correctly unwrapped,
+#: res/eps): at most 1.37 on laminar, manufactured, circle and turbulent phantoms, unaliased or correctly unwrapped,
 #: h 0.6-1.5 mm; 4.8-9.3 where a hidden wrap survived. 3 leaves a factor of about 2 on both sides.
 MAX_RESIDUAL_TO_NOISE = 3.0
 #: Smallest predicted dephasing factor D = |mean exp(i pi u / venc)| of a wall voxel (box model) a slice may have
