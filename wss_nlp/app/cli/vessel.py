@@ -36,6 +36,7 @@ VOLUME_OPTIONS = {
     "velocity.angular_order": "velocity.angular_order",
     "velocity.laplacian_power": "velocity.laplacian_power",
     "velocity.inner_fraction": "velocity.inner_fraction",
+    "tissue.offset_correction": "offset_correction (--no-offset-correction: keep the background offset)",
 }
 
 
@@ -105,6 +106,8 @@ def vessel_options(args):
             vel["laplacian_power"] = int(value)
         elif path == "velocity.inner_fraction":
             vel["inner_fraction"] = _number(flag, value)
+        elif path == "tissue.offset_correction":
+            top["offset_correction"] = bool(value)
     base = VesselOptions()
     return dataclasses.replace(
         base,
@@ -145,7 +148,8 @@ def reconstruct_volume(args) -> int:
     result = reconstruct_vessel(vol, options, prepared.mask, prepared.centerline, prepared.record)
     base = None
     if args.baseline:
-        base = baseline_vessel(vol, prepared.mask, prepared.centerline, result.record, options,
+        # on the volume the reconstruction used: the background offset removed as for it
+        base = baseline_vessel(prepared.volume, prepared.mask, prepared.centerline, result.record, options,
                                s=result.s_mm, phi=result.phi)  # fmt: skip
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
