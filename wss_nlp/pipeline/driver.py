@@ -630,11 +630,16 @@ def _with_screens(results, screens: dict, acq: Acquisition, psf=None, range_note
                 )
         if isinstance(r, SliceResult):
             warning, ratio = plaus.check_fit(r, acq.magnitude[r.index], acq.venc_m_s)
+            # issue 42: strong dephasing in wall voxels biases the WSS with a residual at the noise level
+            dephased = "" if not voxel_means else plaus.check_dephasing(
+                r.dephasing.min_factor, acq.venc_m_s, bool((r.screen or {}).get("unwrapped"))
+            )  # fmt: skip
             unresolved = r.near_wall is not None and bool(np.isfinite(r.near_wall.unresolved_mm))
             unbalanced = r.beta_choice is not None and r.beta_choice.rule == "balance" and not r.beta_choice.satisfied
-            suspect = bool(warning) or unresolved or unbalanced or coarse or box_on_kspace
-            r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect)
-            if warning:
-                r.notes.append(warning)
+            suspect = bool(warning) or bool(dephased) or unresolved or unbalanced or coarse or box_on_kspace
+            r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect, dephasing_suspect=bool(dephased))
+            for w in (warning, dephased):
+                if w:
+                    r.notes.append(w)
         obliquity.apply(r, acq)  # a plane off the vessel's axis: corrected (in-plane velocity) or flagged
     return results
