@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import dataclasses
 import os
-import sys
 import numpy as np
 from ...io import files as wio
 from ...analysis import metrics
@@ -14,6 +14,8 @@ from ...synthetic import invivo, phantoms
 from ...core import schema
 from ...errors import InputError
 from ...models.kspace import AcquisitionOptions
+
+log = logging.getLogger(__name__)  # warnings: the command line shows them once per kind (main)
 
 
 def _write_truth(path, truth) -> None:
@@ -199,7 +201,7 @@ def _check_phantom_options(args) -> None:
     limits.check_phantom(half_fov, args.h, images, "--h")
     for note in notes:
         if note:
-            print(f"wss-nlp: warning: {note}", file=sys.stderr)
+            log.warning(note)
 
 
 def _phantom_vessel(args) -> int:
@@ -225,7 +227,7 @@ def _phantom_vessel(args) -> int:
         raise InputError(f"--frames {frames}: a vessel phantom takes 1-100 frames")
     for note in notes:
         if note:
-            print(f"wss-nlp: warning: {note}", file=sys.stderr)
+            log.warning(note)
     snr = None if args.snr <= 0 else args.snr
     vol, truth = vessels.make_vessel_phantom(
         args.volume_case, h_mm=args.h, snr=snr, seed=args.seed, tissue=args.tissue, frames=frames
@@ -321,10 +323,9 @@ def cmd_phantom(args) -> int:
         )
     peak = max(phantoms.peak_velocity(t.flow) for t in getattr(truth, "slices", [truth]))
     if acq.venc_m_s is not None and acq.venc_m_s < peak:
-        print(
-            f"wss-nlp: warning: venc {acq.venc_m_s:g} m/s is below the peak velocity {peak:.3g} m/s: the phase "
-            "wraps (aliasing); 'reconstruct' unwraps it (or refuses it when it cannot)",
-            file=sys.stderr,
+        log.warning(
+            f"venc {acq.venc_m_s:g} m/s is below the peak velocity {peak:.3g} m/s: the phase wraps (aliasing); "
+            "'reconstruct' unwraps it (or refuses it when it cannot)"
         )
     with outputs.StagedFolder(args.dicom) as dcm, outputs.StagedFolder(args.nifti) as nii:
         written_dicom, written_nifti = _scanner_exports(args, [acq], dcm.path, nii.path, peak)

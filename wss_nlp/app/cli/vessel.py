@@ -20,6 +20,7 @@ from ...core import schema
 from ...errors import InputError
 from ...io import outputs
 from ...pipeline.options import ReconstructionOptions
+from ..table import text_table
 
 #: Reconstruction options (schema paths) that a volume honours, with what they set in the vessel's options.
 VOLUME_OPTIONS = {
@@ -277,10 +278,8 @@ def compare_volume(args) -> int:
     if np.isfinite(acc.tawss_rel_l2):
         rows += [("TAWSS rel. L2 error", f"{acc.tawss_rel_l2:.2%}"), ("OSI RMS error", f"{acc.osi_rms:.4f}"),
                  ("OSI max. error", f"{acc.osi_max:.4f}")]  # fmt: skip
-    width = max(len(k) for k, _ in rows)
     print(f"vessel against {args.truth} ({truth.case}, {acc.points} wall points):")
-    for k, v in rows:
-        print(f"{k:<{width}}  {v:>12}")
+    print(text_table(rows, headers=("quantity", "value")))
     return 0
 
 
