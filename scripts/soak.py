@@ -19,16 +19,28 @@ Then a study with a failing case goes through ``wss-nlp sweep``. Writes ``script
 
 all of which must be none, and the WSS errors by case with the largest ones and what their runs said.
 
-    python scripts/soak.py [--n 200] [--seed 2026] [--timeout 900]
+The full soak, which writes ``scripts/results/soak.md`` (70 minutes on an idle machine in one process;
+``--jobs 2`` runs two inputs at a time)::
 
-About 15-30 minutes on 2 cores.
+    nice -n 10 python scripts/soak.py --n 200 --seed 2026 --jobs 2
+
+``--jobs N`` runs N inputs at a time, each in a process of its own (a row does not depend on N: each input is
+drawn before any runs and runs alone in its process). ``--seeds S1,S2,...`` reruns only the draws of
+``--n``/``--seed`` whose phantom seed is listed (the seeds the report names), and ``--n 40`` runs the first 40 of
+the same 200 draws; such partial runs write ``--report`` (default ``soak_rerun.md``), never ``soak.md``::
+
+    python scripts/soak.py --seeds 209416,937534,321337,777039,174966 --report soak_failures.md
+    nice -n 10 python scripts/soak.py --n 40 --jobs 2 --report soak_40.md
 """
 
 import argparse
+import concurrent.futures
 import contextlib
 import hashlib
 import io
+import multiprocessing
 import os
+import shutil
 import signal
 import tempfile
 import time
@@ -117,7 +129,8 @@ def run_one(p, folder, timeout: float) -> dict:
     venc = None if p["venc_factor"] is None else p["venc_factor"] * _peak(p)
     err_stream = io.StringIO()
     row = {**p, "rc": None, "seconds": float("nan"), "hang": False, "changed": False, "leftovers": [],
-           "wss_err": float("nan"), "mean_err": float("nan"), "mean_std": float("nan")}  # fmt: skip
+           "wss_err": float("nan"), "mean_err": float("nan"), "mean_std": float("nan"),
+           "min_factor": float("nan")}  # fmt: skip
     with contextlib.redirect_stderr(err_stream), contextlib.redirect_stdout(io.StringIO()):
         if p["case"] == "two_vessels":
             acq, truth = phantoms.make_two_vessels(h_mm=p["h"], snr=p["snr"], seed=p["seed"], venc=venc)
@@ -159,7 +172,8 @@ def run_one(p, folder, timeout: float) -> dict:
     )
     row["flagged"] = any(f in w for w in row["warnings"] for f in FLAGS)
     if rc == 0:
-        errs, means, stds = [], [], []
+        errs, means, stds, factors = [], [], [], []
+        dephasing = wio.read_dephasing(out)  # the smallest predicted magnitude factor of each slice
         for i, d in enumerate(wio.read_result(out)):
             if d.get("failed"):
                 continue
@@ -167,11 +181,13 @@ def run_one(p, folder, timeout: float) -> dict:
             e = metrics.compare(d["center"], d["phi"], d["radius"], d["wall_x"], d["wall_y"], d["tau"],
                                 d["mean_tau"], t)  # fmt: skip
             errs.append(e.wss_rel_l2)
+            factors.append(float(dephasing.get(d["name"], {}).get("min_factor", 1.0)))
             means.append(abs(e.mean_wss_pa - e.mean_wss_true_pa))
             stds.append(d.get("mean_std", float("nan")))
         if errs:
             worst = int(np.argmax(errs))
-            row.update(wss_err=float(errs[worst]), mean_err=float(means[worst]), mean_std=float(stds[worst]))
+            row.update(wss_err=float(errs[worst]), mean_err=float(means[worst]), mean_std=float(stds[worst]),
+                       min_factor=float(min(factors)))  # fmt: skip
     for name in os.listdir(folder):  # the next run starts from a clean folder (leftovers were counted)
         if name.startswith(f"{p['k']}_") or name in row["leftovers"]:
             path = os.path.join(folder, name)
@@ -212,27 +228,74 @@ def describe(r) -> str:
     return f"{what}, h {r['h']:g}, SNR {r['snr']:.0f}, venc {venc}{odd}, seed {r['seed']}"
 
 
+def run_in_subfolder(d: dict, folder: str, timeout: float) -> dict:
+    """:func:`run_one` in a folder of its own (concurrent runs must not count each other's staged files)."""
+    sub = os.path.join(folder, str(d["k"]))
+    os.mkdir(sub)
+    row = run_one(d, sub, timeout)
+    shutil.rmtree(sub, ignore_errors=True)
+    return row
+
+
+def _progress(r: dict, n: int) -> None:
+    print(
+        f"{r['k'] + 1}/{n} {describe(r)}: rc {r['rc']}, WSS err {r['wss_err']:.1%}, min dephasing factor "
+        f"{r['min_factor']:.2f}, {len(r['warnings'])} warning(s){' FLAGGED' if r['flagged'] else ''}"
+        + (" SILENT WRONG" if silent_wrong(r) else ""),
+        flush=True,
+    )
+
+
+def run_all(draws: list, folder: str, timeout: float, jobs: int, n: int) -> list:
+    """Every draw through :func:`run_in_subfolder`, ``jobs`` at a time (processes of their own), in draw order."""
+    if jobs == 1:
+        rows = []
+        for d in draws:
+            rows.append(run_in_subfolder(d, folder, timeout))
+            _progress(rows[-1], n)
+        return rows
+    # spawn, not fork: CasADi and the BLAS hold threads a forked child would inherit in an unknown state; the
+    # alarm that ends a hung run works in each worker, whose tasks run in its main thread
+    context = multiprocessing.get_context("spawn")
+    with concurrent.futures.ProcessPoolExecutor(max_workers=jobs, mp_context=context) as pool:
+        futures = [pool.submit(run_in_subfolder, d, folder, timeout) for d in draws]
+        rows = []
+        for f in concurrent.futures.as_completed(futures):
+            rows.append(f.result())
+            _progress(rows[-1], n)
+    return sorted(rows, key=lambda r: r["k"])
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--n", type=int, default=200)
+    p.add_argument("--n", type=int, default=200, help="inputs drawn (the first n of the same sequence)")
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("--timeout", type=float, default=900.0, help="seconds a run may take before it counts as a hang")
+    p.add_argument("--jobs", type=int, default=1, help="inputs run at a time, each in a process of its own")
+    p.add_argument("--seeds", default="", help="comma list of phantom seeds: rerun only those draws")
+    p.add_argument("--report", default=None, help="file name in --out (default soak.md for the full soak, "
+                   "soak_rerun.md otherwise)")  # fmt: skip
     p.add_argument("--out", default=RESULTS)
     args = p.parse_args(argv)
+    if args.jobs < 1:
+        p.error("--jobs must be at least 1")
     rng = np.random.default_rng(args.seed)
     draws = [draw(rng, k) for k in range(args.n)]
-    rows = []
+    command = f"python scripts/soak.py --n {args.n} --seed {args.seed}"
+    if args.seeds:
+        wanted = {int(v) for v in args.seeds.split(",")}
+        missing = wanted - {d["seed"] for d in draws}
+        if missing:
+            p.error(f"--seeds: {sorted(missing)} not among the {args.n} draws of --seed {args.seed}")
+        draws = [d for d in draws if d["seed"] in wanted]
+        command += f" --seeds {args.seeds}"
+    full = not args.seeds and args.n >= 200
+    report = args.report or ("soak.md" if full else "soak_rerun.md")
+    if args.jobs > 1:
+        command += f" --jobs {args.jobs}"
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as folder:
-        for d in draws:
-            rows.append(run_one(d, folder, args.timeout))
-            r = rows[-1]
-            print(
-                f"{r['k'] + 1}/{args.n} {describe(r)}: rc {r['rc']}, WSS err {r['wss_err']:.1%}, "
-                f"{len(r['warnings'])} warning(s){' FLAGGED' if r['flagged'] else ''}"
-                + (" SILENT WRONG" if silent_wrong(r) else ""),
-                flush=True,
-            )
+        rows = run_all(draws, folder, args.timeout, args.jobs, args.n)
         with tempfile.TemporaryDirectory(dir=folder) as sub:
             sweep_rc, sweep_line = sweep_with_a_failed_case(sub)
     failed = [r for r in rows if r["rc"] != 0]
@@ -245,8 +308,8 @@ def main(argv=None):
     aliased = [r for r in rows if r["venc_factor"] is not None and r["venc_factor"] < 1]
     odd = {k: sum(r["file"] == k for r in rows) for k in ("velocity", "scaled", "offset")}
     lines = [
-        f"`python scripts/soak.py --n {args.n} --seed {args.seed}`: {args.n} random valid inputs through "
-        f"`wss-nlp phantom` and `wss-nlp reconstruct` (default options), {time.perf_counter() - t0:.0f} s.",
+        f"`{command}`: {len(rows)} random valid inputs through `wss-nlp phantom` and `wss-nlp reconstruct` "
+        f"(default options), {time.perf_counter() - t0:.0f} s with {args.jobs} job(s).",
         "",
         f"- runs: {len(rows)} ({sum(r['stack'] for r in rows)} stacks, {len(aliased)} with venc below the peak "
         f"velocity; {odd['velocity']} with the velocity stored, {odd['scaled']} with the magnitude scaled, "
@@ -294,17 +357,18 @@ def main(argv=None):
         "",
         "## The 15 largest WSS errors and what the run said",
         "",
-        "| run | WSS err | mean off / band | flagged | warnings |",
-        "|---|---|---|---|---|",
+        "| run | WSS err | mean off / band | min dephasing factor | flagged | warnings |",
+        "|---|---|---|---|---|---|",
     ]
     worst = sorted((r for r in rows if np.isfinite(r["wss_err"])), key=lambda r: -r["wss_err"])[:15]
     for r in worst:
         warn = "; ".join(w.replace("|", "/") for w in r["warnings"]) or "none"
         bands = r["mean_err"] / r["mean_std"] if np.isfinite(r["mean_std"]) and r["mean_std"] > 0 else float("nan")
         lines.append(
-            f"| {describe(r)} | {r['wss_err']:.1%} | {bands:.1f} | {'yes' if r['flagged'] else 'no'} | {warn} |"
+            f"| {describe(r)} | {r['wss_err']:.1%} | {bands:.1f} | {r['min_factor']:.2f} | "
+            f"{'yes' if r['flagged'] else 'no'} | {warn} |"
         )
-    write_report(args.out, "soak.md", lines)
+    write_report(args.out, report, lines)
     return 1 if (failed or tracebacks or hangs or partial or lost or wrong or sweep_rc != 1) else 0
 
 

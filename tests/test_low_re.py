@@ -188,3 +188,39 @@ def test_a_stated_viscosity_30_percent_off_is_flagged_where_the_data_resolve_the
     assert choice.model == "low_re" and choice.viscosity_ratio < 1 / nw.VISCOSITY_TOLERANCE
     assert "the data imply a kinematic viscosity" in choice.warning
     assert any("the data imply a kinematic viscosity" in w for w in res.warnings)
+
+
+def test_the_viscosity_note_says_which_check_the_voxels_allow():
+    """The rule on records, each way: a self-consistent scale with voxels in the log layer (h+ > VISCOSITY_RESOLVED)
+    gets the 'cannot check' note whatever the ratio; with the buffer layer resolved, only a ratio outside
+    [1/VISCOSITY_TOLERANCE, VISCOSITY_TOLERANCE] is flagged; a scale not from u_tau l = nu gets no note."""
+    tol, res = nw.VISCOSITY_TOLERANCE, nw.VISCOSITY_RESOLVED
+
+    def note(**kw):
+        return nw.viscosity_note(nw.NearWallChoice("low_re", density_kg_m3=1060.0, **kw), 3.5e-3)
+
+    coarse = note(consistent=True, voxel_plus=2.8 * res)
+    assert "cannot check the stated viscosity" in coarse and "h+ > 25" in coarse and "70 viscous lengths" in coarse
+    assert "cannot check" in note(consistent=True, voxel_plus=res * 1.01, viscosity_ratio=1.0)
+    assert note(consistent=True, voxel_plus=res, viscosity_ratio=1.0) == ""
+    assert note(consistent=True, voxel_plus=res / 2, viscosity_ratio=0.99 * tol) == ""
+    assert "imply a kinematic viscosity" in note(consistent=True, voxel_plus=res / 2, viscosity_ratio=1.01 * tol)
+    assert "imply a kinematic viscosity" in note(consistent=True, voxel_plus=res / 2, viscosity_ratio=0.99 / tol)
+    assert note(consistent=False, voxel_plus=2.8 * res) == ""
+    assert note(consistent=False) == ""
+
+
+def test_voxels_in_the_log_layer_say_the_stated_viscosity_is_unchecked():
+    """Re_tau 549 pipe DNS, h = 1.5 mm (h+ about 64 with the true viscous length R/Re_tau), SNR 25, seed 412 (not
+    used in development), default options: low_re at its self-consistent scale, the voxel in viscous units of that
+    scale recorded (within 10 % of the truth's: the scale came out 0.996 x R/Re_tau on report seed 100), and the
+    slice says that the data cannot check the viscosity; the Re_tau 180 slice at h+ <= 25 gets no such note
+    (test_auto_takes_low_re_in_place_of_the_wall_law_and_records_its_re_tau)."""
+    acq, truth = phantoms.make_phantom("turbulent550", h_mm=1.5, snr=25.0, seed=412)
+    res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+    choice = res.near_wall
+    assert choice.model == "low_re" and choice.consistent
+    true_plus = 1.5 / (truth.flow.radius_mm / truth.flow.re_tau)
+    assert choice.voxel_plus == pytest.approx(true_plus, rel=0.1) and true_plus > 2 * nw.VISCOSITY_RESOLVED
+    assert "cannot check the stated viscosity" in choice.warning
+    assert any("cannot check the stated viscosity" in w for w in res.warnings)

@@ -147,3 +147,46 @@ def test_a_velocity_fit_that_interpolates_the_noise_is_flagged():
     assert any("effective parameters" in w and "SUSPECT" in w for w in loose.warnings)
     firm = reconstruct(frames[13], replace(base, velocity=replace(base.velocity, beta=1e-6, near_wall="off")))[0]
     assert firm.velocity.dof < 0.5 * n_vox and not any("effective parameters" in w for w in firm.warnings)
+
+
+@pytest.mark.parametrize("x", [0.1, 0.8, 1.5, 2.5])
+def test_dephasing_spread_inverts_the_ramp_factor(x):
+    # a linear ramp of width du across a voxel: D = |mean_t exp(i pi du t / venc)| = sin(x) / x, x = pi du / (2 venc);
+    # the inversion interpolates on 2001 points of the first lobe: 1e-4 of venc is well above its error there
+    assert pl.dephasing_spread(np.sin(x) / x) == pytest.approx(2 * x / np.pi, abs=1e-4)
+    # the same factor by a second, independent computation: a 4001-point midpoint mean of the phases of the ramp
+    t = (np.arange(4001) + 0.5) / 4001
+    assert abs(np.mean(np.exp(1j * 2 * x * t))) == pytest.approx(np.sin(x) / x, abs=1e-6)
+
+
+def test_dephasing_bounds_depend_on_unwrapping():
+    between = (pl.MIN_DEPHASING_FACTOR + pl.MIN_DEPHASING_FACTOR_ALIASED) / 2
+    assert pl.check_dephasing(between, 0.3, unwrapped=True).startswith("SUSPECT: intravoxel dephasing")
+    assert pl.check_dephasing(between, 0.3, unwrapped=False) == ""  # unaliased flow can dephase this much
+    assert "venc_m_s = 0.3" in pl.check_dephasing(0.5, 0.3, unwrapped=False)
+    assert pl.check_dephasing(0.5, None, unwrapped=True) == ""  # no phase data, no dephasing model
+    assert pl.check_dephasing(1.0, 0.3, unwrapped=True) == ""
+
+
+def test_aliased_dephased_wall_is_flagged_and_the_same_flow_unaliased_is_not():
+    """The soak's silent wrong results (issue 42): a plug-like entrance profile with venc 0.85 x its peak,
+    unwrapped correctly, but its wall voxels hold velocities spanning about venc; the WSS is far off with a fit
+    residual at the noise level. The dephasing check flags it; the same phantom and seed at the default venc is
+    neither flagged nor far off. Seed 61 was not used to choose the thresholds (seeds 300-301 were)."""
+    acq0, truth = phantoms.make_phantom("entrance", h_mm=1.0, snr=25, seed=61)
+    peak = phantoms.peak_velocity(truth.flow)
+    acq, _ = phantoms.make_phantom("entrance", h_mm=1.0, snr=25, seed=61, venc=0.85 * peak)
+    bad, good = reconstruct(acq, FAST)[0], reconstruct(acq0, FAST)[0]
+    e_bad, e_good = (metrics.compare_slice(r, truth).wss_rel_l2 for r in (bad, good))
+    assert bad.screen["unwrapped"] and bad.screen["velocity_residual_to_noise"] < pl.MAX_RESIDUAL_TO_NOISE
+    # what the flag is for: wrong by far more than the soak's 10 % (27 % here, 26-36 % in the soak's failures on this
+    # profile at h 1 mm), with a residual the fit check accepts
+    assert e_bad > 0.2
+    assert bad.dephasing.min_factor < pl.MIN_DEPHASING_FACTOR_ALIASED
+    assert bad.screen["dephasing_suspect"] and bad.screen["suspect"]
+    assert any("SUSPECT: intravoxel dephasing" in w for w in bad.warnings)
+    assert not good.screen["unwrapped"] and not good.screen["dephasing_suspect"]
+    assert good.dephasing.min_factor > pl.MIN_DEPHASING_FACTOR_ALIASED  # the default venc keeps D >= 0.76
+    # the unaliased entrance profile is the hardest phantom (its layer is thinner than a voxel): 9.6 % here, up to
+    # 9.8 % unflagged in the soak; 15 % leaves room for the solver's rounding and is still half the aliased error
+    assert not any("SUSPECT" in w for w in good.warnings) and e_good < 0.15

@@ -219,15 +219,24 @@ ROWS = [  # a known table: wss_err = h * (method index + 1) + seed / 100
 ]
 
 
+def _cells(line: str) -> list[str]:
+    """A Markdown table row's cells, without the padding pandas' to_markdown adds to align the columns."""
+    return [c.strip() for c in line.strip().strip("|").split("|")]
+
+
 def test_table_pivots_means_and_marks_the_best():
     md, tex = sweep.table(ROWS, "h", "method", "wss_err")
     lines = md.splitlines()
-    assert lines[0] == "| h \\ method | b | a | c |"
-    assert lines[2] == "| 1 | **1.0050** | 2.0050 | 3.0050 |"  # mean over seeds 0, 1
-    assert lines[3] == "| 0.5 | **0.5050** | 1.0050 | 1.5050 |"
+    assert _cells(lines[0]) == ["h \\ method", "b", "a", "c"]
+    assert set(lines[1]) <= set("|:-")  # the pipe table's alignment row
+    assert _cells(lines[2]) == ["1", "**1.0050**", "2.0050", "3.0050"]  # mean over seeds 0, 1
+    assert _cells(lines[3]) == ["0.5", "**0.5050**", "1.0050", "1.5050"]
+    assert len({len(line) for line in lines[:4]}) == 1  # columns padded to one width
     assert r"\textbf{1.0050}" in tex and r"\begin{tabular}{c||c|c|c}" in tex
+    assert "1 & \\textbf{1.0050} & 2.0050 & 3.0050 \\\\" in tex.splitlines()
+    assert tex.splitlines()[:3] == [r"\begin{table}[ht!]", r"\centering", r"\caption{wss err}"]
     md, _ = sweep.table(ROWS, "metric", "h", "wss_err", where={"method": "a"}, agg="max")
-    assert md.splitlines()[2] == "| wss_err | 2.0100 | **1.0100** |"
+    assert _cells(md.splitlines()[2]) == ["wss_err", "2.0100", "**1.0100**"]
 
 
 def test_table_refuses_to_mix_unfixed_parameters():
@@ -276,7 +285,7 @@ def test_table_marks_cells_with_non_converged_cases():
     rows[0]["status"] = "not converged"  # h = 1, method b, seed 0: still averaged, but flagged
     rows[1]["status"] = "error"  # h = 1, method b, seed 1: left out of the mean
     md, tex = sweep.table(rows, "h", "method", "wss_err")
-    assert md.splitlines()[2] == "| 1 | **1.0000†** | 2.0050 | 3.0050 |"
+    assert _cells(md.splitlines()[2]) == ["1", "**1.0000†**", "2.0050", "3.0050"]
     assert "1 case(s) whose solver did not converge" in md and r"$^\dagger$" in tex
 
 
@@ -303,3 +312,38 @@ def test_progress_draws_a_bar_on_a_terminal_and_a_line_per_case_elsewhere():
     rows = log.getvalue().splitlines()
     assert rows[0].startswith("1/2 cases, 0 not ok") and rows[0].endswith("(a: ok)")
     assert rows[1].startswith("2/2 cases, 1 not ok") and rows[1].endswith("(b: error)")
+
+
+def test_results_csv_reads_back_with_its_types(tmp_path):
+    """write_csv (standard library) then read_csv (pandas): numbers, booleans, a missing metric (nan) and an empty
+    message come back as they went in."""
+    study = _study(tmp_path)
+    record = {
+        "params": {**{k: v[0] for k, v in study.grid.items()}, "h": 1.5, "seed": 3, "uncertainty": False},
+        "id": "x",
+        "status": "ok",
+        "converged": True,
+        "message": "",
+        "result_file": "cases/x.h5",
+        "metrics": {"wss_err": 0.0125, "radius_err": None},
+    }
+    sweep.write_csv(str(tmp_path / "results.csv"), [sweep.flat_row(record, study)], study)
+    (row,) = sweep.read_csv(str(tmp_path))
+    assert row["h"] == 1.5 and row["seed"] == 3 and isinstance(row["seed"], int)
+    assert row["converged"] is True and row["uncertainty"] is False
+    assert row["message"] == "" and row["status"] == "ok" and row["case"] == "circle"
+    assert row["wss_err"] == 0.0125 and np.isnan(row["radius_err"])
+
+
+def test_without_pandas_a_sweep_says_in_one_line_how_to_get_the_tables(tmp_path, monkeypatch, caplog):
+    import sys
+
+    study = _study(tmp_path, SMALL.split("[[plots]]")[0])  # the table alone: a plot costs seconds of matplotlib
+    monkeypatch.setitem(sys.modules, "pandas", None)  # import fails as if pandas were not installed
+    with caplog.at_level("WARNING", logger="wss_nlp"):
+        written = sweep.write_views(study, ROWS, str(tmp_path))
+    assert written == [] and not list(tmp_path.glob("t.*"))  # no t.md, no t.tex
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "1 study table(s) not written" in warning and "pip install 'wss-nlp[study]'" in warning
+    with pytest.raises(InputError, match=r"need pandas: pip install 'wss-nlp\[study\]'"):
+        sweep.table(ROWS, "h", "method", "wss_err")

@@ -500,7 +500,8 @@ def test_the_wall_mesh_opens_with_meshio_in_world_coordinates(arc_result, tmp_pa
     assert np.allclose(mesh.point_data["wss_vector_pa"], res.wss_pa[0].reshape(-1, 3))
     assert np.allclose(mesh.point_data["tau_pa"], res.axial_pa[0].ravel())
     assert Centerline.from_file(files[1]).length_mm == pytest.approx(res.centerline.length_mm, rel=1e-3)
-    assert open(files[2]).readline().startswith("s_mm,area_mm2,flow_ml_s")
+    with open(files[2]) as fh:  # closed: an unclosed file is a ResourceWarning
+        assert fh.readline().startswith("s_mm,area_mm2,flow_ml_s")
 
 
 def test_the_wall_pieces_give_the_point_graph_wss(small_problem, small_wall):

@@ -14,6 +14,13 @@ from collections.abc import Callable
 import numpy as np
 
 
+def _flat(value) -> np.ndarray:
+    """A value as a flat float array; a CasADi ``DM`` through its ``full()`` (NumPy functions called on CasADi values
+    take a deprecated path: CasADi's FutureWarning of issue 2959)."""
+    full = getattr(value, "full", None)
+    return np.ravel(np.asarray(full() if callable(full) else value, dtype=float))
+
+
 def dottest(
     forward: Callable, adjoint: Callable, n_in: int, n_out: int, rng: np.random.Generator, rtol: float = 1e-10
 ) -> float:
@@ -28,8 +35,8 @@ def dottest(
         the condition of the sums, so ``1e-10`` leaves room for large operators.
     """
     x, y = rng.normal(size=n_in), rng.normal(size=n_out)
-    lhs = float(np.dot(np.ravel(forward(x)), y))
-    rhs = float(np.dot(x, np.ravel(adjoint(y))))
+    lhs = float(np.dot(_flat(forward(x)), y))
+    rhs = float(np.dot(x, _flat(adjoint(y))))
     mismatch = abs(lhs - rhs) / max(abs(lhs), abs(rhs), 1e-300)
     if mismatch > rtol:
         raise AssertionError(f"dot test failed: <Ax, y> = {lhs:.16g}, <x, A^T y> = {rhs:.16g} (rel. {mismatch:.2e})")
@@ -38,9 +45,9 @@ def dottest(
 
 def taylor_ratios(f: Callable, jvp: Callable, x: np.ndarray, d: np.ndarray, steps=(1e-2, 5e-3, 2.5e-3)) -> np.ndarray:
     """``r(t_k) / r(t_{k+1})`` of the first-order Taylor remainders along ``d`` (about 4 for halved steps)."""
-    f0 = np.ravel(f(x))
-    jd = np.ravel(jvp(x, d))
-    rem = np.array([np.linalg.norm(np.ravel(f(x + t * d)) - f0 - t * jd) for t in steps])
+    f0 = _flat(f(x))
+    jd = _flat(jvp(x, d))
+    rem = np.array([np.linalg.norm(_flat(f(x + t * d)) - f0 - t * jd) for t in steps])
     return rem[:-1] / rem[1:]
 
 

@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import re
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 
 import casadi as ca
@@ -60,6 +64,86 @@ def ipopt_options(tol: float, max_iter: int, extra: dict | None = None) -> dict:
     return opts
 
 
+#: Where a long solve reports how far it got (:func:`solve_progress`); None: nobody listens.
+_SOLVE_PROGRESS: contextvars.ContextVar[Callable[[str], None] | None] = contextvars.ContextVar(
+    "wss_nlp_solve_progress", default=None
+)
+
+
+@contextlib.contextmanager
+def solve_progress(report: Callable[[str], None] | None) -> Iterator[None]:
+    """Within the block, long solves call ``report(text)`` as they advance (IPOPT iterations of the solvers built
+    with ``report_iterations``, outer sweeps: :func:`report_progress`); ``None`` leaves them silent.
+
+    A context variable: a solve in another thread or process reports nothing unless its caller sets one there.
+    """
+    token = _SOLVE_PROGRESS.set(report)
+    try:
+        yield
+    finally:
+        _SOLVE_PROGRESS.reset(token)
+
+
+def report_progress(text: str) -> None:
+    """Tell whoever listens (:func:`solve_progress`) how far a solve got; nothing when no one does."""
+    report = _SOLVE_PROGRESS.get()
+    if report is not None:
+        report(text)
+
+
+class IterationReport(ca.Callback):
+    """IPOPT's iteration callback: after each iteration, ``report_progress("<what>: IPOPT iteration k, objective
+    f")`` (:func:`solve_progress`). It reads only the objective; the iteration counter restarts with every solve
+    (:func:`run_nlpsol` calls :meth:`restart`).
+
+    Parameters
+    ----------
+    what : str
+        What the solve is, as the report names it.
+    nx, ng, np_ : int
+        Sizes of the NLP's variables, constraints and parameters (the callback's input sparsities).
+    """
+
+    def __init__(self, what: str, nx: int, ng: int, np_: int):
+        ca.Callback.__init__(self)
+        self.what, self.iteration = what, 0
+        self._sizes = {"x": nx, "lam_x": nx, "g": ng, "lam_g": ng, "p": np_, "lam_p": np_, "f": 1}
+        self.construct(re.sub(r"\W+", "_", what).strip("_") + "_iterations", {})  # CasADi: a valid identifier
+
+    def restart(self) -> None:
+        self.iteration = 0
+
+    def get_n_in(self) -> int:
+        return ca.nlpsol_n_out()
+
+    def get_n_out(self) -> int:
+        return 1
+
+    def get_name_in(self, i: int) -> str:
+        return ca.nlpsol_out(i)
+
+    def get_name_out(self, i: int) -> str:
+        return "ret"
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        n = self._sizes.get(ca.nlpsol_out(i), 0)
+        return ca.Sparsity.dense(n, 1) if n else ca.Sparsity(0, 0)
+
+    def eval(self, arg):
+        if _SOLVE_PROGRESS.get() is not None:  # IPOPT's numbering: iteration 0 is the starting point
+            f = float(arg[ca.nlpsol_out().index("f")])
+            report_progress(f"{self.what}: IPOPT iteration {self.iteration}, objective {f:.6g}")
+        self.iteration += 1
+        return [0]  # 0: go on (non-zero would stop IPOPT)
+
+
+def iteration_report_options(what: str, x, g, p=None) -> tuple[dict, IterationReport]:
+    """nlpsol options that report each IPOPT iteration (:class:`IterationReport`), and the callback, which the
+    caller keeps alive as long as the solver (CasADi does not own Python callbacks)."""
+    callback = IterationReport(what, x.numel(), g.numel(), 0 if p is None else p.numel())
+    return {"iteration_callback": callback}, callback
+
+
 def gauss_newton_ipopt(
     name: str,
     x,
@@ -71,6 +155,7 @@ def gauss_newton_ipopt(
     max_iter: int = 200,
     extra: dict | None = None,
     grad=None,
+    report_iterations: str = "",
 ) -> ca.Function:
     r"""IPOPT on :math:`\min_x f(x; p)` subject to ``g``, with a Gauss-Newton Hessian of the Lagrangian.
 
@@ -93,12 +178,19 @@ def gauss_newton_ipopt(
     the Lagrangian's gradient by reverse mode through the whole graph.
     The returned Function holds the callbacks (attribute ``shared``: the
     objective's and the derivatives').
+
+    ``report_iterations`` (optional): what the solve is; each IPOPT iteration is then reported to
+    :func:`solve_progress`'s listener under that name (:class:`IterationReport`, held in ``shared`` too).
     """
     nlp = {"x": x, "f": f, "g": g}
     if p is not None:
         nlp["p"] = p
     options = dict(extra or {})
     shared: tuple = ()
+    if report_iterations:
+        more, callback = iteration_report_options(report_iterations, x, g, p)
+        options.update(more)
+        shared = (callback,)
     if grad is not None:
         point, point_names = ([x], ["x"]) if p is None else ([x, p], ["x", "p"])
         # the objective behind a callback too: IPOPT needs no derivatives of it here, and nlpsol's set-up
@@ -108,7 +200,7 @@ def gauss_newton_ipopt(
         )
         objective = EagerObjective(ca.Function(f"{name}_objective", point, [f], point_names, ["f"]), derivatives)
         nlp["f"] = objective(*point)
-        shared = (objective, derivatives)
+        shared += (objective, derivatives)
         # the same inputs, fresh symbols: these functions read the shared outputs, not the expressions
         x = ca.MX.sym("x", x.sparsity())
         p = None if p is None else ca.MX.sym("p", p.sparsity())
@@ -365,6 +457,9 @@ def run_nlpsol(solver: ca.Function, what: str, **args) -> tuple[dict, SolverStat
         For hard failures (invalid numbers, restoration failure, infeasible
         problem, ...): nothing usable was computed.
     """
+    for held in getattr(solver, "shared", ()):
+        if isinstance(held, IterationReport):
+            held.restart()
     t0 = time.perf_counter()
     try:
         sol = solver(**args)

@@ -696,7 +696,9 @@ class NearWallChoice:
         smallest criterion within half an octave) over the stated ``nu = mu / rho``
         (:func:`wss_nlp.parameters.layer._data_viscosity`); else NaN.
     voxel_plus : float
-        The voxel size over that scale (``h+``): the ratio is read only up to :data:`VISCOSITY_RESOLVED`.
+        A self-consistent scale: the voxel size over the scale at which the viscosity was read (``h+``; the ratio
+        is read only up to :data:`VISCOSITY_RESOLVED`), or over the chosen scale where the voxels are too coarse
+        to look for the data's own scale; else NaN.
     warning : str
         A warning about this choice for the slice's notes (:func:`viscosity_note`), or "".
     unresolved_mm : float
@@ -762,19 +764,33 @@ VISCOSITY_TOLERANCE = 1.2
 
 
 def viscosity_note(choice: NearWallChoice, viscosity_pa_s: float | None) -> str:
-    """A warning when the data's own law-of-the-wall scale implies a kinematic viscosity that disagrees with the
-    stated one (:attr:`NearWallChoice.viscosity_ratio`, read where the voxels resolve the buffer layer), else ""."""
+    """A warning about the stated viscosity behind a self-consistent layer scale, else "".
+
+    Where the voxels resolve the buffer layer (``h+ <= VISCOSITY_RESOLVED``): when the data's own scale implies a
+    kinematic viscosity that disagrees with the stated one (:attr:`NearWallChoice.viscosity_ratio`). Where they
+    do not (the voxels average over the log layer, :math:`U^+ = \\ln(y^+)/\\kappa + B`, where a wrong ``nu`` only
+    shifts the intercept by :math:`\\ln(\\nu'/\\nu)/\\kappa`; the data's own scale drifts there,
+    :data:`VISCOSITY_RESOLVED`): that the data cannot check it, and what an error in it did to the WSS on the pipe
+    phantoms (``python scripts/low_re.py --part viscosity``, ``scripts/results/viscosity_check.md``).
+    """
+    stated = f"viscosity {viscosity_pa_s:g} Pa s, " if viscosity_pa_s else ""
+    source = f"density {choice.density_kg_m3:g} kg/m^3 from {choice.density_source or 'the default'}"
+    if choice.consistent and choice.voxel_plus > VISCOSITY_RESOLVED:
+        return (
+            f"near-wall layer: the voxels span {choice.voxel_plus:.0f} viscous lengths (h+ > {VISCOSITY_RESOLVED:g}) "
+            f"and do not resolve the buffer layer, so the data cannot check the stated viscosity ({stated}{source}); "
+            "the layer's scale u_tau l = nu, and the WSS with it, rests on it (30 % off moved the WSS by 11-30 % on "
+            "the Re_tau 549 pipe phantom at h = 0.6-1.5 mm): check --viscosity and --density"
+        )
     ratio = choice.viscosity_ratio
     if not (np.isfinite(ratio) and choice.voxel_plus <= VISCOSITY_RESOLVED):
         return ""
     if 1 / VISCOSITY_TOLERANCE <= ratio <= VISCOSITY_TOLERANCE:
         return ""
-    stated = f"viscosity {viscosity_pa_s:g} Pa s, " if viscosity_pa_s else ""
     return (
-        f"near-wall layer: the data imply a kinematic viscosity {ratio:.2f} x the stated one ({stated}density "
-        f"{choice.density_kg_m3:g} kg/m^3 from {choice.density_source or 'the default'}): the layer's scale "
-        "u_tau l = nu, and the WSS with it, rests on the stated values (30 % off moved the WSS by 3-31 % on "
-        "turbulent phantoms); check --viscosity and --density"
+        f"near-wall layer: the data imply a kinematic viscosity {ratio:.2f} x the stated one ({stated}{source}): "
+        "the layer's scale u_tau l = nu, and the WSS with it, rests on the stated values (30 % off moved the WSS by "
+        "3-31 % on turbulent phantoms); check --viscosity and --density"
     )
 
 

@@ -113,7 +113,12 @@ def _wls(a: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def fit_offset(
-    points_mm: np.ndarray, values: np.ndarray, noise: np.ndarray, max_order: int = MAX_ORDER, seed: int = 0
+    points_mm: np.ndarray,
+    values: np.ndarray,
+    noise: np.ndarray,
+    max_order: int = MAX_ORDER,
+    seed: int = 0,
+    msac_points: int | None = None,
 ) -> OffsetFit:
     """Robust polynomial fit of the static-tissue velocities, its order chosen by BIC.
 
@@ -124,6 +129,8 @@ def fit_offset(
     noise : (n,) the velocity noise deviation of each voxel, m/s (``venc sigma / (pi |d_i|)``)
     max_order : highest total degree tried
     seed : seeds the random subsets (the fit is reproducible)
+    msac_points : score MSAC's candidates on this many of the voxels (drawn once, seeded) instead of all: a
+        volume's tens of thousands of static voxels need not all vote for the consensus; the refinement uses all
 
     Notes
     -----
@@ -148,16 +155,19 @@ def fit_offset(
     k = a_top.shape[1]
     w = 1.0 / s**2
     rng = np.random.default_rng(seed)
-    best_cost, best_in = np.inf, np.ones(n, bool)
+    best_cost, best_c = np.inf, None
     size = min(n, 2 * k)
+    vote = np.arange(n)
+    if msac_points is not None and n > msac_points:
+        vote = np.sort(np.random.default_rng(seed + 7919).choice(n, size=msac_points, replace=False))
     for _ in range(MSAC_DRAWS if n > size else 1):
         pick = rng.choice(n, size=size, replace=False) if n > size else np.arange(n)
         c = _wls(a_top[pick], y[pick], w[pick])
-        r = (y - a_top @ c) / s
+        r = (y[vote] - a_top[vote] @ c) / s[vote]
         cost = float(np.sum(np.minimum(r**2, MSAC_BAND**2)))
         if cost < best_cost:
-            best_cost, best_in = cost, np.abs(r) < MSAC_BAND
-    inl = best_in
+            best_cost, best_c = cost, c
+    inl = np.abs((y - a_top @ best_c) / s) < MSAC_BAND
     for _ in range(2):  # refine: least squares on the consensus, new consensus
         if inl.sum() < k:
             break

@@ -63,7 +63,14 @@ from ..errors import InputError, SolverError
 from . import coupled as cpl
 from .coupled import sparse_dm
 from ..core.schema import option
-from ..core.solver import SolverStats, gauss_newton_ipopt, ipopt_options, run_nlpsol
+from ..core.solver import (
+    SolverStats,
+    gauss_newton_ipopt,
+    ipopt_options,
+    iteration_report_options,
+    report_progress,
+    run_nlpsol,
+)
 
 logger = logging.getLogger(__name__)  # progress of long stack solves (the CLI shows INFO on stderr)
 
@@ -295,6 +302,7 @@ def coupled_geometry(slices: list[SliceGeometry], alpha: float, x0: np.ndarray, 
         slices[0].options.tol,
         slices[0].options.max_iter,
         {"clip_inactive_lam": True},
+        report_iterations="geometry",  # the joint solve's progress (core.solver.solve_progress)
     )
     nb = [sl.nlp.g.numel() for sl in slices]
     lbg = np.concatenate([np.full(m, sl.problem.r0) for m, sl in zip(nb, slices)])
@@ -336,6 +344,7 @@ def kaczmarz_geometry(
             c[k], stats[k] = slices[k].newton(alpha, s, cnt, c[k], 50 if sweep == 1 else 1, tol)
             step = max(step, float(np.sqrt(np.sum(w0 * (c[k] - old) ** 2) / np.sum(w0 * c[k] ** 2))))
         logger.info(f"geometry sweep {sweep}: largest relative update {step:.2e} (stops below {tol:g})")
+        report_progress(f"geometry: sweep {sweep} of at most {max_sweeps}, largest relative update {step:.2e}")
         # the largest relative update of the sweep is a cheap proxy; the exact residual is evaluated once it is small
         if step < tol:
             res = max(sl.newton_decrement(alpha, *nb_sum(k), c[k]) for k, sl in enumerate(slices))
@@ -424,6 +433,7 @@ def kaczmarz_velocity(vps, betas, kappa_v: float, gram0: np.ndarray, tol: float,
             for k in range(ns)
         )
         history.append(float(r))
+        report_progress(f"velocity: sweep {sweep} of at most {max_sweeps}, relative residual {r:.2e}")
         if r < tol:
             return c, sweep, history
     return c, max_sweeps, history
@@ -515,7 +525,7 @@ def coupled_segment(
     grad = ca.vertcat(*grad_blocks) + 2 * ca.mtimes(zl, big)  # zl is symmetric
     solver = gauss_newton_ipopt(
         "stack_coupled", big, f, ca.vertcat(*g_all), hess, gammas, copt.tol, copt.max_iter, dict(cpl.WARM_START),
-        grad=grad,
+        grad=grad, report_iterations="coupled geometry+velocity",
     )  # fmt: skip
     x0 = np.concatenate([np.concatenate([g.coefficients, v.coefficients]) for g, v in starts])
     lbg = np.concatenate(
@@ -536,10 +546,14 @@ def coupled_segment(
         failed = str(exc)
     if failed:  # as coupled.solve: a stalled Gauss-Newton solve is redone with CasADi's exact Hessian
         logger.info(f"{what}: Gauss-Newton Hessian did not converge ({failed}); solving with the exact Hessian")
-        opts = ipopt_options(copt.tol, copt.max_iter, dict(cpl.WARM_START))
+        report, callback = iteration_report_options(
+            "coupled geometry+velocity, exact Hessian", big, ca.vertcat(*g_all), gammas
+        )
+        opts = ipopt_options(copt.tol, copt.max_iter, {**cpl.WARM_START, **report})
         exact = ca.nlpsol(
             "stack_coupled_exact", "ipopt", {"x": big, "p": gammas, "f": f, "g": ca.vertcat(*g_all)}, opts
         )
+        exact.shared = (callback,)  # type: ignore[attr-defined]  # alive while the solver is; run_nlpsol restarts it
         sol, stats = run_nlpsol(exact, what, x0=x0, p=p, lbg=lbg, ubg=ubg)
         stats.extra["gauss_newton_failed"] = failed
     stats.extra["hessian"] = "exact" if failed else "gauss-newton"

@@ -287,6 +287,8 @@ def choose_layer(
     if chosen in implied:
         choice.viscosity_ratio = implied[chosen][0]
         choice.voxel_plus = voxel_mm / (2.0 ** implied[chosen][1] * big_r)
+    elif choice.consistent:  # too coarse to look for the data's own scale: the voxel over the chosen one
+        choice.voxel_plus = voxel_mm / best[chosen][1]
     return best[chosen][2], choice
 
 

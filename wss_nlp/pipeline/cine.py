@@ -439,6 +439,7 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
     keep = options.cine.model != "independent" and frames[0].nz == 1
     defer = options.uncertainty and keep
     psfs = []  # the acquisition model each frame was reconstructed with (resolved k-space filter)
+    failures: list[tuple[int, str]] = []  # said once per kind after the frames, not once per frame
     for k, frame in enumerate(frames):
         results: list
         try:
@@ -446,7 +447,7 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
             results = list(done)
             psfs.append(done.psf)
         except WssNlpError as exc:  # this frame only: the others still describe the cycle
-            log.warning("frame %d failed: %s", k, exc)
+            failures.append((k, f"failed: {exc}"))
             results = [FailedSlice(iz, f"frame {k}: {exc}") for iz in range(frame.nz)]
         for r in results:
             if not isinstance(r, FailedSlice) and not keep:
@@ -457,6 +458,8 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
                 boxes[r.index] = replace(boxes[r.index], start=tuple(r.geometry.coefficients))
         if progress is not None:
             progress(k + 1, len(frames), time.perf_counter() - t0)
+    for line in group_warnings(failures, len(frames)):
+        log.warning(line)
     if all(isinstance(r, FailedSlice) for frame in out for r in frame):
         raise WssNlpError(f"every frame failed; the first: {out[0][0].reason}")
     result = CineResult(out, np.asarray(times_ms, dtype=float), float(period_ms), weights, notes)
@@ -754,18 +757,26 @@ def frame_warnings(cine: CineResult, iz: int) -> list[str]:
     return group_warnings([(k, w) for k, frame in enumerate(cine.frames) for w in frame[iz].warnings], len(cine.frames))
 
 
-def group_warnings(items: list, total: int, what: str = "frame") -> list[str]:
-    """``(index, message)`` pairs as one line per kind of message with the indices it came from.
+def warning_kind(message: str) -> str:
+    """What kind of warning ``message`` is: its text with every number replaced by ``#``.
 
-    Messages that differ only in their numbers (a slice's prefix, a chosen parameter) are one kind; the
-    line keeps the first one's text: ``frames 0-19 (20 of 20): slice 0: no band ...``.
+    Warnings that differ only in their numbers (a slice's or frame's index, a chosen parameter) are one kind,
+    said once (:func:`group_warnings`; the command line's log counts the repeats of any warning this way).
     """
     import re
 
+    return re.sub(r"[-+]?\d[\d.eE+-]*", "#", message)
+
+
+def group_warnings(items: list, total: int, what: str = "frame") -> list[str]:
+    """``(index, message)`` pairs as one line per kind of message with the indices it came from.
+
+    Messages that differ only in their numbers (:func:`warning_kind`) are one kind; the line keeps the first
+    one's text: ``frames 0-19 (20 of 20): slice 0: no band ...``.
+    """
     kinds: dict = {}
     for index, message in items:
-        key = re.sub(r"[-+]?\d[\d.eE+-]*", "#", message)
-        kinds.setdefault(key, (message, []))[1].append(index)
+        kinds.setdefault(warning_kind(message), (message, []))[1].append(index)
     out = []
     for message, indices in kinds.values():
         indices = sorted(set(indices))
@@ -779,7 +790,6 @@ def group_warnings(items: list, total: int, what: str = "frame") -> list[str]:
 def cycle_warnings(cine: CineResult, series: list) -> list[str]:
     """Every warning of a cine result for the command line: the slices' notes and their frames' warnings, each
     kind said once with the slices and frames it applies to (:func:`group_warnings`)."""
-    import re
 
     items: list[tuple[int, int | None, str]] = [(s.index, None, note) for s in series for note in s.notes]
     for s in series:
@@ -788,7 +798,7 @@ def cycle_warnings(cine: CineResult, series: list) -> list[str]:
             items += [(s.index, k, w[len(prefix) :] if w.startswith(prefix) else w) for w in frame[s.index].warnings]
     kinds: dict = {}
     for iz, frame_index, message in items:
-        key = (frame_index is None, re.sub(r"[-+]?\d[\d.eE+-]*", "#", message))
+        key = (frame_index is None, warning_kind(message))
         kinds.setdefault(key, (message, []))[1].append((iz, frame_index))
     out = []
     for (per_slice, _), (message, where) in kinds.items():

@@ -31,6 +31,7 @@ import time
 import numpy as np
 
 from ..core import radius as rad
+from ..core.solver import report_progress, solve_progress
 from ..errors import InputError, WssNlpError
 from ..io import ranges
 from ..io.files import Acquisition, FailedSlice
@@ -142,7 +143,10 @@ def reconstruct(
     Parameters
     ----------
     progress : callable or None
-        Called as ``progress(done, total, slice_result)`` after each slice.
+        Called as ``progress(done, total, slice_result)`` after each slice. If it has a ``stage`` attribute,
+        ``progress.stage(text)`` is called while a z-tied segment is solved, as the joint solve advances (its
+        stages, IPOPT iterations and sweeps, each text naming the segment's slices): the slices of a segment
+        are done together at its end.
     boxes : dict or None
         Slice index -> :class:`wss_nlp.models.preprocess.LumenBox` replacing that slice's own origin and
         radius box (cine frames: the frames of a slice share one, with its built solvers and a warm start).
@@ -243,7 +247,8 @@ def _reconstruct(
                 if ahead is not None:
                     seg_results = _raised(next(ahead))
                 else:
-                    seg_results = run_segment([prepared[k] for k in seg], fitter, options, mu, dz, defer_band)
+                    with solve_progress(_stage_report(progress, seg, fitter)):
+                        seg_results = run_segment([prepared[k] for k in seg], fitter, options, mu, dz, defer_band)
             except WssNlpError as exc:
                 if acq.nz == 1:
                     raise
@@ -273,6 +278,16 @@ def _reconstruct(
     if all(isinstance(r, FailedSlice) for r in out):
         raise WssNlpError(f"{acq.source}: no slice could be reconstructed: " + "; ".join(r.reason for r in out))
     return _with_screens(out, screens, acq, psf, range_notes)
+
+
+def _stage_report(progress, seg: list[int], fitter: Fitter):
+    """What a z-tied segment's solve reports as it advances (:func:`wss_nlp.core.solver.solve_progress`):
+    ``progress.stage("slices a-b: <text>")``, where the progress callback has a ``stage``; None otherwise."""
+    stage = getattr(progress, "stage", None)
+    if stage is None or not isinstance(fitter, ZCoupled):
+        return None
+    name = f"slices {seg[0]}-{seg[-1]}" if len(seg) > 1 else f"slice {seg[0]}"
+    return lambda text: stage(f"{name}: {text}")
 
 
 def _range_notes(acq: Acquisition, options: ReconstructionOptions, radius_mm: float | None = None) -> list[str]:
@@ -356,11 +371,15 @@ def run_segment(
     if isinstance(fitter, ZCoupled):
         fitter.start(len(slices))
         stk.logger.info(f"slices {first}-{last}: {fitter.strategy} solve of {len(slices)} slice(s)")
+    report_progress("geometry")  # each stage as it starts; the solves report their iterations within it
     fitter.geometry(states, slices[0].start if len(slices) == 1 else None)
+    report_progress("velocity")
     fitter.velocity(states)
     _dephasing_passes(states, fitter, options, slices[0].venc)
 
     t0 = time.perf_counter()
+    if options.method == "coupled":
+        report_progress("coupled geometry+velocity")
     coupled_results, coupled_info = methods.of(options).refine(states, fitter)
     if coupled_results is not None:
         _add_time(states, fitter, "coupled", t0)
@@ -388,6 +407,7 @@ def run_segment(
         if defer_band:
             pending = _deferred(band, states, walls)
         else:
+            report_progress("uncertainty band")
             t0 = time.perf_counter()
             bands, band_note = band()
             if isinstance(fitter, ZCoupled):
@@ -544,6 +564,7 @@ def _dephasing_passes(states: list[SliceState], fitter: Fitter, options: Reconst
                 return
         t0 = time.perf_counter()
         previous = ([s.snapshot() for s in states], fitter.snapshot())
+        report_progress(f"dephasing pass {k + 1}")
         fitter.repass(states, corrections)
         _add_time(states, fitter, "dephasing_pass", t0)
         angles = rad.uniform_angles(72)
@@ -633,14 +654,21 @@ def _with_screens(results, screens: dict, acq: Acquisition, psf=None, range_note
                 )
         if isinstance(r, SliceResult):
             warning, ratio = plaus.check_fit(r, acq.magnitude[r.index], acq.venc_m_s)
+            # issue 42: strong dephasing in wall voxels biases the WSS with a residual at the noise level
+            dephased = "" if not voxel_means else plaus.check_dephasing(
+                r.dephasing.min_factor, acq.venc_m_s, bool((r.screen or {}).get("unwrapped"))
+            )  # fmt: skip
             unresolved = r.near_wall is not None and bool(np.isfinite(r.near_wall.unresolved_mm))
             unbalanced = r.beta_choice is not None and r.beta_choice.rule == "balance" and not r.beta_choice.satisfied
             unsteady = r.steady is not None and r.steady.unsteady
-            suspect = bool(warning) or unresolved or unbalanced or coarse or box_on_kspace or unsteady
-            r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect)
+            suspect = (
+                bool(warning) or bool(dephased) or unresolved or unbalanced or coarse or box_on_kspace or unsteady
+            )
+            r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect, dephasing_suspect=bool(dephased))
             if r.steady is not None:
                 r.screen["steady"] = r.steady.as_dict()
-            if warning:
-                r.notes.append(warning)
+            for w in (warning, dephased):
+                if w:
+                    r.notes.append(w)
         obliquity.apply(r, acq)  # a plane off the vessel's axis: corrected (in-plane velocity) or flagged
     return results

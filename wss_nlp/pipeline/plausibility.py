@@ -22,6 +22,14 @@ wrong number.
   is small. Unwrapped data that still jump by more than ``venc`` between
   bright neighbours are refused (the venc is too low for the resolution).
 * **Several vessels.** Reported from :attr:`wss_nlp.models.preprocess.Lumen.others`.
+* **Intravoxel dephasing** (:func:`check_dephasing`, after the solve). A wall voxel's phase averages
+  ``exp(i pi u / venc)`` over the velocities inside it; the box model corrects the magnitude's loss to first
+  order and takes the phase as the voxel's mean velocity. Where the velocity varies by about venc or more within
+  a wall voxel (a venc below the peak velocity, unwrapped, and a steep boundary layer) neither holds, and the
+  WSS comes out 10-60 % off with a residual of about the noise level, which :func:`check_fit` cannot see. The
+  predicted magnitude factor ``D_i = |mean exp(i pi u / venc)|`` of the wall voxels tells: the slice is flagged
+  when the smallest is below :data:`MIN_DEPHASING_FACTOR_ALIASED` (phase unwrapped) or
+  :data:`MIN_DEPHASING_FACTOR` (not).
 * **Consistency of the fit** (:func:`check_fit`, after the solve). A smooth
   no-slip velocity fitted at a parameter chosen for the noise leaves a
   residual of about the noise level. A residual far above it
@@ -54,9 +62,23 @@ VENC_TOLERANCE = 0.02
 #: Bright neighbour pairs that may still differ by more than venc after unwrapping (noise) before we refuse.
 MAX_RESIDUAL_JUMPS = 2
 #: Velocity-fit residual / noise level above which a slice is flagged. Measured (scripts/aliasing.py, column
-#: res/eps): at most 1.55 on laminar, manufactured, circle and turbulent phantoms, unaliased or correctly unwrapped,
+#: res/eps): at most 1.37 on laminar, manufactured, circle and turbulent phantoms, unaliased or correctly unwrapped,
 #: h 0.6-1.5 mm; 4.8-9.3 where a hidden wrap survived. 3 leaves a factor of about 2 on both sides.
 MAX_RESIDUAL_TO_NOISE = 3.0
+#: Smallest predicted dephasing factor D = |mean exp(i pi u / venc)| of a wall voxel (box model) a slice may have
+#: before it is flagged (:func:`check_dephasing`). A linear velocity ramp of width du across a voxel gives
+#: D = sin(x) / x with x = pi du / (2 venc) (:func:`dephasing_spread`); 2 / pi is a ramp of venc, which an
+#: unaliased wall layer (|u| <= venc) exceeds only where it is steeper than linear. Unaliased, the accuracy
+#: phantoms (circle, laminar, turbulent, turbulent-ellipse, h 0.6-1.5 mm, SNR 10 and 25, seeds 500-502) keep
+#: D >= 0.83 (none of 72 flagged); the entrance flow, the steepest layer, reaches 0.70 at h 1.5 mm
+#: (scripts/results/aliasing_clean.md and aliasing_dephasing.md).
+MIN_DEPHASING_FACTOR = 2 / np.pi
+#: The bound for a slice whose phase was unwrapped (venc below the peak velocity): D = 0.75 is a ramp of 0.8 venc.
+#: Chosen on the soak's five silent wrong results (D 0.02-0.71, scripts/results/soak_failures.md) and on
+#: scripts/aliasing.py's seed 300 (scripts/results/aliasing_dephasing.md: every unwrapped slice more than 10 % off
+#: has D <= 0.68 or a residual flag; it also flags 5 of 14 aliased slices within 10 %, at D 0.47-0.72). Wraps the
+#: screen cannot see (entrance flow at venc 0.35 x peak, 63-65 % off) are neither unwrapped nor flagged.
+MIN_DEPHASING_FACTOR_ALIASED = 0.75
 #: Normalized magnitude above which a voxel joins the unwrapping region (its phase noise is below ~0.4 rad at SNR 10).
 UNWRAP_MAGNITUDE = 0.25
 #: A magnitude voxel this many times above both the image's 97th percentile and its neighbours' median is a
@@ -456,3 +478,34 @@ def check_fit(result, raw_magnitude: np.ndarray, venc: float | None) -> tuple[st
         f"{MAX_RESIDUAL_TO_NOISE:g}): the data contradict a smooth no-slip flow in this lumen; likely {cause}, "
         "or a wrong lumen; this slice's WSS is not trustworthy"
     ), ratio
+
+
+def dephasing_spread(factor: float) -> float:
+    """The velocity range ``du / venc`` across a voxel that a linear ramp needs to give dephasing ``factor``.
+
+    ``|mean_{t in [0, 1]} exp(i pi du t / venc)| = |sin(x) / x|`` with ``x = pi du / (2 venc)``, inverted on
+    its first lobe (``0 < x <= pi``: factors 1 to 0, spreads 0 to 2 venc); a reading of the factor in words.
+    """
+    x = np.linspace(1e-9, np.pi, 2001)
+    d = np.sin(x) / x  # decreasing from 1 to 0 on the first lobe
+    return float(2 / np.pi * np.interp(min(max(factor, 0.0), 1.0), d[::-1], x[::-1]))
+
+
+def check_dephasing(min_factor: float, venc: float | None, unwrapped: bool) -> str:
+    """A SUSPECT warning (or ``""``) when a wall voxel's predicted dephasing factor is below
+    :data:`MIN_DEPHASING_FACTOR` (module notes, "Intravoxel dephasing").
+
+    ``min_factor``: the smallest ``D_i`` of the slice's first dephasing check (``SliceResult.dephasing``; 1 when
+    none was predicted); ``unwrapped``: the screen unwrapped aliasing in the slice (named in the message).
+    """
+    bound = MIN_DEPHASING_FACTOR_ALIASED if unwrapped else MIN_DEPHASING_FACTOR
+    if venc is None or not (np.isfinite(min_factor) and min_factor < bound):
+        return ""
+    cause = "the venc is below the peak velocity (the phase was unwrapped)" if unwrapped else "a low venc"
+    return (
+        f"SUSPECT: intravoxel dephasing: a wall voxel keeps {min_factor:.0%} of its magnitude (the fitted velocity "
+        f"varies by about {dephasing_spread(min_factor):.2g} x venc inside it; flagged below {bound:.0%}"
+        f"{' after unwrapping' if unwrapped else ''}): the voxel-mean model's dephasing correction and its reading "
+        f"of the wall voxels' phase as their mean velocity do not hold there, and the WSS is biased; cause: {cause}; "
+        f"re-acquire with a higher venc (venc_m_s = {venc:g}) or smaller voxels; this slice's WSS is not trustworthy"
+    )

@@ -411,7 +411,8 @@ def _read_legacy_polydata(path: str) -> np.ndarray | None:
         head = fh.read(1024)
     if b"POLYDATA" not in head or b"ASCII" not in head:
         return None
-    tokens = open(path).read().split()
+    with open(path) as fh:  # closed here: an open file left to the collector is a ResourceWarning
+        tokens = fh.read().split()
     upper = [t.upper() for t in tokens]
     try:
         at = upper.index("POINTS")

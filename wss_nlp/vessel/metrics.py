@@ -44,7 +44,10 @@ class VesselAccuracy:
 
 def visible_area(truth, ds: float = 0.25, n_phi: int = 256) -> float:
     """Area (mm^2) of the true wall over the truth's visible s-intervals: ``sum |x_s x x_phi| ds dphi`` with the
-    tangents by central differences of :meth:`wss_nlp.synthetic.vessels.VesselTruth.wall_point` (midpoint rule)."""
+    tangents by central differences of :meth:`wss_nlp.synthetic.vessels.VesselTruth.wall_point` (midpoint rule;
+    a :class:`SampledTruth` takes its own tangents: :meth:`SampledTruth.visible_area`)."""
+    if isinstance(truth, SampledTruth):
+        return truth.visible_area(ds)
     total = 0.0
     phi = np.linspace(-np.pi, np.pi, n_phi, endpoint=False) + np.pi / n_phi
     dphi = 2 * np.pi / n_phi
@@ -110,3 +113,144 @@ def accuracy(result, truth) -> VesselAccuracy:
         out.osi_rms = float(np.sqrt(np.sum(a * (osi - osi_true) ** 2) / np.sum(a)))
         out.osi_max = float(np.max(np.abs(osi - osi_true)))
     return out
+
+
+# ------------------------------------------------------------------ a truth file instead of the phantom
+class _Surface:
+    """Fields sampled on the truth file's grid ``s_i`` (uniform) x ``phi_j`` (``n`` equal steps from ``phi_0``),
+    continued by a cubic spline in ``s`` and trigonometric interpolation in ``phi``:
+    ``f(s, phi) = Re sum_k c_k(s) exp(i k (phi - phi_0))``, ``c_k(s)`` the splined DFT coefficients of the samples
+    at each ``s_i`` (exact for fields of fewer than ``n / 2`` harmonics in ``phi``)."""
+
+    def __init__(self, s: np.ndarray, phi: np.ndarray, values: np.ndarray):
+        from scipy.interpolate import CubicSpline
+
+        n = phi.size
+        self.phi0 = float(phi[0])
+        self.k = np.fft.fftfreq(n, 1.0 / n)
+        c = np.fft.fft(np.asarray(values, float), axis=1) / n  # (ns, n, ...)
+        self.re = CubicSpline(s, c.real, axis=0)
+        self.im = CubicSpline(s, c.imag, axis=0)
+
+    def __call__(self, s, phi, ds: int = 0, dphi: int = 0) -> np.ndarray:
+        s, phi = np.broadcast_arrays(np.asarray(s, float), np.asarray(phi, float))
+        c = self.re(s.ravel(), ds) + 1j * self.im(s.ravel(), ds)  # (m, n, ...)
+        e = np.exp(1j * np.outer(phi.ravel() - self.phi0, self.k)) * (1j * self.k) ** dphi  # (m, n)
+        out = np.einsum("mn,mn...->m...", e, c).real
+        return out.reshape(*s.shape, *c.shape[2:])
+
+
+class SampledTruth:
+    """A vessel phantom's truth read from its truth file (``wss-nlp phantom --volume-case ... --truth FILE``; the
+    layout of :func:`wss_nlp.synthetic.vessels.write_truth`), standing in for the phantom in :func:`accuracy`.
+
+    The wall, the WSS vectors of every frame, TAWSS and OSI are continued between the samples by
+    :class:`_Surface`; :meth:`locate` finds each point's closest wall point by Gauss-Newton on that surface.
+    ``vessel`` is this object too, so ``truth.vessel.wss(s, phi, t_ms)`` reads as for a phantom; ``t_ms`` must be
+    one of the file's frame times.
+    """
+
+    def __init__(self, path):
+        import h5py
+
+        from ..errors import InputError
+
+        with h5py.File(path, "r") as f:
+            if f.attrs.get("layout") != "vessel-truth":
+                raise InputError(
+                    f"{path}: not a vessel truth file (layout {f.attrs.get('layout')!r}); write one with "
+                    "'wss-nlp phantom --volume-case CASE --truth FILE'"
+                )
+            s, phi = f["s_mm"][()], f["phi_rad"][()]
+            self.times_ms = np.atleast_1d(f["time_ms"][()]).astype(float)
+            self.visible = [tuple(v) for v in f["visible_mm"][()].reshape(-1, 2)]
+            self.case = str(f.attrs["case"])
+            self.period_ms = float(f.attrs["cardiac_period_ms"])
+            self._wall = _Surface(s, phi, f["wall/point_mm"][()])
+            wss = f["wss/vector_pa"][()].reshape(self.times_ms.size, s.size, phi.size, 3)
+            axial = f["wss/axial_pa"][()].reshape(self.times_ms.size, s.size, phi.size)
+            self._wss = _Surface(s, phi, np.moveaxis(wss, 0, 2))  # (ns, nphi, nt, 3)
+            self._axial = _Surface(s, phi, np.moveaxis(axial, 0, 2))
+            self._cycle = _Surface(s, phi, np.stack([f["wss/tawss_pa"][()], f["wss/osi"][()]], axis=-1))
+            centre = f["centreline/point_mm"][()]
+        self._s, self._phi = s, phi
+        self._centre = centre
+        self.vessel = self
+
+    def _frame(self, t_ms) -> int:
+        k = int(np.argmin(np.abs(self.times_ms - float(t_ms))))
+        if abs(self.times_ms[k] - float(t_ms)) > 1e-6 * max(self.period_ms, 1.0):
+            raise ValueError(f"the truth has no frame at {float(t_ms):g} ms (its frames: {self.times_ms.tolist()})")
+        return k
+
+    def wall_point(self, s, phi) -> np.ndarray:
+        return self._wall(s, phi)
+
+    def wss(self, s, phi, t_ms=0.0) -> np.ndarray:
+        return self._wss(s, phi)[..., self._frame(t_ms), :]
+
+    def axial_wss(self, s, phi, t_ms=0.0) -> np.ndarray:
+        return self._axial(s, phi)[..., self._frame(t_ms)]
+
+    def wss_cycle(self, s, phi):
+        both = self._cycle(s, phi)
+        return both[..., 0], both[..., 1], None
+
+    def locate(self, points, return_distance: bool = False, iterations: int = 30):
+        """``(s, phi)`` of the closest sampled-wall point of each world point (and its signed distance, mm,
+        positive outside: the side of the wall the centreline is not on)."""
+        p = np.asarray(points, float).reshape(-1, 3)
+        grid = self._wall(self._s[:, None], self._phi[None, :])  # the samples themselves
+        from scipy.spatial import cKDTree
+
+        _, nearest = cKDTree(grid.reshape(-1, 3)).query(p)
+        s = self._s[nearest // self._phi.size].astype(float)
+        phi = self._phi[nearest % self._phi.size].astype(float)
+        lo, hi = float(self._s[0]), float(self._s[-1])
+        beyond = np.zeros(s.size, bool)
+        for _ in range(iterations):
+            res = self._wall(s, phi) - p
+            xs, xp = self._wall(s, phi, ds=1), self._wall(s, phi, dphi=1)
+            a11, a12, a22 = np.sum(xs * xs, 1), np.sum(xs * xp, 1), np.sum(xp * xp, 1)
+            b1, b2 = -np.sum(xs * res, 1), -np.sum(xp * res, 1)
+            det = a11 * a22 - a12**2
+            d_s, d_phi = (a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det
+            beyond = (s + d_s < lo) | (s + d_s > hi)
+            s, phi = np.clip(s + d_s, lo, hi), phi + d_phi
+            if max(np.max(np.abs(np.where(beyond, 0.0, d_s))), 20.0 * np.max(np.abs(d_phi))) < 1e-8:
+                break  # 1e-8 mm: the interpolant's own rounding; quadratic convergence gets there in a few steps
+        # a point whose closest wall point lies past the sampled arclengths is not located: NaN (never visible)
+        s = np.where(beyond, np.nan, s)
+        phi = np.angle(np.exp(1j * phi))
+        at = np.clip(np.nan_to_num(s, nan=lo), lo, hi)
+        wall = self._wall(at, phi)
+        normal = np.cross(self._wall(at, phi, ds=1), self._wall(at, phi, dphi=1))
+        axis = wall - self._centre_at(at)
+        # the surface normal x_s x x_phi points outwards or inwards depending on the parametrization: orient it
+        # by the centreline, which is inside the lumen
+        normal *= np.sign(np.sum(normal * axis, axis=1))[:, None]
+        dist = np.linalg.norm(p - wall, axis=1) * np.sign(np.sum((p - wall) * normal, axis=1))
+        dist[beyond] = np.nan
+        return (s, phi, dist) if return_distance else (s, phi)
+
+    def visible_area(self, ds: float = 0.25) -> float:
+        """Area (mm^2) of the wall over the visible s-intervals: midpoint rule in ``s``, the file's angles in
+        ``phi`` (the trapezoid rule of a periodic function: exact for the interpolant's harmonics), tangents
+        from the interpolant's derivatives."""
+        total = 0.0
+        dphi = 2 * np.pi / self._phi.size
+        for a, b in self.visible:
+            n = max(2, int(np.ceil((b - a) / ds)))
+            step = (b - a) / n
+            ss, pp = np.meshgrid(a + step * (np.arange(n) + 0.5), self._phi, indexing="ij")
+            x_s, x_p = self._wall(ss, pp, ds=1), self._wall(ss, pp, dphi=1)
+            total += float(np.sum(np.linalg.norm(np.cross(x_s, x_p), axis=-1))) * step * dphi
+        return total
+
+    def _centre_at(self, s) -> np.ndarray:
+        return np.stack([np.interp(s, self._s, self._centre[:, j]) for j in range(3)], axis=1)
+
+
+def read_truth(path) -> SampledTruth:
+    """The truth file of a vessel phantom (:class:`SampledTruth`)."""
+    return SampledTruth(path)

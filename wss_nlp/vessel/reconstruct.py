@@ -83,6 +83,9 @@ class VesselOptions:
         Overrides the file's viscosity.
     blas_threads : int
         BLAS threads during the fits (1: small products are fastest single-threaded; 0 leaves the BLAS as it is).
+    offset_correction : bool
+        Remove each velocity component's background offset, fitted on static tissue
+        (:func:`wss_nlp.vessel.background.correct_volume`; nothing to do in a volume without static tissue).
     """
 
     geometry: g3.Geometry3DOptions = field(default_factory=g3.Geometry3DOptions)
@@ -94,6 +97,7 @@ class VesselOptions:
     vessel_point: tuple[float, float, float] | None = None
     viscosity_pa_s: float | None = None
     blas_threads: int = 1
+    offset_correction: bool = True
 
     def __post_init__(self):
         if self.n_phi < 8:
@@ -377,13 +381,16 @@ def reconstruct_vessel(
 
 @dataclass
 class VesselInputs:
-    """The lumen mask, the centreline and its record (visible part, branches) a reconstruction starts from."""
+    """The lumen mask, the centreline and its record (visible part, branches) a reconstruction starts from, and
+    the volume its fits take (the background offset removed: ``offset``)."""
 
     mask: np.ndarray
     centerline: Any
     record: dict | None
     notes: list
     seconds: dict
+    volume: VolumeAcquisition
+    offset: dict = field(default_factory=dict)
 
 
 def vessel_inputs(vol: VolumeAcquisition, options: VesselOptions | None = None, mask=None,
@@ -415,7 +422,17 @@ def vessel_inputs(vol: VolumeAcquisition, options: VesselOptions | None = None, 
     else:
         notes.append(f"centreline: given ({getattr(centerline, 'source', '')})")
     seconds["centerline"] = time.perf_counter() - t0
-    return VesselInputs(mask, centerline, record, notes, seconds)
+    t0 = time.perf_counter()
+    offset: dict = {"applied": False, "reason": "switched off (--no-offset-correction)"}
+    if options.offset_correction:
+        from .background import correct_volume
+
+        vol, rec = correct_volume(vol, mask)
+        offset = rec.as_dict()
+        if rec.note():
+            notes.append(str(rec.note()))
+    seconds["offset"] = time.perf_counter() - t0
+    return VesselInputs(mask, centerline, record, notes, seconds, vol, offset)
 
 
 def _reconstruct(vol, options: VesselOptions, mask, centerline, record) -> VesselResult:
@@ -426,7 +443,7 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record) -> Vesse
     h = float(np.max(vol.voxel_size_mm))
     bar = progress_bar(5 + vol.nt, "vessel")
     inputs = vessel_inputs(vol, options, mask, centerline, record)
-    mask, centerline, record = inputs.mask, inputs.centerline, inputs.record
+    mask, centerline, record, vol = inputs.mask, inputs.centerline, inputs.record, inputs.volume
     seconds, notes = dict(inputs.seconds), list(inputs.notes)
     bar.update()
     # voxels near the vessel with their centres' centreline coordinates
@@ -509,6 +526,7 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record) -> Vesse
         "zernike_degree": vp.basis.disk.degree, "zernike_angular_order": vp.basis.disk.max_order,
         "fitted_range_mm": list(s_range), "levels": levels.as_dict(),
         "geometry_options": geometry.options, "velocity_options": dict(vars(options.velocity)),
+        "offset": inputs.offset,
     }  # fmt: skip
     log.info("vessel: %d x %d wall points, %d frames, %.0f %% covered, %.1f s", ns, nph, vol.nt,
              100 * float(np.mean(flags == 0)), seconds["total"])  # fmt: skip

@@ -8,6 +8,8 @@ import sys
 
 from ...io import outputs
 
+log = logging.getLogger(__name__)  # warnings: the command line shows them once per kind (main)
+
 
 def cmd_batch(args) -> int:
     """Run a batch; exit 0 when every exam succeeded, 1 when any failed (2: bad manifest or options)."""
@@ -47,10 +49,7 @@ def cmd_batch(args) -> int:
         if path:
             print(f"wrote {path}")
     if s.failed:
-        print(
-            f"wss-nlp: {s.failed} exam(s) failed; see the 'error' column of {s.csv_path}",
-            file=sys.stderr,
-        )
+        log.warning(f"{s.failed} exam(s) failed; see the 'error' column of {s.csv_path}")
         return 1
     return 0
 

@@ -96,7 +96,7 @@ def _demo(args, options, out: str) -> None:
     results = reconstruct(wio.read_acquisition(in_path), options, progress=_progress(sys.stdout, args.quiet))
     seconds = time.perf_counter() - t0
     wio.write_result(res_path, results, options.as_dict(), argv=["wss-nlp", *args.argv])
-    _warn(results, sys.stderr)
+    _warn(results)
     res = results[0]
     err = metrics.compare_slice(res, truth)
     if isinstance(res, SliceResult):

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
+import logging
 import argparse
 import os
-import sys
 
 import numpy as np
 
 from ...io import files as wio
 from ...io import outputs, ranges
 from ...errors import InputError
+
+log = logging.getLogger(__name__)  # warnings: the command line shows them once per kind (main)
 
 
 def cmd_export(args) -> int:
@@ -138,7 +140,7 @@ def import_settings(args) -> dict:
         ("slice_spacing", args.plane_spacing, "--plane-spacing"),
     ):
         if value is not None and (note := ranges.check(name, value, flag, allow)):
-            print(f"wss-nlp: warning: {note}", file=sys.stderr)
+            log.warning(note)
     if args.plane is not None and not 1 <= args.plane_slices <= 500:
         raise InputError(f"--plane-slices {args.plane_slices}: must be a whole number in 1-500")
     options = scanner.ImportOptions(

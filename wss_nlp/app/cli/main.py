@@ -54,10 +54,17 @@ def _main(argv: list[str]) -> int:
     except SystemExit as exc:  # argparse: --help (0) or usage error (2)
         return int(exc.code or 0)
     args.argv = argv
-    _show_library_log(logging.WARNING if args.quiet else logging.DEBUG if args.verbose else logging.INFO)
+    handler = _show_library_log(logging.WARNING if args.quiet else logging.DEBUG if args.verbose else logging.INFO)
+    repeats = _RepeatedWarnings()
+    handler.addFilter(repeats)
     try:
         with _terminate_as_exception():
-            return int(args.func(args) or 0)
+            try:
+                return int(args.func(args) or 0)
+            finally:  # the counts before an error line, which stays the last line
+                handler.removeFilter(repeats)
+                for line in repeats.summary():
+                    print(f"wss-nlp: warning: {line}", file=sys.stderr)
     except BrokenPipeError:
         raise  # main's: not a file system error
     except WssNlpError as exc:
@@ -102,6 +109,43 @@ class _StderrHandler(logging.StreamHandler):
         pass
 
 
+class _LogFormatter(logging.Formatter):
+    """Warnings and errors as ``wss-nlp: warning: ...`` (as the command line's own), the rest indented under the
+    progress lines."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = record.getMessage()
+        if record.levelno >= logging.WARNING:
+            return f"wss-nlp: {record.levelname.lower()}: {text}"
+        return f"  {text}"
+
+
+class _RepeatedWarnings(logging.Filter):
+    """Each kind of warning said once (kinds: :func:`wss_nlp.pipeline.cine.warning_kind`, numbers aside); the
+    repeats are counted and said in one line each at the end of the command (:meth:`summary`)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.kinds: dict[str, list] = {}  # kind -> [the first message, repeats]
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno < logging.WARNING:
+            return True
+        from ...pipeline.cine import warning_kind
+
+        message = record.getMessage()
+        kind = warning_kind(message)
+        if kind not in self.kinds:
+            self.kinds[kind] = [message, 0]
+            return True
+        self.kinds[kind][1] += 1
+        return False
+
+    def summary(self) -> list[str]:
+        """One line per kind that repeated: how often, after the first message's text."""
+        return [f"{n} more like '{message}'" for message, n in self.kinds.values() if n]
+
+
 def _silence_stdout() -> None:
     """Point stdout at the null device, so that the interpreter's final flush does not fail on the closed pipe."""
     try:
@@ -111,17 +155,20 @@ def _silence_stdout() -> None:
         pass
 
 
-def _show_library_log(level: int = logging.INFO) -> None:
-    """The library's messages (INFO: stages of long solves) on stderr, indented under the progress lines.
+def _show_library_log(level: int = logging.INFO) -> logging.Handler:
+    """The library's messages on stderr: INFO (stages of long solves) indented under the progress lines, warnings
+    as ``wss-nlp: warning: ...``. Returns the handler.
 
     ``--quiet`` raises the level to WARNING, ``--verbose`` lowers it to DEBUG.
     """
     logger = logging.getLogger("wss_nlp")
-    if not any(isinstance(h, _StderrHandler) for h in logger.handlers):  # main() may run many times in a process
+    handler = next((h for h in logger.handlers if isinstance(h, _StderrHandler)), None)
+    if handler is None:  # main() may run many times in a process
         handler = _StderrHandler()
-        handler.setFormatter(logging.Formatter("  %(message)s"))
+        handler.setFormatter(_LogFormatter())
         logger.addHandler(handler)
     logger.setLevel(level)
+    return handler
 
 
 def _one_line(exc: BaseException | str) -> str:

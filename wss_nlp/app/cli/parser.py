@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import argparse
 from ... import __version__
-from ...synthetic import invivo, phantoms
+from ...synthetic import invivo, phantoms, vessels
 from ...core import schema
 from ...models.kspace import AcquisitionOptions
 from ..plotting import DEFAULT_DPI, FIGURE_FORMATS
@@ -232,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="MM",
         help="cine: pipe radius in mm (default 10: first harmonic's Womersley number about 14)",
     )
-    ph.add_argument("--h", type=float, default=1.0, help="voxel size in mm (default %(default)g)")
+    ph.add_argument("--h", type=float, default=None, help="voxel size in mm (default 1; 2 for --volume-case)")
     ph.add_argument("--snr", type=float, default=25.0, help="signal-to-noise ratio, <= 0 for none")
     ph.add_argument("--seed", type=int, default=0)
     ph.add_argument("--venc", type=float, default=None, help="velocity encoding in m/s (default 1.25 x peak)")
@@ -254,6 +254,18 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="a 4D-flow volume instead (a tilted tube, three velocity components, two frames) as NIfTI files into "
         "--nifti FOLDER, for 'wss-nlp import FOLDER --plane ...' (the plane through the tube is printed)",
+    )
+    ph.add_argument(
+        "--volume-case",
+        default=None,
+        choices=list(vessels.CASES),
+        metavar="CASE",
+        help="a whole-vessel 4D-flow phantom (" + ", ".join(vessels.CASES) + ") as a volume input file (-o) and/or "
+        "NIfTI files (--nifti), for 'wss-nlp reconstruct' on the volume; --truth writes its exact wall and WSS "
+        "vectors for 'wss-nlp compare'; pulsatile takes --frames",
+    )
+    ph.add_argument(
+        "--tissue", action="store_true", help="--volume-case: static tissue and a wall ring around the lumen"
     )
     ph.add_argument("--truth", default=None, help="also write the exact geometry and WSS here")
     ph.add_argument(

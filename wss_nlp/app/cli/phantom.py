@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import dataclasses
 import os
-import sys
 import numpy as np
 from ...io import files as wio
 from ...analysis import metrics
@@ -14,6 +14,8 @@ from ...synthetic import invivo, phantoms
 from ...core import schema
 from ...errors import InputError
 from ...models.kspace import AcquisitionOptions
+
+log = logging.getLogger(__name__)  # warnings: the command line shows them once per kind (main)
 
 
 def _write_truth(path, truth) -> None:
@@ -199,13 +201,79 @@ def _check_phantom_options(args) -> None:
     limits.check_phantom(half_fov, args.h, images, "--h")
     for note in notes:
         if note:
-            print(f"wss-nlp: warning: {note}", file=sys.stderr)
+            log.warning(note)
+
+
+def _phantom_vessel(args) -> int:
+    """A whole-vessel 4D-flow phantom (:func:`wss_nlp.synthetic.vessels.make_vessel_phantom`): the volume as an
+    input file and/or NIfTI files, and its truth file."""
+    from ...io.volume import write_volume
+    from ...synthetic import vessels
+
+    wrong = [f for f, given in (("--dicom", args.dicom), ("--stack", args.stack), ("--volume", args.volume),
+                                ("--case", args.case != "laminar"), ("--venc", args.venc is not None),
+                                ("--velocity", args.velocity)) if given]  # fmt: skip
+    if wrong:
+        raise InputError(f"{', '.join(wrong)}: not with --volume-case (a vessel phantom sets its own venc; write it "
+                         "with -o FILE.h5 and/or --nifti FOLDER)")  # fmt: skip
+    if not (args.output or args.nifti):
+        raise InputError("--volume-case: name where the volume goes (-o FILE.h5 and/or --nifti FOLDER)")
+    allow = ranges.parse_allow(args.allow_unphysical) if args.allow_unphysical else ()
+    notes = [ranges.check("voxel_size", args.h, "--h", allow)]
+    if args.snr > 0:
+        notes.append(ranges.check("snr", args.snr, "--snr", allow))
+    frames = args.frames if args.volume_case == "pulsatile" else 1
+    if not 1 <= frames <= 100:
+        raise InputError(f"--frames {frames}: a vessel phantom takes 1-100 frames")
+    for note in notes:
+        if note:
+            log.warning(note)
+    snr = None if args.snr <= 0 else args.snr
+    vol, truth = vessels.make_vessel_phantom(
+        args.volume_case, h_mm=args.h, snr=snr, seed=args.seed, tissue=args.tissue, frames=frames
+    )
+    with outputs.StagedFolder(args.nifti) as nii:
+        written = vessels.write_volume_nifti(str(nii.path), vol) if args.nifti else []
+        try:
+            if args.output:
+                write_volume(args.output, vol)
+            if args.truth:
+                # the wall a reconstruction maps may reach past the visible part: sample the truth 20 mm beyond it
+                lo, hi = min(v[0] for v in truth.visible), max(v[1] for v in truth.visible)
+                lo, hi = lo - 20.0, hi + 20.0
+                if truth.vessel.capped:  # the lumen ends with the centreline
+                    lo, hi = max(lo, 0.0), min(hi, truth.vessel.centreline.length)
+                s_mm = np.arange(lo, hi + 0.25, 0.5)
+                truth.write_truth(args.truth, s_mm=s_mm)
+        except BaseException:
+            for path in (args.output, args.truth):
+                if path and os.path.exists(path):
+                    os.remove(path)  # written whole or not at all
+            raise
+        nii.commit()
+    n = vol.shape
+    print(f"wrote {args.output or args.nifti}: {args.volume_case} vessel ({vessels.CASES[args.volume_case][1]}), "
+          f"{n[0]} x {n[1]} x {n[2]} voxels of {args.h:g} mm, {vol.nt} frame(s), SNR {args.snr:g}, seed {args.seed}"
+          + (", tissue around the lumen" if args.tissue else ""))  # fmt: skip
+    if written:
+        print(f"wrote {args.nifti}: {', '.join(os.path.basename(f) for f in written if f.endswith('.gz'))} (read back: "
+              f"wss-nlp import {' '.join(os.path.basename(f) for f in written if f.endswith('.gz'))} -o exam.h5 "
+              f"--phase-units m/s --viscosity {truth.viscosity_pa_s:g})")  # fmt: skip
+    if args.truth:
+        print(f"wrote {args.truth}: the exact wall and WSS vectors (for wss-nlp compare RESULT {args.truth})")
+    return 0
 
 
 def cmd_phantom(args) -> int:
     outputs.check_outputs(
         files={"-o": args.output, "--truth": args.truth}, folders={"--dicom": args.dicom, "--nifti": args.nifti}
     )
+    if args.h is None:
+        args.h = 2.0 if args.volume_case else 1.0
+    if args.volume_case:
+        return _phantom_vessel(args)
+    if args.tissue:
+        raise InputError("--tissue: only for --volume-case (the in-vivo slices are --case invivo)")
     if args.volume:
         return _phantom_volume(args)
     if args.output is None:
@@ -255,10 +323,9 @@ def cmd_phantom(args) -> int:
         )
     peak = max(phantoms.peak_velocity(t.flow) for t in getattr(truth, "slices", [truth]))
     if acq.venc_m_s is not None and acq.venc_m_s < peak:
-        print(
-            f"wss-nlp: warning: venc {acq.venc_m_s:g} m/s is below the peak velocity {peak:.3g} m/s: the phase "
-            "wraps (aliasing); 'reconstruct' unwraps it (or refuses it when it cannot)",
-            file=sys.stderr,
+        log.warning(
+            f"venc {acq.venc_m_s:g} m/s is below the peak velocity {peak:.3g} m/s: the phase wraps (aliasing); "
+            "'reconstruct' unwraps it (or refuses it when it cannot)"
         )
     with outputs.StagedFolder(args.dicom) as dcm, outputs.StagedFolder(args.nifti) as nii:
         written_dicom, written_nifti = _scanner_exports(args, [acq], dcm.path, nii.path, peak)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import contextlib
 import os
 import sys
@@ -14,44 +15,76 @@ from ...pipeline import methods
 from ...pipeline.driver import reconstruct, segments_in_parallel, stack_applies
 from .arguments import options_from_args
 
+log = logging.getLogger(__name__)  # warnings: the command line shows them once per kind (main)
 
-def _progress(stream, quiet: bool = False):
+
+#: In a log (not a terminal), a joint solve's progress is written at most this often, besides each new stage (s).
+STAGE_INTERVAL_S = 10.0
+
+
+def _progress(stream, quiet: bool = False, total: int | None = None):
     """Per-slice progress on ``stream``: a tqdm bar on a terminal, a line per slice otherwise (logs, CI, tests);
-    nothing with ``--quiet``."""
+    nothing with ``--quiet``. ``total``: the slices to come (the bar's length before the first slice is done).
+
+    The callback's ``stage(text)`` shows how far a z-tied segment's joint solve got (its stages, IPOPT iterations
+    and sweeps: :func:`wss_nlp.pipeline.driver.reconstruct`) before its slices are done together: in the bar's
+    text on a terminal; in a log a line for each new stage and otherwise at most every :data:`STAGE_INTERVAL_S`.
+    """
     t0 = time.perf_counter()
     bar = None
+    tty = hasattr(stream, "isatty") and stream.isatty()
+    said_stage, said_at = "", -np.inf  # the last stage line written to a log, and when
+
+    def open_bar(total: int | None):
+        nonlocal bar
+        if bar is None:
+            from tqdm import tqdm
+
+            bar = tqdm(total=total, file=stream, unit="slice", dynamic_ncols=True)
+        return bar
 
     def report(done, total, res):
-        nonlocal bar
         if quiet:
             return
         failed = isinstance(res, wio.FailedSlice)
         flag = "" if failed or res.converged else "  [NOT CONVERGED]"
         text = f"FAILED ({res.reason})" if failed else f"mean WSS {res.wss.mean:.4g} Pa"
-        if hasattr(stream, "isatty") and stream.isatty():
-            if bar is None:
-                from tqdm import tqdm
-
-                bar = tqdm(total=total, file=stream, unit="slice", dynamic_ncols=True)
-            bar.set_postfix_str(f"slice {done}: {text}{flag}", refresh=False)
-            bar.update(done - bar.n)
+        if tty:
+            b = open_bar(total)
+            b.set_postfix_str(f"slice {done}: {text}{flag}", refresh=False)
+            b.update(done - b.n)
             if done >= total:
-                bar.close()
+                b.close()
             return
         elapsed = "" if failed else f", {time.perf_counter() - t0:.1f} s elapsed"
         stream.write(f"  slice {done}/{total}: {text}{elapsed}{flag}\n")
         stream.flush()
 
+    def stage(text: str) -> None:
+        nonlocal said_stage, said_at
+        if quiet:
+            return
+        if tty:
+            open_bar(total).set_postfix_str(text)
+            return
+        now = time.perf_counter()
+        kind = text.split(": ")[1] if text.count(": ") >= 1 else text  # "slices 0-9: geometry: IPOPT ..." -> geometry
+        if kind != said_stage or now - said_at >= STAGE_INTERVAL_S:
+            stream.write(f"  {text}, {now - t0:.1f} s elapsed\n")
+            stream.flush()
+            said_stage, said_at = kind, now
+
+    report.stage = stage  # type: ignore[attr-defined]  # the driver's optional stage reports
     return report
 
 
-def _warn(results, stream) -> None:
-    """Every slice's warnings, each kind said once with the slices it applies to."""
+def _warn(results) -> None:
+    """Every slice's warnings to the log, each kind said once with the slices it applies to."""
     from ...pipeline.cine import group_warnings
 
     items = [(r.index, _strip_slice(msg, r.index)) for r in results for msg in r.warnings]
     for line in group_warnings(items, len(results), what="slice"):
-        stream.write(f"wss-nlp: warning: {line}\n")
+        log.warning(line)
 
 
 def _strip_slice(message: str, index: int) -> str:
@@ -144,9 +177,9 @@ def _reconstruct_cine(args, options) -> int:
             save_cine_figures(series, result, staged.path, fmt=args.figure_format, dpi=args.dpi)
         staged.commit()
     for line in cine.cycle_warnings(result, series):  # each kind once, with the slices and frames it applies to
-        sys.stderr.write(f"wss-nlp: warning: {line}\n")
+        log.warning(line)
     for note in timing_notes:
-        sys.stderr.write(f"wss-nlp: warning: {note}\n")
+        log.warning(note)
     for s in series:
         print(_cycle_summary(s, times))
     print(f"wrote {args.output}")
@@ -180,7 +213,7 @@ def cmd_reconstruct(args) -> int:
         )
     parallel = acq.nz > 1 and not stack_applies(acq, options) and methods.of(options).ties_slices
     with _segments_in_parallel(args, parallel):
-        results = reconstruct(acq, options, progress=_progress(sys.stderr, args.quiet))
+        results = reconstruct(acq, options, progress=_progress(sys.stderr, args.quiet, acq.nz))
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
             _slice_figures(results, acq, staged.path, args.figure_format, args.dpi)
@@ -189,7 +222,7 @@ def cmd_reconstruct(args) -> int:
             extra["slice_spacing_mm"] = float(acq.slice_spacing_mm)
         wio.write_result(args.output, results, options.as_dict(), argv=["wss-nlp", *args.argv], extra_attrs=extra)
         staged.commit()
-    _warn(results, sys.stderr)
+    _warn(results)
     for r in results:
         if isinstance(r, wio.FailedSlice):
             print(f"slice {r.index}: FAILED: {r.reason}")

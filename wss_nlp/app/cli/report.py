@@ -13,13 +13,21 @@ from ...io import outputs
 from ...errors import InputError
 from ...models.measurement import DEPHASING_THRESHOLD
 from ...pipeline.driver import KSPACE_PASS_TOL
+from ..table import LEFT, RIGHT, text_table
 
 
 def _error_table(rows) -> str:
-    head = f"{'quantity':<34}{'value':>14}"
-    lines = [head, "-" * len(head)]
-    lines += [f"{k:<34}{v:>14}" for k, v in rows]
-    return "\n".join(lines)
+    """``(quantity, formatted value)`` rows as the two-column table ``compare`` and ``demo`` print."""
+    return text_table(rows, headers=("quantity", "value"))
+
+
+def _chosen_table(values, chosen: str, headers: tuple[str, str], fmt: str, indent: str = "    ") -> str:
+    """Candidate models and their criterion values, smallest first, the chosen one marked (``analyze``)."""
+    rows = [
+        (model, format(value, fmt), "<- chosen" if model == chosen else "")
+        for model, value in sorted(values, key=lambda kv: kv[1])
+    ]
+    return text_table(rows, headers=(*headers, ""), align=(RIGHT, RIGHT, LEFT), indent=indent)
 
 
 def _errors_rows(err: metrics.Errors):
@@ -34,9 +42,10 @@ def _errors_rows(err: metrics.Errors):
 
 
 def cmd_compare(args) -> int:
-    from .vessel import refuse_on_volume
+    from .vessel import compare_volume, is_vessel_result
 
-    refuse_on_volume("compare", args.result)
+    if is_vessel_result(args.result):
+        return compare_volume(args)
 
     layout, truth_layout = wio.result_layout(args.result), wio.result_layout(args.truth)
     if ("cine" in layout) != ("cine" in truth_layout):
@@ -120,8 +129,7 @@ def cmd_analyze(args) -> int:
     for name, rec in _one_slice(wio.read_near_wall(args.result), args).items():
         print(f"{name}: near-wall model '{rec['model']}'" + _layer_text(rec))
         print(f"    {rec['criterion']}")
-        for model, value in sorted(rec["values"].items(), key=lambda kv: kv[1]):
-            print(f"    {model:>12}: {value:12.2f}" + ("  <- chosen" if model == rec["model"] else ""))
+        print(_chosen_table(rec["values"].items(), rec["model"], ("model", "criterion"), ".2f"))
         if rec["ambiguous"]:
             print(f"    AMBIGUOUS: margin {rec['margin']:.2f}; another model fits almost as well")
     for name, rec in _one_slice(wio.read_dephasing(args.result), args).items():
@@ -161,12 +169,15 @@ def _analyze_choices(choices: dict) -> None:
                     f"to a smaller {ch.name} in noise standard deviations, admissible <= kappa = {ch.tau:g}"
                 )
             if ch.parameters.size:
-                head = f"    {'parameter':>12} {'residual':>12}" + (f" {'criterion':>12}" if ch.criterion.size else "")
-                print(head)
-                for i, p in enumerate(ch.parameters):
-                    mark = "  <- chosen" if p == ch.chosen else ""
-                    crit = f" {ch.criterion[i]:12.4g}" if ch.criterion.size else ""
-                    print(f"    {p:12.4g} {ch.residuals[i]:12.4g}{crit}{mark}")
+                crit = bool(ch.criterion.size)
+                rows = [
+                    (f"{p:.4g}", f"{ch.residuals[i]:.4g}")
+                    + ((f"{ch.criterion[i]:.4g}",) if crit else ())
+                    + ("<- chosen" if p == ch.chosen else "",)
+                    for i, p in enumerate(ch.parameters)
+                ]
+                heads = ("parameter", "residual") + (("criterion",) if crit else ()) + ("",)
+                print(text_table(rows, headers=heads, align=(RIGHT,) * (len(heads) - 1) + (LEFT,), indent="    "))
 
 
 def _analyze_cycle(path: str, choices: dict) -> None:
@@ -177,8 +188,8 @@ def _analyze_cycle(path: str, choices: dict) -> None:
         if rec.get("criterion"):
             print(f"    {rec['criterion']}")
         chosen = {"momentum": f"momentum K={rec.get('harmonics')}"}.get(rec.get("model", ""), rec.get("model"))
-        for model, value in sorted(rec.get("bic", {}).items(), key=lambda kv: kv[1]):
-            print(f"    {model:>34}: {value:14.1f}" + ("  <- chosen" if model == chosen else ""))
+        if rec.get("bic"):
+            print(_chosen_table(rec["bic"].items(), chosen, ("velocity model", "BIC"), ".1f"))
         if rec.get("margin") is not None:
             print(f"    margin {rec['margin']:.1f} beyond the {rec.get('evidence_required', 10):g} BIC units required")
         walls = rec.get("walls", {})
@@ -191,13 +202,15 @@ def _analyze_cycle(path: str, choices: dict) -> None:
             print(f"    TAWSS and OSI: {rec['tawss_note']}")
         if rec["failed_frames"]:
             print(f"    failed frames: {rec['failed_frames']}")
-        print(f"    {'frame':>6} {'t [ms]':>9} {'alpha':>10} {'beta':>10}  rules")
+        rows = []
         for k, t in enumerate(rec["time_ms"]):
             per = choices.get(f"{name}/frame_{k:03d}", {})
             rules = ", ".join(f"{c.name} {c.rule}" + ("" if c.satisfied else " (not reached)") for c in per.values())
             alpha = rec["alpha"][k] if k < rec["alpha"].size else np.nan
             beta = rec["beta"][k] if k < rec["beta"].size else np.nan
-            print(f"    {k:>6} {t:>9.4g} {alpha:>10.4g} {beta:>10.4g}  {rules}")
+            rows.append((f"{k}", f"{t:.4g}", f"{alpha:.4g}", f"{beta:.4g}", rules))
+        heads = ("frame", "t [ms]", "alpha", "beta", "rules")
+        print(text_table(rows, headers=heads, align=(RIGHT,) * 4 + (LEFT,), indent="    "))
 
 
 def _cycle_model_text(rec: dict) -> str:
@@ -320,9 +333,8 @@ def cmd_sensitivity(args) -> int:
         raise InputError(f"{args.result}: no sensitivity records (a baseline method, or written by an older version)")
     for name, rec in recs.items():
         print(f"{name}: mean WSS {rec['mean_pa']:.4g} Pa +- {rec['mean_std_pa']:.2g} Pa (1 std, linearized)")
-        print(f"  {'what changes':<26} {'mean WSS change [Pa]':>22} {'relative':>10}")
-        for cause, delta in sensitivity_table(rec):
-            print(f"  {cause:<26} {delta:>+22.3e} {delta / rec['mean_pa']:>+10.2%}")
+        rows = [(cause, f"{delta:+.3e}", f"{delta / rec['mean_pa']:+.2%}") for cause, delta in sensitivity_table(rec)]
+        print(text_table(rows, headers=("what changes", "mean WSS change [Pa]", "relative"), indent="  "))
     return 0
 
 
@@ -356,7 +368,6 @@ def _cycle_sensitivity(path: str) -> None:
         for what, key in (("cycle-averaged mean WSS", "time_mean"), ("TAWSS (wall mean)", "tawss")):
             value = sens[f"{key}_pa"]
             print(f"  {what} {value:.4g} Pa +- {sens[f'{key}_std_pa']:.2g} Pa (1 std)")
-            print(f"    {'what changes':<32} {'change [Pa]':>14} {'relative':>10}")
             rows = [
                 ("stated viscosity +10 %", 0.1 * value),
                 ("fitted viscosity + 1 std", sens[f"{key}_d_ln_nu_pa"] * sens["std_ln_nu"]),
@@ -364,5 +375,8 @@ def _cycle_sensitivity(path: str) -> None:
                 ("viscosity's layer +10 %", sens[f"{key}_d_ln_nu_pa"] * np.log(1.1)),
                 ("velocity noise (1 std)", sens[f"{key}_std_pa"]),
             ]
-            for cause, delta in sorted(rows, key=lambda r: -abs(r[1])):
-                print(f"    {cause:<32} {delta:>+14.3e} {delta / value if value else np.nan:>+10.2%}")
+            cells = [
+                (cause, f"{delta:+.3e}", f"{delta / value if value else np.nan:+.2%}")
+                for cause, delta in sorted(rows, key=lambda r: -abs(r[1]))
+            ]
+            print(text_table(cells, headers=("what changes", "change [Pa]", "relative"), indent="    "))

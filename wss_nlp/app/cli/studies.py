@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
 from ...io import files as wio
 from ...io import outputs
 from ...errors import InputError, WssNlpError
+
+log = logging.getLogger(__name__)  # warnings: the command line shows them once per kind (main)
 
 
 def _where(items) -> dict:
@@ -47,10 +50,8 @@ def cmd_sweep(args) -> int:
     for path in s.outputs:
         print(f"wrote {path}")
     if s.failed:  # issue 42: a sweep with failed cases exits 1
-        print(
-            f"wss-nlp: warning: {s.failed} case(s) failed or did not converge; see the 'status' and 'message' "
-            f"columns of {s.csv_path}",
-            file=sys.stderr,
+        log.warning(
+            f"{s.failed} case(s) failed or did not converge; see the 'status' and 'message' columns of {s.csv_path}"
         )
         return 1
     return 0

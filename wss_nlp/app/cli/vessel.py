@@ -20,6 +20,7 @@ from ...core import schema
 from ...errors import InputError
 from ...io import outputs
 from ...pipeline.options import ReconstructionOptions
+from ..table import text_table
 
 #: Reconstruction options (schema paths) that a volume honours, with what they set in the vessel's options.
 VOLUME_OPTIONS = {
@@ -36,6 +37,7 @@ VOLUME_OPTIONS = {
     "velocity.angular_order": "velocity.angular_order",
     "velocity.laplacian_power": "velocity.laplacian_power",
     "velocity.inner_fraction": "velocity.inner_fraction",
+    "tissue.offset_correction": "offset_correction (--no-offset-correction: keep the background offset)",
 }
 
 
@@ -105,6 +107,8 @@ def vessel_options(args):
             vel["laplacian_power"] = int(value)
         elif path == "velocity.inner_fraction":
             vel["inner_fraction"] = _number(flag, value)
+        elif path == "tissue.offset_correction":
+            top["offset_correction"] = bool(value)
     base = VesselOptions()
     return dataclasses.replace(
         base,
@@ -145,7 +149,8 @@ def reconstruct_volume(args) -> int:
     result = reconstruct_vessel(vol, options, prepared.mask, prepared.centerline, prepared.record)
     base = None
     if args.baseline:
-        base = baseline_vessel(vol, prepared.mask, prepared.centerline, result.record, options,
+        # on the volume the reconstruction used: the background offset removed as for it
+        base = baseline_vessel(prepared.volume, prepared.mask, prepared.centerline, result.record, options,
                                s=result.s_mm, phi=result.phi)  # fmt: skip
     with outputs.StagedFolder(args.figures) as staged:  # figures and result land together or not at all
         if staged.path:
@@ -233,6 +238,48 @@ def analyze_volume(args) -> int:
         print(f"  {name}: {float(sec):.1f} s")
     for note in res.notes:
         print(f"note: {note}")
+    return 0
+
+
+def compare_volume(args) -> int:
+    """``wss-nlp compare RESULT TRUTH`` for a vessel result and a vessel phantom's truth file: the measures of
+    :func:`wss_nlp.vessel.metrics.accuracy` (issue 38), the truth interpolated from its samples
+    (:class:`wss_nlp.vessel.metrics.SampledTruth`)."""
+    import h5py
+
+    from ...vessel.metrics import accuracy, read_truth
+    from ...vessel.reconstruct import read_result
+
+    with h5py.File(args.truth, "r") as f:
+        layout = f.attrs.get("layout")
+    if layout != "vessel-truth":
+        raise InputError(
+            f"{args.truth}: not a vessel truth file (layout {layout!r}); a vessel result is compared with the truth "
+            "of 'wss-nlp phantom --volume-case CASE --truth FILE'"
+        )
+    res = read_result(args.result)
+    truth = read_truth(args.truth)
+    if res.nt > 1 and truth.times_ms.size != res.nt:
+        raise InputError(f"{args.result} has {res.nt} frames but {args.truth} {truth.times_ms.size}")
+    try:
+        acc = accuracy(res, truth)
+    except ValueError as exc:  # a frame time the truth does not have
+        raise InputError(f"{args.truth}: {exc}") from None
+    h = float(np.min(np.linalg.norm(np.asarray(res.affine_mm, float)[:3, :3], axis=0)))  # the smallest voxel edge
+    rows = [
+        ("WSS vector rel. L2 error (covered visible wall, all frames)", f"{acc.wss_rel_l2:.2%}"),
+        ("axial WSS rel. L2 error", f"{acc.axial_rel_l2:.2%}"),
+        ("wall RMS distance [mm]", f"{acc.wall_rms_mm:.4f}" + (f" ({acc.wall_rms_mm / h:.3f} h)" if h > 0 else "")),
+        ("wall mean signed distance [mm] (+ outside)", f"{acc.wall_bias_mm:+.4f}"),
+        ("coverage of the visible wall", f"{acc.coverage:.1%}"),
+        ("mean |WSS| reconstructed [Pa] (first frame)", f"{acc.mean_wss_pa:.5g}"),
+        ("mean |WSS| true [Pa]", f"{acc.true_mean_wss_pa:.5g}"),
+    ]
+    if np.isfinite(acc.tawss_rel_l2):
+        rows += [("TAWSS rel. L2 error", f"{acc.tawss_rel_l2:.2%}"), ("OSI RMS error", f"{acc.osi_rms:.4f}"),
+                 ("OSI max. error", f"{acc.osi_max:.4f}")]  # fmt: skip
+    print(f"vessel against {args.truth} ({truth.case}, {acc.points} wall points):")
+    print(text_table(rows, headers=("quantity", "value")))
     return 0
 
 
