@@ -661,9 +661,7 @@ def _with_screens(results, screens: dict, acq: Acquisition, psf=None, range_note
             unresolved = r.near_wall is not None and bool(np.isfinite(r.near_wall.unresolved_mm))
             unbalanced = r.beta_choice is not None and r.beta_choice.rule == "balance" and not r.beta_choice.satisfied
             unsteady = r.steady is not None and r.steady.unsteady
-            suspect = (
-                bool(warning) or bool(dephased) or unresolved or unbalanced or coarse or box_on_kspace or unsteady
-            )
+            suspect = bool(warning) or bool(dephased) or unresolved or unbalanced or coarse or box_on_kspace or unsteady
             r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect, dephasing_suspect=bool(dephased))
             if r.steady is not None:
                 r.screen["steady"] = r.steady.as_dict()
