@@ -170,6 +170,10 @@ def test_cli_phantom_to_time_resolved_result(tmp_path, capsys):
         peak = np.max(np.abs(tg["wss/mean_pa_t"][()]))
         assert np.max(np.abs(g["wss/mean_pa_t"][()] - tg["wss/mean_pa_t"][()])) <= 0.45 * peak
         assert isinstance(json.loads(g.attrs["warnings"]), list)
+        # 6 frames carry 3 harmonics of the 4-harmonic waveform: the momentum model at that limit is flagged
+        record = json.loads(g.attrs["cine_model_json"])
+        assert record["model"] == "momentum" and record["sampling"]["flagged"] and record["sampling"]["harmonics"] == 3
+        assert any("undersampled waveform" in w for w in json.loads(g.attrs["warnings"]))
 
 
 def test_a_frame_with_nan_fails_by_index_and_is_bridged(tmp_path, capsys):

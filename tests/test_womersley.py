@@ -103,6 +103,8 @@ def test_the_bic_takes_the_momentum_model_for_womersley_flow(seed):
     s = res.series(0)
     assert s.model.model == "momentum" and s.model.margin > 100
     assert s.model.walls["degree"] == 0 and np.ptp(s.coefficients[:, 0]) == 0  # rigid: one shared wall
+    # 4 harmonics of the 6 that 12 frames carry: the waveform is resolved, not flagged (tests/test_cine_sampling.py)
+    assert s.model.sampling["harmonics"] < s.model.sampling["carried"] and not s.model.sampling["flagged"]
     worst, tawss, osi = _errors(s, truth)
     own = np.max(np.abs(np.array([f[0].wss.mean for f in res.frames]) - truth.tau())) / np.max(np.abs(truth.tau()))
     assert worst < 0.03 < own and tawss < 0.02 and osi < 0.01

@@ -75,6 +75,7 @@ class CineModelChoice:
     walls: dict = field(default_factory=dict)  # how the walls were taken in time (WallChoice.as_dict)
     viscosity: dict = field(default_factory=dict)  # the viscosity the data imply (ViscosityFit.as_dict)
     sensitivity: dict = field(default_factory=dict)  # what moves the cycle-averaged mean WSS (the momentum model)
+    sampling: dict = field(default_factory=dict)  # whether the frames resolve the waveform (pipeline.cine.sampling)
     fitted_viscosity: ViscosityFit | None = field(default=None, repr=False)  # not stored: the record above is
 
     def as_json(self) -> str:
@@ -90,6 +91,7 @@ class CineModelChoice:
                 "walls": self.walls,
                 "viscosity": self.viscosity,
                 "sensitivity": self.sensitivity,
+                "sampling": self.sampling,
             }
         )
 

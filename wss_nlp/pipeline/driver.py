@@ -41,6 +41,7 @@ from ..models import geometry as geo
 from ..models import kspace
 from ..models import near_wall as nw
 from ..models import stack as stk
+from ..models import steady
 from ..models import wss as wss_mod
 from ..parameters.kspace_filter import kspace_filter
 from . import limits, methods, obliquity
@@ -397,6 +398,7 @@ def run_segment(
         wss_vectors(fitter, states, [[u[c] for u in inplane] for c in range(2)], walls, dz, mu)  # type: ignore[index]
         _add_time(states, fitter, "velocity_inplane", t0)
 
+    checks = [steady_check(s, options) for s in states]
     pending: list = [None] * len(states)
     bands: list = [None] * len(states)
     band_note = ""
@@ -416,6 +418,9 @@ def run_segment(
     for i, (s, w) in enumerate(zip(states, walls)):
         b: Band | None = bands[i]
         notes = list(s.notes)
+        check = checks[i]
+        if check is not None and check.unsteady:
+            notes.append(check.note())
         if b is not None:
             w.tau_std, w.mean_std = b.tau_std, b.mean_std
             if s.near is not None and np.isfinite(b.scale_std_log):
@@ -444,9 +449,28 @@ def run_segment(
                 notes=notes,
                 pending_band=pending[i],
                 seconds={} if isinstance(fitter, ZCoupled) else s.seconds,
+                steady=checks[i],
             )
         )
     return out
+
+
+def steady_check(s: SliceState, options: ReconstructionOptions) -> steady.SteadyCheck | None:
+    """Whether the slice's velocity data can come from steady flow (:mod:`wss_nlp.models.steady`); None where
+    no steady family was chosen from the data (``--near-wall off``: cine frames, whose cycle model judges them)
+    or the velocity noise is unknown."""
+    problem = s.velocity_problem
+    if s.near is None or problem is None or s.near.criterion.startswith("no velocity noise"):
+        return None
+    try:
+        sigma = steps.noise_levels(s.data, options, problem.voxels.index, s.lumen)[1]
+    except WssNlpError:  # no background to estimate the noise from: the check would weigh the rings blindly
+        return None
+    vox = problem.voxels
+    return steady.check(
+        problem.data, sigma, vox.px.mean(axis=1), vox.py.mean(axis=1), s.geometry.coefficients, s.geometry.center,
+        float(s.data.grid.h), s.near.reynolds, s.near,
+    )  # fmt: skip
 
 
 def _with_chosen(choice, value: float):
@@ -636,8 +660,11 @@ def _with_screens(results, screens: dict, acq: Acquisition, psf=None, range_note
             )  # fmt: skip
             unresolved = r.near_wall is not None and bool(np.isfinite(r.near_wall.unresolved_mm))
             unbalanced = r.beta_choice is not None and r.beta_choice.rule == "balance" and not r.beta_choice.satisfied
-            suspect = bool(warning) or bool(dephased) or unresolved or unbalanced or coarse or box_on_kspace
+            unsteady = r.steady is not None and r.steady.unsteady
+            suspect = bool(warning) or bool(dephased) or unresolved or unbalanced or coarse or box_on_kspace or unsteady
             r.screen.update(velocity_residual_to_noise=ratio, suspect=suspect, dephasing_suspect=bool(dephased))
+            if r.steady is not None:
+                r.screen["steady"] = r.steady.as_dict()
             for w in (warning, dephased):
                 if w:
                     r.notes.append(w)

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from ..parameters import rules as pr
     from ..models import geometry as geo
     from ..models import preprocess as pp
+    from ..models.steady import SteadyCheck
     from ..uncertainty import sensitivity as sens
     from ..models import velocity as vel
     from ..models import wss as wss_mod
@@ -73,6 +74,8 @@ class SliceResult:
     problem: vel.VelocityProblem | None = None
     # the uncertainty band still to compute (reconstruct(defer_band=True)): () -> (Sensitivity, note)
     pending_band: Callable[[], tuple] | None = None
+    # whether the data can come from steady flow (wss_nlp.models.steady; None: not tested, --near-wall off)
+    steady: SteadyCheck | None = None
 
     def finish_band(self) -> None:
         """Compute a deferred uncertainty band (sets ``wss.tau_std``, ``wss.mean_std``, ``sensitivity``)."""
@@ -162,6 +165,7 @@ def make_result(
     notes: list,
     pending_band: Callable[[], tuple] | None,
     seconds: dict,
+    steady: SteadyCheck | None = None,
 ) -> SliceResult:
     """The :class:`SliceResult` of a slice at the end of the steps (keyword-only: the one place results are made).
 
@@ -190,4 +194,5 @@ def make_result(
         dephasing=state.dephasing,
         problem=state.velocity_problem,
         pending_band=pending_band,
+        steady=steady,
     )
