@@ -360,6 +360,7 @@ def reconstruct_vessel(
     mask: np.ndarray | None = None,
     centerline=None,
     record: dict | None = None,
+    inputs: VesselInputs | None = None,
 ) -> VesselResult:
     """Wall map of the vessel in ``vol`` (module notes): one frame, or every frame of a cine (rigid walls).
 
@@ -373,10 +374,14 @@ def reconstruct_vessel(
         (``--centerline``); default :func:`wss_nlp.vessel.centerline.centerline_from_mask`.
     record : dict, optional
         The centreline's record (visible part, branches) when ``centerline`` is given with one.
+    inputs : VesselInputs, optional
+        What :func:`vessel_inputs` prepared from ``vol`` (mask, centreline, the volume less its offset, their
+        notes): used as they are, instead of ``mask``, ``centerline`` and ``record`` (the command line prepares
+        them once for the reconstruction and the baseline).
     """
     options = options or VesselOptions()
     with blas_threads(options.blas_threads):
-        return _reconstruct(vol, options, mask, centerline, record)
+        return _reconstruct(vol, options, mask, centerline, record, inputs)
 
 
 @dataclass
@@ -435,14 +440,14 @@ def vessel_inputs(vol: VolumeAcquisition, options: VesselOptions | None = None, 
     return VesselInputs(mask, centerline, record, notes, seconds, vol, offset)
 
 
-def _reconstruct(vol, options: VesselOptions, mask, centerline, record) -> VesselResult:
+def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=None) -> VesselResult:
     import scipy.ndimage as ndi
 
     t_all = time.perf_counter()
     mu = check_volume(vol, options)
     h = float(np.max(vol.voxel_size_mm))
     bar = progress_bar(5 + vol.nt, "vessel")
-    inputs = vessel_inputs(vol, options, mask, centerline, record)
+    inputs = inputs or vessel_inputs(vol, options, mask, centerline, record)
     mask, centerline, record, vol = inputs.mask, inputs.centerline, inputs.record, inputs.volume
     seconds, notes = dict(inputs.seconds), list(inputs.notes)
     bar.update()

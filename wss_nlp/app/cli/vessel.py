@@ -146,7 +146,7 @@ def reconstruct_volume(args) -> int:
     mask = read_mask(args.mask, vol) if args.mask else None
     centerline = Centerline.from_file(args.centerline) if args.centerline else None
     prepared = vessel_inputs(vol, options, mask, centerline)
-    result = reconstruct_vessel(vol, options, prepared.mask, prepared.centerline, prepared.record)
+    result = reconstruct_vessel(vol, options, inputs=prepared)
     base = None
     if args.baseline:
         # on the volume the reconstruction used: the background offset removed as for it
