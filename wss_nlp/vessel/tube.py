@@ -60,6 +60,7 @@ import numpy as np
 import casadi as ca
 
 from .._lazy import scipy
+from ..core import operators
 from ..core import radius as rad
 from ..errors import InputError
 from ..models import measurement as meas
@@ -583,82 +584,42 @@ def build_model(
 
 
 # ------------------------------------------------------------------ CasADi maps
-class _Linear(ca.Callback):
-    """A linear map ``x (n_in,) -> y (n_out,)`` (``forward``; ``adjoint`` its transpose) on ``cols`` columns; its
-    derivatives are the map itself (forward) and the adjoint (reverse), built once and kept by the root."""
+class _Linear(operators._LinearCallback):
+    """A linear map ``x (n_in,) -> y (n_out,)`` (``forward``; ``adjoint`` its transpose) on ``cols`` columns, one
+    column at a time; its derivatives are the map itself (forward) and the adjoint (reverse), built once and kept
+    by the root (:class:`wss_nlp.core.operators._LinearCallback`)."""
 
     def __init__(self, name: str, n_in: int, n_out: int, forward, adjoint, cols: int = 1, parent=None,
                  transposed: bool = False):  # fmt: skip
-        ca.Callback.__init__(self)
-        self.n_in_, self.n_out_, self.cols = int(n_in), int(n_out), int(cols)
         self.fwd, self.adj, self.transposed = forward, adjoint, transposed
-        self._root = self if parent is None else parent._root
-        self._kept: dict = {} if parent is None else parent._kept
+        self._root: _Linear = self if parent is None else parent._root
+        super().__init__(name, n_in, n_out, cols)
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        f = self.adj if self.transposed else self.fwd
+        return np.stack([f(np.ascontiguousarray(x[:, k])) for k in range(self.cols)], axis=1)
+
+    def derived(self, cols: int, flip: bool) -> _Linear:
+        root, transposed = self._root, self.transposed != flip
+        n_in, n_out = (root.n_out_, root.n_in_) if transposed else (root.n_in_, root.n_out_)
+        name = f"{root.name()}_{'adj' if transposed else 'fwd'}_{cols}"
+        return root._kept(
+            (cols, transposed), lambda: _Linear(name, n_in, n_out, root.fwd, root.adj, cols, root, transposed)
+        )
+
+
+class _SparseOfPoints(ca.Callback):
+    """A map of the points' values ``z (P,)`` to a sparse matrix of a fixed ``pattern``, evaluation only (IPOPT's
+    Hessian and the Gauss-Newton Jacobian are never differentiated); subclasses give :meth:`values`."""
+
+    def __init__(self, name: str, model: TubeModel, pattern: ca.Sparsity):
+        ca.Callback.__init__(self)
+        self.model, self.pattern = model, pattern
         self.construct(name, {})
 
-    def get_n_in(self):
-        return 1
-
-    def get_n_out(self):
-        return 1
-
-    def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(self.n_in_, self.cols)
-
-    def get_sparsity_out(self, i):
-        return ca.Sparsity.dense(self.n_out_, self.cols)
-
-    def has_eval_buffer(self):
-        return True
-
-    def eval_buffer(self, arg, res):
-        x = np.frombuffer(arg[0], dtype=np.float64).reshape(self.cols, self.n_in_)
-        out = np.frombuffer(res[0], dtype=np.float64).reshape(self.cols, self.n_out_)
-        apply = self.adj if self.transposed else self.fwd
-        for k in range(self.cols):
-            out[k] = apply(x[k])
-        return 0
-
-    def _derived(self, cols: int, flip: bool) -> _Linear:
-        transposed = self.transposed != flip
-        key = (cols, transposed)
-        if key not in self._kept:
-            root = self._root
-            n_in, n_out = (root.n_out_, root.n_in_) if transposed else (root.n_in_, root.n_out_)
-            name = f"{root.name()}_{'adj' if transposed else 'fwd'}_{cols}"
-            self._kept[key] = _Linear(name, n_in, n_out, root.fwd, root.adj, cols, root, transposed)
-        return self._kept[key]
-
-    def has_forward(self, nfwd):
-        return True
-
-    def get_forward(self, nfwd, name, inames, onames, opts):
-        x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
-        seed = ca.MX.sym("seed", self.n_in_, self.cols * nfwd)
-        out = self._derived(self.cols * nfwd, False)(seed)
-        return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
-
-    def has_reverse(self, nadj):
-        return True
-
-    def get_reverse(self, nadj, name, inames, onames, opts):
-        x, y = ca.MX.sym("x", self.sparsity_in(0)), ca.MX.sym("y", self.sparsity_out(0))
-        seed = ca.MX.sym("seed", self.n_out_, self.cols * nadj)
-        out = self._derived(self.cols * nadj, True)(seed)
-        return ca.Function(name, [x, y, seed], [out], inames, onames, opts)
-
-
-class _GaussNewton(ca.Callback):
-    """``z (P,) -> scale^2 J^T J`` with ``J = S diag(z) A`` (sparse, block-banded): evaluation only (IPOPT's
-    Hessian is never differentiated)."""
-
-    def __init__(self, model: TubeModel, scale: float):
-        ca.Callback.__init__(self)
-        self.model, self.scale = model, float(scale)
-        self.pattern = model.hessian_pattern()
-        rows, cols = self.pattern.get_triplet()
-        self._rows, self._cols = np.asarray(rows), np.asarray(cols)
-        self.construct("tube_gauss_newton", {})
+    def values(self, z: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        """The pattern's nonzeros, column-major (CasADi's order)."""
+        raise NotImplementedError
 
     def get_n_in(self):
         return 1
@@ -676,79 +637,62 @@ class _GaussNewton(ca.Callback):
         return True
 
     def eval_buffer(self, arg, res):
-        z = np.frombuffer(arg[0], dtype=np.float64)
-        full = self.model.gram_from_windows(self.scale * self.model.jacobian_windows(z))
-        np.frombuffer(res[0], dtype=np.float64)[:] = full[self._rows, self._cols]
+        np.frombuffer(res[0], dtype=np.float64)[:] = self.values(np.frombuffer(arg[0], dtype=np.float64))
         return 0
 
 
-class _Curvature(ca.Callback):
+class _OnHessianPattern(_SparseOfPoints):
+    """A symmetric ``(n, n)`` matrix on the pattern of :meth:`TubeModel.hessian_pattern`, from its dense form."""
+
+    def __init__(self, name: str, model: TubeModel):
+        pattern = model.hessian_pattern()
+        rows, cols = pattern.get_triplet()
+        self._rows, self._cols = np.asarray(rows), np.asarray(cols)
+        super().__init__(name, model, pattern)
+
+    def dense(self, z: np.ndarray) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def values(self, z):
+        return self.dense(z)[self._rows, self._cols]
+
+
+class _GaussNewton(_OnHessianPattern):
+    """``z (P,) -> scale^2 J^T J`` with ``J = S diag(z) A`` (sparse, block-banded)."""
+
+    def __init__(self, model: TubeModel, scale: float):
+        self.scale = float(scale)
+        super().__init__("tube_gauss_newton", model)
+
+    def dense(self, z):
+        return self.model.gram_from_windows(self.scale * self.model.jacobian_windows(z))
+
+
+class _Curvature(_OnHessianPattern):
     """``d (P,) -> A^T diag(d) A`` (sparse, the pattern of :meth:`TubeModel.hessian_pattern`): the second-order
-    term ``sum_i r_i Hess r_i`` of the least-squares Hessian for ``d_p = scale r_i(p) w_p H_gamma''(gap_p)``;
-    evaluation only."""
+    term ``sum_i r_i Hess r_i`` of the least-squares Hessian for ``d_p = scale r_i(p) w_p H_gamma''(gap_p)``."""
 
     def __init__(self, model: TubeModel):
-        ca.Callback.__init__(self)
-        self.model = model
-        self.pattern = model.hessian_pattern()
-        rows, cols = self.pattern.get_triplet()
-        self._rows, self._cols = np.asarray(rows), np.asarray(cols)
-        self.construct("tube_curvature", {})
+        super().__init__("tube_curvature", model)
 
-    def get_n_in(self):
-        return 1
-
-    def get_n_out(self):
-        return 1
-
-    def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(self.model.n_points, 1)
-
-    def get_sparsity_out(self, i):
-        return self.pattern
-
-    def has_eval_buffer(self):
-        return True
-
-    def eval_buffer(self, arg, res):
-        d = np.frombuffer(arg[0], dtype=np.float64)
-        full = self.model.point_gram(d)
-        np.frombuffer(res[0], dtype=np.float64)[:] = full[self._rows, self._cols]
-        return 0
+    def dense(self, z):
+        return self.model.point_gram(z)
 
 
-class _Jacobian(ca.Callback):
-    """``z (P,) -> scale S diag(z) A`` as a sparse ``(V, n)`` matrix (the Gauss-Newton Jacobian), evaluation only."""
+class _Jacobian(_SparseOfPoints):
+    """``z (P,) -> scale S diag(z) A`` as a sparse ``(V, n)`` matrix (the Gauss-Newton Jacobian)."""
 
     def __init__(self, model: TubeModel, scale: float):
-        ca.Callback.__init__(self)
-        self.model, self.scale = model, float(scale)
+        self.scale = float(scale)
         probe = model.windows_to_csr(np.ones((model.n_voxels, model.window, model.basis.n_phi_terms))).tocsc()
         probe.sort_indices()
-        self.pattern = ca.Sparsity(probe.shape[0], probe.shape[1], probe.indptr.tolist(), probe.indices.tolist())
-        self.construct("tube_jacobian", {})
+        pattern = ca.Sparsity(probe.shape[0], probe.shape[1], probe.indptr.tolist(), probe.indices.tolist())
+        super().__init__("tube_jacobian", model, pattern)
 
-    def get_n_in(self):
-        return 1
-
-    def get_n_out(self):
-        return 1
-
-    def get_sparsity_in(self, i):
-        return ca.Sparsity.dense(self.model.n_points, 1)
-
-    def get_sparsity_out(self, i):
-        return self.pattern
-
-    def has_eval_buffer(self):
-        return True
-
-    def eval_buffer(self, arg, res):
-        z = np.frombuffer(arg[0], dtype=np.float64)
+    def values(self, z):
         jac = self.model.windows_to_csr(self.scale * self.model.jacobian_windows(z)).tocsc()
         jac.sort_indices()
-        np.frombuffer(res[0], dtype=np.float64)[:] = jac.data
-        return 0
+        return jac.data
 
 
 @dataclass
