@@ -673,19 +673,20 @@ def _fit_sections(sec: _Sections, sigma_clean: float, sigma_rough: float, where:
     return Centerline._fit(sec.centre, sigma, where)
 
 
-def _intervals(s: np.ndarray, ok: np.ndarray) -> list[list[float]]:
-    """``[start, end]`` s-intervals where ``ok`` holds on the samples ``s``."""
+def intervals(s: np.ndarray, ok: np.ndarray, digits: int | None = None) -> list[list[float]]:
+    """``[start, end]`` s-intervals where ``ok`` holds on the samples ``s`` (rounded to ``digits`` if given)."""
     out, start = [], None
     for i, flag in enumerate(ok):
         if flag and start is None:
             start = s[i]
         if (not flag or i == len(ok) - 1) and start is not None:
-            out.append([round(float(start), 4), round(float(s[i] if flag else s[i - 1]), 4)])
+            ends = [float(start), float(s[i] if flag else s[i - 1])]
+            out.append(ends if digits is None else [round(e, digits) for e in ends])
             start = None
     return out
 
 
-def _distance_to_border(points: np.ndarray, affine: np.ndarray, shape) -> np.ndarray:
+def distance_to_border(points: np.ndarray, affine: np.ndarray, shape) -> np.ndarray:
     """Distance (mm) of world points to the field of view's faces (the outer voxels' outer faces)."""
     inverse = np.linalg.inv(np.asarray(affine, float))
     index = points @ inverse[:3, :3].T + inverse[:3, 3]
@@ -781,7 +782,7 @@ def centerline_from_mask(
     # switch between the two estimates does not cut single samples out
     width = 2 * int(np.ceil(h_mean / max(float(sec.s[1] - sec.s[0]), 1e-12))) + 1
     reach = ndi.maximum_filter1d(radius, size=width, mode="nearest")
-    visible = _distance_to_border(cl.position(sec.s), affine, vol.shape) >= reach
+    visible = distance_to_border(cl.position(sec.s), affine, vol.shape) >= reach
     record: dict = {
         "length_mm": round(cl.length_mm, 4),
         "radius": {
@@ -790,7 +791,7 @@ def centerline_from_mask(
             "radius_dt_mm": sec.radius_dt.tolist(),
             "clean": sec.clean.tolist(),
         },
-        "visible": [iv for iv in _intervals(sec.s, visible) if iv[1] - iv[0] >= h_mean],
+        "visible": [iv for iv in intervals(sec.s, visible, 4) if iv[1] - iv[0] >= h_mean],
         "branches": _branches(cl, paths, main, g, sec.s, radius, h_mean, part, affine),
         "orientation": orientation,
         "voxels": int(part.sum()),

@@ -45,6 +45,7 @@ import numpy as np
 from ..errors import InputError
 from ..io.volume import VolumeAcquisition
 from . import geometry3d as g3
+from .centerline import distance_to_border, intervals
 from . import tube
 from . import velocity3d as v3
 from . import wss3d
@@ -287,26 +288,6 @@ def progress_bar(total: int, what: str):
     return tqdm(total=total, desc=what, unit="step", disable=not sys.stderr.isatty(), leave=False)
 
 
-def distance_to_border(points: np.ndarray, affine: np.ndarray, shape) -> np.ndarray:
-    """Distance (mm) of world points to the field of view's faces (the outer voxels' outer faces)."""
-    inverse = np.linalg.inv(np.asarray(affine, float))
-    index = points @ inverse[:3, :3].T + inverse[:3, 3]
-    gradient = np.linalg.norm(inverse[:3, :3], axis=1)
-    upper = np.asarray(shape, float) - 0.5
-    return np.min(np.minimum(index + 0.5, upper - index) / gradient, axis=1)
-
-
-def _intervals(s: np.ndarray, ok: np.ndarray) -> list[list[float]]:
-    out, start = [], None
-    for i, flag in enumerate(ok):
-        if flag and start is None:
-            start = s[i]
-        if (not flag or i == len(ok) - 1) and start is not None:
-            out.append([float(start), float(s[i] if flag else s[i - 1])])
-            start = None
-    return out
-
-
 def check_volume(vol: VolumeAcquisition, options: VesselOptions) -> float:
     """Validate the volume for the reconstruction; the viscosity (Pa s). Refusals are one :class:`InputError`."""
     vol.validate()
@@ -330,7 +311,7 @@ def _record_for(centerline, mask, vol, coords, h) -> dict:
     s = np.linspace(0.0, centerline.length_mm, max(8, int(np.ceil(centerline.length_mm / (0.5 * h))) + 1))
     radius = g3.radius_from_mask(mask, vol, coords, s)
     dist = distance_to_border(centerline.position(s), vol.affine_mm, vol.shape)
-    visible = [iv for iv in _intervals(s, dist >= radius) if iv[1] - iv[0] >= h]
+    visible = [iv for iv in intervals(s, dist >= radius) if iv[1] - iv[0] >= h]
     return {"length_mm": centerline.length_mm, "radius": {"s_mm": s.tolist(), "radius_mm": radius.tolist()},
             "visible": visible, "branches": [], "given": True}  # fmt: skip
 
