@@ -158,8 +158,8 @@ class SampledTruth:
         with h5py.File(path, "r") as f:
             if f.attrs.get("layout") != "vessel-truth":
                 raise InputError(
-                    f"{path}: not a vessel truth file (layout {f.attrs.get('layout')!r}); write one with "
-                    "'wss-nlp phantom --volume-case CASE --truth FILE'"
+                    f"{path}: not a vessel truth file (layout {f.attrs.get('layout')!r}); a vessel result is compared "
+                    "with the truth of 'wss-nlp phantom --volume-case CASE --truth FILE'"
                 )
             s, phi = f["s_mm"][()], f["phi_rad"][()]
             self.times_ms = np.atleast_1d(f["time_ms"][()]).astype(float)

@@ -245,20 +245,11 @@ def compare_volume(args) -> int:
     """``wss-nlp compare RESULT TRUTH`` for a vessel result and a vessel phantom's truth file: the measures of
     :func:`wss_nlp.vessel.metrics.accuracy` (issue 38), the truth interpolated from its samples
     (:class:`wss_nlp.vessel.metrics.SampledTruth`)."""
-    import h5py
-
     from ...vessel.metrics import accuracy, read_truth
     from ...vessel.reconstruct import read_result
 
-    with h5py.File(args.truth, "r") as f:
-        layout = f.attrs.get("layout")
-    if layout != "vessel-truth":
-        raise InputError(
-            f"{args.truth}: not a vessel truth file (layout {layout!r}); a vessel result is compared with the truth "
-            "of 'wss-nlp phantom --volume-case CASE --truth FILE'"
-        )
+    truth = read_truth(args.truth)  # refuses a file of another layout in one line
     res = read_result(args.result)
-    truth = read_truth(args.truth)
     if res.nt > 1 and truth.times_ms.size != res.nt:
         raise InputError(f"{args.result} has {res.nt} frames but {args.truth} {truth.times_ms.size}")
     try:
