@@ -176,15 +176,26 @@ def _acquired_text(psf) -> str:
     return f"k-space acquisition, {psf.filter} filter, zero-filling {psf.zero_fill[1]:g} x {psf.zero_fill[0]:g}"
 
 
-def _check_phantom_options(args) -> None:
-    """Every physical option in its plausible range (:mod:`wss_nlp.io.ranges`), counts in theirs, and the images'
-    memory, before anything is built; ``--snr`` 0 or below means noise-free."""
-    allow = ranges.parse_allow(args.allow_unphysical) if args.allow_unphysical else ()
+def _allowed(args) -> tuple[str, ...]:
+    return ranges.parse_allow(args.allow_unphysical) if args.allow_unphysical else ()
+
+
+def _voxel_and_noise_notes(args, allow) -> list:
+    """``--h`` and ``--snr`` in their plausible ranges (every phantom has both): the range notes; ``--snr`` 0 or
+    below means noise-free, a value that is not a finite number is refused."""
     notes = [ranges.check("voxel_size", args.h, "--h", allow)]
     if not np.isfinite(args.snr):
         raise InputError(f"--snr {args.snr}: must be a finite number (0 or below: no noise)")
     if args.snr > 0:
         notes.append(ranges.check("snr", args.snr, "--snr", allow))
+    return notes
+
+
+def _check_phantom_options(args) -> None:
+    """Every physical option in its plausible range (:mod:`wss_nlp.io.ranges`), counts in theirs, and the images'
+    memory, before anything is built; ``--snr`` 0 or below means noise-free."""
+    allow = _allowed(args)
+    notes = _voxel_and_noise_notes(args, allow)
     for name, value, flag in (("venc", args.venc, "--venc"), ("slice_spacing", args.spacing, "--spacing"),
                               ("radius", args.pipe_radius, "--pipe-radius")):  # fmt: skip
         if value is not None:
@@ -218,10 +229,7 @@ def _phantom_vessel(args) -> int:
                          "with -o FILE.h5 and/or --nifti FOLDER)")  # fmt: skip
     if not (args.output or args.nifti):
         raise InputError("--volume-case: name where the volume goes (-o FILE.h5 and/or --nifti FOLDER)")
-    allow = ranges.parse_allow(args.allow_unphysical) if args.allow_unphysical else ()
-    notes = [ranges.check("voxel_size", args.h, "--h", allow)]
-    if args.snr > 0:
-        notes.append(ranges.check("snr", args.snr, "--snr", allow))
+    notes = _voxel_and_noise_notes(args, _allowed(args))
     frames = args.frames if args.volume_case == "pulsatile" else 1
     if not 1 <= frames <= 100:
         raise InputError(f"--frames {frames}: a vessel phantom takes 1-100 frames")
