@@ -139,6 +139,16 @@ class _Surface:
         out = np.einsum("mn,mn...->m...", e, c).real
         return out.reshape(*s.shape, *c.shape[2:])
 
+    def with_tangents(self, s, phi) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(f, df/ds, df/dphi)`` at the points ``(s, phi)`` (1-D), the exponentials and coefficients computed
+        once for the three (what a Gauss-Newton step needs)."""
+        s, phi = np.asarray(s, float), np.asarray(phi, float)
+        c = self.re(s) + 1j * self.im(s)
+        c_s = self.re(s, 1) + 1j * self.im(s, 1)
+        e = np.exp(1j * np.outer(phi - self.phi0, self.k))
+        f = np.einsum("mn,mn...->m...", e, c).real
+        return f, np.einsum("mn,mn...->m...", e, c_s).real, np.einsum("mn,mn...->m...", e * (1j * self.k), c).real
+
 
 class SampledTruth:
     """A vessel phantom's truth read from its truth file (``wss-nlp phantom --volume-case ... --truth FILE``; the
@@ -209,8 +219,8 @@ class SampledTruth:
         lo, hi = float(self._s[0]), float(self._s[-1])
         beyond = np.zeros(s.size, bool)
         for _ in range(iterations):
-            res = self._wall(s, phi) - p
-            xs, xp = self._wall(s, phi, ds=1), self._wall(s, phi, dphi=1)
+            x, xs, xp = self._wall.with_tangents(s, phi)
+            res = x - p
             a11, a12, a22 = np.sum(xs * xs, 1), np.sum(xs * xp, 1), np.sum(xp * xp, 1)
             b1, b2 = -np.sum(xs * res, 1), -np.sum(xp * res, 1)
             det = a11 * a22 - a12**2
@@ -223,8 +233,8 @@ class SampledTruth:
         s = np.where(beyond, np.nan, s)
         phi = np.angle(np.exp(1j * phi))
         at = np.clip(np.nan_to_num(s, nan=lo), lo, hi)
-        wall = self._wall(at, phi)
-        normal = np.cross(self._wall(at, phi, ds=1), self._wall(at, phi, dphi=1))
+        wall, x_s, x_phi = self._wall.with_tangents(at, phi)
+        normal = np.cross(x_s, x_phi)
         axis = wall - self._centre_at(at)
         # the surface normal x_s x x_phi points outwards or inwards depending on the parametrization: orient it
         # by the centreline, which is inside the lumen
