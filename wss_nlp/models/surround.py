@@ -149,18 +149,82 @@ class Regions:
         return np.isin(self.labels, which) if which else np.zeros(self.labels.shape, bool)
 
 
+def _speed_image(velocity) -> np.ndarray:
+    """``|u|``, or for a cine series ``(T, ny, nx)`` each voxel's largest ``|u|`` over the frames."""
+    u = np.asarray(velocity, float)
+    return np.max(np.abs(u), axis=0) if u.ndim == 3 else np.abs(u)
+
+
+#: Fewest voxels of a connected flow core (voxels above the flow threshold) that reach out to a lumen's rim:
+#: noise lifts single voxels of static tissue over the threshold, never a connected patch of this size.
+CORE_MIN_VOXELS = 4
+
+
+def beyond_flow(m: np.ndarray, velocity, venc: float | None) -> np.ndarray:
+    """Bright voxels (``m > 1/2``) of a region that flows but out of the flow's reach: static tissue touching a lumen.
+
+    Notes
+    -----
+    Fat touching a vessel (through its thin wall, by partial volume) joins the lumen in one bright region of
+    the magnitude; its velocity tells them apart. The flow core is the bright voxels faster than
+    :data:`FLOW_FRACTION_OF_VENC` of the venc (``T``; without a venc, of the 99th percentile of the bright
+    voxels' speed), in connected patches of at least :data:`CORE_MIN_VOXELS`. A lumen's voxels slower than
+    ``T`` lie in a band along its wall (no slip) and in its partial-volume rim: a profile that falls from the
+    core's peak ``u_p`` (95th percentile) at its centre to ``T`` at the core's edge (equal-area radius ``r_c``)
+    reaches 0 within ``b = T r_c / (u_p - T)`` more (linear; a parabola's band is half that, a turbulent
+    profile's thinner still), so the lumen is the core grown within the bright region by ``1 + floor(b)``
+    voxels (one for the partial-volume rim). A core barely above ``T`` (``u_p <= 2 T``) reaches its whole
+    radius: slow flow is never cut. What the growth leaves of a flowing region, in connected parts of at least
+    :data:`wss_nlp.models.preprocess.MIN_LUMEN_VOXELS` voxels, is returned; regions without a core are left
+    to :func:`flowing_regions` to judge whole. A velocity ``(T, ny, nx)`` (cine) uses each voxel's largest
+    ``|u|`` over the frames.
+    """
+    nd = scipy.ndimage
+    bright = np.asarray(m) > 0.5
+    speed = _speed_image(velocity)
+    if not bright.any():
+        return np.zeros_like(bright)
+    scale = venc if venc is not None else float(np.percentile(speed[bright], 99))
+    thr = FLOW_FRACTION_OF_VENC * scale
+    cores, n = nd.label(bright & (speed > thr))
+    reach = np.zeros_like(bright)
+    for j in range(1, n + 1):
+        core = cores == j
+        size = int(core.sum())
+        if size < CORE_MIN_VOXELS:
+            continue
+        peak = float(np.percentile(speed[core], 95))
+        r_c = float(np.sqrt(size / np.pi))
+        band = r_c if peak <= 2 * thr else thr * r_c / (peak - thr)
+        reach |= nd.binary_dilation(core, iterations=1 + int(band), mask=bright)
+    regions, _ = nd.label(bright)
+    flowing = np.unique(regions[reach])
+    far = bright & ~reach & np.isin(regions, flowing[flowing > 0])
+    parts, n_parts = nd.label(far)
+    if n_parts == 0:
+        return far
+    sizes = nd.sum_labels(np.ones_like(m, dtype=float), parts, index=np.arange(1, n_parts + 1))
+    big = np.flatnonzero(sizes >= pp.MIN_LUMEN_VOXELS) + 1
+    return np.isin(parts, big)
+
+
 def flowing_regions(m: np.ndarray, raw: np.ndarray, velocity: np.ndarray, venc: float | None, sigma: float) -> Regions:
     """Label the bright regions of ``m`` and tell those that flow from static ones.
 
-    A region of at least :data:`wss_nlp.models.preprocess.MIN_LUMEN_VOXELS` voxels flows when the median
-    ``|u|`` of its core (eroded by a voxel where it keeps some) exceeds :data:`FLOW_FRACTION_OF_VENC` of the
-    venc (without one: of the fastest region's) and :data:`FLOW_NOISE_FACTOR` phase-noise deviations. A
-    velocity ``(T, ny, nx)`` (cine) uses each voxel's largest ``|u|`` over the frames: a vessel flows at
-    some time of the cycle, fat never.
+    A bright region that flows is first split from the static tissue touching it (:func:`beyond_flow`: fat
+    against the vessel's wall). A region of at least :data:`wss_nlp.models.preprocess.MIN_LUMEN_VOXELS` voxels
+    flows when the median ``|u|`` of its core (eroded by a voxel where it keeps some) exceeds
+    :data:`FLOW_FRACTION_OF_VENC` of the venc (without one: of the fastest region's) and
+    :data:`FLOW_NOISE_FACTOR` phase-noise deviations. A velocity ``(T, ny, nx)`` (cine) uses each voxel's
+    largest ``|u|`` over the frames: a vessel flows at some time of the cycle, fat never.
     """
-    labels, n = scipy.ndimage.label(m > 0.5)
-    u = np.asarray(velocity, float)
-    speed_img = np.max(np.abs(u), axis=0) if u.ndim == 3 else np.abs(u)
+    far = beyond_flow(m, velocity, venc)
+    labels, n = scipy.ndimage.label((m > 0.5) & ~far)
+    if far.any():
+        parts, n_parts = scipy.ndimage.label(far)
+        labels[far] = parts[far] + n
+        n += n_parts
+    speed_img = _speed_image(velocity)
     speeds, sizes = {}, {}
     for j in range(1, n + 1):
         reg = labels == j
@@ -484,6 +548,7 @@ def fractions(
     wall_fraction=None,
     speed=None,
     theta=None,
+    outside=None,
 ):
     """``(f, static)``: the data's lumen fraction near the lumen and the static signal in each voxel (raw units).
 
@@ -496,6 +561,9 @@ def fractions(
     for the phase: the voxel's magnitude is ``|l f e^{i theta} + s|``, not ``l f + s``, so the magnitude the
     linear forms use is ``raw + (l f + s) - |l f e^{i theta} + s|`` at the current ``f`` (two fixed-point
     steps). Near-wall speeds of a flat (turbulent) profile reach a radian of phase in the partial-volume voxels.
+
+    ``outside`` (bool): voxels known to hold no lumen (bright static tissue, :func:`beyond_flow`): ``f = 0`` and
+    their whole signal static there.
     """
     lum, b = model.levels(grid, speed)
     d_out, _ = _distances(lumen_mask)
@@ -515,6 +583,9 @@ def fractions(
             part = lum * np.clip(f, 0.0, 1.0)
             data = raw + (part + static) - np.abs(part * np.exp(1j * theta) + static)
     f = np.where(d_out < ring_start(grid.h) + max(3.0, RING_MM / grid.h), f, 0.0)
+    if outside is not None:
+        f = np.where(outside, 0.0, f)
+        static = np.where(outside, np.asarray(raw, float), static)
     return np.clip(f, -0.5, 1.5), static
 
 
@@ -595,7 +666,9 @@ def screen_preprocess(raw, velocity, grid: VoxelGrid, source: str = "", vessel=N
     """
     norm = _peaks(np.asarray(raw, float), np.asarray(velocity, float), venc, source)
     m = pp.normalize_magnitude(raw, norm, clip_upper)
-    lumen0 = pp.find_lumen(m, grid, source, vessel)
+    # the plateau's lumen among the regions that flow (before the noise is known: by the venc fraction alone):
+    # fat is static, be it larger than the lumen, touching it or reaching the border of the view
+    lumen0 = flow_aware_lumen(m, np.asarray(raw, float), velocity, grid, source, vessel, venc, float("nan"))[0]
     v2 = velocity if np.ndim(velocity) == 2 else None  # a cine series' (T, ny, nx): no plateau high-pass of it
     sigma = lumen_noise_sigma(np.asarray(raw, float), lumen0.mask, v2, venc)
     lumen, regions = flow_aware_lumen(m, np.asarray(raw, float), velocity, grid, source, vessel, venc, sigma)
@@ -645,7 +718,9 @@ def preprocess(
     u = np.asarray(velocity, float)
     norm = _peaks(raw, u, venc, source)
     m = pp.normalize_magnitude(raw, norm, clip_upper)
-    lumen0 = pp.find_lumen(m, grid, source, vessel)
+    # the plateau's lumen among the regions that flow (before the noise is known: by the venc fraction alone):
+    # fat is static, be it larger than the lumen, touching it or reaching the border of the view
+    lumen0 = flow_aware_lumen(m, raw, u, grid, source, vessel, venc, float("nan"))[0]
     sigma = lumen_noise_sigma(raw, lumen0.mask, u, venc, measurement.highpass_noise_variance(grid.shape))
     lumen, regions = flow_aware_lumen(m, raw, u, grid, source, vessel, venc, sigma)
     if vessel is None and near is not None:
@@ -672,13 +747,17 @@ def preprocess(
         why = measurement.two_level_only or "--surround two-level"
         record["surround"] = SurroundModel("two-level", why, sigma).as_dict()
         return norm, m, replace(lumen, tissue=record), u, raw
+    # bright static tissue (fat) is no part of the smooth outside level, and no part of the lumen: its voxels and
+    # their partial-volume rim stay out of the outside ring, its voxels' lumen fraction is 0 (it does not flow)
+    bright_static = regions.mask(regions.static)
     exclude = scipy.ndimage.binary_dilation(flowing & ~lumen.mask, iterations=2)
+    exclude |= scipy.ndimage.binary_dilation(bright_static, iterations=1) & ~lumen.mask
     model = fit_surround(raw, lumen, grid, sigma, exclude, np.abs(u))
     record["surround"] = model.as_dict()
     if model.kind == "two-level":
         return norm, m, replace(lumen, tissue=record), u, raw
     speed = np.abs(u)  # the lumen's speed for the inflow term: the measured one, undiluted below as f is known
-    f, static = fractions(raw, model, lumen.mask, grid, speed=speed)
+    f, static = fractions(raw, model, lumen.mask, grid, speed=speed, outside=bright_static)
     d_out, d_in = _distances(lumen.mask)
     reach = ring_start(grid.h) + max(3.0, RING_MM / grid.h)
     try:
@@ -690,7 +769,8 @@ def preprocess(
     # the wall ring: a preliminary geometry (default options) gives the voxels' fractions, they the wall's
     # level and thickness, those the data of the next geometry (a fixed point of at most WALL_ROUNDS solves; the
     # first rounds always take a ring, a misplaced wall hides it; the last fit decides whether it stays)
-    ring = (d_out < ring_start(grid.h)) & ~(d_in >= 2)  # partial-volume voxels and the first outside layer
+    # partial-volume voxels and the first outside layer (without static bright tissue: no wall level there)
+    ring = (d_out < ring_start(grid.h)) & ~(d_in >= 2) & ~bright_static
     u_l = lumen_velocity(raw, u, f, static, ring, venc, static_u)[0]
     speed = np.abs(u_l)
     theta = None if venc is None else np.where(ring, np.pi * (u_l - static_u) / venc, 0.0)  # lumen vs static
@@ -707,7 +787,9 @@ def preprocess(
             model = replace(model, wall_level=w, wall_mm=t, wall_bic=table)
             ct = np.array(coef, dtype=float)
             ct[0] += t
-            f, static = fractions(raw, model, lumen.mask, grid, fraction_image(grid, new.center, ct), speed, theta)
+            f, static = fractions(
+                raw, model, lumen.mask, grid, fraction_image(grid, new.center, ct), speed, theta, bright_static
+            )
             u_l = lumen_velocity(raw, u, f, static, ring, venc, static_u)[0]
             speed = np.abs(u_l)
             theta = None if venc is None else np.where(ring, np.pi * (u_l - static_u) / venc, 0.0)
@@ -719,7 +801,7 @@ def preprocess(
         w, t, table = fit_wall(raw, lum, b_far, fraction_image(grid, new.center, coef), new.center, coef, grid, ring)
         if not np.isfinite(w):
             model = replace(model, wall_level=float("nan"), wall_mm=0.0, wall_bic=table)
-            f, static = fractions(raw, model, lumen.mask, grid, None, speed, theta)
+            f, static = fractions(raw, model, lumen.mask, grid, None, speed, theta, bright_static)
     except Exception as exc:  # noqa: BLE001 - a failed preliminary solve leaves the model without a wall ring
         logger.info(f"{source}: no wall ring fitted ({exc})")
     record["surround"] = model.as_dict()

@@ -6,7 +6,9 @@ in a 64 x 64 mm view with
 
 * a **vessel wall** ring (1.2 mm, darker than the tissue),
 * **textured tissue** of intermediate signal (a smooth random field, about 20 % contrast, 2-6 mm features),
-* **fat** (bright, static): a subcutaneous layer under the body surface and two small deposits,
+* **fat** (bright, static): a subcutaneous layer under the body surface and two small deposits, and on request
+  (``touching_fat``) deposits pressed against the vessel's wall, which join the lumen in one bright region of
+  the magnitude (only the velocity tells them apart),
 * **air** above the body surface (no signal),
 * **neighbouring vessels** with their own flow: an artery (forward) and a vein (reverse flow), each with a wall,
 * an **eddy-current phase offset** over the whole view (linear, quadratic or a smooth non-polynomial field)
@@ -65,6 +67,10 @@ WALL_MM, NEIGHBOUR_WALL_MM = 1.2, 0.6
 TEXTURE = 0.2
 #: Inflow enhancement at the peak speed: ``rho = 1 + INFLOW |u| / u_peak`` in a lumen.
 INFLOW = 0.2
+#: Fat deposits touching the main vessel (``touching_fat``): radius, and their centres' distance beyond the wall
+#: ``R(phi)`` (mm; less than the radius: each reaches the wall ring's outer edge, the wall and lumen take
+#: precedence), and the angle of the first (rad; the others equally spaced).
+TOUCHING_FAT_MM, TOUCHING_FAT_BEYOND_MM, TOUCHING_FAT_ANGLE = 5.0, 4.0, 0.3
 #: Largest midpoint spacing of the voxel means, mm, and the most points per voxel axis.
 SPACING_MM, MAX_POINTS = 0.04, 40
 
@@ -240,7 +246,19 @@ class InvivoTruth(Truth):
         return self.flow.lumen.inside(xc, yc)
 
 
-def _scene(case: str, rng: np.random.Generator, h_mm: float, surround: bool, offset_pct: float, family) -> Scene:
+def _touching_fat(lumen, n: int) -> tuple:
+    """``n`` fat deposits (x, y, r) pressed against the lumen's wall (:data:`TOUCHING_FAT_MM`), no random draw."""
+    out = []
+    for k in range(n):
+        phi = TOUCHING_FAT_ANGLE + 2 * np.pi * k / n
+        d = float(lumen.radius(np.array([phi]))[0]) + TOUCHING_FAT_BEYOND_MM
+        out.append((lumen.center[0] + d * np.cos(phi), lumen.center[1] + d * np.sin(phi), TOUCHING_FAT_MM))
+    return tuple(out)
+
+
+def _scene(
+    case: str, rng: np.random.Generator, h_mm: float, surround: bool, offset_pct: float, family, touching_fat: int = 0
+) -> Scene:
     main = _main_flow(case)
     shift = rng.uniform(-0.5, 0.5, size=2) * h_mm
     center = (-3.0 + float(shift[0]), -4.0 + float(shift[1]))
@@ -279,7 +297,8 @@ def _scene(case: str, rng: np.random.Generator, h_mm: float, surround: bool, off
         texture_k=k,
         texture_phase=kphase,
         shading=shading,
-        fat_blobs=((22.0 + jitter[7], 5.0, 4.0), (-24.0, 6.0 + jitter[7], 3.5)),
+        fat_blobs=((22.0 + jitter[7], 5.0, 4.0), (-24.0, 6.0 + jitter[7], 3.5))
+        + _touching_fat(main.lumen, touching_fat),
     )
 
 
@@ -322,6 +341,7 @@ def make_invivo(
     offset_pct: float = 2.0,
     offset_family: str | None = None,
     max_points: int = MAX_POINTS,
+    touching_fat: int = 0,
 ) -> tuple[Acquisition, InvivoTruth]:
     """Seeded in-vivo-like phantom: ``(acquisition, truth)`` of one slice in a 64 x 64 mm view.
 
@@ -343,14 +363,20 @@ def make_invivo(
     max_points : int
         Most midpoint-rule points per voxel axis (tests use fewer: a faster, coarser voxel mean; the truth's
         fractions are the same rule's).
+    touching_fat : int
+        Fat deposits (radius :data:`TOUCHING_FAT_MM`) pressed against the vessel's wall at equally spaced angles
+        (in tissue only): with partial volume they join the lumen in one bright region of the magnitude. They
+        draw nothing from the seed: the same seed gives the same noise and the same scene otherwise.
     """
     if not h_mm > 0:
         raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
+    if touching_fat < 0:
+        raise InputError(f"touching_fat is a number of fat deposits (>= 0), got {touching_fat}")
     family = OFFSET_FAMILIES[seed % 3] if offset_family is None else offset_family
     if family not in OFFSET_FAMILIES + ("none",):
         raise InputError(f"unknown offset family {family!r}; choose from {', '.join(OFFSET_FAMILIES)}")
     rng = np.random.default_rng(seed)
-    scene = _scene(case, rng, h_mm, surround, 0.0 if family == "none" else offset_pct, family)
+    scene = _scene(case, rng, h_mm, surround, 0.0 if family == "none" else offset_pct, family, touching_fat)
     n = int(np.ceil(VIEW_MM / h_mm))
     origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
@@ -376,6 +402,7 @@ def make_invivo(
         "venc_m_s": scene.venc,
         "offset_family": family if surround and offset_pct else "none",
         "offset_pct_at_vessel": float(offset_pct) if surround and family != "none" else 0.0,
+        "touching_fat": int(touching_fat) if surround else 0,
     }
     truth = InvivoTruth(
         name=name,
