@@ -675,6 +675,44 @@ def screen_preprocess(raw, velocity, grid: VoxelGrid, source: str = "", vessel=N
     return norm, m, replace(lumen, tissue={"static_bright": _static_summary(regions, grid)})
 
 
+def series_offset(
+    raw,
+    velocity,
+    grid: VoxelGrid,
+    source: str = "",
+    vessel=None,
+    venc: float | None = None,
+    measurement: acq_model.MeasurementModel | None = None,
+) -> off.SeriesOffset:
+    """One background offset for a cine series of one slice: magnitudes and velocities ``(T, ny, nx)``.
+
+    The eddy currents repeat in every frame, so the offset is fitted once (:func:`wss_nlp.models.offset.
+    correct_series`: to the frames' mean velocity, on static tissue that is also still in time) and each frame
+    subtracts the same field (:func:`preprocess` with ``series_offset``). What flows is judged over the series
+    (:func:`flowing_regions` on each voxel's largest speed over the frames: a vein whose time-mean speed is small
+    still flows at some time of the cycle), on the frames' mean magnitude; ``vessel`` (x, y in mm, e.g. the
+    series' shared box centre) picks the vessel the offset is reported at. The complex noise per channel is the
+    median over the frames of the lumen plateau's (:func:`lumen_noise_sigma`).
+    """
+    measurement = measurement or acq_model.VoxelMeans()
+    raw = np.asarray(raw, float)
+    u = np.asarray(velocity, float)
+    mean_raw = raw.mean(axis=0)
+    norm = _peaks(mean_raw, u, venc, source)
+    m = pp.normalize_magnitude(mean_raw, norm, measurement.clip_upper)
+    lumen0 = flow_aware_lumen(m, mean_raw, u, grid, source, vessel, venc, float("nan"))[0]
+    hp = measurement.highpass_noise_variance(grid.shape)
+    sigma = float(np.nanmedian([lumen_noise_sigma(raw[k], lumen0.mask, u[k], venc, hp) for k in range(len(raw))]))
+    lumen, regions = flow_aware_lumen(m, mean_raw, u, grid, source, vessel, venc, sigma)
+    flowing = regions.mask(regions.flowing) | lumen.mask
+    fixed, rec, static = off.correct_series(
+        u, raw, (grid.dy, grid.dx), (grid.origin_mm[1], grid.origin_mm[0]), sigma, flowing,
+        (lumen.center[1], lumen.center[0]), lumen.r_area, venc,
+        margin=int(np.ceil(off.FLOW_MARGIN * measurement.blur_voxels)),
+    )  # fmt: skip
+    return off.SeriesOffset(u[0] - fixed[0], rec, static)
+
+
 def preprocess(
     raw,
     velocity,
@@ -685,6 +723,7 @@ def preprocess(
     measurement: acq_model.MeasurementModel | None = None,
     options: TissueOptions | None = None,
     near=None,
+    series_offset: off.SeriesOffset | None = None,
 ):
     """The preprocessing of one slice with the surround model and the offset correction.
 
@@ -702,7 +741,8 @@ def preprocess(
        complex noise is the lumen plateau's.
 
     ``near`` (x, y in mm; a cine series' shared box centre): without ``vessel``, the flowing region there is the
-    lumen (a frame of slow flow need not find its vessel among the fast ones). ``lumen.tissue`` records all of it
+    lumen (a frame of slow flow need not find its vessel among the fast ones). ``series_offset`` (a cine series'
+    one offset, :func:`series_offset`) replaces the slice's own fit in step 2. ``lumen.tissue`` records all of it
     (``tissue_json`` in the result file, ``wss-nlp analyze``).
     ``measurement``: the acquisition's measurement model (:mod:`wss_nlp.models.acquisition`; None: voxel
     means); one whose :attr:`~wss_nlp.models.acquisition.MeasurementModel.two_level_only` says why (a k-space
@@ -732,11 +772,14 @@ def preprocess(
     flowing = regions.mask(regions.flowing) | lumen.mask
     # the offset is fitted in any case: with --no-offset-correction it is not subtracted, but the static tissue's
     # phase is still what the partial-volume voxels' lumen phase is measured against (lumen_velocity)
-    fitted, rec, _ = off.correct(
-        u, raw, (grid.dy, grid.dx), (grid.origin_mm[1], grid.origin_mm[0]), sigma, flowing,
-        (lumen.center[1], lumen.center[0]), lumen.r_area, venc,
-        margin=int(np.ceil(off.FLOW_MARGIN * measurement.blur_voxels)),
-    )  # fmt: skip
+    if series_offset is not None:  # the series' one offset (the eddy currents repeat in every frame)
+        fitted, rec = u - series_offset.image, replace(series_offset.record)
+    else:
+        fitted, rec, _ = off.correct(
+            u, raw, (grid.dy, grid.dx), (grid.origin_mm[1], grid.origin_mm[0]), sigma, flowing,
+            (lumen.center[1], lumen.center[0]), lumen.r_area, venc,
+            margin=int(np.ceil(off.FLOW_MARGIN * measurement.blur_voxels)),
+        )  # fmt: skip
     static_u = u - fitted  # the static tissue's velocity offset (0 where not fitted)
     if options.offset_correction:
         u, static_u = fitted, np.zeros_like(u)

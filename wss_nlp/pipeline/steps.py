@@ -94,8 +94,9 @@ def prepare(
     # fits use comes back with the offset removed and the partial-volume voxels' lumen phase, and the raw
     # magnitude with the magnitude that carries that phase (the noise estimates' |d_i|)
     near = None if box is None else box.center  # cine: the series' vessel, also in a frame of slow flow
+    series = None if box is None else box.offset  # cine: the series' one background offset of this slice
     norm, m, lumen, velocity, raw = surround.preprocess(
-        raw, velocity, grid, where, vessel, venc, acq_model.of(psf), tissue, near
+        raw, velocity, grid, where, vessel, venc, acq_model.of(psf), tissue, near, series
     )
     if box is not None:
         lumen = box.apply(lumen)

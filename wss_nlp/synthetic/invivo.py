@@ -417,6 +417,99 @@ def make_invivo(
     return acq, truth
 
 
+#: The cine series' waveforms: the main vessel and the artery ``u_max (A0 + A1 cos(2 pi t / T))`` (always forward),
+#: the vein ``u_max cos(2 pi t / T + VEIN_PHASE)``: pulsatile, its time-mean speed zero.
+CINE_MAIN, CINE_VEIN_PHASE = (0.6, 0.4), 1.0
+
+
+@dataclass
+class InvivoCine:
+    """A seeded in-vivo-like cine series (:func:`make_invivo_cine`): frames, their times and truths."""
+
+    frames: list
+    times_ms: np.ndarray
+    period_ms: float
+    truths: list
+
+
+def make_invivo_cine(
+    h_mm: float = 1.5,
+    snr: float | None = 25.0,
+    seed: int = 0,
+    n_frames: int = 8,
+    period_ms: float = 800.0,
+    offset_pct: float = 2.0,
+    offset_family: str | None = None,
+    max_points: int = MAX_POINTS,
+) -> InvivoCine:
+    """The laminar in-vivo-like slice as a cine series: the scene of :func:`make_invivo` in every frame, the flows
+    pulsing, the eddy-current offset the same in every frame (the sequence repeats), fresh noise per frame.
+
+    The main vessel and the artery pulse forward (:data:`CINE_MAIN`), the vein back and forth with a time-mean
+    speed of zero (:data:`CINE_VEIN_PHASE`): in the frames' mean it looks static, over the series it flows. Each
+    frame's flow is the steady profile scaled (quasi-steady: a phantom of detection and offsets, not of the
+    WSS's dynamics, which needs a Womersley flow). The venc is the peak frame's (1.25 x its peak speed);
+    ``offset_pct`` is the offset at the vessel in percent of that venc. The seed draws the scene as
+    :func:`make_invivo` does, then each frame's noise in turn.
+    """
+    if n_frames < 2:
+        raise InputError(f"a cine series needs at least 2 frames, got {n_frames}")
+    if not h_mm > 0:
+        raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
+    family = OFFSET_FAMILIES[seed % 3] if offset_family is None else offset_family
+    if family not in OFFSET_FAMILIES + ("none",):
+        raise InputError(f"unknown offset family {family!r}; choose from {', '.join(OFFSET_FAMILIES)}")
+    rng = np.random.default_rng(seed)
+    base = _scene("laminar", rng, h_mm, True, 0.0 if family == "none" else offset_pct, family)
+    n = int(np.ceil(VIEW_MM / h_mm))
+    origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
+    grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
+    times = np.arange(n_frames) * period_ms / n_frames
+    artery, vein = base.neighbours
+    main = base.main
+    assert isinstance(main, PoiseuilleEllipse)  # the laminar vessel: its profile scales with u_max
+    frames, truths = [], []
+    for k, t in enumerate(times):
+        phase = 2 * np.pi * t / period_ms
+        a = CINE_MAIN[0] + CINE_MAIN[1] * np.cos(phase)
+        b = np.cos(phase + CINE_VEIN_PHASE)
+        scene = replace(
+            base,
+            main=replace(main, u_max=a * main.u_max),
+            neighbours=(replace(artery, u_max=a * artery.u_max), replace(vein, u_max=b * vein.u_max)),
+        )
+        signal, u_mean, static, flowing = voxel_means(scene, grid, scene.venc, max_points)
+        if snr is not None:
+            signal = complex_noise(signal, 1.0 / snr, rng)
+        frames.append(
+            Acquisition(
+                magnitude=np.abs(signal)[None],
+                phase=np.angle(signal)[None],
+                voxel_size_mm=(h_mm, h_mm),
+                origin_mm=origin,
+                venc_m_s=scene.venc,
+                viscosity_pa_s=scene.main.viscosity_pa_s,
+                source=f"phantom:invivo-cine frame {k}",
+            )
+        )
+        params = {"case": "invivo-cine", "h_mm": h_mm, "snr": -1.0 if snr is None else float(snr), "seed": seed,
+                  "frame": k, "time_ms": float(t), "venc_m_s": scene.venc, "offset_family": family,
+                  "offset_pct_at_vessel": float(offset_pct) if family != "none" else 0.0}  # fmt: skip
+        truths.append(
+            InvivoTruth(
+                name="invivo-cine",
+                flow=scene.main,
+                velocity_image=u_mean,
+                parameters=params,
+                scene=scene,
+                grid=grid,
+                static_fraction=static,
+                flowing_fraction=flowing,
+            )  # fmt: skip
+        )
+    return InvivoCine(frames, times, float(period_ms), truths)
+
+
 #: Cases the demo and ``wss-nlp phantom`` can name: case name -> (main vessel case, description).
 INVIVO_CASES = {
     "invivo": (
