@@ -857,6 +857,40 @@ def preprocess(
     return norm, f, lumen, u, carrier
 
 
+def correct_inplane(
+    inplane,
+    raw,
+    grid: VoxelGrid,
+    lumen: pp.Lumen,
+    venc: float | None,
+    measurement: acq_model.MeasurementModel | None = None,
+) -> tuple[np.ndarray, list]:
+    """The background offset of the in-plane velocity components (4D flow): ``(inplane, records)``.
+
+    Each encoding direction has its own eddy currents, so each in-plane component ``(2, ny, nx)`` gets its own
+    polynomial (:func:`wss_nlp.models.offset.correct`) on the static tissue of the through-plane fit (signal,
+    away from the lumen and the other vessels ``lumen.noise_mask``), with the noise of the lumen plateau
+    (``lumen.tissue["sigma_lumen_plateau"]``) and the same venc. ``raw`` is the measured magnitude. The records
+    (one per component, x then y) go to ``lumen.tissue["offset_inplane"]``. A cine series fits them per frame
+    (only the through-plane offset is fitted once over the series).
+    """
+    measurement = measurement or acq_model.VoxelMeans()
+    comps = np.array(inplane, dtype=float, copy=True)
+    sigma = float((lumen.tissue or {}).get("sigma_lumen_plateau", float("nan")))
+    records = []
+    for c in range(comps.shape[0]):
+        if not np.isfinite(sigma):
+            records.append(off.OffsetRecord(False, "no lumen plateau to measure the noise by").as_dict())
+            continue
+        comps[c], rec, _ = off.correct(
+            comps[c], raw, (grid.dy, grid.dx), (grid.origin_mm[1], grid.origin_mm[0]), sigma, lumen.noise_mask,
+            (lumen.center[1], lumen.center[0]), lumen.r_area, venc,
+            margin=int(np.ceil(off.FLOW_MARGIN * measurement.blur_voxels)),
+        )  # fmt: skip
+        records.append(rec.as_dict())
+    return comps, records
+
+
 # ------------------------------------------------------------------ flags and reports
 #: Offset records that need no note: nothing to correct, or the user said so.
 _QUIET = ("no static tissue in view", "switched off")
@@ -930,6 +964,16 @@ def report_lines(record: dict) -> list[str]:
             )
         else:
             lines.append(f"background phase offset: not corrected ({o['reason']})")
+        if o.get("frames", 1) > 1:
+            lines.append(f"  (one offset for the cine series, fitted to the mean of its {o['frames']} frames)")
+    for axis, oi in zip("xy", record.get("offset_inplane") or []):
+        if oi["applied"]:
+            lines.append(
+                f"in-plane {axis} velocity offset: removed, degree {oi['order']}; at the vessel "
+                f"{1000 * oi['at_vessel_m_s']:.3g} mm/s = {100 * oi['at_vessel_fraction_of_venc']:.2f} % of the venc"
+            )
+        else:
+            lines.append(f"in-plane {axis} velocity offset: not corrected ({oi['reason']})")
     for j in record.get("static_bright", []):
         c = j["center_mm"]
         lines.append(
