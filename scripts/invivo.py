@@ -141,11 +141,25 @@ def main() -> None:
         help="only the offset table, from the preprocessing (no reconstruction): writes invivo_offset.md",
     )
     p.add_argument("--out", default=RESULTS)
+    p.add_argument(
+        "--from-csv",
+        default="",
+        help="comma-separated CSV files of earlier runs (e.g. one per case, run in parallel): write the report from "
+        "their rows instead of running",
+    )
     args = p.parse_args()
     warnings.simplefilter("ignore", DeprecationWarning)
     seeds = invivo.REPORTED_SEEDS if args.seeds == "reported" else invivo.DEV_SEEDS
     hs = [float(v) for v in args.h.split(",")]
     rows, comp = [], []
+    if args.from_csv:
+        for path in args.from_csv.split(","):
+            for r in read_rows(path):
+                (comp if r.get("variant") else rows).append(r)
+        name = "invivo" if args.seeds == "reported" else "invivo_dev"
+        write_rows(os.path.join(args.out, f"{name}.csv"), rows + comp)
+        write_report(args.out, f"{name}.md", table(rows, comp, seeds, args.seeds))
+        return
     if args.offset_only:
         rows = [offset_only(case, h, seed) for case in args.cases.split(",") for h in hs for seed in seeds]
         name = "invivo_offset" if args.seeds == "reported" else "invivo_offset_dev"
@@ -168,10 +182,31 @@ def main() -> None:
                             comp.append({**run(case, h, seed, True, t), "variant": name})
                 print(rows[-2]["case"], h, seed, f"air R {rows[-2]['radius_pct']:.2f} WSS {rows[-2]['wss_pct']:.2f}",
                       f"tissue R {rows[-1]['radius_pct']:.2f} WSS {rows[-1]['wss_pct']:.2f}", flush=True)  # fmt: skip
+                # the rows so far, in case the run is stopped (a report can be made from them: --from-csv)
+                write_rows(os.path.join(args.out, "invivo_partial.csv"), rows + comp)
     name = "invivo" if args.seeds == "reported" else "invivo_dev"
     write_rows(os.path.join(args.out, f"{name}.csv"), rows + comp)
     lines = table(rows, comp, seeds, args.seeds)
     write_report(args.out, f"{name}.md", lines)
+
+
+def read_rows(path: str) -> list[dict]:
+    """Rows written by :func:`write_rows`, with their numbers and flags typed again."""
+    out = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            row: dict = {}
+            for k, v in r.items():
+                if k in ("case", "data", "notes", "surround", "offset_reason", "variant"):
+                    row[k] = v
+                elif k in ("offset_flagged",):
+                    row[k] = v == "True"
+                elif k == "seed":
+                    row[k] = int(v)
+                else:
+                    row[k] = float(v) if v != "" else float("nan")
+            out.append(row)
+    return out
 
 
 def write_rows(path: str, rows: list) -> None:
