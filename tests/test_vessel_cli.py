@@ -164,7 +164,8 @@ def test_a_cine_wall_is_a_pvd_time_series_with_tawss_and_osi(cli_run, tmp_path):
     assert np.allclose(tawss, 1.75 / 3 * mag, rtol=1e-12) and np.allclose(osi[mag > 0], 2 / 7, rtol=1e-12)
     cine = dataclasses.replace(one, wss_pa=wss, axial_pa=scale[:, None, None] * one.axial_pa[0],
                                circumferential_pa=scale[:, None, None] * one.circumferential_pa[0], time_ms=times,
-                               tawss_pa=tawss, osi=osi, axial_std_pa=np.repeat(one.axial_std_pa, 3, axis=0))  # fmt: skip
+                               tawss_pa=tawss, osi=osi,
+                               axial_std_pa=np.repeat(one.axial_std_pa, 3, axis=0))  # fmt: skip
     written = write_wall(cine, tmp_path / "wall.vtu")
     pvd = ET.parse(tmp_path / "wall.pvd").getroot()
     steps = [(float(d.get("timestep")), d.get("file")) for d in pvd.iter("DataSet")]
@@ -288,8 +289,9 @@ def test_a_result_without_a_band_is_refused_by_sensitivity_in_one_line(cli_run, 
     from wss_nlp.vessel.reconstruct import read_result, write_result
 
     res = read_result(cli_run["result"])
-    res.axial_std_pa, res.planes["mean_wss_std_pa"], res.band = band3d.unavailable(
-        res.nt, res.s_mm.size, res.phi.size, "no uncertainty band: the volume has no velocity encoding (venc)")
+    why = "no uncertainty band: the volume has no velocity encoding (venc)"
+    res.axial_std_pa, res.planes["mean_wss_std_pa"], res.band = band3d.unavailable(res.nt, res.s_mm.size,
+                                                                                   res.phi.size, why)  # fmt: skip
     write_result(tmp_path / "blind.h5", res, mode="w")
     rc, _, err = _run(["sensitivity", tmp_path / "blind.h5"], capsys)
     _refused(rc, err, "has no velocity encoding (venc)")

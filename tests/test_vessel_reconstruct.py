@@ -592,8 +592,9 @@ def test_the_mean_wss_derivatives_in_beta_and_kappa_match_central_differences(sm
 
     band, eps = b["band"], 1e-3
     assert mean_at(vel.beta, vp.kappa) == pytest.approx(band.mean_pa, rel=1e-12)
-    fd_beta = (mean_at(vel.beta * (1 + eps), vp.kappa) - mean_at(vel.beta * (1 - eps), vp.kappa)) / (2 * eps * vel.beta)
-    fd_kappa = (mean_at(vel.beta, vp.kappa * (1 + eps)) - mean_at(vel.beta, vp.kappa * (1 - eps))) / (2 * eps * vp.kappa)
+    beta, kappa = vel.beta, vp.kappa
+    fd_beta = (mean_at(beta * (1 + eps), kappa) - mean_at(beta * (1 - eps), kappa)) / (2 * eps * beta)
+    fd_kappa = (mean_at(beta, kappa * (1 + eps)) - mean_at(beta, kappa * (1 - eps))) / (2 * eps * kappa)
     assert band.d_mean_d_beta == pytest.approx(fd_beta, rel=1e-4) and band.d_mean_d_beta != 0
     assert band.d_mean_d_kappa == pytest.approx(fd_kappa, rel=1e-4) and band.d_mean_d_kappa != 0
 

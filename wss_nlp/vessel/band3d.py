@@ -59,7 +59,7 @@ from . import wss3d
 log = logging.getLogger(__name__)
 
 #: What the band holds (the record's ``holds``).
-HOLDS = "velocity noise only (the wall's response to the magnitude noise is not included)"
+HOLDS = "velocity noise only; the wall's response to the magnitude noise is not included"
 
 
 @dataclass
@@ -120,24 +120,26 @@ def _factor(sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class Covariance:
-    """``H^{-1}`` (dense) and the window blocks of ``C = H^{-1} T^T W Z^2 W T H^{-1}`` (module notes)."""
+    """``H^{-1}`` (dense), ``T^T W Z^2 W T`` and the window blocks of ``C = H^{-1} T^T W Z^2 W T H^{-1}``."""
 
     h_inv: np.ndarray
     noise_normal: np.ndarray  # T^T W Z^2 W T
-    blocks: dict  # first knot -> (4 n_z, 4 n_z)
+    blocks: dict  # first knot k -> C on the knots k .. k + 3, (4 n_z, 4 n_z)
     nz: int
 
     def block(self, knot: int) -> np.ndarray:
         return self.blocks[int(knot)]
 
-    def quadratic(self, g: np.ndarray) -> float:
-        """``g^T C g`` for a global coefficient vector ``g (n,)``."""
+    def quadratic(self, g: np.ndarray) -> np.ndarray:
+        """``g_c^T C g_c`` per column of global coefficient vectors ``g (n, k)``."""
         x = self.h_inv @ g
-        return float(x @ (self.noise_normal @ x))
+        return np.sum(x * (self.noise_normal @ x), axis=0)
 
 
 def covariance(problem, beta: float, z: np.ndarray, knots) -> Covariance:
-    """``H^{-1}`` and ``C``'s blocks on the windows of four knots starting at ``knots`` (module notes)."""
+    """``H^{-1}`` and ``C``'s blocks on the windows of four knots starting at ``knots`` (module notes): the
+    knot blocks ``C_ij`` with ``|i - j| <= 3`` only, from ``Y = (T^T W Z^2 W T) H^{-1}`` computed block row by block
+    row within the band."""
     h = problem.hessian(beta)
     c, info = scipy.linalg.lapack.dpotrf(h, lower=0)
     if info != 0:
@@ -146,49 +148,31 @@ def covariance(problem, beta: float, z: np.ndarray, knots) -> Covariance:
     h_inv = np.triu(h_inv) + np.triu(h_inv, 1).T
     m = problem.weighted_normal((problem.weights * z) ** 2)
     n, nz, bw = problem.size, problem.basis.disk.size, problem.bandwidth()
-    y = np.empty((n, n))  # m @ h_inv, block row by block row within m's band
+    y = np.empty((n, n))
     for r0 in range(0, n, nz):
         r1, c0 = min(n, r0 + nz), max(0, r0 - bw)
         c1 = min(n, r1 + bw)
         y[r0:r1] = m[r0:r1, c0:c1] @ h_inv[c0:c1]
+    starts = sorted({int(k) for k in np.ravel(knots)})
+    band: dict = {}  # (i, j), i <= j <= i + 3: C_ij = H^-1[:, K_i]^T Y[:, K_j]
+    for k in starts:
+        for i in range(k, k + 4):
+            for j in range(i, k + 4):
+                if (i, j) not in band:
+                    band[i, j] = h_inv[:, i * nz : (i + 1) * nz].T @ y[:, j * nz : (j + 1) * nz]
     blocks = {}
-    for k in sorted({int(k) for k in np.ravel(knots)}):
-        cols = slice(k * nz, (k + 4) * nz)
-        blocks[k] = h_inv[:, cols].T @ y[:, cols]
+    for k in starts:
+        rows = [[band[i, j] if i <= j else band[j, i].T for j in range(k, k + 4)] for i in range(k, k + 4)]
+        blocks[k] = np.block(rows)
     return Covariance(h_inv, m, blocks, nz)
 
 
-def gradients(pieces: wss3d.WallPieces, f: np.ndarray, mu: float) -> np.ndarray:
-    """``d (f . tau) / d a`` ``(m, 3 components, 4 n_z)`` on each point's window, ``f (m, 3)`` unit tangents
-    (module notes; ``a`` the coefficients of the window's four knots, knot-major)."""
+def _directions(pieces: wss3d.WallPieces, f: np.ndarray, mu: float) -> np.ndarray:
+    """``K (m, c, q)``: ``d (f . tau) / d d_u[c, q]`` at each point (module notes), ``f (m, 3)`` unit tangents."""
     n, minv = pieces.normal, pieces.minv
     mn = np.einsum("mqb,mb->mq", minv, n)
     mf = np.einsum("mqb,mb->mq", minv, f)
-    k = -mu * wss3d.PER_MM * (f[:, :, None] * mn[:, None, :] + n[:, :, None] * mf[:, None, :])  # (m, c, q)
-    g = (
-        np.einsum("mc,ma,mj->mcaj", k[:, :, 0], pieces.db, pieces.w)
-        + np.einsum("mc,ma,mj->mcaj", k[:, :, 1], pieces.b, pieces.w_rho)
-        + np.einsum("mc,ma,mj->mcaj", k[:, :, 2], pieces.b, pieces.w_theta)
-    )
-    return g.reshape(g.shape[0], 3, -1)
-
-
-def _window_variance(g: np.ndarray, knots: np.ndarray, cov: Covariance, scale: np.ndarray) -> np.ndarray:
-    """``sum_c scale_c^2 g_c^T C_w g_c`` for window gradients ``g (m, 3, 4 n_z)`` on windows ``knots (m,)``."""
-    out = np.empty(g.shape[0])
-    for k in np.unique(knots):
-        sel = knots == k
-        gk = g[sel]
-        out[sel] = np.sum(np.sum((gk @ cov.block(k)) * gk, axis=2) * scale**2, axis=1)
-    return out
-
-
-def _scatter(g: np.ndarray, knots: np.ndarray, weights: np.ndarray, size: int, nz: int) -> np.ndarray:
-    """The global gradient ``(size, 3)`` of ``sum_m weights_m (f . tau)_m`` from window gradients."""
-    out = np.zeros((size, 3))
-    rows = knots[:, None] * nz + np.arange(4 * nz)[None, :]  # (m, 4 n_z)
-    np.add.at(out, rows, np.einsum("m,mcx->mxc", weights, g))
-    return out
+    return -mu * wss3d.PER_MM * (f[:, :, None] * mn[:, None, :] + n[:, :, None] * mf[:, None, :])
 
 
 def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.ndarray, ring_weights: np.ndarray,
@@ -198,7 +182,7 @@ def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.n
     Parameters
     ----------
     pieces : wss3d.WallPieces
-        At the ``ns x np`` wall points (``s`` major), for ``velocity``'s basis.
+        At the ``ns x np`` wall points (``s`` major: each plane's points share ``s``), for ``velocity``'s basis.
     velocity : wss_nlp.vessel.velocity3d.Velocity3DResult
         The fit (its problem, beta and coefficients ``(nt, n, 3)``).
     sigma : (V, 3)
@@ -211,19 +195,40 @@ def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.n
         The wall mean's weights (zero off the covered wall; sum one, or all zero: no covered wall).
     mu : float
         Viscosity (Pa s).
+
+    Notes
+    -----
+    ``d_u[c, q] = sum_{a, j} B_q[a] D_q[j] a[k + a, j, c]`` with ``(B_q, D_q) = (B', w), (B, w_rho), (B, w_theta)``,
+    ``B`` the four B-splines' values at the plane's ``s``. With ``P_qr = sum_{a, b} B_q[a] B_r[b] C[(k + a), (k +
+    b)]`` (``n_z x n_z``, per plane) a functional ``sum_p omega_p f_p . tau_p`` over a plane's points has the variance
+    ``sum_c venc_c^2 sum_{q, r} v_cq^T P_qr v_cr`` with ``v_cq = sum_p omega_p K_p[c, q] D_{q, p}`` (a single point:
+    ``omega = 1`` there): a few ``n_z``-vectors per point, no ``4 n_z``-vector per point and component.
     """
     t0 = time.perf_counter()
     problem = velocity.problem
     nt, ns, nph, _ = tau.shape
-    nz, n = problem.basis.disk.size, problem.size
+    nz = problem.basis.disk.size
     z, scale = _factor(sigma)
-    knots = pieces.knot
-    cov = covariance(problem, velocity.beta, z, knots)
-    e = pieces.t - np.sum(pieces.t * pieces.normal, axis=1, keepdims=True) * pieces.normal  # (I - n n^T) t
-    var_axial = _window_variance(gradients(pieces, e, mu), knots, cov, scale)
-    axial_std = np.broadcast_to(np.sqrt(np.maximum(var_axial, 0.0)).reshape(ns, nph), (nt, ns, nph)).copy()
+    knots = pieces.knot.reshape(ns, nph)
+    if not np.all(knots == knots[:, :1]):
+        raise ValueError("the band's wall points must lie on planes of one s each (an ns x np grid, s major)")
+    plane_knots = knots[:, 0]
+    cov = covariance(problem, velocity.beta, z, plane_knots)
+    b_of = np.stack([pieces.db, pieces.b, pieces.b], axis=1).reshape(ns, nph, 3, 4)[:, 0]  # (ns, q, a)
+    d = np.stack([pieces.w, pieces.w_rho, pieces.w_theta], axis=1).reshape(ns, nph, 3, nz)  # (ns, np, q, j)
+    p_mat = np.stack([np.einsum("qa,ajbk,rb->qrjk", b_of[i], cov.block(k).reshape(4, nz, 4, nz), b_of[i])
+                      for i, k in enumerate(plane_knots)])  # (ns, q, r, nz, nz)  # fmt: skip
+    s2 = scale**2
+    # per point: E_qr = D_q^T P_qr D_r, then var = sum_c s_c^2 K[c]^T E K[c]
+    e_pt = np.empty((ns, nph, 3, 3))
+    for q in range(3):
+        for r in range(3):
+            e_pt[..., q, r] = np.sum(np.matmul(d[:, :, q, :], p_mat[:, q, r]) * d[:, :, r, :], axis=-1)
+    e_ax = pieces.t - np.sum(pieces.t * pieces.normal, axis=1, keepdims=True) * pieces.normal  # (I - n n^T) t
+    k_ax = _directions(pieces, e_ax, mu).reshape(ns, nph, 3, 3)
+    var_axial = np.einsum("ipcq,ipqr,ipcr,c->ip", k_ax, e_pt, k_ax, s2)
+    axial_std = np.broadcast_to(np.sqrt(np.maximum(var_axial, 0.0)), (nt, ns, nph)).copy()
     plane_std = np.empty((nt, ns))
-    plane_knots = knots.reshape(ns, nph)[:, 0]
     total = float(np.sum(area_weights))
     lap = problem.gram_laplace / (np.pi * problem.length_mm)
     smooth = problem.gram_smooth / (np.pi * problem.length_mm)
@@ -232,14 +237,18 @@ def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.n
         vec = tau[t].reshape(-1, 3)
         mag = np.linalg.norm(vec, axis=1)
         f = np.divide(vec, mag[:, None], out=np.zeros_like(vec), where=mag[:, None] > 0)
-        g = gradients(pieces, f, mu)  # (m, 3, 4 n_z)
-        gp = np.einsum("ij,ijcx->icx", ring_weights, g.reshape(ns, nph, 3, -1))
-        plane_std[t] = np.sqrt(np.maximum(_window_variance(gp, plane_knots, cov, scale), 0.0))
+        k_f = _directions(pieces, f, mu).reshape(ns, nph, 3, 3)
+        v = np.einsum("ip,ipcq,ipqj->icqj", ring_weights, k_f, d)
+        var_p = np.einsum("icqj,iqrjk,icrk,c->i", v, p_mat, v, s2)
+        plane_std[t] = np.sqrt(np.maximum(var_p, 0.0))
         if total > 0:
             mean += float(np.sum(area_weights.ravel() * mag)) / nt
-            gw = _scatter(g, knots, area_weights.ravel() / nt, n, nz)  # (n, 3)
-            x = cov.h_inv @ gw
-            var_mean += float(np.sum(scale**2 * np.sum(x * (cov.noise_normal @ x), axis=0)))
+            u = np.einsum("ip,ipcq,ipqj->icqj", area_weights / nt, k_f, d)
+            g = np.zeros((problem.size, 3))  # the wall mean's gradient in the coefficients
+            for i, k in enumerate(plane_knots):
+                g[k * nz : (k + 4) * nz] += np.einsum("qa,cqj->ajc", b_of[i], u[i]).reshape(4 * nz, 3)
+            x = cov.h_inv @ g
+            var_mean += float(np.sum(s2 * np.sum(x * (cov.noise_normal @ x), axis=0)))
             a = velocity.coefficients[t]
             d_beta -= float(np.sum(x * (lap @ a)))
             d_kappa -= float(np.sum(x * (smooth @ a)))

@@ -506,8 +506,9 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     circ_a = ev.circumferential.reshape(vol.nt, ns, nph)
     planes = plane_table(centerline, geometry, velocity, s, phi, radius, wss, axial_a, flags)
     t0 = time.perf_counter()
-    axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
-        geometry, s, phi, radius), area, flags, mu)  # fmt: skip
+    with blas_threads(options.blas_threads):  # again: a limit set before SciPy's BLAS was loaded misses it
+        axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
+            geometry, s, phi, radius), area, flags, mu)  # fmt: skip
     if not band.get("available"):
         notes.append(band["note"])
     seconds["band"] = time.perf_counter() - t0

@@ -318,7 +318,7 @@ def sensitivity_volume(args) -> int:
         ("beta +10 %", 0.1 * band["beta"] * band["d_mean_d_beta"]),
         ("kappa_v +10 % (smoothing along the vessel)", 0.1 * band["kappa_mm4"] * band["d_mean_d_kappa"]),
     ]
-    cells = [(cause, f"{d:+.3e}", f"{d / mean:+.2%}") for cause, d in sorted(rows, key=lambda r: -abs(r[1]))]
+    cells = [(cause, f"{d:+.3e}", f"{100 * d / mean:+.3g} %") for cause, d in sorted(rows, key=lambda r: -abs(r[1]))]
     cells.append(("magnitude noise (the wall)", "not included", "see the 4D flow guide"))
     print(text_table(cells, headers=("what changes", "mean WSS change [Pa]", "relative"), indent="  "))
     p = res.planes
