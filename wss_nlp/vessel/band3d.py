@@ -32,17 +32,21 @@ with ``C_w`` the window's block of ``C``. The band is the exact linear propagati
 What moves the mean: ``d a / d beta = -H^{-1} (G_Delta / (pi L)) a`` and ``d a / d kappa_v = -H^{-1} (G_ss / (pi
 L)) a`` exactly (a derivative, not a re-solve), so ``d mean / d beta = -sum_c (H^{-1} g_c)^T G_Delta a_c / (pi L)``.
 
-``C``'s window blocks come from one dense inverse of ``H`` (LAPACK ``potrf``/``potri``) and block-row products
-that skip ``T^T W Z^2 W T``'s zeros outside its band; the whole-wall mean needs one product with ``H^{-1}``. On the
-aorta-sized arch (1512 unknowns) this takes about a second, against a minute of reconstruction
-(``scripts/band_vessel.py`` records both).
+``C``'s window blocks come from one dense inverse of ``H`` (LAPACK ``potrf``/``potri``; ``H`` is stored dense
+already) and products that skip ``T^T W Z^2 W T``'s zeros outside its band, only the knot blocks ``C_ij`` with
+``|i - j| <= 3``; the whole-wall mean needs one product with ``H^{-1}``. On the aorta-sized phantoms (about 1500
+unknowns) this is a few percent of the reconstruction's time (``scripts/results/band_vessel.md``, last column).
 
-The band holds the velocity noise only. The magnitude noise moves the wall, and the wall moves the WSS; it is
-left out: the velocity operator's partial volumes count the quadrature points inside the fitted wall
-(:func:`wss_nlp.vessel.velocity3d.assemble`: ``r < R(s, phi)``), a piecewise-constant function of the wall
-coefficients whose derivative is zero almost everywhere, so the implicit-function derivative the slices use
-(through a smoothed indicator in CasADi) does not exist for it without a smoothed velocity operator; and the
-geometry fit's Hessian (IPOPT's, with the box constraints) is not kept. The 4D flow guide says what this means.
+The band holds the velocity noise only. The magnitude noise moves the wall, and the wall moves the WSS; the slices
+carry that part (:mod:`wss_nlp.uncertainty.sensitivity`: the wall fit's implicit-function derivative, then the
+velocity's normal equations differentiated along every wall direction with the voxel membership held, then the
+WSS's own dependence on the wall). Here none of the three derivatives exists yet: the wall fit's Hessian and active
+set (IPOPT's, with the box constraints) are not kept, the velocity operator is assembled in NumPy (the sub-voxel
+points' reference coordinates through the wall and ``r_in``, not a CasADi graph), and
+:func:`wss_nlp.vessel.wss3d.wall_function` takes the wall as inputs but is not differentiated in them; with
+``(2N + 1)`` times the wall's B-splines (several hundred) directions, each an operator derivative over every
+sub-voxel point, it is not cheap either. So the band is left without it (the 4D flow guide says what that means
+on the phantoms).
 """
 
 from __future__ import annotations
