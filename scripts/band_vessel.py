@@ -106,7 +106,7 @@ def table(rows: list) -> list:
         lines.append(
             f"| {case} | {m('band_rms'):.3f} ({100 * m('band_rms') / m('true_rms'):.1f} %) | "
             f"{m('noise_rms') / m('band_rms'):.2f} | {100 * m('in2_noise'):.1f} % | {m('bias_rms'):.3f} | "
-            f"{100 * m('in2_total'):.1f} % | {m('mean_std_pa'):.4f}, {mean_noise:.4f}, {mean_bias:.4f} | "
+            f"{100 * m('in2_total'):.1f} % | {m('mean_std_pa'):.2g}, {mean_noise:.2g}, {mean_bias:.2g} | "
             f"{m('band_seconds'):.1f} / {m('seconds'):.0f} |"
         )
     return lines
