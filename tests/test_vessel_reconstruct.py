@@ -538,9 +538,10 @@ def small_band(small_problem, small_wall):
     ring = vrec.ring_weights(small_wall, s, phi, small_wall.radius(ss, pp).reshape(shape))
     area = ev.area.reshape(shape) / ev.area.sum()
     sigma = v3.velocity_noise(vol, vp, problem.levels) * np.array([1.0, 0.8, 1.5])
-    band = band3d.vessel_band(pieces, vel, sigma, ev.tau.reshape(1, *shape, 3), ring, area, MU)
+    with vrec.blas_threads(1):  # as the reconstruction runs it (small dense products: threads only cost)
+        band = band3d.vessel_band(pieces, vel, sigma, ev.tau.reshape(1, *shape, 3), ring, area, MU)
     return {"vol": vol, "problem": problem, "vel": vel, "pieces": pieces, "ss": ss, "pp": pp, "ring": ring,
-            "area": area, "sigma": sigma, "band": band, "shape": shape}  # fmt: skip
+            "area": area, "sigma": sigma, "band": band, "shape": shape, "geometry": small_wall}  # fmt: skip
 
 
 def test_the_band_matches_monte_carlo_refits_of_the_velocity(small_band, small_wall):
@@ -559,7 +560,8 @@ def test_the_band_matches_monte_carlo_refits_of_the_velocity(small_band, small_w
     rhs = np.concatenate([vp.rhs(noisy[i]) for i in range(k)], axis=1)
     from scipy.linalg import cho_solve_banded
 
-    coef = cho_solve_banded((vp.factor(vel.beta), False), rhs).reshape(vp.size, k, 3).transpose(1, 0, 2)
+    with vrec.blas_threads(1):
+        coef = cho_solve_banded((vp.factor(vel.beta), False), rhs).reshape(vp.size, k, 3).transpose(1, 0, 2)
     ev = wss3d.wall_wss(b["problem"].centerline, small_wall, dataclasses.replace(vel, coefficients=coef), b["ss"],
                         b["pp"], mu=MU, pieces=b["pieces"])  # fmt: skip
     tol = 4.5 / np.sqrt(2 * (k - 1))
@@ -585,7 +587,8 @@ def test_the_mean_wss_derivatives_in_beta_and_kappa_match_central_differences(sm
 
     def mean_at(beta, kappa):
         p = dataclasses.replace(vp, kappa=kappa)
-        coef = p.solve(beta, u).reshape(1, p.size, 3)
+        with vrec.blas_threads(1):
+            coef = p.solve(beta, u).reshape(1, p.size, 3)
         ev = wss3d.wall_wss(b["problem"].centerline, small_wall, dataclasses.replace(vel, coefficients=coef),
                             b["ss"], b["pp"], mu=MU, pieces=b["pieces"])  # fmt: skip
         return float(np.linalg.norm(ev.tau[0], axis=1) @ b["area"].ravel())
@@ -625,3 +628,28 @@ def test_the_band_round_trips_and_older_files_still_read(arc_result, tmp_path):
     old = vrec.read_result(path)
     assert old.axial_std_pa is None and old.band == {} and "mean_wss_std_pa" not in old.planes
     assert old.plane_table().splitlines()[0] == "s_mm,area_mm2,flow_ml_s,mean_wss_pa,mean_axial_pa,flags"
+
+
+def test_a_cine_band_keeps_each_frames_noise_independent(small_band):
+    """Two frames, the fit times 1 and -0.5 (reverse flow): the axial band and each plane's band are the same in
+    both frames (a reversed direction has the same variance), the frames' mean |tau| has std/sqrt(2) (two
+    independent frames of equal variance, halved) and d mean/d beta = (1 + 0.5)/2 times the one frame's, by hand."""
+    import dataclasses
+
+    b = small_band
+    vel, one = b["vel"], b["band"]
+    scale = np.array([1.0, -0.5])
+    two = dataclasses.replace(vel, coefficients=scale[:, None, None] * vel.coefficients[0])
+    tau = np.stack([s * _tau(b) for s in scale])
+    with vrec.blas_threads(1):
+        cine = band3d.vessel_band(b["pieces"], two, b["sigma"], tau, b["ring"], b["area"], MU)
+    assert np.allclose(cine.axial_std_pa, one.axial_std_pa[0], rtol=1e-12, atol=0)
+    assert np.allclose(cine.plane_mean_std_pa, one.plane_mean_std_pa[0], rtol=1e-10, atol=0)
+    assert cine.mean_std_pa == pytest.approx(one.mean_std_pa / np.sqrt(2), rel=1e-10)
+    assert cine.mean_pa == pytest.approx(0.75 * one.mean_pa, rel=1e-12)
+    assert cine.d_mean_d_beta == pytest.approx(0.75 * one.d_mean_d_beta, rel=1e-10)
+
+
+def _tau(b):
+    ev = wss3d.wall_wss(b["problem"].centerline, b["geometry"], b["vel"], b["ss"], b["pp"], mu=MU, pieces=b["pieces"])
+    return ev.tau.reshape(*b["shape"], 3)
