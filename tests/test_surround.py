@@ -226,6 +226,9 @@ def test_fat_touching_the_vessel_is_split_off_by_the_flow():
     assert isinstance(plain, Exception) or plain.mask.sum() > 1.1 * truth.lumen_mask().sum()
     assert np.sum(lumen.mask ^ ref.mask) <= 2 * 4
     assert np.hypot(lumen.center[0] - ref.center[0], lumen.center[1] - ref.center[1]) < 0.05 * 1.5
+    # the slice says so: the partial-volume voxels against the fat are read with the smooth outside level
+    assert any("touches the vessel (3 voxels" in n for n in surround.notes({"static_bright_touching_voxels": 3}))
+    assert not surround.notes({"static_bright_touching_voxels": 0})
     # without a venc the fastest region's speed sets the flow threshold: the same split
     _, no_venc = _lumen_detection(touched, venc=False)
     assert np.sum(no_venc.mask ^ ref.mask) <= 2 * 4
