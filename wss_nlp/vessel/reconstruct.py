@@ -49,6 +49,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.volume import VolumeAcquisition
+from ..pipeline.driver import blas_threads
 from . import band3d
 from . import geometry3d as g3
 from .centerline import distance_to_border, intervals
@@ -284,18 +285,6 @@ def _jsonable(obj):
 
 
 # ------------------------------------------------------------------ helpers
-def blas_threads(n: int):
-    """A context limiting the BLAS to ``n`` threads (threadpoolctl; ``n = 0`` changes nothing). Small products
-    (the Hessians' blocks) run 10-50x slower with OpenBLAS's threads on a loaded 2-core machine."""
-    import contextlib
-
-    if n == 0:
-        return contextlib.nullcontext()
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=n, user_api="blas")
-
-
 def progress_bar(total: int, what: str):
     """A tqdm bar on stderr when it is a terminal, else nothing (the log has the steps)."""
     from tqdm import tqdm
@@ -506,9 +495,8 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     circ_a = ev.circumferential.reshape(vol.nt, ns, nph)
     planes = plane_table(centerline, geometry, velocity, s, phi, radius, wss, axial_a, flags)
     t0 = time.perf_counter()
-    with blas_threads(options.blas_threads):  # again: a limit set before SciPy's BLAS was loaded misses it
-        axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
-            geometry, s, phi, radius), area, flags, mu)  # fmt: skip
+    axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
+        geometry, s, phi, radius), area, flags, mu)  # fmt: skip
     if not band.get("available"):
         notes.append(band["note"])
     seconds["band"] = time.perf_counter() - t0

@@ -176,8 +176,7 @@ def reconstruct_volume(args) -> int:
     cov = float(np.sum(area[covered]) / np.sum(area[visible])) if np.any(visible) else 0.0
     counts = {name: int(np.count_nonzero(result.flags & bit)) for bit, name in FLAG_NAMES.items()}
     flagged = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
-    mag = np.linalg.norm(result.wss_pa, axis=-1)
-    mean_wss = float(np.sum(mag[:, covered] * area[covered]) / max(np.sum(area[covered]), 1e-300))
+    mean_wss = covered_mean_wss(result)
     print(
         f"vessel: {result.centerline.length_mm:.1f} mm of centreline, wall {result.s_mm.size} x {result.phi.size} "
         f"points, {100 * cov:.1f} % of the visible wall's area covered" + (f" (flagged: {flagged})" if flagged else "")
@@ -192,6 +191,14 @@ def reconstruct_volume(args) -> int:
     if args.figures:
         print(f"figures in {args.figures}")
     return 0
+
+
+def covered_mean_wss(result) -> float:
+    """Mean ``|tau|`` (Pa) over the covered wall, area-weighted, averaged over the frames."""
+    covered = result.covered
+    area = result.area_mm2[covered]
+    mag = np.linalg.norm(result.wss_pa, axis=-1)[:, covered]
+    return float(np.mean(mag @ area) / max(float(np.sum(area)), 1e-300))
 
 
 def is_vessel_result(path: str) -> bool:
