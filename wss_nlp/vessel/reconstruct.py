@@ -44,6 +44,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.volume import VolumeAcquisition
+from . import cycle3d
 from . import geometry3d as g3
 from .centerline import distance_to_border, intervals
 from . import tube
@@ -87,6 +88,11 @@ class VesselOptions:
     offset_correction : bool
         Remove each velocity component's background offset, fitted on static tissue
         (:func:`wss_nlp.vessel.background.correct_volume`; nothing to do in a volume without static tissue).
+    cycle : str or float
+        The velocity over a cine's cycle (:mod:`wss_nlp.vessel.cycle3d`): "auto" (the periodic temporal prior
+        where the BIC prefers it to the frames' own fits, GCV without the venc), "frames" (each frame's own fit),
+        "temporal" (the prior, its weight by the criterion) or a number: the prior with that fixed weight gamma.
+        Command line: ``--cine-model auto|independent|temporal``.
     """
 
     geometry: g3.Geometry3DOptions = field(default_factory=g3.Geometry3DOptions)
@@ -99,8 +105,10 @@ class VesselOptions:
     viscosity_pa_s: float | None = None
     blas_threads: int = 1
     offset_correction: bool = True
+    cycle: str | float = "auto"
 
     def __post_init__(self):
+        cycle3d.check_setting(self.cycle)
         if self.n_phi < 8:
             raise InputError(f"n_phi must be >= 8, got {self.n_phi}")
         if self.s_spacing_mm is not None and not self.s_spacing_mm > 0:
@@ -473,6 +481,17 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
                      static_level=lambda s: np.interp(s, levels.s_mm, levels.static), exclude=exclude)  # fmt: skip
     velocity = v3.fit_velocity(vol, vp, options.velocity, levels=levels)
     seconds["velocity"] = time.perf_counter() - t0
+    times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
+    period = vol.cardiac_period_ms
+    cycle = None
+    if vol.nt > 1:
+        if period is None:  # frames equally spaced over one cycle, as a cine export has them
+            period = float(times[-1] - times[0] + np.mean(np.diff(times)))
+            notes.append(f"cardiac period not in the file: {period:.1f} ms assumed (the frames cover one cycle)")
+        t0 = time.perf_counter()
+        velocity, cycle = cycle3d.fit_cycle(vol, vp, velocity, options.cycle, times, period, levels)
+        seconds["cycle"] = time.perf_counter() - t0
+        notes.append(cycle.note())
     bar.update()
     t0 = time.perf_counter()
     s, phi = wss3d.wall_grid(s_range, h, options.n_phi, options.s_spacing_mm)
@@ -489,13 +508,8 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     axial_a = ev.axial.reshape(vol.nt, ns, nph)
     circ_a = ev.circumferential.reshape(vol.nt, ns, nph)
     planes = plane_table(centerline, geometry, velocity, s, phi, radius, wss, axial_a, flags)
-    times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
     tawss = osi = None
     if vol.nt > 1:
-        period = vol.cardiac_period_ms
-        if period is None:  # frames equally spaced over one cycle, as a cine export has them
-            period = float(times[-1] - times[0] + np.mean(np.diff(times)))
-            notes.append(f"cardiac period not in the file: {period:.1f} ms assumed (the frames cover one cycle)")
         tawss, osi = cycle_indices(wss, times, period)
     bar.update()
     bar.close()
@@ -512,7 +526,7 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
         "zernike_degree": vp.basis.disk.degree, "zernike_angular_order": vp.basis.disk.max_order,
         "fitted_range_mm": list(s_range), "levels": levels.as_dict(),
         "geometry_options": geometry.options, "velocity_options": dict(vars(options.velocity)),
-        "offset": inputs.offset,
+        "offset": inputs.offset, "cycle": None if cycle is None else cycle.as_dict(),
     }  # fmt: skip
     log.info("vessel: %d x %d wall points, %d frames, %.0f %% covered, %.1f s", ns, nph, vol.nt,
              100 * float(np.mean(flags == 0)), seconds["total"])  # fmt: skip
