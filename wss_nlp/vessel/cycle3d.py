@@ -30,20 +30,27 @@ scanners' cine reconstructions give equally spaced frames).
 
 Choice (notes)
 --------------
-``gamma`` and the model are chosen by Schwarz's criterion over all ``N = 3 V n`` voxel values of the cycle, as
-for a cine slice (:mod:`wss_nlp.parameters.cycle`): ``BIC = chi^2 + ln(N) dof`` with
-``chi^2 = sum_t sum_i |T_i a_t - u_{t,i}|^2_{Sigma_i^{-1}}`` (the per-voxel, per-component velocity noise of
-:func:`wss_nlp.vessel.velocity3d.velocity_noise`: venc and the magnitude's noise) and ``dof`` the smoother's
-trace ``3 sum_k tr((H + c lambda_k M)^{-1} K)``. The trace is exact: one generalized eigendecomposition
-``H X = M X diag(mu)``, ``X^T M X = I`` (:class:`_Spectrum`) gives
-``tr((H + c lambda_k M)^{-1} K) = sum_j d_j / (mu_j + c lambda_k)``, ``d = diag(X^T K X)``, and every mode's
-solution at every ``gamma`` from ``X^T hat r_k``; ``gamma`` runs over decades (:data:`GAMMAS`), then quarter
-decades about the best. The prior must beat the frames' own fits (``gamma = 0``, the same criterion) by
-:data:`wss_nlp.parameters.cycle.EVIDENCE`, as in 2D; otherwise the frames keep their own fits. Without the venc
-(no noise model) the criterion is generalized cross-validation over the cycle,
-``GCV = N sum_t sum_i w_i |T_i a_t - u_{t,i}|^2 / (N - dof)^2``, the smaller value winning. The chosen model, its
-criterion values, the curve over ``gamma`` and the margin go into the result's ``parameters['cycle']``
-(:meth:`CycleChoice.as_dict`) and one note.
+Over all ``N = 3 V n`` voxel values of the cycle, with ``chi^2 = sum_t sum_i |T_i a_t - u_{t,i}|^2_{Sigma_i^{-1}}``
+(the per-voxel, per-component velocity noise of :func:`wss_nlp.vessel.velocity3d.velocity_noise`: the venc and
+the magnitude's noise) and ``dof`` the smoother's trace ``3 sum_k tr((H + c lambda_k M)^{-1} K)``:
+
+* ``gamma`` minimizes the predictive risk (Mallows' ``C_p``, the unbiased predictive risk estimator)
+  ``chi^2 + 2 dof`` over decades (:data:`GAMMAS`), then quarter decades about the best;
+* the prior at that ``gamma`` competes with the frames' own fits (``gamma = 0``) by Schwarz's criterion
+  ``BIC = chi^2 + ln(N) dof``, as for a cine slice (:mod:`wss_nlp.parameters.cycle`), and must lead by
+  :data:`wss_nlp.parameters.cycle.EVIDENCE`; otherwise the frames keep their own fits.
+
+Why not the BIC for ``gamma`` too: its ``ln N`` per degree of freedom over-smooths a few frames' worth of
+harmonics. On a smooth 12-frame tube the BIC's ``gamma`` damped the fundamental and left the velocity error above
+the frames' own, where the predictive risk's gamma lowered it (``scripts/results/vessel_cycle_choice.md``).
+Without the venc (no noise model) both are generalized cross-validation over the cycle,
+``GCV = N sum_t sum_i w_i |T_i a_t - u_{t,i}|^2 / (N - dof)^2``, the smaller value winning.
+
+The trace is exact: one generalized eigendecomposition ``H X = M X diag(mu)``, ``X^T M X = I``
+(:class:`_Spectrum`) gives ``tr((H + c lambda_k M)^{-1} K) = sum_j d_j / (mu_j + c lambda_k)``,
+``d = diag(X^T K X)``, and every mode's solution at every ``gamma`` from ``X^T hat r_k``; the chosen ``gamma``'s
+coefficients come from the banded solves. The chosen model, its criterion values, the curve over ``gamma`` and the
+margin go into the result's ``parameters['cycle']`` (:meth:`CycleChoice.as_dict`) and one note.
 
 What is not carried from 2D: each frame's own beta (one beta serves the cycle: the rigid wall's one
 factorization; with per-frame betas the DFT would not decouple the frames), and the momentum balance
