@@ -197,3 +197,22 @@ def test_the_summary_names_the_cycle_model():
     assert "periodic temporal prior, gamma 0.05" in line and "margin 40" in line
     assert "each frame's own fit" in c3.summary(c3.CycleChoice("frames", how="forced").as_dict(), 20)
     assert "not recorded" in c3.summary(None, 20) and "one frame" in c3.summary(None, 1)
+
+
+def test_a_reconstructed_cine_records_its_cycle_model_and_analyze_names_it(cine, tmp_path, capsys):
+    """The whole route with the default options: the cycle model in the result's parameters and notes, read back
+    from the file by ``analyze``."""
+    from wss_nlp.app.cli.main import main
+
+    res = vrec.reconstruct_vessel(cine["vol"], vrec.VesselOptions(n_phi=16))
+    record = res.parameters["cycle"]
+    assert record["model"] in ("temporal", "frames") and record["criterion"] == "bic"
+    assert set(record["values"]) == {"frames", "temporal"} and record["curve"]
+    assert any(note.startswith("velocity over the cycle:") for note in res.notes)
+    path = tmp_path / "result.h5"
+    vrec.write_result(path, res, mode="w")
+    capsys.readouterr()
+    assert main(["analyze", str(path)]) == 0
+    out = capsys.readouterr().out
+    name = "periodic temporal prior" if record["model"] == "temporal" else "each frame's own fit"
+    assert f"velocity over the cycle: {name}" in out and "BIC" in out
