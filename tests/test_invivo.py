@@ -3,7 +3,6 @@
 import functools
 
 import numpy as np
-import pytest
 
 from wss_nlp.models import surround
 from wss_nlp.pipeline import ReconstructionOptions, reconstruct
@@ -188,9 +187,8 @@ def test_cine_pipeline_attaches_the_series_offset_to_every_frames_box():
     assert cine_mod.series_offsets(cine.frames, cine_mod.shared_boxes(cine.frames, off_opts), off_opts) == {}
 
 
-@pytest.mark.slow
 def test_cine_reconstruction_records_the_series_offset(tmp_path):
-    # end to end (about a minute): every frame subtracts the one offset and says so, the result file holds it
+    # end to end (about 3 s): every frame subtracts the one offset and says so, the result file holds it
     import json
 
     import h5py

@@ -248,9 +248,8 @@ def test_beyond_flow_keeps_a_slow_lumen_whole():
         assert not surround.beyond_flow(m, u, 1.0).any()
 
 
-@pytest.mark.slow
 def test_fat_touching_the_vessel_leaves_radius_and_wss_near_the_untouched_twins():
-    # the end-to-end claim (about 30 s): with four fat deposits pressed against the wall the default reconstruction
+    # the end-to-end claim (about 4 s): with four fat deposits pressed against the wall the default reconstruction
     # at h = 1 mm is as accurate as on the untouched twin (same seed, noise and scene otherwise), within issue 39's
     # allowance for tissue against air (WSS 1.3 x + 1 point, radius 1.5 x + 0.1 point). At h = 1.5 mm the voxels
     # that hold lumen, wall and fat at once are not modelled (their outside level is the tissue's): scripts/invivo.py
