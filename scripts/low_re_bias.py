@@ -25,8 +25,12 @@ an oracle, to attribute the bias, not a method); ``rician`` (each fitted voxel's
 its expected bias under Rician noise at the fitted geometry: :func:`expected_normalized`, with the phantom's complex
 noise level; a prototype here, not in the library); ``both``. Columns as above plus the WSS relative L2 error.
 
-    python scripts/low_re_bias.py [--part sources|levels] [--cases turbulent550] [--h 1.5,1.0] [--snr 10]
-        [--seeds 8] [--first-seed 300] [--families low_re,wall_law] [--name ...]
+``--part geometry``: the same correction on any phantom with the default options (``--cases laminar``: whether
+the other phantoms' rows would move): radius and WSS relative L2 errors and the mean WSS error.
+
+    python scripts/low_re_bias.py [--part sources|levels|geometry] [--cases turbulent550] [--h 1.5,1.0] [--snr 10]
+        [--seeds 8] [--first-seed 300] [--families low_re,wall_law]
+        [--variants base,lumen,rician,both] [--paired] [--name ...]
 """
 
 import collections
@@ -193,27 +197,36 @@ VARIANTS = ("base", "lumen", "rician", "both")
 
 
 def levels(args, seeds) -> list[str]:
+    variants = args.variants.split(",")
     lines = [
-        f"Development seeds {seeds[0]}-{seeds[-1]}, `--near-wall <family>`, as acquired; mean +- standard error "
-        "over the seeds. base: the default; lumen: the normalization's lumen level m1 from the noise-free image "
-        "(an oracle); rician: the dephasing pass's geometry data corrected by their expected Rician bias at the "
-        "fitted geometry (prototype in this script); both.",
+        f"Seeds {seeds[0]}-{seeds[-1]}, `--near-wall <family>`, as acquired; mean +- standard error over the seeds. "
+        "base: the default; lumen: the normalization's lumen level m1 from the noise-free image (an oracle); "
+        "rician: the dephasing pass's geometry data corrected by their expected Rician bias at the fitted geometry "
+        "(prototype in this script, with the phantom's complex noise level); both."
+        + (
+            " Paired: the difference of the WSS relative L2 error of the two families on the same draws (first - "
+            "second, points, mean +- standard error) and on how many seeds the first was better."
+            if args.paired
+            else ""
+        ),
         "",
         "| phantom | h [mm] | SNR | family | geometry data | l / l_true | R / R_true | mean WSS error | "
         "WSS rel. L2 error |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
+    families = args.families.split(",")
     for case in args.cases.split(","):
         for h in (float(x) for x in args.h.split(",")):
             for snr in (float(s) for s in args.snr.split(",")):
-                for family in args.families.split(","):
+                errors: dict = {}
+                for family in families:
                     opts = _options(family)
                     rows: dict = collections.defaultdict(lambda: collections.defaultdict(list))
                     for seed in seeds:
                         acq, truth = phantoms.make_phantom(case, h_mm=h, snr=snr, seed=seed)
                         clean, _ = phantoms.make_phantom(case, h_mm=h, snr=None, seed=seed)
                         m1_clean = pp.histogram_peaks(clean.magnitude[0]).m1
-                        for variant in VARIANTS:
+                        for variant in variants:
                             LEVEL.clear()
                             RICIAN.clear()
                             if variant in ("lumen", "both"):
@@ -225,27 +238,67 @@ def levels(args, seeds) -> list[str]:
                                 rows[variant][q].append(r[q])
                         LEVEL.clear()
                         RICIAN.clear()
-                    for variant in VARIANTS:
+                    for variant in variants:
                         r = rows[variant]
+                        errors[family, variant] = np.asarray(r["E"])
                         lines.append(
                             f"| {case} | {h:g} | {snr:g} | {family} | {variant} | {_pm(r['l'])} | {_pm(r['R'])} | "
                             f"{_pm(r['W'], 100, '+.2f')} % | {_pm(r['E'], 100, '.2f')} % |"
                         )
                         print(lines[-1], flush=True)
+                if args.paired and len(families) == 2:
+                    for variant in variants:
+                        d = errors[families[0], variant] - errors[families[1], variant]
+                        lines.append(
+                            f"| {case} | {h:g} | {snr:g} | {families[0]} - {families[1]} | {variant} | | | | "
+                            f"{_pm(d, 100, '+.2f')} ({int(np.sum(d < 0))}/{d.size} better) |"
+                        )
+                        print(lines[-1], flush=True)
+    return lines
+
+
+def geometry(args, seeds) -> list[str]:
+    lines = [
+        f"Seeds {seeds[0]}-{seeds[-1]}, default options; mean over the seeds. base: as the library does it; rician: "
+        "the dephasing pass's geometry data corrected by their expected Rician bias (as in --part levels).",
+        "",
+        "| phantom | h [mm] | SNR | geometry data | radius rel. L2 error | WSS rel. L2 error | mean WSS error |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for case in args.cases.split(","):
+        for h in (float(x) for x in args.h.split(",")):
+            for snr in (float(s) for s in args.snr.split(",")):
+                out: dict = {"base": [], "rician": []}
+                for seed in seeds:
+                    acq, truth = phantoms.make_phantom(case, h_mm=h, snr=snr, seed=seed)
+                    for variant, values in out.items():
+                        RICIAN.clear()
+                        if variant == "rician":
+                            RICIAN["sigma"] = 1.0 / snr
+                        res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+                        cmp = metrics.compare_slice(res, truth)
+                        values.append((cmp.radius_rel_l2, cmp.wss_rel_l2, cmp.mean_wss_rel))
+                    RICIAN.clear()
+                for variant, values in out.items():
+                    r, e, w = 100 * np.mean(values, axis=0)
+                    lines.append(f"| {case} | {h:g} | {snr:g} | {variant} | {r:.3f} % | {e:.2f} % | {w:+.2f} % |")
+                    print(lines[-1], flush=True)
     return lines
 
 
 def main(argv=None) -> None:
     p = study_parser(__doc__, seeds=8, h="1.5,1.0", snr="10")
     p.set_defaults(cases="turbulent550")
-    p.add_argument("--part", choices=("sources", "levels"), default="sources")
+    p.add_argument("--part", choices=("sources", "levels", "geometry"), default="sources")
     p.add_argument("--first-seed", type=int, default=300, help="development seeds 300..; 100-109 are the report's")
     p.add_argument("--families", default="low_re,wall_law", help="the --near-wall families compared")
+    p.add_argument("--variants", default=",".join(VARIANTS), help="--part levels: the geometry data compared")
+    p.add_argument("--paired", action="store_true", help="--part levels: paired rows for two families")
     p.add_argument("--name", default=None, help="file name of the table in --out")
     args = p.parse_args(argv)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     t0 = time.perf_counter()
-    lines = {"sources": sources, "levels": levels}[args.part](args, seeds)
+    lines = {"sources": sources, "levels": levels, "geometry": geometry}[args.part](args, seeds)
     made = "Made by `python scripts/low_re_bias.py" + "".join(f" {a}" for a in (argv or sys.argv[1:])) + "`."
     lines = [made, ""] + lines + ["", f"({time.perf_counter() - t0:.0f} s)"]
     write_report(args.out, args.name or f"low_re_bias_{args.part}.md", lines)
