@@ -3,8 +3,9 @@
 
 At Re_tau 549 and SNR 10 the default (``low_re``) chose a layer scale ``l`` 1.0-1.3 % below the DNS's viscous
 length ``R/Re_tau`` (``scripts/results/low_re_scale.md``, report seeds 100-107), and its mean WSS came out 2-3 %
-high, while ``wall_law``'s scale looked unbiased. This script separates the ways the noise reaches ``l``. The
-report seeds (100-109) are not used: the default seeds here are 300.. (``--first-seed``).
+high, while ``wall_law``'s scale looked unbiased. This script separates the ways the noise reaches ``l``. Its
+default seeds are development seeds 300.. (``--first-seed``); the report seeds 100-109 served once, for the check
+of the correction below (``low_re_bias_report*.md``).
 
 ``--part sources`` (default): for each family (``--near-wall low_re`` and ``wall_law``) and seed, four
 reconstructions of the same phantom (same sub-voxel offset):
@@ -23,7 +24,9 @@ true one, and the signed error of the mean WSS, mean +- standard error over the 
 ``lumen`` (the normalization's lumen level ``m1``, Appendix B's histogram peak, replaced by the noise-free image's:
 an oracle, to attribute the bias, not a method); ``rician`` (each fitted voxel's normalized magnitude corrected by
 its expected bias under Rician noise at the fitted geometry: :func:`expected_normalized`, with the phantom's complex
-noise level; a prototype here, not in the library); ``both``. Columns as above plus the WSS relative L2 error.
+noise level; a prototype here, not in the library, applied to the dephasing pass's data, so it acts only on slices
+that get a dephasing pass); ``both``. Columns as above plus the WSS relative L2 error; ``--paired`` (two families)
+adds the paired difference of their WSS errors on the same draws.
 
 ``--part geometry``: the same correction on any phantom with the default options (``--cases laminar``: whether
 the other phantoms' rows would move): radius and WSS relative L2 errors and the mean WSS error.
