@@ -13,7 +13,8 @@ region: its ``s`` interval and angle sector from the centreline record; those vo
 fits), :data:`FLAG_NOT_VISIBLE` (the centreline less than one radius inside the field of view: part of the
 cross-section is cut), :data:`FLAG_BORDER` (the wall point within ``border_mm``, default one voxel, of the field
 of view's faces), :data:`FLAG_UNRESOLVED` (the wall's box constraint active nearby, a solver that did not converge,
-or a radius below one voxel). A wall point with no flag is "covered".
+a radius below one voxel, or a wall so far from round that the velocity's map capped its inner radius there:
+:data:`wss_nlp.vessel.velocity3d.MAX_INNER_RATIO`). A wall point with no flag is "covered".
 
 Result file (:meth:`VesselResult.write`, :meth:`VesselResult.read`): an HDF5 group ``vessel/`` (or
 ``baseline/``) with lengths in mm, stresses in Pa, vectors in the world frame of the volume's affine:
@@ -501,6 +502,10 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     bar.close()
     seconds["total"] = time.perf_counter() - t_all
     notes.append("walls rigid: one wall from the time-mean magnitude serves every frame")
+    if vp.basis.capped:
+        notes.append("velocity map: the wall is far from round at s in " + ", ".join(
+            f"[{a:.1f}, {b:.1f}]" for a, b in vp.basis.capped) + " mm; the map's inner radius is capped there and "
+            "the wall points are flagged unresolved")  # fmt: skip
     statuses = {"geometry": g3.stats_dicts(geometry.stats),
                 "velocity": {"beta_rule": velocity.beta_choice.rule,
                              "residual_m_s": velocity.residual_norm}}  # fmt: skip
@@ -512,7 +517,7 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
         "zernike_degree": vp.basis.disk.degree, "zernike_angular_order": vp.basis.disk.max_order,
         "fitted_range_mm": list(s_range), "levels": levels.as_dict(),
         "geometry_options": geometry.options, "velocity_options": dict(vars(options.velocity)),
-        "offset": inputs.offset,
+        "offset": inputs.offset, "inner_capped_mm": [list(v) for v in vp.basis.capped],
     }  # fmt: skip
     log.info("vessel: %d x %d wall points, %d frames, %.0f %% covered, %.1f s", ns, nph, vol.nt,
              100 * float(np.mean(flags == 0)), seconds["total"])  # fmt: skip
@@ -547,6 +552,8 @@ def _flags(s, phi, wall, radius, geometry, velocity, record, exclude, vol, optio
             near_s = np.abs(s - geometry.box_s[a]) <= ds_box
             near_p = np.abs(np.angle(np.exp(1j * (phi - geometry.box_phi[b])))) <= dphi_box
             unresolved |= near_s[:, None] & near_p[None, :]
+    for a, b in velocity.basis.capped:  # the velocity's map needed its inner radius capped: a wall far from round
+        unresolved[(s >= a) & (s <= b)] = True
     if not all(st.converged for st in geometry.stats):
         unresolved[:] = True
     flags[unresolved] |= FLAG_UNRESOLVED
