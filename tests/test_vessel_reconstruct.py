@@ -569,21 +569,41 @@ def test_a_wall_far_from_round_caps_the_maps_inner_radius_there_only():
     assert np.array_equal(vb0.inner, round_basis.matrix(round_wall.coefficients)[:, 0])
 
 
-def test_wall_points_where_the_inner_radius_was_capped_are_flagged_unresolved():
+def _flags_of(radius, capped):
+    """:func:`reconstruct._flags` of a wall of these radii on s = 0..40 mm (1 mm apart) at h = 2 mm, well inside the
+    field of view, with converged solvers, no active box row, the velocity map's inner radius capped on ``capped``."""
     from types import SimpleNamespace
 
     s = np.linspace(0.0, 40.0, 41)
     phi = np.linspace(-np.pi, np.pi, 16, endpoint=False)
-    radius = np.full((s.size, phi.size), 3.0)
     wall = np.stack(np.meshgrid(s, phi, indexing="ij"), axis=-1)
     wall = np.concatenate([np.full(wall.shape[:2] + (2,), 50.0), wall[..., :1]], axis=-1)  # x = y = 50, z = s
     geometry = SimpleNamespace(box_active=np.zeros((0, 0), bool), stats=[SimpleNamespace(converged=True)])
-    velocity = SimpleNamespace(basis=SimpleNamespace(capped=[(0.0, 6.0), (2.0, 8.0)]))
+    velocity = SimpleNamespace(basis=SimpleNamespace(capped=capped))
     affine = np.eye(4)
     affine[2, 3] = -20.0  # 1 mm voxels, the wall (z = s in [0, 40]) 20 mm or more inside every face
     vol = SimpleNamespace(affine_mm=affine, shape=(100, 100, 100))
     flags = vrec._flags(s, phi, wall, radius, geometry, velocity, {"visible": [(0.0, 40.0)]}, None, vol,
                         vrec.VesselOptions(), 2.0)  # fmt: skip
+    return s, flags
+
+
+def test_wall_points_where_the_inner_radius_was_capped_are_flagged_unresolved():
+    s, flags = _flags_of(np.full((41, 16), 4.0), [(0.0, 6.0), (2.0, 8.0)])  # 2 voxels' radius: resolved
     unresolved = np.any(flags & vrec.FLAG_UNRESOLVED, axis=1)
     assert np.array_equal(unresolved, s <= 8.0)
     assert not np.any(flags[s > 8.0])  # the rest covered: no other flag fires on this wall
+
+
+def test_a_radius_with_fewer_voxels_than_the_velocity_priors_free_modes_is_unresolved():
+    # the default basis (angular order 4) leaves 2 * 4 + 1 = 9 modes to the data: pi (R/h)^2 >= 9 voxels needs
+    # R >= sqrt(9 / pi) h = 1.693 h
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions()) == pytest.approx(np.sqrt(9 / np.pi), rel=1e-12)
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions(angular_order=2)) == pytest.approx(np.sqrt(5 / np.pi))
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions(angular_order=0)) == vrec.MIN_RADIUS_VOXELS  # the floor
+    radius = np.tile(np.linspace(2.0, 5.0, 41)[:, None], (1, 16))  # 1 to 2.5 voxels of 2 mm along the wall
+    s, flags = _flags_of(radius, [])
+    expected = radius < np.sqrt(9 / np.pi) * 2.0
+    assert expected.any() and not expected.all()
+    assert np.array_equal(flags == vrec.FLAG_UNRESOLVED, expected)
+    assert not np.any(flags[~expected])
