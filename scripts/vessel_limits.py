@@ -8,6 +8,8 @@
   stenosis' jet (1.36 m/s) sets the venc (1.78 m/s) at 3.6 times the speed upstream (0.5 m/s), where the other
   cases have 1.3. Beside it the arch at its default venc and at the taper's ratio (2.85 m/s), and the arch with
   ``l = h / 2`` (what a shorter smoothing length costs a vessel that needs none).
+* ``zones``: where on the taper's wall the error is (upstream, taper, stenosis, downstream), noise-free and at
+  SNR 20, with the wall's bias there.
 * ``small``: the carotid-sized tube (radius 3 mm) and the same centreline with radius 3.5 and 4 mm, at voxel sizes
   that give 1.2-2 voxels per radius, without and with tissue: the WSS error over the visible wall without the
   radius flag (``min_radius_voxels`` set to 1 voxel, what the reconstruction flagged before) and the coverage
@@ -16,7 +18,7 @@
 Per row: the WSS vector's relative L2 error over the covered visible wall, the wall's RMS distance over h, the
 coverage (``wss_nlp.vessel.metrics``), beta; mean over the seeds (one phantom per seed, SNR 20 unless noted).
 
-    python scripts/vessel_limits.py [--study taper,small] [--seeds 0,1] [--h 2.0,2.5]
+    python scripts/vessel_limits.py [--study taper,zones,small] [--seeds 0,1] [--h 2.0,2.5]
 
 Writes ``vessel_limits.md``.
 """
@@ -72,6 +74,53 @@ def _run(case, h, seed, snr=20, overrides=None, tissue=False, geo_l=None, vel_l=
         res.flags = res.flags | np.where(res.radius_mm < thr, vrec.FLAG_UNRESOLVED, 0).astype(np.uint8)
         out["flagged"] = accuracy(res, truth)
     return out
+
+
+#: Zones of the taper's centreline (mm): the 12 mm tube, the taper to 9 mm (tanh about 45 mm), the stenosis
+#: (Gaussian about 72 mm, width 6 mm), the 9 mm tube after it.
+ZONES = [("upstream", 0.0, 40.0), ("taper", 40.0, 60.0), ("stenosis", 60.0, 84.0), ("downstream", 84.0, 100.0)]
+
+
+def zones_study(seeds, hs) -> list[str]:
+    """Where on the taper's wall the WSS error is: per zone, its share of the squared error, the relative error and
+    the wall's signed distance (mean, mm; positive outside) and RMS."""
+    lines = [
+        "| data | h [mm] | zone | share of the squared error | WSS rel. error in the zone | wall bias [mm] "
+        "| wall RMS [mm] |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for h in hs:
+        for snr in (20, None):
+            parts = {z[0]: np.zeros(4) for z in ZONES}  # error^2, truth^2, area, area * distance^2 ... summed
+            bias = {z[0]: 0.0 for z in ZONES}
+            total = 0.0
+            for seed in seeds:
+                vol, truth = make_vessel_phantom("taper", h_mm=h, snr=snr, seed=seed)
+                inputs = vrec.vessel_inputs(vol)
+                res = vrec.reconstruct_vessel(vol, None, inputs.mask, inputs.centerline, inputs.record)
+                s_t, phi_t, dist = truth.locate(res.wall_mm.reshape(-1, 3), return_distance=True)
+                visible = np.zeros(s_t.size, bool)
+                for a, b in truth.visible:
+                    visible |= (s_t >= a) & (s_t <= b)
+                use = visible & (res.flags.ravel() == 0)
+                area = res.area_mm2.ravel()[use]
+                tau_true = truth.vessel.wss(s_t[use], phi_t[use], 0.0)
+                err2 = area * np.sum((res.wss_pa[0].reshape(-1, 3)[use] - tau_true) ** 2, axis=1)
+                true2 = area * np.sum(tau_true**2, axis=1)
+                total += float(err2.sum())
+                for name, lo, hi in ZONES:
+                    m = (s_t[use] >= lo) & (s_t[use] < hi)
+                    d = dist[use][m]
+                    parts[name] += [err2[m].sum(), true2[m].sum(), area[m].sum(), np.sum(area[m] * d**2)]
+                    bias[name] += float(np.sum(area[m] * d))
+            for name, _, _ in ZONES:
+                e2, t2, a, d2 = parts[name]
+                lines.append(
+                    f"| {'SNR 20' if snr else 'noise-free'} | {h:g} | {name} | {100 * e2 / total:.0f} % | "
+                    f"{100 * np.sqrt(e2 / t2):.1f} % | {bias[name] / a:+.3f} | {np.sqrt(d2 / a):.3f} |"
+                )
+                print(lines[-1], file=sys.stderr, flush=True)
+    return lines
 
 
 def _betas(runs) -> str:
@@ -138,6 +187,9 @@ def main() -> None:
     ]
     if "taper" in studies:
         lines += ["## The taper's misses", ""] + taper_study(seeds, [float(v) for v in args.h.split(",")]) + [""]
+    if "zones" in studies:
+        hs = [float(v) for v in args.h.split(",")]
+        lines += ["## The taper's WSS error by position", ""] + zones_study(seeds, hs) + [""]
     if "small" in studies:
         lines += ["## Small vessels: the radius in voxels", ""] + small_study(seeds)
     write_report(args.out, f"{args.name}.md", lines)
