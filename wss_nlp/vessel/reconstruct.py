@@ -72,8 +72,9 @@ def min_radius_voxels(velocity: v3.Velocity3DOptions) -> float:
     polynomial of order up to ``m`` free (``Delta^2`` kills them), so only the data fix them; a cross-section of
     radius ``R`` holds about ``pi (R / h)^2`` voxels. Below ``sqrt((2 m + 1) / pi)`` voxels (1.69 at the default
     ``m = 4``) it holds fewer voxels than free modes and the wall's velocity gradient follows the noise: on the
-    carotid-sized phantom (development seeds 0, 1, SNR 20, ``scripts/results/vessel_accuracy.md``) the WSS error
-    was 31-39 % at 1.5 voxels, 26 % at 1.75 and 15 % at 2, against 3-6 % at the aorta's 4-6 voxels.
+    carotid-sized phantom without tissue (development seeds 0, 1, SNR 20, ``scripts/results/vessel_limits_small.md``
+    by ``scripts/vessel_limits.py``) the WSS error was 55 % at 1.2 voxels, 35 % at 1.5, 24.5 % at 1.75 and 15-16 %
+    at 2, against 3-6 % at the aorta's 4-6 voxels (``scripts/results/vessel_accuracy.md``).
     """
     m = velocity.angular_order if velocity.angular_order is not None else velocity.degree
     return max(MIN_RADIUS_VOXELS, float(np.sqrt((2 * m + 1) / np.pi)))

@@ -88,8 +88,8 @@ GCV_PROBES = 12
 GCV_BETAS = 10.0 ** -np.arange(2.0, 10.01, 1.0)
 #: Largest ratio of the "mean" rule's inner radius to the smallest wall radius over a B-spline's support (module
 #: notes): the map's radial derivative at the wall ``2 R - r_in`` stays above ``R / 2``. A round wall has ratio 1;
-#: the phantoms' 12 x 9 mm ellipse 1.2, the stenosis over a wall B-spline's support (4 h) below 1.3, so the cap binds
-#: only on walls the map could not take otherwise (before it: a refusal).
+#: the phantoms' 12 x 9 mm ellipse 1.15, the taper's stenosis over a wall B-spline's support (4 h) 1.14 at h = 2 mm
+#: and 1.17 at 2.5 mm, so the cap binds only on walls far from round (before it, those beyond 2: a refusal).
 MAX_INNER_RATIO = 1.5
 
 
