@@ -50,7 +50,13 @@ def run(case, h, tissue, seed, frames=1, options=None, voxel=None) -> dict:
     return {"case": case, "h": h, "voxel": None if voxel is None else [float(v) for v in voxel],
             "tissue": tissue, "seed": seed, "frames": frames, "seconds": seconds,
             "ours": ours.as_dict(), "baseline": theirs.as_dict(), "beta": res.parameters["beta"],
+            "cycle": _cycle(res.parameters.get("cycle")),
             "statuses": [s["status"] for s in res.statuses["geometry"]]}  # fmt: skip
+
+
+def _cycle(record) -> dict | None:
+    """The cine's cycle model (wss_nlp.vessel.cycle3d) without its curve: model, gamma, criterion values."""
+    return None if record is None else {k: record.get(k) for k in ("model", "gamma", "how", "values", "margin")}
 
 
 def _save_rows(out: str, name: str, rows: list) -> None:

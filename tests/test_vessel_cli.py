@@ -166,6 +166,10 @@ def test_a_cine_wall_is_a_pvd_time_series_with_tawss_and_osi(cli_run, tmp_path):
                                circumferential_pa=scale[:, None, None] * one.circumferential_pa[0], time_ms=times,
                                tawss_pa=tawss, osi=osi,
                                axial_std_pa=np.repeat(one.axial_std_pa, 3, axis=0))  # fmt: skip
+    # the printed wall mean averages the frames (it once summed them: 1.75 times the first frame's here)
+    from wss_nlp.app.cli.vessel import covered_mean_wss
+
+    assert np.isclose(covered_mean_wss(cine), 1.75 / 3 * covered_mean_wss(one), rtol=1e-12)
     written = write_wall(cine, tmp_path / "wall.vtu")
     pvd = ET.parse(tmp_path / "wall.pvd").getroot()
     steps = [(float(d.get("timestep")), d.get("file")) for d in pvd.iter("DataSet")]

@@ -50,8 +50,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.files import DEFAULT_DENSITY
 from ..io.volume import VolumeAcquisition
+from ..pipeline.driver import blas_threads
 from . import band3d
+from . import cycle3d
 from . import geometry3d as g3
 from .centerline import distance_to_border, intervals
 from . import tube
@@ -68,6 +71,8 @@ FLAG_NAMES = {FLAG_BRANCH: "near a branch", FLAG_NOT_VISIBLE: "outside the visib
               FLAG_BORDER: "near the field of view's border", FLAG_UNRESOLVED: "unresolved"}  # fmt: skip
 #: A radius below this many voxels is unresolved, whatever the velocity basis (:func:`min_radius_voxels`).
 MIN_RADIUS_VOXELS = 1.0
+#: Bulk Reynolds number above which steady pipe flow may be transitional or turbulent (the classical 2300).
+TRANSITION_REYNOLDS = 2300.0
 
 
 def min_radius_voxels(velocity: v3.Velocity3DOptions) -> float:
@@ -111,6 +116,11 @@ class VesselOptions:
     offset_correction : bool
         Remove each velocity component's background offset, fitted on static tissue
         (:func:`wss_nlp.vessel.background.correct_volume`; nothing to do in a volume without static tissue).
+    cycle : str or float
+        The velocity over a cine's cycle (:mod:`wss_nlp.vessel.cycle3d`): "auto" (the periodic temporal prior
+        where the BIC prefers it to the frames' own fits, GCV without the venc), "frames" (each frame's own fit),
+        "temporal" (the prior, its weight by the criterion) or a number: the prior with that fixed weight gamma.
+        Command line: ``--cine-model auto|independent|temporal``.
     """
 
     geometry: g3.Geometry3DOptions = field(default_factory=g3.Geometry3DOptions)
@@ -123,8 +133,10 @@ class VesselOptions:
     viscosity_pa_s: float | None = None
     blas_threads: int = 1
     offset_correction: bool = True
+    cycle: str | float = "auto"
 
     def __post_init__(self):
+        cycle3d.check_setting(self.cycle)
         if self.n_phi < 8:
             raise InputError(f"n_phi must be >= 8, got {self.n_phi}")
         if self.s_spacing_mm is not None and not self.s_spacing_mm > 0:
@@ -302,18 +314,6 @@ def _jsonable(obj):
 
 
 # ------------------------------------------------------------------ helpers
-def blas_threads(n: int):
-    """A context limiting the BLAS to ``n`` threads (threadpoolctl; ``n = 0`` changes nothing). Small products
-    (the Hessians' blocks) run 10-50x slower with OpenBLAS's threads on a loaded 2-core machine."""
-    import contextlib
-
-    if n == 0:
-        return contextlib.nullcontext()
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=n, user_api="blas")
-
-
 def progress_bar(total: int, what: str):
     """A tqdm bar on stderr when it is a terminal, else nothing (the log has the steps)."""
     from tqdm import tqdm
@@ -506,6 +506,17 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
                      static_level=lambda s: np.interp(s, levels.s_mm, levels.static), exclude=exclude)  # fmt: skip
     velocity = v3.fit_velocity(vol, vp, options.velocity, levels=levels)
     seconds["velocity"] = time.perf_counter() - t0
+    times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
+    period = vol.cardiac_period_ms
+    cycle = None
+    if vol.nt > 1:
+        if period is None:  # frames equally spaced over one cycle, as a cine export has them
+            period = float(times[-1] - times[0] + np.mean(np.diff(times)))
+            notes.append(f"cardiac period not in the file: {period:.1f} ms assumed (the frames cover one cycle)")
+        t0 = time.perf_counter()
+        velocity, cycle = cycle3d.fit_cycle(vol, vp, velocity, options.cycle, times, period, levels)
+        seconds["cycle"] = time.perf_counter() - t0
+        notes.append(cycle.note())
     bar.update()
     t0 = time.perf_counter()
     s, phi = wss3d.wall_grid(s_range, h, options.n_phi, options.s_spacing_mm)
@@ -523,20 +534,17 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     axial_a = ev.axial.reshape(vol.nt, ns, nph)
     circ_a = ev.circumferential.reshape(vol.nt, ns, nph)
     planes = plane_table(centerline, geometry, velocity, s, phi, radius, wss, axial_a, flags)
+    note = reynolds_note(planes, mu, vol.density_kg_m3, times)
+    if note:
+        notes.append(note)
     t0 = time.perf_counter()
-    with blas_threads(options.blas_threads):  # again: a limit set before SciPy's BLAS was loaded misses it
-        axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
-            geometry, s, phi, radius), area, flags, mu)  # fmt: skip
+    axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
+        geometry, s, phi, radius), area, flags, mu)  # fmt: skip
     if not band.get("available"):
         notes.append(band["note"])
     seconds["band"] = time.perf_counter() - t0
-    times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
     tawss = osi = None
     if vol.nt > 1:
-        period = vol.cardiac_period_ms
-        if period is None:  # frames equally spaced over one cycle, as a cine export has them
-            period = float(times[-1] - times[0] + np.mean(np.diff(times)))
-            notes.append(f"cardiac period not in the file: {period:.1f} ms assumed (the frames cover one cycle)")
         tawss, osi = cycle_indices(wss, times, period)
     bar.update()
     bar.close()
@@ -558,6 +566,7 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
         "fitted_range_mm": list(s_range), "levels": levels.as_dict(),
         "geometry_options": geometry.options, "velocity_options": dict(vars(options.velocity)),
         "offset": inputs.offset, "inner_capped_mm": [list(v) for v in vp.basis.capped],
+        "cycle": None if cycle is None else cycle.as_dict(),
     }  # fmt: skip
     log.info("vessel: %d x %d wall points, %d frames, %.0f %% covered, %.1f s", ns, nph, vol.nt,
              100 * float(np.mean(flags == 0)), seconds["total"])  # fmt: skip
@@ -675,13 +684,42 @@ def plane_table(centerline, geometry, velocity, s, phi, radius, wss, axial, flag
     for k in range(nt):
         u = basis.evaluate(velocity.coefficients[k], ss, r * (1 - 1e-12), pp)  # (m, 3)
         along = np.sum(u.reshape(ns, n_rho, nph, 3) * t[:, None, None, :], axis=-1)
-        flow[k] = np.einsum("inj,n->i", along * jac.reshape(ns, n_rho, nph), wr) * dphi * 1e-3  # mm^2 m/s -> mL/s
+        flow[k] = np.einsum("inj,n->i", along * jac.reshape(ns, n_rho, nph), wr) * dphi  # mm^2 m/s = 1e-6 m^3/s = mL/s
     weights = ring_weights(geometry, s, phi, radius)
     mean_wss = np.einsum("tij,ij->ti", np.linalg.norm(wss, axis=-1), weights)
     mean_axial = np.einsum("tij,ij->ti", axial, weights)
     ring = np.bitwise_or.reduce(flags, axis=1)
     return {"s_mm": s, "area_mm2": area, "flow_ml_s": flow, "mean_wss_pa": mean_wss, "mean_axial_pa": mean_axial,
             "flags": ring.astype(np.uint8)}  # fmt: skip
+
+
+def bulk_reynolds(planes: dict, mu: float, density_kg_m3: float) -> np.ndarray:
+    r"""The bulk Reynolds number ``Re = rho U D / mu`` per frame and plane ``(nt, ns)``: ``U = Q / A`` the mean
+    velocity through the plane (``planes['flow_ml_s']``, ``planes['area_mm2']``), ``D = 2 sqrt(A / pi)`` its
+    equivalent diameter; ``|Q|`` (reverse flow counts alike)."""
+    area_m2 = np.asarray(planes["area_mm2"], float) * 1e-6
+    u = np.abs(np.asarray(planes["flow_ml_s"], float)) * 1e-6 / np.maximum(area_m2, 1e-300)
+    return density_kg_m3 * u * 2.0 * np.sqrt(area_m2 / np.pi) / mu
+
+
+def reynolds_note(planes: dict, mu: float, density_kg_m3: float | None, times_ms) -> str | None:
+    """A note when the flow may be transitional or turbulent: the median over the unflagged planes of the bulk
+    Reynolds number (:func:`bulk_reynolds`) above :data:`TRANSITION_REYNOLDS` in some frame. The volume route fits
+    the plain basis (no near-wall models for volumes), which underestimates a wall layer thinner than the voxels."""
+    rho = DEFAULT_DENSITY if density_kg_m3 is None else float(density_kg_m3)
+    keep = np.asarray(planes["flags"]) == 0
+    if not np.any(keep):
+        return None
+    re = np.median(bulk_reynolds(planes, mu, rho)[:, keep], axis=1)
+    k = int(np.argmax(re))
+    if not re[k] > TRANSITION_REYNOLDS:
+        return None
+    when = f" at {float(np.asarray(times_ms)[k]):g} ms" if re.size > 1 else ""
+    source = "stated" if density_kg_m3 is not None else "assumed (blood's)"
+    return (f"bulk Reynolds number {re[k]:.0f}{when} (median over the planes; density {rho:g} kg/m^3 {source}) is "
+            f"above {TRANSITION_REYNOLDS:.0f}: the flow may be transitional or turbulent, and a wall layer thinner "
+            "than the voxels is not resolved by the volume route (no near-wall models for volumes): its WSS may be "
+            "underestimated there")
 
 
 def ring_weights(geometry, s, phi, radius) -> np.ndarray:

@@ -38,6 +38,7 @@ VOLUME_OPTIONS = {
     "velocity.laplacian_power": "velocity.laplacian_power",
     "velocity.inner_fraction": "velocity.inner_fraction",
     "tissue.offset_correction": "offset_correction (--no-offset-correction: keep the background offset)",
+    "cine.model": "cycle (auto, independent -> frames, temporal; momentum is refused: not for curved vessels)",
 }
 
 
@@ -66,6 +67,17 @@ def _number(flag: str, value) -> float:
     if not out > 0:
         raise InputError(f"{flag} {value}: must be > 0")
     return out
+
+
+def _cycle_model(flag: str, value) -> str:
+    """``--cine-model`` for a cine volume: the cycle models of :mod:`wss_nlp.vessel.cycle3d`."""
+    if value == "momentum":
+        raise InputError(
+            f"{flag} momentum: the momentum balance (Womersley) is not carried to 4D flow volumes: its profiles are "
+            "those of fully developed flow in a straight pipe, which curvature, taper and swirl break; use auto, "
+            "temporal or independent"
+        )
+    return {"independent": "frames"}.get(str(value), str(value))
 
 
 def vessel_options(args):
@@ -109,6 +121,8 @@ def vessel_options(args):
             vel["inner_fraction"] = _number(flag, value)
         elif path == "tissue.offset_correction":
             top["offset_correction"] = bool(value)
+        elif path == "cine.model":
+            top["cycle"] = _cycle_model(flag, value)
     base = VesselOptions()
     return dataclasses.replace(
         base,
@@ -176,8 +190,7 @@ def reconstruct_volume(args) -> int:
     cov = float(np.sum(area[covered]) / np.sum(area[visible])) if np.any(visible) else 0.0
     counts = {name: int(np.count_nonzero(result.flags & bit)) for bit, name in FLAG_NAMES.items()}
     flagged = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
-    mag = np.linalg.norm(result.wss_pa, axis=-1)
-    mean_wss = float(np.sum(mag[:, covered] * area[covered]) / max(np.sum(area[covered]), 1e-300))
+    mean_wss = covered_mean_wss(result)
     print(
         f"vessel: {result.centerline.length_mm:.1f} mm of centreline, wall {result.s_mm.size} x {result.phi.size} "
         f"points, {100 * cov:.1f} % of the visible wall's area covered" + (f" (flagged: {flagged})" if flagged else "")
@@ -192,6 +205,14 @@ def reconstruct_volume(args) -> int:
     if args.figures:
         print(f"figures in {args.figures}")
     return 0
+
+
+def covered_mean_wss(result) -> float:
+    """Mean ``|tau|`` (Pa) over the covered wall, area-weighted, averaged over the frames."""
+    covered = result.covered
+    area = result.area_mm2[covered]
+    mag = np.linalg.norm(result.wss_pa, axis=-1)[:, covered]
+    return float(np.mean(mag @ area) / max(float(np.sum(area)), 1e-300))
 
 
 def is_vessel_result(path: str) -> bool:
@@ -222,6 +243,7 @@ def export_volume(args) -> int:
 
 def analyze_volume(args) -> int:
     """``wss-nlp analyze RESULT`` for a vessel result: how alpha and beta were chosen, the solvers' statuses."""
+    from ...vessel import cycle3d
     from ...vessel.reconstruct import read_result
 
     if args.figures:
@@ -234,6 +256,7 @@ def analyze_volume(args) -> int:
         print(f"  wall solve {k}: {g.get('status')} ({g.get('iterations')} iterations)")
     vel = st.get("velocity", {})
     print(f"velocity: beta {p.get('beta')} by {vel.get('beta_rule')}, residual {vel.get('residual_m_s')} m/s")
+    print(cycle3d.summary(p.get("cycle"), res.nt))
     for name, sec in res.seconds.items():
         print(f"  {name}: {float(sec):.1f} s")
     print(band_summary(res))
