@@ -757,3 +757,68 @@ def test_a_cine_band_keeps_each_frames_noise_independent(small_band):
 def _tau(b):
     ev = wss3d.wall_wss(b["problem"].centerline, b["geometry"], b["vel"], b["ss"], b["pp"], mu=MU, pieces=b["pieces"])
     return ev.tau.reshape(*b["shape"], 3)
+
+
+def test_the_band_under_the_temporal_prior_matches_monte_carlo_refits(small_band, small_wall):
+    """Four frames (the fit's data times 1, 0.5, -0.3, 0.8) tied by the temporal prior (gamma 3, which takes the
+    band at a wall point to about 0.6 of the frames' own): K = 300 re-fits through the prior with fresh voxel noise
+    in every frame (seeded). The sample std of the axial WSS at every wall point and frame and of the wall's mean
+    |tau| over the frames (the frames' noise now correlated) lie within the chi-square tolerance of the prediction
+    (4.5 / sqrt(2 (K - 1)) = 0.18); d mean / d beta equals central differences of re-solves through the prior
+    (1e-4, as for one frame); gamma -> 0 gives the frames' own band back (the eigenvector route: 1e-5)."""
+    import dataclasses
+
+    from wss_nlp.vessel import cycle3d
+
+    b = small_band
+    vel, vp = b["vel"], b["vel"].problem
+    u = v3.voxel_velocities(b["vol"], vp)[0]
+    scale = np.array([1.0, 0.5, -0.3, 0.8])
+    n, k, gamma = scale.size, 300, 3.0
+    mass = cycle3d.mass_gram(vp)
+    prior = band3d.TemporalPrior(gamma, mass)
+
+    def fit(data, beta=vel.beta):  # data (n, V, 3 m) -> coefficients (n, size, 3 m)
+        rhs = np.stack([vp.rhs(data[t]) for t in range(n)])
+        with vrec.blas_threads(1):
+            return cycle3d.solve_prior(vp, beta, gamma, rhs, mass)
+
+    def wall(coef):  # (frames, size, 3) -> WallEvaluation
+        return wss3d.wall_wss(b["problem"].centerline, small_wall, dataclasses.replace(vel, coefficients=coef),
+                              b["ss"], b["pp"], mu=MU, pieces=b["pieces"])  # fmt: skip
+
+    clean = fit(scale[:, None, None] * u[None])
+    tau = wall(clean).tau.reshape(n, *b["shape"], 3)
+    tied = dataclasses.replace(vel, coefficients=clean)
+    with vrec.blas_threads(1):
+        band = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU, prior)
+        alone = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU)
+        near0 = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU,
+                                   band3d.TemporalPrior(1e-9, mass))  # fmt: skip
+    assert np.allclose(near0.axial_std_pa, alone.axial_std_pa, rtol=1e-5)
+    assert near0.mean_std_pa == pytest.approx(alone.mean_std_pa, rel=1e-5)
+    assert np.median(band.axial_std_pa / alone.axial_std_pa) < 0.8  # the prior matters here
+    rng = np.random.default_rng(12)
+    noise = rng.standard_normal((n, k, *u.shape)) * b["sigma"][None, None]
+    data = (scale[:, None, None, None] * u[None, None] + noise).transpose(0, 2, 1, 3).reshape(n, u.shape[0], 3 * k)
+    coef = fit(data).reshape(n, vp.size, k, 3)
+    axial = np.empty((n, k, b["ss"].size))
+    means = np.zeros(k)
+    for t in range(n):
+        ev = wall(coef[t].transpose(1, 0, 2))
+        axial[t] = ev.axial
+        means += np.linalg.norm(ev.tau, axis=2) @ b["area"].ravel() / n
+    tol = 4.5 / np.sqrt(2 * (k - 1))
+    ratio = axial.std(axis=1, ddof=1) / band.axial_std_pa.reshape(n, -1)
+    assert np.all(np.abs(ratio - 1) < tol), (ratio.min(), ratio.max())
+    wall_ratio = means.std(ddof=1) / band.mean_std_pa
+    assert abs(wall_ratio - 1) < tol, wall_ratio
+
+    def mean_at(beta):  # the wall mean over the frames of the prior's fit at this beta
+        mag = np.linalg.norm(wall(fit(scale[:, None, None] * u[None], beta)).tau, axis=2)  # (n, points)
+        return float(np.mean(mag @ b["area"].ravel()))
+
+    assert mean_at(vel.beta) == pytest.approx(band.mean_pa, rel=1e-12)
+    eps = 1e-3
+    fd = (mean_at(vel.beta * (1 + eps)) - mean_at(vel.beta * (1 - eps))) / (2 * eps * vel.beta)
+    assert band.d_mean_d_beta == pytest.approx(fd, rel=1e-4) and band.d_mean_d_beta != 0

@@ -538,8 +538,10 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     if note:
         notes.append(note)
     t0 = time.perf_counter()
+    prior = None if cycle is None or cycle.model != "temporal" else band3d.TemporalPrior(
+        cycle.gamma, cycle3d.mass_gram(vp))  # fmt: skip
     axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
-        geometry, s, phi, radius), area, flags, mu)  # fmt: skip
+        geometry, s, phi, radius), area, flags, mu, prior)  # fmt: skip
     if not band.get("available"):
         notes.append(band["note"])
     seconds["band"] = time.perf_counter() - t0
@@ -594,7 +596,8 @@ class VesselFits:
     mu: float
 
 
-def wall_band(vol, velocity, levels, pieces, wss, ring_w, area, flags, mu) -> tuple[np.ndarray, np.ndarray, dict]:
+def wall_band(vol, velocity, levels, pieces, wss, ring_w, area, flags, mu,
+              prior: band3d.TemporalPrior | None = None) -> tuple[np.ndarray, np.ndarray, dict]:  # fmt: skip
     """The band of :mod:`wss_nlp.vessel.band3d` on a reconstruction's pieces: ``(wss/axial_std_pa,
     planes/mean_wss_std_pa, the band's record)``; NaN with a note in the record where it cannot be computed (no
     venc: the velocity noise needs it; none is invented)."""
@@ -607,7 +610,7 @@ def wall_band(vol, velocity, levels, pieces, wss, ring_w, area, flags, mu) -> tu
     area_w = covered / total if total > 0 else covered
     sigma = v3.velocity_noise(vol, velocity.problem, levels)
     try:
-        b = band3d.vessel_band(pieces, velocity, sigma, wss, ring_w, area_w, mu)
+        b = band3d.vessel_band(pieces, velocity, sigma, wss, ring_w, area_w, mu, prior)
     except ValueError as exc:
         return band3d.unavailable(nt, ns, nph, f"no uncertainty band: {exc}")
     return b.axial_std_pa, b.plane_mean_std_pa, b.record()
@@ -716,10 +719,12 @@ def reynolds_note(planes: dict, mu: float, density_kg_m3: float | None, times_ms
         return None
     when = f" at {float(np.asarray(times_ms)[k]):g} ms" if re.size > 1 else ""
     source = "stated" if density_kg_m3 is not None else "assumed (blood's)"
-    return (f"bulk Reynolds number {re[k]:.0f}{when} (median over the planes; density {rho:g} kg/m^3 {source}) is "
-            f"above {TRANSITION_REYNOLDS:.0f}: the flow may be transitional or turbulent, and a wall layer thinner "
-            "than the voxels is not resolved by the volume route (no near-wall models for volumes): its WSS may be "
-            "underestimated there")
+    return (
+        f"bulk Reynolds number {re[k]:.0f}{when} (median over the planes; density {rho:g} kg/m^3 {source}) is "
+        f"above {TRANSITION_REYNOLDS:.0f}: the flow may be transitional or turbulent, and a wall layer thinner "
+        "than the voxels is not resolved by the volume route (no near-wall models for volumes): its WSS may be "
+        "underestimated there"
+    )
 
 
 def ring_weights(geometry, s, phi, radius) -> np.ndarray:
