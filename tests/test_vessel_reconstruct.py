@@ -536,6 +536,95 @@ def test_the_wall_pieces_give_the_point_graph_wss(small_problem, small_wall):
     assert np.allclose(fast.x, full.x, atol=1e-12) and np.allclose(fast.normal, full.normal, atol=1e-14)
 
 
+# ------------------------------------------------------------------ the velocity map on a wall far from round
+def _stand_in_wall(squash: float):
+    """A fitted wall stand-in (what :func:`velocity3d.velocity_basis` reads): round, radius 3 mm, on s in [0, 40] mm,
+    its first 6 mm an ellipse of semi-axes ``3 + squash`` and ``3 - squash`` (mean radius about 3 mm, the smallest
+    ``3 - squash``), as the loose end of a carotid's fit was (the reported carotid row, h = 2 mm, crashed on it)."""
+    from types import SimpleNamespace
+
+    basis = tube.WallBasis(tube.SplineBasis(0.0, 40.0, 2.0), 2)
+    s = np.linspace(0.0, 40.0, 161)
+    phi = np.linspace(-np.pi, np.pi, 48, endpoint=False)
+    ss, pp = np.meshgrid(s, phi, indexing="ij")
+    e = squash * (ss < 6.0)
+    a, b = 3.0 + e, 3.0 - e
+    radius = a * b / np.sqrt((b * np.cos(pp)) ** 2 + (a * np.sin(pp)) ** 2)
+    c = basis.fit(ss.ravel(), pp.ravel(), radius.ravel())
+    wall = SimpleNamespace(basis=basis, coefficients=c, s_range=(0.0, 40.0),
+                           radius=lambda s_, p_: basis.evaluate(c, s_, p_))  # fmt: skip
+    return wall, basis
+
+
+def test_a_wall_far_from_round_caps_the_maps_inner_radius_there_only():
+    opts = v3.Velocity3DOptions()
+    s = np.linspace(0.0, 40.0, 801)
+    phi = np.linspace(0.0, 2 * np.pi, 64, endpoint=False)
+    ss, pp = np.meshgrid(s, phi, indexing="ij")
+    # semi-axes 4.6 x 1.4 mm: the mean radius ~3.3 mm is more than twice the smallest, which the plain "mean"
+    # rule's map cannot take (before the cap: an InputError ending the whole vessel)
+    wall, basis = _stand_in_wall(1.6)
+    vb = v3.velocity_basis(wall, opts, h=2.0)
+    assert vb.capped and max(b for _, b in vb.capped) <= 6.0 + 8.0  # only B-splines reaching the squashed end
+    r_min = wall.radius(ss.ravel(), pp.ravel()).reshape(ss.shape).min(axis=1)
+    # what the map needs (one-to-one: r_in < 2 min R), and the cap's bound (a convex combination of capped
+    # coefficients), which holds on the cap's samples h/8 = 0.25 mm apart: between them this wall's radius
+    # (|R_ss| < 1.5 /mm on the squashed end) dips by at most 0.25^2 * 1.5 / 8 < 0.012 mm
+    assert np.all(vb.r_in(s) < 2 * r_min)
+    assert np.all(vb.r_in(s) <= v3.MAX_INNER_RATIO * (r_min + 0.012))
+    free = s > max(b for _, b in vb.capped)
+    plain = basis.spline.evaluate(basis.matrix(wall.coefficients)[:, 0], s)
+    assert np.array_equal(vb.r_in(s)[free], plain[free])  # elsewhere the "mean" rule's own inner radius
+    # the map is one-to-one and reaches the wall: rho = 1 at the wall on the capped part too
+    rho, _ = vb.reference(ss.ravel(), wall.radius(ss.ravel(), pp.ravel()), pp.ravel())
+    assert np.allclose(rho, 1.0, atol=1e-9)
+    # a round wall: nothing capped, the plain rule's coefficients exactly
+    round_wall, round_basis = _stand_in_wall(0.0)
+    vb0 = v3.velocity_basis(round_wall, opts, h=2.0)
+    assert vb0.capped == []
+    assert np.array_equal(vb0.inner, round_basis.matrix(round_wall.coefficients)[:, 0])
+
+
+def _flags_of(radius, capped):
+    """:func:`reconstruct._flags` of a wall of these radii on s = 0..40 mm (1 mm apart) at h = 2 mm, well inside the
+    field of view, with converged solvers, no active box row, the velocity map's inner radius capped on ``capped``."""
+    from types import SimpleNamespace
+
+    s = np.linspace(0.0, 40.0, 41)
+    phi = np.linspace(-np.pi, np.pi, 16, endpoint=False)
+    wall = np.stack(np.meshgrid(s, phi, indexing="ij"), axis=-1)
+    wall = np.concatenate([np.full(wall.shape[:2] + (2,), 50.0), wall[..., :1]], axis=-1)  # x = y = 50, z = s
+    geometry = SimpleNamespace(box_active=np.zeros((0, 0), bool), stats=[SimpleNamespace(converged=True)])
+    velocity = SimpleNamespace(basis=SimpleNamespace(capped=capped))
+    affine = np.eye(4)
+    affine[2, 3] = -20.0  # 1 mm voxels, the wall (z = s in [0, 40]) 20 mm or more inside every face
+    vol = SimpleNamespace(affine_mm=affine, shape=(100, 100, 100))
+    flags = vrec._flags(s, phi, wall, radius, geometry, velocity, {"visible": [(0.0, 40.0)]}, None, vol,
+                        vrec.VesselOptions(), 2.0)  # fmt: skip
+    return s, flags
+
+
+def test_wall_points_where_the_inner_radius_was_capped_are_flagged_unresolved():
+    s, flags = _flags_of(np.full((41, 16), 4.0), [(0.0, 6.0), (2.0, 8.0)])  # 2 voxels' radius: resolved
+    unresolved = np.any(flags & vrec.FLAG_UNRESOLVED, axis=1)
+    assert np.array_equal(unresolved, s <= 8.0)
+    assert not np.any(flags[s > 8.0])  # the rest covered: no other flag fires on this wall
+
+
+def test_a_radius_with_fewer_voxels_than_the_velocity_priors_free_modes_is_unresolved():
+    # the default basis (angular order 4) leaves 2 * 4 + 1 = 9 modes to the data: pi (R/h)^2 >= 9 voxels needs
+    # R >= sqrt(9 / pi) h = 1.693 h
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions()) == pytest.approx(np.sqrt(9 / np.pi), rel=1e-12)
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions(angular_order=2)) == pytest.approx(np.sqrt(5 / np.pi))
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions(angular_order=0)) == vrec.MIN_RADIUS_VOXELS  # the floor
+    radius = np.tile(np.linspace(2.0, 5.0, 41)[:, None], (1, 16))  # 1 to 2.5 voxels of 2 mm along the wall
+    s, flags = _flags_of(radius, [])
+    expected = radius < np.sqrt(9 / np.pi) * 2.0
+    assert expected.any() and not expected.all()
+    assert np.array_equal(flags == vrec.FLAG_UNRESOLVED, expected)
+    assert not np.any(flags[~expected])
+
+
 # ------------------------------------------------------------------ the band (velocity noise)
 @pytest.fixture(scope="module")
 def small_band(small_problem, small_wall):
