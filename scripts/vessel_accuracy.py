@@ -73,6 +73,12 @@ def _size(row: dict) -> str:
 
 def _fmt(values, scale=100.0, digits=1, suffix=" %") -> str:
     v = np.asarray(values, float) * scale
+    if not np.any(np.isfinite(v)):  # nothing covered on any seed (every wall point flagged): no error to measure
+        return "none covered"
+    if not np.all(np.isfinite(v)):
+        k = int(np.sum(np.isfinite(v)))
+        v = v[np.isfinite(v)]
+        return f"{np.mean(v):.{digits}f}{suffix} ({np.max(v):.{digits}f}; {k} of {np.size(values)} seeds covered)"
     return f"{np.mean(v):.{digits}f}{suffix} ({np.max(v):.{digits}f})"
 
 
