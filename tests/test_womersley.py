@@ -320,6 +320,34 @@ def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
         assert np.max(np.abs(v - own)) <= 1e-6 * np.max(np.abs(own))
 
 
+def test_temporal_prior_bounds_decide_without_changing_the_fit(monkeypatch):
+    """models.temporal.fit skips the trace where a lower bound of the criterion decides (_trace_floor): the same
+    best gamma, criterion and coefficients, bit for bit, as the search computing every trace (the margin made
+    infinite, so no bound decides); every recorded bound at most the criterion computed there; and the trace
+    bounds themselves below the traces (per-frame and gamma -> infinity bounds, four gammas): proven inequalities,
+    checked to a rounding slack of 1e-9 relative."""
+    from wss_nlp.models import temporal
+
+    problems = _prior_problems(6, 67)
+    betas = 10.0 ** np.array([-8.0, -6.0, -7.0, -5.0, -6.5, -7.5])
+    sigmas = [np.full(q.data.size, 0.01) for q in problems]
+    args = (problems, betas, sigmas, 1.0, float(np.log(sum(q.data.size for q in problems))))
+    fast = temporal.fit(*args)
+    monkeypatch.setattr(temporal, "_FLOOR_MARGIN", np.inf)
+    full = temporal.fit(*args)
+    assert fast.gamma == full.gamma and fast.bic == full.bic and fast.dof == full.dof
+    assert np.array_equal(fast.coefficients, full.coefficients)
+    assert not full.bounds and set(fast.curve) | set(fast.bounds) == set(full.curve)
+    for gamma, bound in fast.bounds.items():
+        assert bound <= full.curve[gamma] * (1 + 1e-9)
+    system = temporal._System(problems, betas)
+    floor = temporal._trace_floor(system)
+    for gamma in (1e-4, 1e-2, 1.0, 1e2):
+        z = temporal._BandedFactor(system, gamma).inverse_diagonal()
+        dof = sum(float(np.sum(a * k)) for a, k in zip(z, system.normal))
+        assert floor.limit <= floor(gamma) <= dof * (1 + 1e-9)
+
+
 def test_forced_temporal_prior_on_a_steady_profile_scaled_in_time():
     """--cine-model temporal on the quasi-steady circle (h = 1.5 mm, SNR 25, 8 frames, seed 69): one shared
     wall, the prior's WSS within 5 % of the peak at every frame (the frames' own fits: about 2 %), and a band
