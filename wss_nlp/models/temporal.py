@@ -295,26 +295,25 @@ def _trace_floor(system: _System) -> Callable[[float], float]:
     Notes
     -----
     :math:`H_\gamma = A + \gamma C`, :math:`A = \operatorname{blockdiag}_k(K_k + \beta_k G / \pi)`,
-    :math:`C = D_2^\top D_2 \otimes G_0 / \pi \succeq 0`; :math:`\operatorname{tr}(H^{-1}K) =
-    \operatorname{tr}(K^{1/2} H^{-1} K^{1/2})` falls as :math:`H` grows (Loewner order), so (i) the trace
-    decreases with gamma (the search bounds a value by the trace at any larger gamma it computed); (ii)
-    :math:`D_2^\top D_2 \preceq 16 I` (its eigenvalues are :math:`(2 - 2\cos\theta_j)^2`) gives
-    :math:`H_\gamma \preceq \operatorname{blockdiag}_k(A_k + 16\gamma G_0/\pi)`, hence
-    :math:`\mathrm{dof}(\gamma) \ge \sum_k \operatorname{tr}((A_k + 16\gamma G_0/\pi)^{-1} K_k)`, one small
-    factorization per frame; (iii) as :math:`\gamma \to \infty` the frames are forced to one coefficient
-    vector (the null space of :math:`C` is the constants in time, :math:`G_0` being definite), so
-    :math:`\mathrm{dof} \ge \operatorname{tr}((\sum_k A_k)^{-1} \sum_k K_k)` at every gamma.
+    :math:`C = D_2^\top D_2 \otimes G_0 / \pi \succeq 0`; :math:`\operatorname{tr}(Z K) =
+    \operatorname{tr}(K^{1/2} Z K^{1/2})` grows with :math:`Z` (Loewner order), so (i) the trace decreases
+    with gamma (the search bounds a value by the trace at any larger gamma it computed); (ii) a diagonal block
+    of the inverse dominates the inverse of the diagonal block (it is the inverse of a Schur complement,
+    :math:`H_{kk}` less a positive semi-definite term): :math:`(H^{-1})_{kk} \succeq H_{kk}^{-1}`, so
+    :math:`\mathrm{dof}(\gamma) \ge \sum_k \operatorname{tr}((A_k + \gamma (D_2^\top D_2)_{kk} G_0 /
+    \pi)^{-1} K_k)`, one small factorization per frame; (iii) as :math:`\gamma \to \infty` the frames are
+    forced to one coefficient vector (the null space of :math:`C` is the constants in time, :math:`G_0` being
+    definite), so :math:`\mathrm{dof} \ge \operatorname{tr}((\sum_k A_k)^{-1} \sum_k K_k)` at every gamma.
     """
     limit = float(np.trace(np.linalg.solve(sum(system.own), sum(system.normal))))
-    top = float(np.max(np.linalg.eigvalsh(system.d)))  # at most 16; exact for this n
 
     def floor(gamma: float) -> float:
         """The larger of (ii) and (iii) at ``gamma`` (``floor.limit``: (iii) alone)."""
         per_frame = 0.0
-        for own, kk in zip(system.own, system.normal):
+        for k, (own, kk) in enumerate(zip(system.own, system.normal)):
             try:
-                bigger = scipy.linalg.cho_factor(own + gamma * top * system.g0)
-                per_frame += float(np.trace(scipy.linalg.cho_solve(bigger, kk)))
+                diagonal = scipy.linalg.cho_factor(own + gamma * system.d[k, k] * system.g0)  # H_kk
+                per_frame += float(np.trace(scipy.linalg.cho_solve(diagonal, kk)))
             except np.linalg.LinAlgError:
                 return limit
         return max(limit, per_frame)
