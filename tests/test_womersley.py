@@ -285,10 +285,11 @@ def test_temporal_prior_block_cholesky_equals_a_solve_per_temporal_frequency():
 
 
 def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
-    """models.temporal.fit with per-frame betas: the chosen gamma is the smallest criterion it evaluated; at that
-    gamma the coefficients, the smoother's trace tr(H^-1 blockdiag K_k) (from a triangular inverse) and each
-    frame's covariance block (H^-1 blockdiag(T^T W S W T) H^-1) equal dense numpy formulas to 1e-8 relative;
-    gamma -> 0 gives each frame's own Tikhonov solution back (1e-6: gamma 1e-9 perturbs it by about that)."""
+    """models.temporal.fit with per-frame betas: the chosen gamma is the smallest criterion it evaluated or
+    bounded; at that gamma the coefficients, the smoother's trace tr(H^-1 blockdiag K_k) (from a triangular
+    inverse) and each frame's covariance block (H^-1 blockdiag(T^T W S W T) H^-1) equal dense numpy formulas
+    to 1e-8 relative; gamma -> 0 gives each frame's own Tikhonov solution back (1e-6: gamma 1e-9 perturbs it
+    by about that)."""
     from wss_nlp.models import temporal
 
     problems = _prior_problems(5, 68)
@@ -297,7 +298,8 @@ def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
     sigmas = [np.full(q.data.size, 0.01) for q in problems]
     best = temporal.fit(problems, betas, sigmas, 1.0, float(np.log(sum(q.data.size for q in problems))))
     assert best.bic == min(best.curve.values()) and best.curve[best.gamma] == best.bic
-    assert len(best.curve) >= 4  # a bracket and its refinement, not one point
+    # a bracket and its refinement, not one point (values a lower bound decided are in bounds, all above the best)
+    assert len(best.curve) + len(best.bounds) >= 4 and min(best.bounds.values(), default=np.inf) > best.bic
     tw = [q.operator * (q.weights / q.area)[:, None] for q in problems]
     kk = [a.T @ q.operator for a, q in zip(tw, problems)]
     d2 = temporal.second_difference(n)
