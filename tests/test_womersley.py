@@ -323,7 +323,7 @@ def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
 
 
 def test_temporal_prior_bounds_decide_without_changing_the_fit(monkeypatch):
-    """models.temporal.fit skips the trace where a lower bound of the criterion decides (_trace_floor): the same
+    """models.temporal.fit skips the trace where a lower bound of the criterion decides (_TraceFloor): the same
     best gamma, criterion and coefficients, bit for bit, as the search computing every trace (the margin made
     infinite, so no bound decides); every recorded bound at most the criterion computed there; and the trace
     bounds themselves below the traces (per-frame and gamma -> infinity bounds, four gammas): proven inequalities,
@@ -343,7 +343,7 @@ def test_temporal_prior_bounds_decide_without_changing_the_fit(monkeypatch):
     for gamma, bound in fast.bounds.items():
         assert bound <= full.curve[gamma] * (1 + 1e-9)
     system = temporal._System(problems, betas)
-    floor = temporal._trace_floor(system)
+    floor = temporal._TraceFloor(system)
     for gamma in (1e-4, 1e-2, 1.0, 1e2):
         z = temporal._BandedFactor(system, gamma).inverse_diagonal()
         dof = sum(float(np.sum(a * k)) for a, k in zip(z, system.normal))

@@ -212,7 +212,7 @@ def fit(problems: list[VelocityProblem], betas, sigmas, nu: float, log_n: float)
     from the inverse's diagonal blocks, :class:`_BandedFactor`).
 
     The trace (the inverse's diagonal blocks, the dearer half of a value) is skipped where a lower bound of
-    the criterion already decides the comparison it is wanted for (:func:`_trace_floor`): the search visits
+    the criterion already decides the comparison it is wanted for (:class:`_TraceFloor`): the search visits
     the same gammas and returns the same best gamma, coefficients and criterion; a value decided by its bound
     is recorded as that bound (:attr:`PriorFit.bounds`).
     """
@@ -223,7 +223,7 @@ def fit(problems: list[VelocityProblem], betas, sigmas, nu: float, log_n: float)
     traces: dict = {}  # log gamma -> dof (exact)
     solutions: dict = {}  # log gamma -> (coefficients, chi2, dof)
     factors: dict = {}  # the best factor so far, which the band reuses
-    trace_floor = _trace_floor(system)
+    trace_floor = _TraceFloor(system)
 
     def criterion(log_gamma: float, beat: float = np.inf) -> float:
         """The criterion at ``log_gamma``, or a lower bound of it where that bound is at least ``beat``
@@ -236,7 +236,7 @@ def fit(problems: list[VelocityProblem], betas, sigmas, nu: float, log_n: float)
             factor, v, chi2 = floors[log_gamma][1]
         else:
             factor, v, chi2 = _solved(system, problems, inv_var, 10.0**log_gamma)
-        # the trace decreases with gamma (notes of _trace_floor): any larger gamma's bounds it, and its limit
+        # the trace decreases with gamma (notes of _TraceFloor): any larger gamma's bounds it, and its limit
         larger = max([trace_floor.limit, *(traces[x] for x in traces if x > log_gamma)])
         for dof_floor in (lambda: larger, lambda: trace_floor(10.0**log_gamma)):  # the cheap bound first
             floor = nu * chi2 + log_n * dof_floor()
@@ -288,8 +288,8 @@ def _solved(system: _System, problems: list[VelocityProblem], inv_var: list, gam
     return factor, v, chi2
 
 
-def _trace_floor(system: _System) -> Callable[[float], float]:
-    r"""A lower bound of the smoother's trace :math:`\mathrm{dof}(\gamma) = \operatorname{tr}(H_\gamma^{-1}
+class _TraceFloor:
+    r"""Lower bounds of the smoother's trace :math:`\mathrm{dof}(\gamma) = \operatorname{tr}(H_\gamma^{-1}
     \operatorname{blockdiag} K_k)` at any gamma, without factorizing the coupled system.
 
     Notes
@@ -305,21 +305,22 @@ def _trace_floor(system: _System) -> Callable[[float], float]:
     forced to one coefficient vector (the null space of :math:`C` is the constants in time, :math:`G_0` being
     definite), so :math:`\mathrm{dof} \ge \operatorname{tr}((\sum_k A_k)^{-1} \sum_k K_k)` at every gamma.
     """
-    limit = float(np.trace(np.linalg.solve(sum(system.own), sum(system.normal))))
 
-    def floor(gamma: float) -> float:
-        """The larger of (ii) and (iii) at ``gamma`` (``floor.limit``: (iii) alone)."""
-        per_frame = 0.0
+    def __init__(self, system: _System):
+        self.system = system
+        #: (iii), at every gamma
+        self.limit = float(np.trace(np.linalg.solve(sum(system.own), sum(system.normal))))
+
+    def __call__(self, gamma: float) -> float:
+        """The larger of (ii) and (iii) at ``gamma``."""
+        system, per_frame = self.system, 0.0
         for k, (own, kk) in enumerate(zip(system.own, system.normal)):
             try:
                 diagonal = scipy.linalg.cho_factor(own + gamma * system.d[k, k] * system.g0)  # H_kk
                 per_frame += float(np.trace(scipy.linalg.cho_solve(diagonal, kk)))
             except np.linalg.LinAlgError:
-                return limit
-        return max(limit, per_frame)
-
-    floor.limit = limit  # type: ignore[attr-defined]
-    return floor
+                return self.limit
+        return max(self.limit, per_frame)
 
 
 def _covariance(system: _System, factor: _BandedFactor, sigmas) -> np.ndarray:

@@ -145,7 +145,7 @@ def _is_uniform(phi) -> bool:
 #: :func:`from_reconstruction` on such a wall takes ``tau = A c`` from them (the beta choice formed the matrix
 #: of the wall the velocity is then solved on; 12 ms of CasADi a slice or cine frame saved).
 _MATRICES: OrderedDict = OrderedDict()
-_MATRICES_KEPT = 4
+_MATRICES_KEPT = 8
 
 
 def _matrix_key(basis, disk_map, viscosity_pa_s: float, n_phi: int) -> tuple | None:
