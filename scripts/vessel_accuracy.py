@@ -45,7 +45,13 @@ def run(case, h, tissue, seed, frames=1, options=None) -> dict:
     ours, theirs = accuracy(res, truth), accuracy(base, truth)
     return {"case": case, "h": h, "tissue": tissue, "seed": seed, "frames": frames, "seconds": seconds,
             "ours": ours.as_dict(), "baseline": theirs.as_dict(), "beta": res.parameters["beta"],
+            "cycle": _cycle(res.parameters.get("cycle")),
             "statuses": [s["status"] for s in res.statuses["geometry"]]}  # fmt: skip
+
+
+def _cycle(record) -> dict | None:
+    """The cine's cycle model (wss_nlp.vessel.cycle3d) without its curve: model, gamma, criterion values."""
+    return None if record is None else {k: record.get(k) for k in ("model", "gamma", "how", "values", "margin")}
 
 
 def _save_rows(out: str, name: str, rows: list) -> None:

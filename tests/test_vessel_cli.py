@@ -164,7 +164,12 @@ def test_a_cine_wall_is_a_pvd_time_series_with_tawss_and_osi(cli_run, tmp_path):
     assert np.allclose(tawss, 1.75 / 3 * mag, rtol=1e-12) and np.allclose(osi[mag > 0], 2 / 7, rtol=1e-12)
     cine = dataclasses.replace(one, wss_pa=wss, axial_pa=scale[:, None, None] * one.axial_pa[0],
                                circumferential_pa=scale[:, None, None] * one.circumferential_pa[0], time_ms=times,
-                               tawss_pa=tawss, osi=osi)  # fmt: skip
+                               tawss_pa=tawss, osi=osi,
+                               axial_std_pa=np.repeat(one.axial_std_pa, 3, axis=0))  # fmt: skip
+    # the printed wall mean averages the frames (it once summed them: 1.75 times the first frame's here)
+    from wss_nlp.app.cli.vessel import covered_mean_wss
+
+    assert np.isclose(covered_mean_wss(cine), 1.75 / 3 * covered_mean_wss(one), rtol=1e-12)
     written = write_wall(cine, tmp_path / "wall.vtu")
     pvd = ET.parse(tmp_path / "wall.pvd").getroot()
     steps = [(float(d.get("timestep")), d.get("file")) for d in pvd.iter("DataSet")]
@@ -173,6 +178,7 @@ def test_a_cine_wall_is_a_pvd_time_series_with_tawss_and_osi(cli_run, tmp_path):
         assert str(tmp_path / name) in written
         mesh = meshio.read(tmp_path / name)
         assert np.allclose(mesh.point_data["wss_vector_pa"], wss[k].reshape(-1, 3))
+        assert np.array_equal(mesh.point_data["tau_std_pa"], cine.axial_std_pa[k].ravel())
         assert np.allclose(mesh.point_data["tawss_pa"], tawss.ravel()) and np.allclose(mesh.point_data["osi"],
                                                                                        osi.ravel())  # fmt: skip
 
@@ -181,6 +187,7 @@ def test_analyze_reads_a_vessel_result(cli_run, capsys):
     rc, out, err = _run(["analyze", cli_run["result"]], capsys)
     assert rc == 0, err
     assert "beta" in out and "wall solve" in out
+    assert "band (velocity noise only" in out and "+-" in out
 
 
 # ------------------------------------------------------------------ refusals: one line, exit code 2
@@ -250,9 +257,53 @@ def test_volume_flags_on_a_slice_file_are_refused(tmp_path, capsys):
     _refused(rc, err, "--mask: for a 4D flow volume file")
 
 
-def test_sensitivity_refuses_a_vessel_result(cli_run, capsys):
-    rc, _, err = _run(["sensitivity", cli_run["result"]], capsys)
-    _refused(rc, err, "does not read vessel (4D flow) results yet")
+def test_sensitivity_reads_a_vessel_result_and_prints_the_records_numbers(cli_run, capsys):
+    from wss_nlp.vessel.reconstruct import read_result
+
+    rc, out, err = _run(["sensitivity", cli_run["result"]], capsys)
+    assert rc == 0, err
+    band = read_result(cli_run["result"]).band
+    assert band["available"] and band["mean_std_pa"] > 0
+    # the printed numbers are the record's, at the printed precision
+    assert f"covered wall {band['mean_pa']:.4g} Pa +- {band['mean_std_pa']:.2g} Pa" in out
+    assert f"{0.1 * band['beta'] * band['d_mean_d_beta']:+.3e}" in out
+    assert f"{0.1 * band['kappa_mm4'] * band['d_mean_d_kappa']:+.3e}" in out
+    assert "velocity noise (1 std)" in out and "magnitude noise (the wall)" in out and "planes (" in out
+
+
+def test_the_exported_wall_holds_the_band(cli_run):
+    """``tau_std_pa``: the record's band of the axial WSS, finite (the volume has a venc, one per component)."""
+    import meshio
+
+    from wss_nlp.vessel.reconstruct import read_result
+
+    res = read_result(cli_run["result"])
+    mesh = meshio.read(cli_run["wall"])
+    std = mesh.point_data["tau_std_pa"]
+    assert np.all(np.isfinite(std)) and np.all(std > 0)
+    assert np.array_equal(std, res.axial_std_pa[0].ravel())
+    with open(str(cli_run["wall"])[:-4] + "_planes.csv") as fh:
+        assert fh.readline().strip().endswith(",mean_wss_std_pa")
+
+
+def test_a_result_without_a_band_is_refused_by_sensitivity_in_one_line(cli_run, tmp_path, capsys):
+    """The record a reconstruction without a venc writes (:func:`wss_nlp.vessel.reconstruct.wall_band`), and a
+    file written before the band: one line each, exit code 2."""
+    from wss_nlp.vessel import band3d
+    from wss_nlp.vessel.reconstruct import read_result, write_result
+
+    res = read_result(cli_run["result"])
+    why = "no uncertainty band: the volume has no velocity encoding (venc)"
+    res.axial_std_pa, res.planes["mean_wss_std_pa"], res.band = band3d.unavailable(res.nt, res.s_mm.size,
+                                                                                   res.phi.size, why)  # fmt: skip
+    write_result(tmp_path / "blind.h5", res, mode="w")
+    rc, _, err = _run(["sensitivity", tmp_path / "blind.h5"], capsys)
+    _refused(rc, err, "has no velocity encoding (venc)")
+    res.axial_std_pa, res.band = None, {}
+    del res.planes["mean_wss_std_pa"]
+    write_result(tmp_path / "old.h5", res, mode="w")
+    rc, _, err = _run(["sensitivity", tmp_path / "old.h5"], capsys)
+    _refused(rc, err, "no band record")
 
 
 def test_compare_reads_a_vessel_result_against_its_truth_file(cli_run, tmp_path, capsys):

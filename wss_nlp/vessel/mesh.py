@@ -4,7 +4,8 @@
 (closed around the vessel), points in world mm (the volume's affine's frame), with the point arrays
 
 * ``wss_vector_pa`` (3-vector, Pa, world frame), ``tau_pa`` (its part along the centreline's direction, signed),
-  ``circumferential_pa``: one frame (``frame``);
+  ``circumferential_pa``, ``tau_std_pa`` (the band of ``tau_pa``: its standard deviation from the velocity noise,
+  :mod:`wss_nlp.vessel.band3d`; NaN without the venc; absent for results without a band): one frame (``frame``);
 * ``tawss_pa``, ``osi`` (cines), ``radius_mm``, ``flags`` (the bits of :mod:`wss_nlp.vessel.reconstruct`),
   ``covered`` (1 where no flag), ``s_mm``, ``phi_rad``.
 
@@ -50,6 +51,8 @@ def wall_mesh(result, frame: int = 0):
         "s_mm": ss.ravel(),
         "phi_rad": pp.ravel(),
     }
+    if result.axial_std_pa is not None:
+        data["tau_std_pa"] = result.axial_std_pa[frame].ravel()
     if result.tawss_pa is not None:
         data["tawss_pa"] = result.tawss_pa.ravel()
         data["osi"] = result.osi.ravel()

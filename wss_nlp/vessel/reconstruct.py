@@ -28,7 +28,12 @@ Result file (:meth:`VesselResult.write`, :meth:`VesselResult.read`): an HDF5 gro
   ``wss/circumferential_pa (nt, ns, np)``; with ``nt > 1``: ``wss/tawss_pa``, ``wss/osi`` ``(ns, np)``;
 * ``planes/s_mm (ns,)``, ``planes/area_mm2 (ns,)``, ``planes/flow_ml_s (nt, ns)`` (through the cross-section along
   ``t``), ``planes/mean_wss_pa (nt, ns)`` (mean ``|tau|`` over the ring, by arc length),
-  ``planes/mean_axial_pa (nt, ns)``, ``planes/flags (ns,)`` (the bits of the ring's points, or-ed).
+  ``planes/mean_axial_pa (nt, ns)``, ``planes/flags (ns,)`` (the bits of the ring's points, or-ed);
+* the uncertainty band (:mod:`wss_nlp.vessel.band3d`; velocity noise only; NaN without the venc; absent from
+  files written before it and from the baseline): ``wss/axial_std_pa (nt, ns, np)`` (standard deviation of the
+  axial WSS), ``planes/mean_wss_std_pa (nt, ns)`` (of the plane's mean ``|tau|``), and the attribute ``band``
+  (JSON: ``available``, the covered wall's mean ``|tau|`` ``mean_pa`` and its ``mean_std_pa``,
+  ``d_mean_d_beta``, ``d_mean_d_kappa``, ``beta``, ``kappa_mm4``, ``holds``; or ``note``: why there is none).
 """
 
 from __future__ import annotations
@@ -43,7 +48,11 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..io.files import DEFAULT_DENSITY
 from ..io.volume import VolumeAcquisition
+from ..pipeline.driver import blas_threads
+from . import band3d
+from . import cycle3d
 from . import geometry3d as g3
 from .centerline import distance_to_border, intervals
 from . import tube
@@ -60,6 +69,8 @@ FLAG_NAMES = {FLAG_BRANCH: "near a branch", FLAG_NOT_VISIBLE: "outside the visib
               FLAG_BORDER: "near the field of view's border", FLAG_UNRESOLVED: "unresolved"}  # fmt: skip
 #: A radius below this many voxels is unresolved.
 MIN_RADIUS_VOXELS = 1.0
+#: Bulk Reynolds number above which steady pipe flow may be transitional or turbulent (the classical 2300).
+TRANSITION_REYNOLDS = 2300.0
 
 
 @dataclass(frozen=True)
@@ -87,6 +98,11 @@ class VesselOptions:
     offset_correction : bool
         Remove each velocity component's background offset, fitted on static tissue
         (:func:`wss_nlp.vessel.background.correct_volume`; nothing to do in a volume without static tissue).
+    cycle : str or float
+        The velocity over a cine's cycle (:mod:`wss_nlp.vessel.cycle3d`): "auto" (the periodic temporal prior
+        where the BIC prefers it to the frames' own fits, GCV without the venc), "frames" (each frame's own fit),
+        "temporal" (the prior, its weight by the criterion) or a number: the prior with that fixed weight gamma.
+        Command line: ``--cine-model auto|independent|temporal``.
     """
 
     geometry: g3.Geometry3DOptions = field(default_factory=g3.Geometry3DOptions)
@@ -99,8 +115,10 @@ class VesselOptions:
     viscosity_pa_s: float | None = None
     blas_threads: int = 1
     offset_correction: bool = True
+    cycle: str | float = "auto"
 
     def __post_init__(self):
+        cycle3d.check_setting(self.cycle)
         if self.n_phi < 8:
             raise InputError(f"n_phi must be >= 8, got {self.n_phi}")
         if self.s_spacing_mm is not None and not self.s_spacing_mm > 0:
@@ -135,6 +153,9 @@ class VesselResult:
     seconds: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
     record: dict = field(default_factory=dict)  # the centreline record (branches, visible part)
+    axial_std_pa: np.ndarray | None = None  # (nt, ns, np): the band (module notes)
+    band: dict = field(default_factory=dict)  # the band's record (module notes)
+    fits: Any = field(default=None, repr=False)  # VesselFits of a reconstruction in memory (not written)
 
     @property
     def nt(self) -> int:
@@ -147,13 +168,15 @@ class VesselResult:
 
     def plane_table(self) -> str:
         """The per-plane table as CSV text: ``s_mm, area_mm2, flow_ml_s, mean_wss_pa, mean_axial_pa, flags`` (the
-        frame-mean flow and WSS for a cine)."""
+        frame-mean flow and WSS for a cine), and ``mean_wss_std_pa`` (the band, the frames' mean) where the result
+        has one."""
         p = self.planes
-        rows = ["s_mm,area_mm2,flow_ml_s,mean_wss_pa,mean_axial_pa,flags"]
+        std = p.get("mean_wss_std_pa")
+        rows = ["s_mm,area_mm2,flow_ml_s,mean_wss_pa,mean_axial_pa,flags" + ("" if std is None else ",mean_wss_std_pa")]
         for i, s in enumerate(p["s_mm"]):
             rows.append(f"{s:.3f},{p['area_mm2'][i]:.4f},{np.mean(p['flow_ml_s'][:, i]):.5g},"
                         f"{np.mean(p['mean_wss_pa'][:, i]):.5g},{np.mean(p['mean_axial_pa'][:, i]):.5g},"
-                        f"{int(p['flags'][i])}")  # fmt: skip
+                        f"{int(p['flags'][i])}" + ("" if std is None else f",{np.mean(std[:, i]):.5g}"))  # fmt: skip
         return "\n".join(rows) + "\n"
 
     def write(self, group) -> None:
@@ -162,7 +185,7 @@ class VesselResult:
         group.attrs["source"] = self.source
         group.attrs["viscosity_pa_s"] = float(self.viscosity_pa_s)
         group.attrs["affine_mm"] = np.asarray(self.affine_mm, float)
-        for name in ("parameters", "statuses", "seconds", "record"):
+        for name in ("parameters", "statuses", "seconds", "record", "band"):
             group.attrs[name] = json.dumps(_jsonable(getattr(self, name)))
         group.attrs["notes"] = json.dumps(list(self.notes))
         self.centerline.write(group.create_group("centerline"))
@@ -182,6 +205,8 @@ class VesselResult:
         if self.tawss_pa is not None:
             w.create_dataset("tawss_pa", data=self.tawss_pa)
             w.create_dataset("osi", data=self.osi)
+        if self.axial_std_pa is not None:
+            w.create_dataset("axial_std_pa", data=self.axial_std_pa)
         planes = group.create_group("planes")
         for k, v in self.planes.items():
             planes.create_dataset(k, data=np.asarray(v))
@@ -227,6 +252,8 @@ class VesselResult:
             seconds=text("seconds"),
             notes=text("notes", "[]"),
             record=text("record"),
+            axial_std_pa=w["axial_std_pa"][()] if "axial_std_pa" in w else None,
+            band=text("band"),
         )
 
 
@@ -269,18 +296,6 @@ def _jsonable(obj):
 
 
 # ------------------------------------------------------------------ helpers
-def blas_threads(n: int):
-    """A context limiting the BLAS to ``n`` threads (threadpoolctl; ``n = 0`` changes nothing). Small products
-    (the Hessians' blocks) run 10-50x slower with OpenBLAS's threads on a loaded 2-core machine."""
-    import contextlib
-
-    if n == 0:
-        return contextlib.nullcontext()
-    from threadpoolctl import threadpool_limits
-
-    return threadpool_limits(limits=n, user_api="blas")
-
-
 def progress_bar(total: int, what: str):
     """A tqdm bar on stderr when it is a terminal, else nothing (the log has the steps)."""
     from tqdm import tqdm
@@ -473,12 +488,24 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
                      static_level=lambda s: np.interp(s, levels.s_mm, levels.static), exclude=exclude)  # fmt: skip
     velocity = v3.fit_velocity(vol, vp, options.velocity, levels=levels)
     seconds["velocity"] = time.perf_counter() - t0
+    times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
+    period = vol.cardiac_period_ms
+    cycle = None
+    if vol.nt > 1:
+        if period is None:  # frames equally spaced over one cycle, as a cine export has them
+            period = float(times[-1] - times[0] + np.mean(np.diff(times)))
+            notes.append(f"cardiac period not in the file: {period:.1f} ms assumed (the frames cover one cycle)")
+        t0 = time.perf_counter()
+        velocity, cycle = cycle3d.fit_cycle(vol, vp, velocity, options.cycle, times, period, levels)
+        seconds["cycle"] = time.perf_counter() - t0
+        notes.append(cycle.note())
     bar.update()
     t0 = time.perf_counter()
     s, phi = wss3d.wall_grid(s_range, h, options.n_phi, options.s_spacing_mm)
     ss, pp = (v.ravel() for v in np.meshgrid(s, phi, indexing="ij"))
     ns, nph = s.size, phi.size
-    ev = wss3d.wall_wss(centerline, geometry, velocity, ss, pp, mu=mu, progress=bar)
+    pieces = wss3d.wall_pieces(centerline, geometry, velocity.basis, ss, pp)
+    ev = wss3d.wall_wss(centerline, geometry, velocity, ss, pp, mu=mu, progress=bar, pieces=pieces)
     seconds["wss"] = time.perf_counter() - t0
     wall = ev.x.reshape(ns, nph, 3)
     radius = geometry.radius(ss, pp).reshape(ns, nph)
@@ -489,13 +516,17 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     axial_a = ev.axial.reshape(vol.nt, ns, nph)
     circ_a = ev.circumferential.reshape(vol.nt, ns, nph)
     planes = plane_table(centerline, geometry, velocity, s, phi, radius, wss, axial_a, flags)
-    times = np.zeros(1) if vol.trigger_times_ms is None else np.asarray(vol.trigger_times_ms, float)
+    note = reynolds_note(planes, mu, vol.density_kg_m3, times)
+    if note:
+        notes.append(note)
+    t0 = time.perf_counter()
+    axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
+        geometry, s, phi, radius), area, flags, mu)  # fmt: skip
+    if not band.get("available"):
+        notes.append(band["note"])
+    seconds["band"] = time.perf_counter() - t0
     tawss = osi = None
     if vol.nt > 1:
-        period = vol.cardiac_period_ms
-        if period is None:  # frames equally spaced over one cycle, as a cine export has them
-            period = float(times[-1] - times[0] + np.mean(np.diff(times)))
-            notes.append(f"cardiac period not in the file: {period:.1f} ms assumed (the frames cover one cycle)")
         tawss, osi = cycle_indices(wss, times, period)
     bar.update()
     bar.close()
@@ -512,7 +543,7 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
         "zernike_degree": vp.basis.disk.degree, "zernike_angular_order": vp.basis.disk.max_order,
         "fitted_range_mm": list(s_range), "levels": levels.as_dict(),
         "geometry_options": geometry.options, "velocity_options": dict(vars(options.velocity)),
-        "offset": inputs.offset,
+        "offset": inputs.offset, "cycle": None if cycle is None else cycle.as_dict(),
     }  # fmt: skip
     log.info("vessel: %d x %d wall points, %d frames, %.0f %% covered, %.1f s", ns, nph, vol.nt,
              100 * float(np.mean(flags == 0)), seconds["total"])  # fmt: skip
@@ -522,7 +553,41 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
         axial_pa=axial_a, circumferential_pa=circ_a, planes=planes, viscosity_pa_s=mu,
         affine_mm=np.asarray(vol.affine_mm, float), source=vol.source, tawss_pa=tawss, osi=osi,
         parameters=parameters, statuses=statuses, seconds=seconds, notes=notes, record=record,
+        axial_std_pa=axial_std, band=band, fits=VesselFits(vol, geometry, velocity, levels, pieces, mu),
     )  # fmt: skip
+
+
+@dataclass
+class VesselFits:
+    """What a reconstruction in memory keeps beside its result (not written): the volume its fits took (the
+    offset removed), the wall, the velocity fit, the magnitude's levels and noise, the wall points' pieces
+    (:func:`wss_nlp.vessel.wss3d.wall_pieces`) and the viscosity."""
+
+    volume: VolumeAcquisition
+    geometry: Any
+    velocity: Any
+    levels: Any
+    pieces: Any
+    mu: float
+
+
+def wall_band(vol, velocity, levels, pieces, wss, ring_w, area, flags, mu) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The band of :mod:`wss_nlp.vessel.band3d` on a reconstruction's pieces: ``(wss/axial_std_pa,
+    planes/mean_wss_std_pa, the band's record)``; NaN with a note in the record where it cannot be computed (no
+    venc: the velocity noise needs it; none is invented)."""
+    nt, ns, nph, _ = wss.shape
+    if vol.venc_m_s is None:
+        return band3d.unavailable(nt, ns, nph, "no uncertainty band: the volume has no velocity encoding (venc), "
+                                  "which the velocity noise needs; import with --venc")  # fmt: skip
+    covered = (flags == 0) * area
+    total = float(np.sum(covered))
+    area_w = covered / total if total > 0 else covered
+    sigma = v3.velocity_noise(vol, velocity.problem, levels)
+    try:
+        b = band3d.vessel_band(pieces, velocity, sigma, wss, ring_w, area_w, mu)
+    except ValueError as exc:
+        return band3d.unavailable(nt, ns, nph, f"no uncertainty band: {exc}")
+    return b.axial_std_pa, b.plane_mean_std_pa, b.record()
 
 
 def _flags(s, phi, wall, radius, geometry, velocity, record, exclude, vol, options, h) -> np.ndarray:
@@ -594,12 +659,47 @@ def plane_table(centerline, geometry, velocity, s, phi, radius, wss, axial, flag
     for k in range(nt):
         u = basis.evaluate(velocity.coefficients[k], ss, r * (1 - 1e-12), pp)  # (m, 3)
         along = np.sum(u.reshape(ns, n_rho, nph, 3) * t[:, None, None, :], axis=-1)
-        flow[k] = np.einsum("inj,n->i", along * jac.reshape(ns, n_rho, nph), wr) * dphi * 1e-3  # mm^2 m/s -> mL/s
-    r_phi = geometry.radius(np.repeat(s, nph), np.tile(phi, ns), dphi=1).reshape(ns, nph)
-    arc = np.sqrt(radius**2 + r_phi**2)
-    weights = arc / arc.sum(axis=1, keepdims=True)
+        flow[k] = np.einsum("inj,n->i", along * jac.reshape(ns, n_rho, nph), wr) * dphi  # mm^2 m/s = 1e-6 m^3/s = mL/s
+    weights = ring_weights(geometry, s, phi, radius)
     mean_wss = np.einsum("tij,ij->ti", np.linalg.norm(wss, axis=-1), weights)
     mean_axial = np.einsum("tij,ij->ti", axial, weights)
     ring = np.bitwise_or.reduce(flags, axis=1)
     return {"s_mm": s, "area_mm2": area, "flow_ml_s": flow, "mean_wss_pa": mean_wss, "mean_axial_pa": mean_axial,
             "flags": ring.astype(np.uint8)}  # fmt: skip
+
+
+def bulk_reynolds(planes: dict, mu: float, density_kg_m3: float) -> np.ndarray:
+    r"""The bulk Reynolds number ``Re = rho U D / mu`` per frame and plane ``(nt, ns)``: ``U = Q / A`` the mean
+    velocity through the plane (``planes['flow_ml_s']``, ``planes['area_mm2']``), ``D = 2 sqrt(A / pi)`` its
+    equivalent diameter; ``|Q|`` (reverse flow counts alike)."""
+    area_m2 = np.asarray(planes["area_mm2"], float) * 1e-6
+    u = np.abs(np.asarray(planes["flow_ml_s"], float)) * 1e-6 / np.maximum(area_m2, 1e-300)
+    return density_kg_m3 * u * 2.0 * np.sqrt(area_m2 / np.pi) / mu
+
+
+def reynolds_note(planes: dict, mu: float, density_kg_m3: float | None, times_ms) -> str | None:
+    """A note when the flow may be transitional or turbulent: the median over the unflagged planes of the bulk
+    Reynolds number (:func:`bulk_reynolds`) above :data:`TRANSITION_REYNOLDS` in some frame. The volume route fits
+    the plain basis (no near-wall models for volumes), which underestimates a wall layer thinner than the voxels."""
+    rho = DEFAULT_DENSITY if density_kg_m3 is None else float(density_kg_m3)
+    keep = np.asarray(planes["flags"]) == 0
+    if not np.any(keep):
+        return None
+    re = np.median(bulk_reynolds(planes, mu, rho)[:, keep], axis=1)
+    k = int(np.argmax(re))
+    if not re[k] > TRANSITION_REYNOLDS:
+        return None
+    when = f" at {float(np.asarray(times_ms)[k]):g} ms" if re.size > 1 else ""
+    source = "stated" if density_kg_m3 is not None else "assumed (blood's)"
+    return (f"bulk Reynolds number {re[k]:.0f}{when} (median over the planes; density {rho:g} kg/m^3 {source}) is "
+            f"above {TRANSITION_REYNOLDS:.0f}: the flow may be transitional or turbulent, and a wall layer thinner "
+            "than the voxels is not resolved by the volume route (no near-wall models for volumes): its WSS may be "
+            "underestimated there")
+
+
+def ring_weights(geometry, s, phi, radius) -> np.ndarray:
+    """Each plane's arc-length weights ``sqrt(R^2 + R_phi^2)`` over its ring ``(ns, np)``, rows summing to one."""
+    ns, nph = radius.shape
+    r_phi = geometry.radius(np.repeat(s, nph), np.tile(phi, ns), dphi=1).reshape(ns, nph)
+    arc = np.sqrt(radius**2 + r_phi**2)
+    return arc / arc.sum(axis=1, keepdims=True)

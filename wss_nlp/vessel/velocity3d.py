@@ -246,19 +246,23 @@ class VelocityProblem3D:
     def normal(self) -> np.ndarray:
         """``T^T W T`` (dense storage of a block-banded matrix), ``W = diag(weights)``."""
         if self._normal is None:
-            nz = self.basis.disk.size
-            wn = self.window * nz
-            flat = self.windows.reshape(self.n_voxels, wn) * np.sqrt(self.weights)[:, None]
-            out = np.zeros((self.size, self.size))
-            order = np.argsort(self.window_start, kind="stable")
-            starts = self.window_start[order]
-            cut = np.concatenate([[0], np.flatnonzero(np.diff(starts)) + 1, [order.size]])
-            for a, b in zip(cut[:-1], cut[1:]):
-                x = flat[order[a:b]]
-                k = int(starts[a]) * nz
-                out[k : k + wn, k : k + wn] += x.T @ x
-            self._normal = out
+            self._normal = self.weighted_normal(self.weights)
         return self._normal
+
+    def weighted_normal(self, d: np.ndarray) -> np.ndarray:
+        """``T^T diag(d) T`` for voxel weights ``d (V,) >= 0`` (dense storage, the band of :meth:`normal`)."""
+        nz = self.basis.disk.size
+        wn = self.window * nz
+        flat = self.windows.reshape(self.n_voxels, wn) * np.sqrt(np.asarray(d, float))[:, None]
+        out = np.zeros((self.size, self.size))
+        order = np.argsort(self.window_start, kind="stable")
+        starts = self.window_start[order]
+        cut = np.concatenate([[0], np.flatnonzero(np.diff(starts)) + 1, [order.size]])
+        for a, b in zip(cut[:-1], cut[1:]):
+            x = flat[order[a:b]]
+            k = int(starts[a]) * nz
+            out[k : k + wn, k : k + wn] += x.T @ x
+        return out
 
     def hessian(self, beta: float) -> np.ndarray:
         return self.normal() + beta / (np.pi * self.length_mm) * self.gram_laplace + \

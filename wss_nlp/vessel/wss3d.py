@@ -242,26 +242,59 @@ def _velocity_blocks(basis, coefficients, s):
     return a, a_s
 
 
-def wall_wss(centerline, geometry, velocity, s, theta, mu: float = 3.5e-3, progress=None) -> WallEvaluation:
-    """``tau`` at wall points ``(s, theta)`` for every frame: the points' velocity-independent pieces once
-    (:func:`wall_function`), then per frame the velocity's derivatives ``(w . A_s, w_rho . A, w_theta . A)`` and
-    :func:`traction` (``u`` is zero on the wall; ``grad`` is returned)."""
-    basis = velocity.basis
+@dataclass
+class WallPieces:
+    """The velocity-independent pieces of :func:`wall_function` at ``m`` wall points (arrays ``(m, ...)``), the
+    centreline's tangent ``t`` and the points' B-spline window: ``knot`` (the first of the four B-splines of the
+    velocity's spline basis that are non-zero at ``s``), ``b``/``db`` their values and slopes ``(m, 4)``."""
+
+    x: np.ndarray  # (m, 3) mm
+    normal: np.ndarray  # (m, 3)
+    area: np.ndarray  # (m,)
+    e_c: np.ndarray  # (m, 3)
+    t: np.ndarray  # (m, 3)
+    minv: np.ndarray  # (m, 3, 3)
+    w: np.ndarray  # (m, n_z)
+    w_rho: np.ndarray  # (m, n_z)
+    w_theta: np.ndarray  # (m, n_z)
+    knot: np.ndarray  # (m,) int
+    b: np.ndarray  # (m, 4)
+    db: np.ndarray  # (m, 4)
+
+
+def wall_pieces(centerline, geometry, basis, s, theta) -> WallPieces:
+    """:func:`wall_function` at wall points ``(s, theta)`` (``rho = 1``) for the velocity basis ``basis``
+    (:class:`wss_nlp.vessel.velocity3d.VelocityBasis3D`), with the B-spline windows of the points."""
     s = np.asarray(s, float).ravel()
     theta = np.asarray(theta, float).ravel()
     m = s.size
-    nz = basis.disk.size
     fun = wall_function(basis.disk, geometry.basis.n_fourier).map(m)
     p = point_inputs(centerline, geometry, basis, s)
     out = [np.asarray(v) for v in fun(np.ones((1, m)), theta[None], p.c, p.t, p.n1, p.n2, p.dn1, p.dn2, p.r_i, p.r_s,
                                        p.r_in[None], p.r_in_s[None])]  # fmt: skip
-    x, normal, area, e_c = out[0].T, out[1].T, out[2].ravel(), out[3].T
-    minv = out[4].reshape(3, 3, m, order="F").transpose(2, 0, 1)
-    w, w_rho, w_theta = out[5].T, out[6].T, out[7].T  # (m, n_z)
-    nt = velocity.coefficients.shape[0]
-    taus, grads = np.empty((nt, m, 3)), np.empty((nt, m, 3, 3))
     j, b = basis.spline.local(s, 0)
     _, db = basis.spline.local(s, 1)
+    return WallPieces(
+        x=out[0].T, normal=out[1].T, area=out[2].ravel(), e_c=out[3].T, t=p.t.T,
+        minv=out[4].reshape(3, 3, m, order="F").transpose(2, 0, 1), w=out[5].T, w_rho=out[6].T, w_theta=out[7].T,
+        knot=np.asarray(j), b=np.asarray(b), db=np.asarray(db),
+    )  # fmt: skip
+
+
+def wall_wss(centerline, geometry, velocity, s, theta, mu: float = 3.5e-3, progress=None,
+             pieces: WallPieces | None = None) -> WallEvaluation:  # fmt: skip
+    """``tau`` at wall points ``(s, theta)`` for every frame: the points' velocity-independent pieces once
+    (:func:`wall_pieces`, or ``pieces`` computed for these points before), then per frame the velocity's
+    derivatives ``(w . A_s, w_rho . A, w_theta . A)`` and :func:`traction` (``u`` is zero on the wall; ``grad`` is
+    returned)."""
+    basis = velocity.basis
+    nz = basis.disk.size
+    pc = wall_pieces(centerline, geometry, basis, s, theta) if pieces is None else pieces
+    m = pc.x.shape[0]
+    w, w_rho, w_theta, normal, minv = pc.w, pc.w_rho, pc.w_theta, pc.normal, pc.minv
+    nt = velocity.coefficients.shape[0]
+    taus, grads = np.empty((nt, m, 3)), np.empty((nt, m, 3, 3))
+    j, b, db = pc.knot, pc.b, pc.db
     for k in range(nt):
         rows = np.asarray(velocity.coefficients[k], float).reshape(basis.spline.size, nz, 3)[j[:, None] + np.arange(4)]
         a = np.einsum("ma,majc->mjc", b, rows)  # (m, n_z, 3): the coefficients at s
@@ -272,8 +305,8 @@ def wall_wss(centerline, geometry, velocity, s, theta, mu: float = 3.5e-3, progr
         if progress is not None:
             progress.update()
     return WallEvaluation(
-        x=x, normal=normal, area=area, u=np.zeros((nt, m, 3)), grad=grads, tau=taus,
-        axial=np.einsum("tmc,mc->tm", taus, p.t.T), circumferential=np.einsum("tmc,mc->tm", taus, e_c),
+        x=pc.x, normal=normal, area=pc.area, u=np.zeros((nt, m, 3)), grad=grads, tau=taus,
+        axial=np.einsum("tmc,mc->tm", taus, pc.t), circumferential=np.einsum("tmc,mc->tm", taus, pc.e_c),
         normal_part=np.zeros((nt, m)),
     )  # fmt: skip
 

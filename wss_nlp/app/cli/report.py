@@ -311,10 +311,10 @@ def sensitivity_table(rec: dict) -> list[tuple[str, float]]:
 
 
 def cmd_sensitivity(args) -> int:
-    from .vessel import refuse_on_volume
+    from .vessel import is_vessel_result, sensitivity_volume
 
-    refuse_on_volume("sensitivity", args.result)
-
+    if is_vessel_result(args.result):
+        return sensitivity_volume(args)
     layout = wio.result_layout(args.result)
     recs = wio.read_sensitivity(args.result)
     if "cine" in layout:

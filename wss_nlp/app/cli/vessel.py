@@ -38,6 +38,7 @@ VOLUME_OPTIONS = {
     "velocity.laplacian_power": "velocity.laplacian_power",
     "velocity.inner_fraction": "velocity.inner_fraction",
     "tissue.offset_correction": "offset_correction (--no-offset-correction: keep the background offset)",
+    "cine.model": "cycle (auto, independent -> frames, temporal; momentum is refused: not for curved vessels)",
 }
 
 
@@ -66,6 +67,17 @@ def _number(flag: str, value) -> float:
     if not out > 0:
         raise InputError(f"{flag} {value}: must be > 0")
     return out
+
+
+def _cycle_model(flag: str, value) -> str:
+    """``--cine-model`` for a cine volume: the cycle models of :mod:`wss_nlp.vessel.cycle3d`."""
+    if value == "momentum":
+        raise InputError(
+            f"{flag} momentum: the momentum balance (Womersley) is not carried to 4D flow volumes: its profiles are "
+            "those of fully developed flow in a straight pipe, which curvature, taper and swirl break; use auto, "
+            "temporal or independent"
+        )
+    return {"independent": "frames"}.get(str(value), str(value))
 
 
 def vessel_options(args):
@@ -109,6 +121,8 @@ def vessel_options(args):
             vel["inner_fraction"] = _number(flag, value)
         elif path == "tissue.offset_correction":
             top["offset_correction"] = bool(value)
+        elif path == "cine.model":
+            top["cycle"] = _cycle_model(flag, value)
     base = VesselOptions()
     return dataclasses.replace(
         base,
@@ -176,8 +190,7 @@ def reconstruct_volume(args) -> int:
     cov = float(np.sum(area[covered]) / np.sum(area[visible])) if np.any(visible) else 0.0
     counts = {name: int(np.count_nonzero(result.flags & bit)) for bit, name in FLAG_NAMES.items()}
     flagged = ", ".join(f"{name} {n}" for name, n in counts.items() if n)
-    mag = np.linalg.norm(result.wss_pa, axis=-1)
-    mean_wss = float(np.sum(mag[:, covered] * area[covered]) / max(np.sum(area[covered]), 1e-300))
+    mean_wss = covered_mean_wss(result)
     print(
         f"vessel: {result.centerline.length_mm:.1f} mm of centreline, wall {result.s_mm.size} x {result.phi.size} "
         f"points, {100 * cov:.1f} % of the visible wall's area covered" + (f" (flagged: {flagged})" if flagged else "")
@@ -192,6 +205,14 @@ def reconstruct_volume(args) -> int:
     if args.figures:
         print(f"figures in {args.figures}")
     return 0
+
+
+def covered_mean_wss(result) -> float:
+    """Mean ``|tau|`` (Pa) over the covered wall, area-weighted, averaged over the frames."""
+    covered = result.covered
+    area = result.area_mm2[covered]
+    mag = np.linalg.norm(result.wss_pa, axis=-1)[:, covered]
+    return float(np.mean(mag @ area) / max(float(np.sum(area)), 1e-300))
 
 
 def is_vessel_result(path: str) -> bool:
@@ -222,6 +243,7 @@ def export_volume(args) -> int:
 
 def analyze_volume(args) -> int:
     """``wss-nlp analyze RESULT`` for a vessel result: how alpha and beta were chosen, the solvers' statuses."""
+    from ...vessel import cycle3d
     from ...vessel.reconstruct import read_result
 
     if args.figures:
@@ -234,8 +256,10 @@ def analyze_volume(args) -> int:
         print(f"  wall solve {k}: {g.get('status')} ({g.get('iterations')} iterations)")
     vel = st.get("velocity", {})
     print(f"velocity: beta {p.get('beta')} by {vel.get('beta_rule')}, residual {vel.get('residual_m_s')} m/s")
+    print(cycle3d.summary(p.get("cycle"), res.nt))
     for name, sec in res.seconds.items():
         print(f"  {name}: {float(sec):.1f} s")
+    print(band_summary(res))
     for note in res.notes:
         print(f"note: {note}")
     return 0
@@ -274,8 +298,59 @@ def compare_volume(args) -> int:
     return 0
 
 
-def refuse_on_volume(command: str, path: str) -> None:
-    """One line for the report commands that do not read vessel results yet."""
-    if is_vessel_result(path):
-        raise InputError(f"{path}: '{command}' does not read vessel (4D flow) results yet; use 'wss-nlp analyze' for "
-                         "the parameter choice and 'wss-nlp export --vtk' for the wall map")  # fmt: skip
+def band_summary(res) -> str:
+    """One line on a vessel result's band (module :mod:`wss_nlp.vessel.band3d`), or why it has none."""
+    band = res.band or {}
+    if not band:
+        return "band: none (a result written before the vessel band, or a baseline)"
+    if not band.get("available"):
+        return f"band: {band.get('note', 'not computed')}"
+    covered = res.covered
+    std = res.axial_std_pa[:, covered] if res.axial_std_pa is not None else np.zeros(0)
+    spread = (f"; axial WSS std over the covered wall: median {np.median(std):.3g} Pa, largest {np.max(std):.3g} Pa"
+              if std.size else "")  # fmt: skip
+    return (f"band ({band.get('holds', 'velocity noise')}): mean |WSS| over the covered wall "
+            f"{band['mean_pa']:.4g} Pa +- {band['mean_std_pa']:.2g} Pa (1 std){spread}")  # fmt: skip
+
+
+#: Planes of the short per-plane table of ``sensitivity``.
+SENSITIVITY_PLANES = 8
+
+
+def sensitivity_volume(args) -> int:
+    """``wss-nlp sensitivity RESULT`` for a vessel result: the covered wall's mean ``|WSS|`` with its band and what
+    moves it (velocity noise, beta and kappa_v +10 %: exact derivatives stored by the reconstruction), and a short
+    per-plane table. No band (no venc, an older file): one line, exit code 2."""
+    from ...vessel.reconstruct import read_result
+
+    res = read_result(args.result)
+    band = res.band or {}
+    if not band:
+        raise InputError(f"{args.result}: the vessel result has no band record (written before the vessel band); "
+                         "reconstruct it again")  # fmt: skip
+    if not band.get("available"):
+        raise InputError(f"{args.result}: {band.get('note', 'no uncertainty band')}")
+    if not np.isfinite(band["mean_pa"]):
+        raise InputError(f"{args.result}: no covered wall (every wall point is flagged): no mean WSS to show")
+    mean, std = band["mean_pa"], band["mean_std_pa"]
+    frames = "" if res.nt == 1 else f", the mean over {res.nt} frames"
+    print(f"vessel: mean |WSS| over the covered wall {mean:.4g} Pa +- {std:.2g} Pa (1 std, linearized{frames}; "
+          f"{band['holds']})")  # fmt: skip
+    rows = [
+        ("velocity noise (1 std)", std),
+        ("beta +10 %", 0.1 * band["beta"] * band["d_mean_d_beta"]),
+        ("kappa_v +10 % (smoothing along the vessel)", 0.1 * band["kappa_mm4"] * band["d_mean_d_kappa"]),
+    ]
+    cells = [(cause, f"{d:+.3e}", f"{100 * d / mean:+.3g} %") for cause, d in sorted(rows, key=lambda r: -abs(r[1]))]
+    cells.append(("magnitude noise (the wall)", "not included", "see the 4D flow guide"))
+    print(text_table(cells, headers=("what changes", "mean WSS change [Pa]", "relative"), indent="  "))
+    p = res.planes
+    covered = np.flatnonzero(p["flags"] == 0)
+    if covered.size and "mean_wss_std_pa" in p:
+        pick = covered[np.unique(np.round(np.linspace(0, covered.size - 1, SENSITIVITY_PLANES)).astype(int))]
+        wss = np.mean(p["mean_wss_pa"][:, pick], axis=0)
+        pstd = np.sqrt(np.sum(p["mean_wss_std_pa"][:, pick] ** 2, axis=0)) / res.nt  # frames' noise independent
+        print(f"planes ({pick.size} of {covered.size} unflagged; mean |WSS| over the ring +- 1 std):")
+        print(text_table([(f"{p['s_mm'][i]:.1f}", f"{w:.4g}", f"{e:.2g}") for i, w, e in zip(pick, wss, pstd)],
+                         headers=("s [mm]", "mean |WSS| [Pa]", "std [Pa]"), indent="  "))  # fmt: skip
+    return 0
