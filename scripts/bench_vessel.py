@@ -97,8 +97,8 @@ def main() -> None:
         "Made by `python scripts/bench_vessel.py" + "".join(f" {a}" for a in sys.argv[1:]) + "`.",
         "",
         "| run | grid | length [mm] | fitted voxels / points | seconds | CPU seconds (with phantom) "
-        "| mask + centreline | geometry | velocity | WSS | peak [MB] |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| mask + centreline | geometry | velocity | cycle model | WSS | band | peak [MB] |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     peak_max = 0.0
     for name, case, frames, changes in rows:
@@ -110,7 +110,8 @@ def main() -> None:
                  f"{r['voxels_fitted']} / {r['points']}", f"{r['seconds']:.1f}",
                  f"{r['cpu_seconds']:.1f} ({r['phantom_seconds']:.1f})",
                  f"{st['segmentation'] + st['centerline']:.1f}", f"{st['geometry']:.1f}", f"{st['velocity']:.1f}",
-                 f"{st['wss']:.1f}", "" if peak != peak else f"{peak:.0f}"]  # fmt: skip
+                 f"{st['cycle']:.1f}" if "cycle" in st else "", f"{st['wss']:.1f}", f"{st.get('band', 0.0):.1f}",
+                 "" if peak != peak else f"{peak:.0f}"]  # fmt: skip
         lines.append("| " + " | ".join(cells) + " |")
         print(lines[-1], file=sys.stderr, flush=True)
     lines += ["", f"Largest peak memory over the rows: {peak_max:.0f} MB."]

@@ -19,6 +19,8 @@ the estimates and is skipped to keep the study short.
 
     python scripts/invivo.py [--seeds reported|dev] [--h 1.5,1.0,0.6] [--cases laminar,turbulent] [--components]
     python scripts/invivo.py --offset-only
+    python scripts/invivo.py --touching-fat 4 --seeds dev --cases laminar --h 1.5,1.0   # fat against the wall
+    python scripts/invivo.py --from-csv a.csv,b.csv     # the report from the rows of runs made in parallel
 """
 
 import argparse
@@ -72,6 +74,7 @@ def residual_offset(tissue: dict | None, truth, venc: float) -> tuple[float, flo
 
 
 _PHANTOMS: dict = {}
+TOUCHING_FAT = 0  # --touching-fat: fat deposits pressed against the vessel's wall (the tissue data only)
 
 
 def phantom(case, h, seed, surround):
@@ -79,7 +82,7 @@ def phantom(case, h, seed, surround):
     key = (case, h, seed, surround)
     if key not in _PHANTOMS:
         _PHANTOMS.clear()  # keep one air-tissue pair at a time
-        _PHANTOMS[key] = invivo.make_invivo(case, h, seed=seed, surround=surround)
+        _PHANTOMS[key] = invivo.make_invivo(case, h, seed=seed, surround=surround, touching_fat=TOUCHING_FAT)
     return _PHANTOMS[key]
 
 
@@ -141,11 +144,34 @@ def main() -> None:
         help="only the offset table, from the preprocessing (no reconstruction): writes invivo_offset.md",
     )
     p.add_argument("--out", default=RESULTS)
+    p.add_argument(
+        "--touching-fat",
+        type=int,
+        default=0,
+        help="fat deposits pressed against the vessel's wall in the tissue data (make_invivo's touching_fat); the "
+        "report is named invivo_touching[_dev].md",
+    )
+    p.add_argument(
+        "--from-csv",
+        default="",
+        help="comma-separated CSV files of earlier runs (e.g. one per case, run in parallel): write the report from "
+        "their rows instead of running",
+    )
     args = p.parse_args()
+    global TOUCHING_FAT
+    TOUCHING_FAT = args.touching_fat
     warnings.simplefilter("ignore", DeprecationWarning)
     seeds = invivo.REPORTED_SEEDS if args.seeds == "reported" else invivo.DEV_SEEDS
     hs = [float(v) for v in args.h.split(",")]
     rows, comp = [], []
+    if args.from_csv:
+        for path in args.from_csv.split(","):
+            for r in read_rows(path):
+                (comp if r.get("variant") else rows).append(r)
+        name = "invivo" if args.seeds == "reported" else "invivo_dev"
+        write_rows(os.path.join(args.out, f"{name}.csv"), rows + comp)
+        write_report(args.out, f"{name}.md", table(rows, comp, seeds, args.seeds))
+        return
     if args.offset_only:
         rows = [offset_only(case, h, seed) for case in args.cases.split(",") for h in hs for seed in seeds]
         name = "invivo_offset" if args.seeds == "reported" else "invivo_offset_dev"
@@ -168,10 +194,34 @@ def main() -> None:
                             comp.append({**run(case, h, seed, True, t), "variant": name})
                 print(rows[-2]["case"], h, seed, f"air R {rows[-2]['radius_pct']:.2f} WSS {rows[-2]['wss_pct']:.2f}",
                       f"tissue R {rows[-1]['radius_pct']:.2f} WSS {rows[-1]['wss_pct']:.2f}", flush=True)  # fmt: skip
-    name = "invivo" if args.seeds == "reported" else "invivo_dev"
+                # the rows so far, in case the run is stopped (a report can be made from them: --from-csv)
+                write_rows(os.path.join(args.out, "invivo_partial.csv"), rows + comp)
+    name = ("invivo_touching" if TOUCHING_FAT else "invivo") + ("" if args.seeds == "reported" else "_dev")
     write_rows(os.path.join(args.out, f"{name}.csv"), rows + comp)
     lines = table(rows, comp, seeds, args.seeds)
+    if TOUCHING_FAT:
+        lines = [f"With {TOUCHING_FAT} fat deposits pressed against the vessel's wall (`--touching-fat "
+                 f"{TOUCHING_FAT}`; the air data are the same vessel alone).", ""] + lines  # fmt: skip
     write_report(args.out, f"{name}.md", lines)
+
+
+def read_rows(path: str) -> list[dict]:
+    """Rows written by :func:`write_rows`, with their numbers and flags typed again."""
+    out = []
+    with open(path, newline="") as fh:
+        for r in csv.DictReader(fh):
+            row: dict = {}
+            for k, v in r.items():
+                if k in ("case", "data", "notes", "surround", "offset_reason", "variant"):
+                    row[k] = v
+                elif k in ("offset_flagged",):
+                    row[k] = v == "True"
+                elif k == "seed":
+                    row[k] = int(v)
+                else:
+                    row[k] = float(v) if v != "" else float("nan")
+            out.append(row)
+    return out
 
 
 def write_rows(path: str, rows: list) -> None:

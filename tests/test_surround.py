@@ -189,3 +189,77 @@ def test_an_ambiguous_surround_is_noted_with_its_reason():
         assert "ambiguous (tissue chosen)" in note and reason in note, note
     # the outliers test is about fitted tissue: a two-level model has no outside polynomial to be off
     assert surround.notes({"surround": {**clear, "kind": "two-level", "ring_outliers": 0.5}}) == []
+
+
+def _lumen_detection(acq, venc=True):
+    """The preliminary (Appendix B) and the flow-aware lumen of a slice: ``(Appendix B's or its error, flow-aware)``."""
+    from wss_nlp.errors import WssNlpError
+    from wss_nlp.models import preprocess as pp
+
+    raw, u = acq.magnitude[0], acq.velocity_images()[0]
+    m = pp.normalize_magnitude(raw, surround._peaks(raw, u, acq.venc_m_s, "x"))
+    try:
+        plain = pp.find_lumen(m, acq.grid, "x")
+    except WssNlpError as exc:
+        plain = exc
+    flow = surround.flow_aware_lumen(m, raw, u, acq.grid, "x", None, acq.venc_m_s if venc else None, float("nan"))
+    return plain, flow[0]
+
+
+def test_fat_touching_the_vessel_is_split_off_by_the_flow():
+    # four fat deposits pressed against the wall (h = 1.5 mm: partial volume joins them to the lumen, and one to
+    # the subcutaneous fat layer, which reaches the border). The magnitude alone takes fat for lumen (the
+    # configuration is a real test: Appendix B's lumen fails or is too large); the flow-aware lumen is the untouched
+    # twin's (same seed and noise) but for partial-volume rim voxels where a deposit touches, at most 2 per deposit
+    # (of ~180), its centre within 0.05 voxel of the twin's (the fat deposits would pull it by several mm)
+    seed = invivo.DEV_SEEDS[1]
+    touched, touched_truth = invivo.make_invivo("laminar", 1.5, seed=seed, max_points=6, touching_fat=4)
+    twin, truth = invivo.make_invivo("laminar", 1.5, seed=seed, max_points=6)
+    # the deposits draw nothing from the seed: the slice is the twin's bit for bit away from them
+    xc, yc = twin.grid.centers()
+    blobs = touched_truth.scene.fat_blobs[-4:]
+    away = np.all([np.hypot(xc - bx, yc - by) > br + 2.0 for bx, by, br in blobs], axis=0)
+    assert np.array_equal(touched.magnitude[0][away], twin.magnitude[0][away])
+    assert touched_truth.scene.regions(np.array([blobs[0][0]]), np.array([blobs[0][1]]))["fat"][0]
+    plain, lumen = _lumen_detection(touched)
+    _, ref = _lumen_detection(twin)
+    assert isinstance(plain, Exception) or plain.mask.sum() > 1.1 * truth.lumen_mask().sum()
+    assert np.sum(lumen.mask ^ ref.mask) <= 2 * 4
+    assert np.hypot(lumen.center[0] - ref.center[0], lumen.center[1] - ref.center[1]) < 0.05 * 1.5
+    # the slice says so: the partial-volume voxels against the fat are read with the smooth outside level
+    assert any("touches the vessel (3 voxels" in n for n in surround.notes({"static_bright_touching_voxels": 3}))
+    assert not surround.notes({"static_bright_touching_voxels": 0})
+    # without a venc the fastest region's speed sets the flow threshold: the same split
+    _, no_venc = _lumen_detection(touched, venc=False)
+    assert np.sum(no_venc.mask ^ ref.mask) <= 2 * 4
+
+
+def test_beyond_flow_keeps_a_slow_lumen_whole():
+    # a core barely faster than the flow threshold reaches its whole radius: a slowly flowing lumen (a frame of
+    # diastole) is never cut into "lumen" and "static tissue". A disk of radius 8 voxels, Poiseuille with a peak
+    # of 1.5 x the threshold; and the same disk at a peak of 10 x the threshold (a lumen in its own region, no
+    # static part: the band reaches its rim)
+    n = 40
+    yy, xx = np.mgrid[:n, :n] - n / 2 + 0.5
+    r = np.hypot(xx, yy) / 8.0
+    m = (r < 1).astype(float)
+    for peak in (1.5, 10.0):
+        u = np.where(r < 1, peak * surround.FLOW_FRACTION_OF_VENC * (1 - r**2), 0.0)
+        assert not surround.beyond_flow(m, u, 1.0).any()
+
+
+def test_fat_touching_the_vessel_leaves_radius_and_wss_near_the_untouched_twins():
+    # the end-to-end claim (about 4 s): with four fat deposits pressed against the wall the default reconstruction
+    # at h = 1 mm is as accurate as on the untouched twin (same seed, noise and scene otherwise), within issue 39's
+    # allowance for tissue against air (WSS 1.3 x + 1 point, radius 1.5 x + 0.1 point). At h = 1.5 mm the voxels
+    # that hold lumen, wall and fat at once are not modelled (their outside level is the tissue's): scripts/invivo.py
+    from wss_nlp.analysis import metrics
+
+    errors = {}
+    for n in (0, 4):
+        acq, truth = invivo.make_invivo("laminar", 1.0, seed=invivo.DEV_SEEDS[0], max_points=8, touching_fat=n)
+        res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+        e = metrics.compare_slice(res, truth)
+        errors[n] = (100 * e.radius_rel_l2, 100 * e.wss_rel_l2)
+    assert errors[4][0] <= 1.5 * errors[0][0] + 0.1
+    assert errors[4][1] <= 1.3 * errors[0][1] + 1.0

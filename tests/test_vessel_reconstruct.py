@@ -536,6 +536,95 @@ def test_the_wall_pieces_give_the_point_graph_wss(small_problem, small_wall):
     assert np.allclose(fast.x, full.x, atol=1e-12) and np.allclose(fast.normal, full.normal, atol=1e-14)
 
 
+# ------------------------------------------------------------------ the velocity map on a wall far from round
+def _stand_in_wall(squash: float):
+    """A fitted wall stand-in (what :func:`velocity3d.velocity_basis` reads): round, radius 3 mm, on s in [0, 40] mm,
+    its first 6 mm an ellipse of semi-axes ``3 + squash`` and ``3 - squash`` (mean radius about 3 mm, the smallest
+    ``3 - squash``), as the loose end of a carotid's fit was (the reported carotid row, h = 2 mm, crashed on it)."""
+    from types import SimpleNamespace
+
+    basis = tube.WallBasis(tube.SplineBasis(0.0, 40.0, 2.0), 2)
+    s = np.linspace(0.0, 40.0, 161)
+    phi = np.linspace(-np.pi, np.pi, 48, endpoint=False)
+    ss, pp = np.meshgrid(s, phi, indexing="ij")
+    e = squash * (ss < 6.0)
+    a, b = 3.0 + e, 3.0 - e
+    radius = a * b / np.sqrt((b * np.cos(pp)) ** 2 + (a * np.sin(pp)) ** 2)
+    c = basis.fit(ss.ravel(), pp.ravel(), radius.ravel())
+    wall = SimpleNamespace(basis=basis, coefficients=c, s_range=(0.0, 40.0),
+                           radius=lambda s_, p_: basis.evaluate(c, s_, p_))  # fmt: skip
+    return wall, basis
+
+
+def test_a_wall_far_from_round_caps_the_maps_inner_radius_there_only():
+    opts = v3.Velocity3DOptions()
+    s = np.linspace(0.0, 40.0, 801)
+    phi = np.linspace(0.0, 2 * np.pi, 64, endpoint=False)
+    ss, pp = np.meshgrid(s, phi, indexing="ij")
+    # semi-axes 4.6 x 1.4 mm: the mean radius ~3.3 mm is more than twice the smallest, which the plain "mean"
+    # rule's map cannot take (before the cap: an InputError ending the whole vessel)
+    wall, basis = _stand_in_wall(1.6)
+    vb = v3.velocity_basis(wall, opts, h=2.0)
+    assert vb.capped and max(b for _, b in vb.capped) <= 6.0 + 8.0  # only B-splines reaching the squashed end
+    r_min = wall.radius(ss.ravel(), pp.ravel()).reshape(ss.shape).min(axis=1)
+    # what the map needs (one-to-one: r_in < 2 min R), and the cap's bound (a convex combination of capped
+    # coefficients), which holds on the cap's samples h/8 = 0.25 mm apart: between them this wall's radius
+    # (|R_ss| < 1.5 /mm on the squashed end) dips by at most 0.25^2 * 1.5 / 8 < 0.012 mm
+    assert np.all(vb.r_in(s) < 2 * r_min)
+    assert np.all(vb.r_in(s) <= v3.MAX_INNER_RATIO * (r_min + 0.012))
+    free = s > max(b for _, b in vb.capped)
+    plain = basis.spline.evaluate(basis.matrix(wall.coefficients)[:, 0], s)
+    assert np.array_equal(vb.r_in(s)[free], plain[free])  # elsewhere the "mean" rule's own inner radius
+    # the map is one-to-one and reaches the wall: rho = 1 at the wall on the capped part too
+    rho, _ = vb.reference(ss.ravel(), wall.radius(ss.ravel(), pp.ravel()), pp.ravel())
+    assert np.allclose(rho, 1.0, atol=1e-9)
+    # a round wall: nothing capped, the plain rule's coefficients exactly
+    round_wall, round_basis = _stand_in_wall(0.0)
+    vb0 = v3.velocity_basis(round_wall, opts, h=2.0)
+    assert vb0.capped == []
+    assert np.array_equal(vb0.inner, round_basis.matrix(round_wall.coefficients)[:, 0])
+
+
+def _flags_of(radius, capped):
+    """:func:`reconstruct._flags` of a wall of these radii on s = 0..40 mm (1 mm apart) at h = 2 mm, well inside the
+    field of view, with converged solvers, no active box row, the velocity map's inner radius capped on ``capped``."""
+    from types import SimpleNamespace
+
+    s = np.linspace(0.0, 40.0, 41)
+    phi = np.linspace(-np.pi, np.pi, 16, endpoint=False)
+    wall = np.stack(np.meshgrid(s, phi, indexing="ij"), axis=-1)
+    wall = np.concatenate([np.full(wall.shape[:2] + (2,), 50.0), wall[..., :1]], axis=-1)  # x = y = 50, z = s
+    geometry = SimpleNamespace(box_active=np.zeros((0, 0), bool), stats=[SimpleNamespace(converged=True)])
+    velocity = SimpleNamespace(basis=SimpleNamespace(capped=capped))
+    affine = np.eye(4)
+    affine[2, 3] = -20.0  # 1 mm voxels, the wall (z = s in [0, 40]) 20 mm or more inside every face
+    vol = SimpleNamespace(affine_mm=affine, shape=(100, 100, 100))
+    flags = vrec._flags(s, phi, wall, radius, geometry, velocity, {"visible": [(0.0, 40.0)]}, None, vol,
+                        vrec.VesselOptions(), 2.0)  # fmt: skip
+    return s, flags
+
+
+def test_wall_points_where_the_inner_radius_was_capped_are_flagged_unresolved():
+    s, flags = _flags_of(np.full((41, 16), 4.0), [(0.0, 6.0), (2.0, 8.0)])  # 2 voxels' radius: resolved
+    unresolved = np.any(flags & vrec.FLAG_UNRESOLVED, axis=1)
+    assert np.array_equal(unresolved, s <= 8.0)
+    assert not np.any(flags[s > 8.0])  # the rest covered: no other flag fires on this wall
+
+
+def test_a_radius_with_fewer_voxels_than_the_velocity_priors_free_modes_is_unresolved():
+    # the default basis (angular order 4) leaves 2 * 4 + 1 = 9 modes to the data: pi (R/h)^2 >= 9 voxels needs
+    # R >= sqrt(9 / pi) h = 1.693 h
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions()) == pytest.approx(np.sqrt(9 / np.pi), rel=1e-12)
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions(angular_order=2)) == pytest.approx(np.sqrt(5 / np.pi))
+    assert vrec.min_radius_voxels(v3.Velocity3DOptions(angular_order=0)) == vrec.MIN_RADIUS_VOXELS  # the floor
+    radius = np.tile(np.linspace(2.0, 5.0, 41)[:, None], (1, 16))  # 1 to 2.5 voxels of 2 mm along the wall
+    s, flags = _flags_of(radius, [])
+    expected = radius < np.sqrt(9 / np.pi) * 2.0
+    assert expected.any() and not expected.all()
+    assert np.array_equal(flags == vrec.FLAG_UNRESOLVED, expected)
+    assert not np.any(flags[~expected])
+
+
 # ------------------------------------------------------------------ the band (velocity noise)
 @pytest.fixture(scope="module")
 def small_band(small_problem, small_wall):
@@ -668,3 +757,68 @@ def test_a_cine_band_keeps_each_frames_noise_independent(small_band):
 def _tau(b):
     ev = wss3d.wall_wss(b["problem"].centerline, b["geometry"], b["vel"], b["ss"], b["pp"], mu=MU, pieces=b["pieces"])
     return ev.tau.reshape(*b["shape"], 3)
+
+
+def test_the_band_under_the_temporal_prior_matches_monte_carlo_refits(small_band, small_wall):
+    """Four frames (the fit's data times 1, 0.5, -0.3, 0.8) tied by the temporal prior (gamma 3, which takes the
+    band at a wall point to about 0.6 of the frames' own): K = 300 re-fits through the prior with fresh voxel noise
+    in every frame (seeded). The sample std of the axial WSS at every wall point and frame and of the wall's mean
+    |tau| over the frames (the frames' noise now correlated) lie within the chi-square tolerance of the prediction
+    (4.5 / sqrt(2 (K - 1)) = 0.18); d mean / d beta equals central differences of re-solves through the prior
+    (1e-4, as for one frame); gamma -> 0 gives the frames' own band back (the eigenvector route: 1e-5)."""
+    import dataclasses
+
+    from wss_nlp.vessel import cycle3d
+
+    b = small_band
+    vel, vp = b["vel"], b["vel"].problem
+    u = v3.voxel_velocities(b["vol"], vp)[0]
+    scale = np.array([1.0, 0.5, -0.3, 0.8])
+    n, k, gamma = scale.size, 300, 3.0
+    mass = cycle3d.mass_gram(vp)
+    prior = band3d.TemporalPrior(gamma, mass)
+
+    def fit(data, beta=vel.beta):  # data (n, V, 3 m) -> coefficients (n, size, 3 m)
+        rhs = np.stack([vp.rhs(data[t]) for t in range(n)])
+        with vrec.blas_threads(1):
+            return cycle3d.solve_prior(vp, beta, gamma, rhs, mass)
+
+    def wall(coef):  # (frames, size, 3) -> WallEvaluation
+        return wss3d.wall_wss(b["problem"].centerline, small_wall, dataclasses.replace(vel, coefficients=coef),
+                              b["ss"], b["pp"], mu=MU, pieces=b["pieces"])  # fmt: skip
+
+    clean = fit(scale[:, None, None] * u[None])
+    tau = wall(clean).tau.reshape(n, *b["shape"], 3)
+    tied = dataclasses.replace(vel, coefficients=clean)
+    with vrec.blas_threads(1):
+        band = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU, prior)
+        alone = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU)
+        near0 = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU,
+                                   band3d.TemporalPrior(1e-9, mass))  # fmt: skip
+    assert np.allclose(near0.axial_std_pa, alone.axial_std_pa, rtol=1e-5)
+    assert near0.mean_std_pa == pytest.approx(alone.mean_std_pa, rel=1e-5)
+    assert np.median(band.axial_std_pa / alone.axial_std_pa) < 0.8  # the prior matters here
+    rng = np.random.default_rng(12)
+    noise = rng.standard_normal((n, k, *u.shape)) * b["sigma"][None, None]
+    data = (scale[:, None, None, None] * u[None, None] + noise).transpose(0, 2, 1, 3).reshape(n, u.shape[0], 3 * k)
+    coef = fit(data).reshape(n, vp.size, k, 3)
+    axial = np.empty((n, k, b["ss"].size))
+    means = np.zeros(k)
+    for t in range(n):
+        ev = wall(coef[t].transpose(1, 0, 2))
+        axial[t] = ev.axial
+        means += np.linalg.norm(ev.tau, axis=2) @ b["area"].ravel() / n
+    tol = 4.5 / np.sqrt(2 * (k - 1))
+    ratio = axial.std(axis=1, ddof=1) / band.axial_std_pa.reshape(n, -1)
+    assert np.all(np.abs(ratio - 1) < tol), (ratio.min(), ratio.max())
+    wall_ratio = means.std(ddof=1) / band.mean_std_pa
+    assert abs(wall_ratio - 1) < tol, wall_ratio
+
+    def mean_at(beta):  # the wall mean over the frames of the prior's fit at this beta
+        mag = np.linalg.norm(wall(fit(scale[:, None, None] * u[None], beta)).tau, axis=2)  # (n, points)
+        return float(np.mean(mag @ b["area"].ravel()))
+
+    assert mean_at(vel.beta) == pytest.approx(band.mean_pa, rel=1e-12)
+    eps = 1e-3
+    fd = (mean_at(vel.beta * (1 + eps)) - mean_at(vel.beta * (1 - eps))) / (2 * eps * vel.beta)
+    assert band.d_mean_d_beta == pytest.approx(fd, rel=1e-4) and band.d_mean_d_beta != 0

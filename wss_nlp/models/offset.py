@@ -243,6 +243,7 @@ class OffsetRecord:
     inlier_voxels: int = 0  # MSAC's consensus
     sectors: int = 0  # of 8 around the vessel with static tissue
     bic: dict = field(default_factory=dict)
+    frames: int = 1  # frames the fit saw: a cine series' one offset is fitted to the mean of its T frames
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -344,6 +345,7 @@ def correct_series(
     vessel_radius_mm: float,
     venc: float | None,
     seed: int = 0,
+    margin: int = FLOW_MARGIN,
 ) -> tuple[np.ndarray, OffsetRecord, np.ndarray]:
     """One offset for a cine series (or any repeated acquisition of one slice or volume): ``(velocities, record,
     static)``.
@@ -361,7 +363,20 @@ def correct_series(
     # the mean's noise is the frame noise over sqrt(T): the same as one frame of sigma / sqrt(T)
     fixed, rec, static = correct(
         mean_v, mean_m, spacing, origin, sigma / np.sqrt(t), flowing, vessel_mm, vessel_radius_mm, venc,
-        velocity_std=std_v, seed=seed, floor_sigma=sigma,
+        velocity_std=std_v, seed=seed, floor_sigma=sigma, margin=margin,
     )  # fmt: skip
+    rec.frames = t
     offset = mean_v - fixed
     return v - offset[None], rec, static
+
+
+@dataclass
+class SeriesOffset:
+    """One background offset of a cine series' slice (:func:`correct_series`), subtracted from each of its frames.
+
+    ``image`` is the fitted offset on the slice's grid (m/s; zeros where the correction was refused), ``record``
+    what the fit did (its ``frames``: the series' length), ``static`` the voxels it was fitted on (MSAC's inliers)."""
+
+    image: np.ndarray
+    record: OffsetRecord
+    static: np.ndarray | None = None

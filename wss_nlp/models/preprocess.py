@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -164,6 +165,9 @@ class LumenBox:
     r1: float  # mm
     r_area: float  # mm, the reference radius (median of the images')
     start: tuple[float, ...] | None = None  # radius coefficients to start the geometry from (mm)
+    # the series' one background offset of this slice (wss_nlp.models.offset.SeriesOffset), or None: each image
+    # fits its own (wss_nlp.models.surround.preprocess)
+    offset: Any = field(default=None, compare=False)
 
     @classmethod
     def covering(cls, lumens: list[Lumen]) -> LumenBox:

@@ -137,6 +137,8 @@ class CineResult:
     notes: list = field(default_factory=list)
     models: dict = field(default_factory=dict)
     slice_spacing_mm: float | None = None
+    # slice -> the series' one background offset record (wss_nlp.models.offset.OffsetRecord as a dict; series_offsets)
+    offsets: dict = field(default_factory=dict)
 
     @property
     def n_slices(self) -> int:
@@ -401,6 +403,38 @@ def shared_boxes(frames: list[Acquisition], options: ReconstructionOptions) -> d
     return boxes
 
 
+def series_offsets(frames: list[Acquisition], boxes: dict, options: ReconstructionOptions) -> dict:
+    """Per slice with a shared box, the series' one background offset (:func:`wss_nlp.models.surround.
+    series_offset`), attached to its box: every frame of the slice subtracts the same field.
+
+    The eddy currents repeat with the sequence in every frame; one fit to the frames' mean on the tissue that is
+    still in time beats a fit per frame (its noise ``sqrt(T)`` times smaller, and a vessel that pulses is never
+    static tissue, however slow its mean). Returns ``{slice: record dict}`` (the cine result's ``offsets``);
+    slices whose series cannot be fitted at once (a frame with NaN, no vessel in the mean) keep the frames' own
+    fits. Nothing with ``--surround two-level --no-offset-correction`` (Appendix B).
+    """
+    out: dict = {}
+    if options.tissue.off or not boxes:
+        return out
+    ref = frames[0]
+    psf = options.acquisition.psf(ref.voxel_size_mm, ref.acquired_voxel_size_mm, f"{ref.source}: ")
+    for iz, box in list(boxes.items()):
+        raw = np.stack([np.asarray(f.magnitude[iz], float) for f in frames])
+        u = np.stack([np.asarray(f.velocity_images()[iz], float) for f in frames])
+        if not (np.all(np.isfinite(raw)) and np.all(np.isfinite(u))):
+            continue
+        vessel = options.screen.vessel if options.screen.vessel is not None else box.center
+        try:
+            fit = surround.series_offset(raw, u, ref.grid, f"{ref.source} slice {iz}", vessel, ref.venc_m_s,
+                                         acq_model.of(psf))  # fmt: skip
+        except WssNlpError as exc:
+            log.info(f"{ref.source} slice {iz}: no offset over the series ({exc}); each frame fits its own")
+            continue
+        boxes[iz] = replace(box, offset=fit)
+        out[iz] = fit.record.as_dict()
+    return out
+
+
 def reconstruct_cine(
     frames: list[Acquisition],
     times_ms,
@@ -430,6 +464,7 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
         notes.append(PLAIN_FRAMES_NOTE)
     weights = cycle_weights(times_ms, period_ms)
     boxes = shared_boxes(frames, options) if share_box else {}
+    offsets = series_offsets(frames, boxes, options)
     out: list[list] = []
     t0 = time.perf_counter()
     omega = 2 * np.pi / (float(period_ms) / 1000.0)
@@ -462,7 +497,7 @@ def _reconstruct_cine(frames, times_ms, period_ms, options, progress, layer_on_f
         log.warning(line)
     if all(isinstance(r, FailedSlice) for frame in out for r in frame):
         raise WssNlpError(f"every frame failed; the first: {out[0][0].reason}")
-    result = CineResult(out, np.asarray(times_ms, dtype=float), float(period_ms), weights, notes)
+    result = CineResult(out, np.asarray(times_ms, dtype=float), float(period_ms), weights, notes, offsets=offsets)
     spacing = frames[0].slice_spacing_mm
     result.slice_spacing_mm = None if spacing is None else float(spacing)
     psf = next((p for p in psfs if p is not None), None)
@@ -732,6 +767,8 @@ def write_result(
                 g["wss/mean_std_pa_t"] = s.mean_std
             if s.model is not None:
                 g.attrs["cine_model_json"] = s.model.as_json()
+            if s.index in cine.offsets:  # the series' one background offset (each frame's tissue_json holds it too)
+                g.attrs["cine_offset_json"] = json.dumps(cine.offsets[s.index])
             g["wss/tawss_pa"] = s.tawss
             g["wss/osi"] = s.osi
             g["wss"].attrs["mean_pa"] = s.time_average_mean

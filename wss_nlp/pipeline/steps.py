@@ -94,9 +94,15 @@ def prepare(
     # fits use comes back with the offset removed and the partial-volume voxels' lumen phase, and the raw
     # magnitude with the magnitude that carries that phase (the noise estimates' |d_i|)
     near = None if box is None else box.center  # cine: the series' vessel, also in a frame of slow flow
+    series = None if box is None else box.offset  # cine: the series' one background offset of this slice
+    measured = raw
     norm, m, lumen, velocity, raw = surround.preprocess(
-        raw, velocity, grid, where, vessel, venc, acq_model.of(psf), tissue, near
+        raw, velocity, grid, where, vessel, venc, acq_model.of(psf), tissue, near, series
     )
+    if inplane is not None and lumen.tissue is not None and (tissue is None or tissue.offset_correction):
+        # each in-plane encoding direction has its own eddy-current offset (4D flow): fitted on the same static tissue
+        inplane, records = surround.correct_inplane(inplane, measured, grid, lumen, venc, acq_model.of(psf))
+        lumen.tissue["offset_inplane"] = records
     if box is not None:
         lumen = box.apply(lumen)
     nvenc = venc

@@ -6,7 +6,9 @@ in a 64 x 64 mm view with
 
 * a **vessel wall** ring (1.2 mm, darker than the tissue),
 * **textured tissue** of intermediate signal (a smooth random field, about 20 % contrast, 2-6 mm features),
-* **fat** (bright, static): a subcutaneous layer under the body surface and two small deposits,
+* **fat** (bright, static): a subcutaneous layer under the body surface and two small deposits, and on request
+  (``touching_fat``) deposits pressed against the vessel's wall, which join the lumen in one bright region of
+  the magnitude (only the velocity tells them apart),
 * **air** above the body surface (no signal),
 * **neighbouring vessels** with their own flow: an artery (forward) and a vein (reverse flow), each with a wall,
 * an **eddy-current phase offset** over the whole view (linear, quadratic or a smooth non-polynomial field)
@@ -65,6 +67,10 @@ WALL_MM, NEIGHBOUR_WALL_MM = 1.2, 0.6
 TEXTURE = 0.2
 #: Inflow enhancement at the peak speed: ``rho = 1 + INFLOW |u| / u_peak`` in a lumen.
 INFLOW = 0.2
+#: Fat deposits touching the main vessel (``touching_fat``): radius, and their centres' distance beyond the wall
+#: ``R(phi)`` (mm; less than the radius: each reaches the wall ring's outer edge, the wall and lumen take
+#: precedence), and the angle of the first (rad; the others equally spaced).
+TOUCHING_FAT_MM, TOUCHING_FAT_BEYOND_MM, TOUCHING_FAT_ANGLE = 5.0, 4.0, 0.3
 #: Largest midpoint spacing of the voxel means, mm, and the most points per voxel axis.
 SPACING_MM, MAX_POINTS = 0.04, 40
 
@@ -240,7 +246,19 @@ class InvivoTruth(Truth):
         return self.flow.lumen.inside(xc, yc)
 
 
-def _scene(case: str, rng: np.random.Generator, h_mm: float, surround: bool, offset_pct: float, family) -> Scene:
+def _touching_fat(lumen, n: int) -> tuple:
+    """``n`` fat deposits (x, y, r) pressed against the lumen's wall (:data:`TOUCHING_FAT_MM`), no random draw."""
+    out = []
+    for k in range(n):
+        phi = TOUCHING_FAT_ANGLE + 2 * np.pi * k / n
+        d = float(lumen.radius(np.array([phi]))[0]) + TOUCHING_FAT_BEYOND_MM
+        out.append((lumen.center[0] + d * np.cos(phi), lumen.center[1] + d * np.sin(phi), TOUCHING_FAT_MM))
+    return tuple(out)
+
+
+def _scene(
+    case: str, rng: np.random.Generator, h_mm: float, surround: bool, offset_pct: float, family, touching_fat: int = 0
+) -> Scene:
     main = _main_flow(case)
     shift = rng.uniform(-0.5, 0.5, size=2) * h_mm
     center = (-3.0 + float(shift[0]), -4.0 + float(shift[1]))
@@ -279,7 +297,8 @@ def _scene(case: str, rng: np.random.Generator, h_mm: float, surround: bool, off
         texture_k=k,
         texture_phase=kphase,
         shading=shading,
-        fat_blobs=((22.0 + jitter[7], 5.0, 4.0), (-24.0, 6.0 + jitter[7], 3.5)),
+        fat_blobs=((22.0 + jitter[7], 5.0, 4.0), (-24.0, 6.0 + jitter[7], 3.5))
+        + _touching_fat(main.lumen, touching_fat),
     )
 
 
@@ -322,6 +341,7 @@ def make_invivo(
     offset_pct: float = 2.0,
     offset_family: str | None = None,
     max_points: int = MAX_POINTS,
+    touching_fat: int = 0,
 ) -> tuple[Acquisition, InvivoTruth]:
     """Seeded in-vivo-like phantom: ``(acquisition, truth)`` of one slice in a 64 x 64 mm view.
 
@@ -343,14 +363,20 @@ def make_invivo(
     max_points : int
         Most midpoint-rule points per voxel axis (tests use fewer: a faster, coarser voxel mean; the truth's
         fractions are the same rule's).
+    touching_fat : int
+        Fat deposits (radius :data:`TOUCHING_FAT_MM`) pressed against the vessel's wall at equally spaced angles
+        (in tissue only): with partial volume they join the lumen in one bright region of the magnitude. They
+        draw nothing from the seed: the same seed gives the same noise and the same scene otherwise.
     """
     if not h_mm > 0:
         raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
+    if touching_fat < 0:
+        raise InputError(f"touching_fat is a number of fat deposits (>= 0), got {touching_fat}")
     family = OFFSET_FAMILIES[seed % 3] if offset_family is None else offset_family
     if family not in OFFSET_FAMILIES + ("none",):
         raise InputError(f"unknown offset family {family!r}; choose from {', '.join(OFFSET_FAMILIES)}")
     rng = np.random.default_rng(seed)
-    scene = _scene(case, rng, h_mm, surround, 0.0 if family == "none" else offset_pct, family)
+    scene = _scene(case, rng, h_mm, surround, 0.0 if family == "none" else offset_pct, family, touching_fat)
     n = int(np.ceil(VIEW_MM / h_mm))
     origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
@@ -376,6 +402,7 @@ def make_invivo(
         "venc_m_s": scene.venc,
         "offset_family": family if surround and offset_pct else "none",
         "offset_pct_at_vessel": float(offset_pct) if surround and family != "none" else 0.0,
+        "touching_fat": int(touching_fat) if surround else 0,
     }
     truth = InvivoTruth(
         name=name,
@@ -388,6 +415,99 @@ def make_invivo(
         flowing_fraction=flowing,
     )
     return acq, truth
+
+
+#: The cine series' waveforms: the main vessel and the artery ``u_max (A0 + A1 cos(2 pi t / T))`` (always forward),
+#: the vein ``u_max cos(2 pi t / T + VEIN_PHASE)``: pulsatile, its time-mean speed zero.
+CINE_MAIN, CINE_VEIN_PHASE = (0.6, 0.4), 1.0
+
+
+@dataclass
+class InvivoCine:
+    """A seeded in-vivo-like cine series (:func:`make_invivo_cine`): frames, their times and truths."""
+
+    frames: list
+    times_ms: np.ndarray
+    period_ms: float
+    truths: list
+
+
+def make_invivo_cine(
+    h_mm: float = 1.5,
+    snr: float | None = 25.0,
+    seed: int = 0,
+    n_frames: int = 8,
+    period_ms: float = 800.0,
+    offset_pct: float = 2.0,
+    offset_family: str | None = None,
+    max_points: int = MAX_POINTS,
+) -> InvivoCine:
+    """The laminar in-vivo-like slice as a cine series: the scene of :func:`make_invivo` in every frame, the flows
+    pulsing, the eddy-current offset the same in every frame (the sequence repeats), fresh noise per frame.
+
+    The main vessel and the artery pulse forward (:data:`CINE_MAIN`), the vein back and forth with a time-mean
+    speed of zero (:data:`CINE_VEIN_PHASE`): in the frames' mean it looks static, over the series it flows. Each
+    frame's flow is the steady profile scaled (quasi-steady: a phantom of detection and offsets, not of the
+    WSS's dynamics, which needs a Womersley flow). The venc is the peak frame's (1.25 x its peak speed);
+    ``offset_pct`` is the offset at the vessel in percent of that venc. The seed draws the scene as
+    :func:`make_invivo` does, then each frame's noise in turn.
+    """
+    if n_frames < 2:
+        raise InputError(f"a cine series needs at least 2 frames, got {n_frames}")
+    if not h_mm > 0:
+        raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
+    family = OFFSET_FAMILIES[seed % 3] if offset_family is None else offset_family
+    if family not in OFFSET_FAMILIES + ("none",):
+        raise InputError(f"unknown offset family {family!r}; choose from {', '.join(OFFSET_FAMILIES)}")
+    rng = np.random.default_rng(seed)
+    base = _scene("laminar", rng, h_mm, True, 0.0 if family == "none" else offset_pct, family)
+    n = int(np.ceil(VIEW_MM / h_mm))
+    origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
+    grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
+    times = np.arange(n_frames) * period_ms / n_frames
+    artery, vein = base.neighbours
+    main = base.main
+    assert isinstance(main, PoiseuilleEllipse)  # the laminar vessel: its profile scales with u_max
+    frames, truths = [], []
+    for k, t in enumerate(times):
+        phase = 2 * np.pi * t / period_ms
+        a = CINE_MAIN[0] + CINE_MAIN[1] * np.cos(phase)
+        b = np.cos(phase + CINE_VEIN_PHASE)
+        scene = replace(
+            base,
+            main=replace(main, u_max=a * main.u_max),
+            neighbours=(replace(artery, u_max=a * artery.u_max), replace(vein, u_max=b * vein.u_max)),
+        )
+        signal, u_mean, static, flowing = voxel_means(scene, grid, scene.venc, max_points)
+        if snr is not None:
+            signal = complex_noise(signal, 1.0 / snr, rng)
+        frames.append(
+            Acquisition(
+                magnitude=np.abs(signal)[None],
+                phase=np.angle(signal)[None],
+                voxel_size_mm=(h_mm, h_mm),
+                origin_mm=origin,
+                venc_m_s=scene.venc,
+                viscosity_pa_s=scene.main.viscosity_pa_s,
+                source=f"phantom:invivo-cine frame {k}",
+            )
+        )
+        params = {"case": "invivo-cine", "h_mm": h_mm, "snr": -1.0 if snr is None else float(snr), "seed": seed,
+                  "frame": k, "time_ms": float(t), "venc_m_s": scene.venc, "offset_family": family,
+                  "offset_pct_at_vessel": float(offset_pct) if family != "none" else 0.0}  # fmt: skip
+        truths.append(
+            InvivoTruth(
+                name="invivo-cine",
+                flow=scene.main,
+                velocity_image=u_mean,
+                parameters=params,
+                scene=scene,
+                grid=grid,
+                static_fraction=static,
+                flowing_fraction=flowing,
+            )  # fmt: skip
+        )
+    return InvivoCine(frames, times, float(period_ms), truths)
 
 
 #: Cases the demo and ``wss-nlp phantom`` can name: case name -> (main vessel case, description).

@@ -37,6 +37,19 @@ already) and products that skip ``T^T W Z^2 W T``'s zeros outside its band, only
 ``|i - j| <= 3``; the whole-wall mean needs one product with ``H^{-1}``. On the aorta-sized phantoms (about 1500
 unknowns) this is a few percent of the reconstruction's time (``scripts/results/band_vessel.md``, last column).
 
+**Under the temporal prior** (a cine volume whose frames the prior ties, :mod:`wss_nlp.vessel.cycle3d`) the
+coefficients solve ``J a = r`` with ``J = I (x) H + gamma / (pi L) D_2^T D_2 (x) M``; on the temporal DFT's modes
+``J`` is ``S_k^{-1} = H + gamma lambda_k M / (pi L)``, and the frames' right-hand sides are independent with the
+same covariance ``R = T^T W Z^2 W T``, so every frame's coefficients have
+
+.. math:: C = \frac{1}{n} \sum_{k=0}^{n-1} S_k R S_k = X \big(Q \circ \Omega\big) X^\top, \qquad
+          \Omega_{ij} = \frac{1}{n}\sum_k \frac{1}{(\mu_i + c_k)(\mu_j + c_k)},
+
+with ``H X = M X diag(mu)``, ``X^T M X = I``, ``Q = X^T R X``, ``c_k = gamma lambda_k / (pi L)`` (``gamma = 0``:
+``C = H^{-1} R H^{-1}``). The frames are no longer independent: the wall mean over the frames, ``sum_t g_t^T a_t``,
+has the variance ``(1/n) sum_k ghat_k^H S_k R S_k ghat_k`` (``ghat_k`` the DFT of the ``g_t``), and its
+derivative in ``beta`` is ``-(J^{-1} g)^T (I (x) G_Delta / (pi L)) a``.
+
 The band holds the velocity noise only. The magnitude noise moves the wall, and the wall moves the WSS; the slices
 carry that part (:mod:`wss_nlp.uncertainty.sensitivity`: the wall fit's implicit-function derivative, then the
 velocity's normal equations differentiated along every wall direction with the voxel membership held, then the
@@ -171,6 +184,59 @@ def covariance(problem, beta: float, z: np.ndarray, knots) -> Covariance:
     return Covariance(h_inv, m, blocks, nz)
 
 
+@dataclass(frozen=True)
+class TemporalPrior:
+    """The temporal prior a cine volume's velocity was fitted with (:mod:`wss_nlp.vessel.cycle3d`): its ``gamma``
+    and the Gram matrix ``M`` of its penalty."""
+
+    gamma: float
+    mass: np.ndarray
+
+
+class _PriorSpectrum:
+    """``H X = M X diag(mu)``, ``X^T M X = I`` and the modes' shifts ``c_k`` (module notes, "Under the temporal
+    prior"): the per-frame covariance, and the wall mean's variance and ``beta`` derivative over the frames."""
+
+    def __init__(self, problem, beta: float, prior: TemporalPrior, n: int, m: np.ndarray):
+        from .cycle3d import mode_multiplicity, temporal_eigenvalues
+
+        self.n = n
+        self.mu, self.x = scipy.linalg.eigh(problem.hessian(beta), prior.mass)
+        self.shift = self.mu[None, :] + prior.gamma / (np.pi * problem.length_mm) * temporal_eigenvalues(n)[:, None]
+        self.mult = mode_multiplicity(n)  # the real DFT's modes k = 0 .. n // 2 and how many they stand for
+        self.q = self.x.T @ m @ self.x
+
+    def covariance(self) -> np.ndarray:
+        """``C = (1/n) sum_k S_k R S_k`` (dense)."""
+        inv = 1.0 / self.shift  # (modes, size)
+        omega = np.einsum("k,ki,kj->ij", self.mult / self.n, inv, inv)
+        return self.x @ (self.q * omega) @ self.x.T
+
+    def mean_variance_and_solve(self, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For the wall mean's gradients ``g (n, size, 3)`` (per frame and component): the variance per component
+        ``(3,)`` for unit noise scales (``sum_c s_c^2 var_c`` is the mean's) and ``J^{-1} g`` ``(n, size, 3)``."""
+        hat = np.fft.rfft(g, axis=0)  # (modes, size, 3)
+        var = np.zeros(g.shape[2])
+        solved = np.empty_like(hat)
+        for k in range(hat.shape[0]):
+            for part in (hat[k].real, hat[k].imag):
+                y = (self.x.T @ part) / self.shift[k][:, None]  # (size, 3): D_k X^T ghat_k
+                var += self.mult[k] / self.n * np.einsum("ic,ij,jc->c", y, self.q, y)
+            solved[k] = self.x @ ((self.x.T @ hat[k]) / self.shift[k][:, None])
+        return var, np.fft.irfft(solved, n=self.n, axis=0)
+
+
+def _prior_covariance(problem, beta: float, z: np.ndarray, knots, prior: TemporalPrior, n: int):
+    """:func:`covariance` under the temporal prior: ``C``'s window blocks from the dense ``C`` and the spectrum
+    (``Covariance.h_inv`` is then unused: the wall mean goes through the spectrum)."""
+    m = problem.weighted_normal((problem.weights * z) ** 2)
+    spectrum = _PriorSpectrum(problem, beta, prior, n, m)
+    c = spectrum.covariance()
+    nz = problem.basis.disk.size
+    blocks = {int(k): c[int(k) * nz : (int(k) + 4) * nz, int(k) * nz : (int(k) + 4) * nz] for k in np.ravel(knots)}
+    return Covariance(np.zeros((0, 0)), m, blocks, nz), spectrum
+
+
 def _directions(pieces: wss3d.WallPieces, f: np.ndarray, mu: float) -> np.ndarray:
     """``K (m, c, q)``: ``d (f . tau) / d d_u[c, q]`` at each point (module notes), ``f (m, 3)`` unit tangents."""
     n, minv = pieces.normal, pieces.minv
@@ -180,7 +246,7 @@ def _directions(pieces: wss3d.WallPieces, f: np.ndarray, mu: float) -> np.ndarra
 
 
 def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.ndarray, ring_weights: np.ndarray,
-                area_weights: np.ndarray, mu: float) -> VesselBand:  # fmt: skip
+                area_weights: np.ndarray, mu: float, prior: TemporalPrior | None = None) -> VesselBand:  # fmt: skip
     """The band of the WSS at the wall points of ``pieces`` (module notes).
 
     Parameters
@@ -199,6 +265,8 @@ def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.n
         The wall mean's weights (zero off the covered wall; sum one, or all zero: no covered wall).
     mu : float
         Viscosity (Pa s).
+    prior : TemporalPrior or None
+        The temporal prior the frames were fitted with (None: each frame's own fit).
 
     Notes
     -----
@@ -217,7 +285,11 @@ def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.n
     if not np.all(knots == knots[:, :1]):
         raise ValueError("the band's wall points must lie on planes of one s each (an ns x np grid, s major)")
     plane_knots = knots[:, 0]
-    cov = covariance(problem, velocity.beta, z, plane_knots)
+    spectrum = None
+    if prior is not None and prior.gamma > 0 and nt > 1:
+        cov, spectrum = _prior_covariance(problem, velocity.beta, z, plane_knots, prior, nt)
+    else:
+        cov = covariance(problem, velocity.beta, z, plane_knots)
     b_of = np.stack([pieces.db, pieces.b, pieces.b], axis=1).reshape(ns, nph, 3, 4)[:, 0]  # (ns, q, a)
     d = np.stack([pieces.w, pieces.w_rho, pieces.w_theta], axis=1).reshape(ns, nph, 3, nz)  # (ns, np, q, j)
     p_mat = np.stack([np.einsum("qa,ajbk,rb->qrjk", b_of[i], cov.block(k).reshape(4, nz, 4, nz), b_of[i])
@@ -237,6 +309,7 @@ def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.n
     lap = problem.gram_laplace / (np.pi * problem.length_mm)
     smooth = problem.gram_smooth / (np.pi * problem.length_mm)
     var_mean = d_beta = d_kappa = mean = 0.0
+    grads = np.zeros((nt, problem.size, 3))  # the wall mean's gradient in each frame's coefficients
     for t in range(nt):
         vec = tau[t].reshape(-1, 3)
         mag = np.linalg.norm(vec, axis=1)
@@ -251,14 +324,25 @@ def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.n
             g = np.zeros((problem.size, 3))  # the wall mean's gradient in the coefficients
             for i, k in enumerate(plane_knots):
                 g[k * nz : (k + 4) * nz] += np.einsum("qa,cqj->ajc", b_of[i], u[i]).reshape(4 * nz, 3)
-            x = cov.h_inv @ g
-            var_mean += float(np.sum(s2 * np.sum(x * (cov.noise_normal @ x), axis=0)))
-            a = velocity.coefficients[t]
-            d_beta -= float(np.sum(x * (lap @ a)))
-            d_kappa -= float(np.sum(x * (smooth @ a)))
+            grads[t] = g
+            if spectrum is None:  # each frame's own fit: the frames' noise independent
+                x = cov.h_inv @ g
+                var_mean += float(np.sum(s2 * np.sum(x * (cov.noise_normal @ x), axis=0)))
+                a = velocity.coefficients[t]
+                d_beta -= float(np.sum(x * (lap @ a)))
+                d_kappa -= float(np.sum(x * (smooth @ a)))
+    if spectrum is not None and total > 0:  # the prior ties the frames: their noise is correlated
+        var_c, x_all = spectrum.mean_variance_and_solve(grads)
+        var_mean = float(np.sum(s2 * var_c))
+        a_all = np.asarray(velocity.coefficients, float)
+        d_beta = -float(np.einsum("tic,ij,tjc->", x_all, lap, a_all))
+        d_kappa = -float(np.einsum("tic,ij,tjc->", x_all, smooth, a_all))
     if total <= 0:
         mean = var_mean = d_beta = d_kappa = np.nan
     seconds = time.perf_counter() - t0
     log.info("band: %d wall points x %d frames, %.2f s", ns * nph, nt, seconds)
+    frames = (
+        "each frame's own fit" if prior is None or spectrum is None else f"the temporal prior (gamma {prior.gamma:.3g})"
+    )
     return VesselBand(axial_std, plane_std, float(mean), float(np.sqrt(var_mean)), float(d_beta), float(d_kappa),
-                      float(velocity.beta), float(problem.kappa), seconds)  # fmt: skip
+                      float(velocity.beta), float(problem.kappa), seconds, {"velocity_model": frames})  # fmt: skip

@@ -13,7 +13,9 @@ region: its ``s`` interval and angle sector from the centreline record; those vo
 fits), :data:`FLAG_NOT_VISIBLE` (the centreline less than one radius inside the field of view: part of the
 cross-section is cut), :data:`FLAG_BORDER` (the wall point within ``border_mm``, default one voxel, of the field
 of view's faces), :data:`FLAG_UNRESOLVED` (the wall's box constraint active nearby, a solver that did not converge,
-or a radius below one voxel). A wall point with no flag is "covered".
+a radius below :func:`min_radius_voxels` (1.69 voxels by default: fewer voxels in the cross-section than the
+velocity prior leaves free modes), or a wall so far from round that the velocity's map capped its inner radius there:
+:data:`wss_nlp.vessel.velocity3d.MAX_INNER_RATIO`). A wall point with no flag is "covered".
 
 Result file (:meth:`VesselResult.write`, :meth:`VesselResult.read`): an HDF5 group ``vessel/`` (or
 ``baseline/``) with lengths in mm, stresses in Pa, vectors in the world frame of the volume's affine:
@@ -67,10 +69,26 @@ FLAG_BORDER = 4
 FLAG_UNRESOLVED = 8
 FLAG_NAMES = {FLAG_BRANCH: "near a branch", FLAG_NOT_VISIBLE: "outside the visible part",
               FLAG_BORDER: "near the field of view's border", FLAG_UNRESOLVED: "unresolved"}  # fmt: skip
-#: A radius below this many voxels is unresolved.
+#: A radius below this many voxels is unresolved, whatever the velocity basis (:func:`min_radius_voxels`).
 MIN_RADIUS_VOXELS = 1.0
 #: Bulk Reynolds number above which steady pipe flow may be transitional or turbulent (the classical 2300).
 TRANSITION_REYNOLDS = 2300.0
+
+
+def min_radius_voxels(velocity: v3.Velocity3DOptions) -> float:
+    """The smallest radius, in voxels (the largest edge), at which a cross-section is resolved:
+    ``max(MIN_RADIUS_VOXELS, sqrt((2 m + 1) / pi))`` with ``m`` the velocity basis' highest angular order.
+
+    The velocity prior ``||Delta^2 v||^2`` leaves the ``2 m + 1`` modes ``(1 - rho^2)`` times a harmonic
+    polynomial of order up to ``m`` free (``Delta^2`` kills them), so only the data fix them; a cross-section of
+    radius ``R`` holds about ``pi (R / h)^2`` voxels. Below ``sqrt((2 m + 1) / pi)`` voxels (1.69 at the default
+    ``m = 4``) it holds fewer voxels than free modes and the wall's velocity gradient follows the noise: on the
+    carotid-sized phantom without tissue (development seeds 0, 1, SNR 20, ``scripts/results/vessel_limits_small.md``
+    by ``scripts/vessel_limits.py``) the WSS error was 55 % at 1.2 voxels, 35 % at 1.5, 24.5 % at 1.75 and 15-16 %
+    at 2, against 3-6 % at the aorta's 4-6 voxels (``scripts/results/vessel_accuracy.md``).
+    """
+    m = velocity.angular_order if velocity.angular_order is not None else velocity.degree
+    return max(MIN_RADIUS_VOXELS, float(np.sqrt((2 * m + 1) / np.pi)))
 
 
 @dataclass(frozen=True)
@@ -520,8 +538,10 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     if note:
         notes.append(note)
     t0 = time.perf_counter()
+    prior = None if cycle is None or cycle.model != "temporal" else band3d.TemporalPrior(
+        cycle.gamma, cycle3d.mass_gram(vp))  # fmt: skip
     axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
-        geometry, s, phi, radius), area, flags, mu)  # fmt: skip
+        geometry, s, phi, radius), area, flags, mu, prior)  # fmt: skip
     if not band.get("available"):
         notes.append(band["note"])
     seconds["band"] = time.perf_counter() - t0
@@ -532,6 +552,10 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     bar.close()
     seconds["total"] = time.perf_counter() - t_all
     notes.append("walls rigid: one wall from the time-mean magnitude serves every frame")
+    if vp.basis.capped:
+        notes.append("velocity map: the wall is far from round at s in " + ", ".join(
+            f"[{a:.1f}, {b:.1f}]" for a, b in vp.basis.capped) + " mm; the map's inner radius is capped there and "
+            "the wall points are flagged unresolved")  # fmt: skip
     statuses = {"geometry": g3.stats_dicts(geometry.stats),
                 "velocity": {"beta_rule": velocity.beta_choice.rule,
                              "residual_m_s": velocity.residual_norm}}  # fmt: skip
@@ -543,7 +567,8 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
         "zernike_degree": vp.basis.disk.degree, "zernike_angular_order": vp.basis.disk.max_order,
         "fitted_range_mm": list(s_range), "levels": levels.as_dict(),
         "geometry_options": geometry.options, "velocity_options": dict(vars(options.velocity)),
-        "offset": inputs.offset, "cycle": None if cycle is None else cycle.as_dict(),
+        "offset": inputs.offset, "inner_capped_mm": [list(v) for v in vp.basis.capped],
+        "cycle": None if cycle is None else cycle.as_dict(),
     }  # fmt: skip
     log.info("vessel: %d x %d wall points, %d frames, %.0f %% covered, %.1f s", ns, nph, vol.nt,
              100 * float(np.mean(flags == 0)), seconds["total"])  # fmt: skip
@@ -571,7 +596,8 @@ class VesselFits:
     mu: float
 
 
-def wall_band(vol, velocity, levels, pieces, wss, ring_w, area, flags, mu) -> tuple[np.ndarray, np.ndarray, dict]:
+def wall_band(vol, velocity, levels, pieces, wss, ring_w, area, flags, mu,
+              prior: band3d.TemporalPrior | None = None) -> tuple[np.ndarray, np.ndarray, dict]:  # fmt: skip
     """The band of :mod:`wss_nlp.vessel.band3d` on a reconstruction's pieces: ``(wss/axial_std_pa,
     planes/mean_wss_std_pa, the band's record)``; NaN with a note in the record where it cannot be computed (no
     venc: the velocity noise needs it; none is invented)."""
@@ -584,7 +610,7 @@ def wall_band(vol, velocity, levels, pieces, wss, ring_w, area, flags, mu) -> tu
     area_w = covered / total if total > 0 else covered
     sigma = v3.velocity_noise(vol, velocity.problem, levels)
     try:
-        b = band3d.vessel_band(pieces, velocity, sigma, wss, ring_w, area_w, mu)
+        b = band3d.vessel_band(pieces, velocity, sigma, wss, ring_w, area_w, mu, prior)
     except ValueError as exc:
         return band3d.unavailable(nt, ns, nph, f"no uncertainty band: {exc}")
     return b.axial_std_pa, b.plane_mean_std_pa, b.record()
@@ -603,7 +629,7 @@ def _flags(s, phi, wall, radius, geometry, velocity, record, exclude, vol, optio
     border = h if options.border_mm is None else float(options.border_mm)
     dist = distance_to_border(wall.reshape(-1, 3), vol.affine_mm, vol.shape).reshape(ns, nph)
     flags[dist < border] |= FLAG_BORDER
-    unresolved = radius < MIN_RADIUS_VOXELS * h
+    unresolved = radius < min_radius_voxels(options.velocity) * h
     if np.any(geometry.box_active):  # a box row on its bound: the points within a knot and a box angle of it
         i_s, i_p = np.nonzero(geometry.box_active)
         ds_box = geometry.basis.spline.delta
@@ -612,6 +638,8 @@ def _flags(s, phi, wall, radius, geometry, velocity, record, exclude, vol, optio
             near_s = np.abs(s - geometry.box_s[a]) <= ds_box
             near_p = np.abs(np.angle(np.exp(1j * (phi - geometry.box_phi[b])))) <= dphi_box
             unresolved |= near_s[:, None] & near_p[None, :]
+    for a, b in velocity.basis.capped:  # the velocity's map needed its inner radius capped: a wall far from round
+        unresolved[(s >= a) & (s <= b)] = True
     if not all(st.converged for st in geometry.stats):
         unresolved[:] = True
     flags[unresolved] |= FLAG_UNRESOLVED
@@ -691,10 +719,12 @@ def reynolds_note(planes: dict, mu: float, density_kg_m3: float | None, times_ms
         return None
     when = f" at {float(np.asarray(times_ms)[k]):g} ms" if re.size > 1 else ""
     source = "stated" if density_kg_m3 is not None else "assumed (blood's)"
-    return (f"bulk Reynolds number {re[k]:.0f}{when} (median over the planes; density {rho:g} kg/m^3 {source}) is "
-            f"above {TRANSITION_REYNOLDS:.0f}: the flow may be transitional or turbulent, and a wall layer thinner "
-            "than the voxels is not resolved by the volume route (no near-wall models for volumes): its WSS may be "
-            "underestimated there")
+    return (
+        f"bulk Reynolds number {re[k]:.0f}{when} (median over the planes; density {rho:g} kg/m^3 {source}) is "
+        f"above {TRANSITION_REYNOLDS:.0f}: the flow may be transitional or turbulent, and a wall layer thinner "
+        "than the voxels is not resolved by the volume route (no near-wall models for volumes): its WSS may be "
+        "underestimated there"
+    )
 
 
 def ring_weights(geometry, s, phi, radius) -> np.ndarray:

@@ -17,9 +17,16 @@ the fit is one operator with three right-hand sides. The inner radius ``r_in(s)`
   ``s`` with an exact derivative). For a circular section and ``f = 1`` the map is the scaling ``x = R rho``, under
   which Poiseuille flow is the first basis function and skewed and swirling parabolic flows are low-degree
   polynomials, whatever ``R(s)`` does along the vessel. The map stays one-to-one while ``r_in < 2 min R`` (its
-  radial derivative ``2 R - r_in`` at the wall); refused otherwise. Against "min" on the tapering and the
+  radial derivative ``2 R - r_in`` at the wall); capped otherwise (below). Against "min" on the tapering and the
   elliptic phantoms: ``scripts/results/vessel_choices.md`` (on the taper the smallest radius over a B-spline's
   support lies well below the local radius and the map departs from a scaling);
+  where a fitted wall is far from round (its smallest radius over a B-spline's support below
+  ``R_0 / MAX_INNER_RATIO``: a loose end of the fit, a vessel of one or two voxels' radius) the spline coefficient
+  of ``r_in`` is capped at :data:`MAX_INNER_RATIO` times that smallest radius (sampled 8 times per knot
+  interval), which keeps the map one-to-one (a convex combination: ``r_in(s) <= 1.5 min_theta R(s, theta)`` up to
+  the radius' dip between samples, so the radial derivative at the wall ``2 R - r_in`` stays near ``R / 2``), and
+  the wall points over the capped B-splines' supports are reported (:attr:`VelocityBasis3D.capped`) and flagged
+  unresolved by the reconstruction; where nothing is capped the basis is the plain "mean" rule's;
 * ``"min"``: the 2D rule, ``f`` times the smallest radius: ``f sum_k B_k(s) rho_k`` with ``rho_k`` the smallest
   ``R`` over the support of ``B_k`` (a convex combination, so ``r_in <= f min_theta R(s, theta)``, the condition of
   Lemma A.4, with an exact s-derivative).
@@ -79,6 +86,11 @@ BETA_RULES = ("gcv", "discrepancy")
 GCV_PROBES = 12
 #: The beta grid of GCV (dimensionless, as in 2D): decades, the best refined by half a decade either side.
 GCV_BETAS = 10.0 ** -np.arange(2.0, 10.01, 1.0)
+#: Largest ratio of the "mean" rule's inner radius to the smallest wall radius over a B-spline's support (module
+#: notes): the map's radial derivative at the wall ``2 R - r_in`` stays above ``R / 2``. A round wall has ratio 1;
+#: the phantoms' 12 x 9 mm ellipse 1.15, the taper's stenosis over a wall B-spline's support (4 h) 1.14 at h = 2 mm
+#: and 1.17 at 2.5 mm, so the cap binds only on walls far from round (before it, those beyond 2: a refusal).
+MAX_INNER_RATIO = 1.5
 
 
 @dataclass(frozen=True)
@@ -149,6 +161,7 @@ class VelocityBasis3D:
     wall_coefficients: np.ndarray
     inner: np.ndarray  # spline coefficients of r_in(s)
     inner_spline: tube.SplineBasis  # their B-splines (the velocity's for "min", the wall's for "mean")
+    capped: list = field(default_factory=list)  # (s0, s1) supports of the capped r_in coefficients ("mean" rule)
 
     @property
     def size(self) -> int:
@@ -180,17 +193,23 @@ def velocity_basis(geometry, options: Velocity3DOptions, h: float) -> VelocityBa
     lo, hi = geometry.s_range
     spline = tube.SplineBasis(lo, hi, options.knot_spacing_mm or 2 * h)
     phi = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    capped: list = []
     if options.inner == "mean":
         inner_spline = geometry.basis.spline
         inner = options.inner_fraction * geometry.basis.matrix(geometry.coefficients)[:, 0]
+        # 8 samples per knot interval: the cap's bound holds on them; between them a fitted wall's radius dips
+        # by O(delta^2 R_ss / 128), far inside the 2 min R the map needs
+        cap = MAX_INNER_RATIO * _support_minima(geometry, inner_spline, phi, points=33)
+        over = inner > cap
+        if over.any():
+            capped = [_support(inner_spline, int(k)) for k in np.flatnonzero(over)]
+            where = ", ".join(f"[{a:.1f}, {b:.1f}]" for a, b in capped)
+            log.info("velocity map: inner radius capped at %g x the smallest wall radius on %d B-spline(s), s in %s mm",
+                     MAX_INNER_RATIO, int(over.sum()), where)  # fmt: skip
+            inner = np.minimum(inner, cap)
     else:
         inner_spline = spline
-        inner = np.empty(spline.size)
-        for k in range(spline.size):  # the smallest R over B_k's support (clipped to the fitted range)
-            a, b = lo + (k - 3) * spline.delta, lo + (k + 1) * spline.delta
-            s = np.linspace(max(a, lo), min(b, hi), 9)
-            ss, pp = np.meshgrid(s, phi, indexing="ij")
-            inner[k] = options.inner_fraction * float(np.min(geometry.radius(ss.ravel(), pp.ravel())))
+        inner = options.inner_fraction * _support_minima(geometry, spline, phi)
     s = np.linspace(lo, hi, 4 * spline.intervals + 1)
     grid_s, grid_phi = np.meshgrid(s, phi, indexing="ij")
     r_min = geometry.radius(grid_s.ravel(), grid_phi.ravel()).reshape(s.size, phi.size).min(axis=1)
@@ -200,7 +219,24 @@ def velocity_basis(geometry, options: Velocity3DOptions, h: float) -> VelocityBa
             "the fitted wall is too far from round about the centreline for the velocity's map (its inner radius "
             "must lie between 0 and twice the smallest radius); use --inner min or a centreline through the lumen"
         )
-    return VelocityBasis3D(spline, options.make_basis(), geometry.basis, geometry.coefficients, inner, inner_spline)
+    return VelocityBasis3D(spline, options.make_basis(), geometry.basis, geometry.coefficients, inner, inner_spline,
+                           capped)  # fmt: skip
+
+
+def _support(spline: tube.SplineBasis, k: int) -> tuple[float, float]:
+    """``B_k``'s support clipped to the spline's range (mm)."""
+    return max(spline.lo, spline.lo + (k - 3) * spline.delta), min(spline.hi, spline.lo + (k + 1) * spline.delta)
+
+
+def _support_minima(geometry, spline: tube.SplineBasis, phi: np.ndarray, points: int = 9) -> np.ndarray:
+    """The smallest wall radius over each B-spline's support (clipped to the fitted range), sampled at ``points``
+    arclengths and the angles ``phi``."""
+    out = np.empty(spline.size)
+    for k in range(spline.size):
+        a, b = _support(spline, k)
+        ss, pp = np.meshgrid(np.linspace(a, b, points), phi, indexing="ij")
+        out[k] = float(np.min(geometry.radius(ss.ravel(), pp.ravel())))
+    return out
 
 
 @dataclass
