@@ -105,3 +105,40 @@ def test_steady_slices_are_not_flagged(case):
     r = reconstruct(acq, ReconstructionOptions())[0]
     assert r.steady is not None and not r.steady.unsteady, r.steady.reasons
     assert "steady" in r.screen and not any("steady family" in w for w in r.warnings)
+
+
+class _Turbulent:
+    """A near-wall choice as the driver passes it: the law of the wall chosen, its data viscosity ratio given."""
+
+    model, unresolved_mm, scale_ratio = "wall_law", float("nan"), float("nan")
+
+    def __init__(self, ratio):
+        self.viscosity_ratio = ratio
+
+
+def test_turbulent_regime_reasons_name_the_stated_viscosity():
+    """A flat steady core (1 - rho^8, seeded noise 0.2 %) at Re 10000 whose law of the wall implies 2.0 x the
+    stated viscosity (the ratio outside the factor 1.6): the only reason is the viscosity's, so the note asks
+    whether the stated viscosity is off rather than calling the slice unsteady; a ratio of 1.2 gives no reason;
+    with an unsteady shape besides (a near-wall reversal), the note stays the unsteady-flow one."""
+    u, sigma, x, y, c = _voxels(lambda r: 1 - r**8)
+    off = steady.check(u, sigma, x, y, c, (0.0, 0.0), 0.5, reynolds=1e4, near=_Turbulent(2.0))
+    assert off.unsteady and off.viscosity_reasons == len(off.reasons) == 1
+    assert "true viscosity is 2 x the stated one" in off.reasons[0]
+    assert off.note().startswith("SUSPECT: unsteady flow, or the stated viscosity off?")
+    fine = steady.check(u, sigma, x, y, c, (0.0, 0.0), 0.5, reynolds=1e4, near=_Turbulent(1.2))
+    assert not fine.unsteady
+    u, sigma, x, y, c = _voxels(lambda r: 1 - r**8 - 0.6 * np.exp(-(((1 - r) / 0.08) ** 2)))
+    both = steady.check(u, sigma, x, y, c, (0.0, 0.0), 0.5, reynolds=1e4, near=_Turbulent(2.0))
+    assert both.viscosity_reasons == 1 < len(both.reasons)
+    assert both.note().startswith("SUSPECT: unsteady flow? the near-wall data")
+
+
+def test_a_steady_turbulent_slice_with_its_viscosity_stated_half_says_so():
+    """The steady turbulent slice (DNS pipe mean), h = 1.0 mm, SNR 25, seed 52 (not a tuning or reported seed),
+    its viscosity stated at half the true one: flagged (the law of the wall's layer implies about twice the
+    stated viscosity; scripts/results/unsteady_viscosity.md), and the warning names the stated viscosity."""
+    acq, _ = phantoms.make_phantom("turbulent", h_mm=1.0, snr=25, seed=52)
+    r = reconstruct(acq, ReconstructionOptions(viscosity_pa_s=0.5 * acq.viscosity(None)))[0]
+    assert r.steady is not None and r.steady.unsteady and r.steady.viscosity_reasons == len(r.steady.reasons)
+    assert any("or the stated viscosity off?" in w for w in r.warnings)

@@ -263,3 +263,24 @@ def test_fat_touching_the_vessel_leaves_radius_and_wss_near_the_untouched_twins(
         errors[n] = (100 * e.radius_rel_l2, 100 * e.wss_rel_l2)
     assert errors[4][0] <= 1.5 * errors[0][0] + 0.1
     assert errors[4][1] <= 1.3 * errors[0][1] + 1.0
+
+
+def test_flowing_regions_are_kept_for_the_same_images_and_each_caller_gets_a_copy():
+    """The kept answer equals a fresh computation (labels, flowing, static, speeds), a change of any input (the
+    velocity by one voxel, the venc) is a new question, and a caller's changes to its copy reach nobody else."""
+    acq, _ = invivo.make_invivo("laminar", 1.5, seed=invivo.DEV_SEEDS[1], max_points=6, touching_fat=4)
+    raw, u = acq.magnitude[0], acq.velocity_images()[0]
+    m = np.clip(raw / np.percentile(raw, 99), 0, 2)
+    fresh = surround._flowing_regions(m, raw, u, acq.venc_m_s, 1.0)
+    first = surround.flowing_regions(m, raw, u, acq.venc_m_s, 1.0)
+    first.labels[:] = -1
+    first.flowing.append(99)
+    again = surround.flowing_regions(m, raw, u, acq.venc_m_s, 1.0)
+    assert np.array_equal(again.labels, fresh.labels) and again.flowing == fresh.flowing
+    assert again.static == fresh.static and again.speeds == fresh.speeds
+    v = u.copy()
+    v.flat[np.argmax(np.abs(v))] = 0.0
+    assert surround._digest(m, raw, v, extra=(acq.venc_m_s, 1.0)) != surround._digest(
+        m, raw, u, extra=(acq.venc_m_s, 1.0)
+    )
+    assert surround._digest(m, raw, u, extra=(None, 1.0)) != surround._digest(m, raw, u, extra=(acq.venc_m_s, 1.0))

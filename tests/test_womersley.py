@@ -285,10 +285,11 @@ def test_temporal_prior_block_cholesky_equals_a_solve_per_temporal_frequency():
 
 
 def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
-    """models.temporal.fit with per-frame betas: the chosen gamma is the smallest criterion it evaluated; at that
-    gamma the coefficients, the smoother's trace tr(H^-1 blockdiag K_k) (from a triangular inverse) and each
-    frame's covariance block (H^-1 blockdiag(T^T W S W T) H^-1) equal dense numpy formulas to 1e-8 relative;
-    gamma -> 0 gives each frame's own Tikhonov solution back (1e-6: gamma 1e-9 perturbs it by about that)."""
+    """models.temporal.fit with per-frame betas: the chosen gamma is the smallest criterion it evaluated or
+    bounded; at that gamma the coefficients, the smoother's trace tr(H^-1 blockdiag K_k) (from a triangular
+    inverse) and each frame's covariance block (H^-1 blockdiag(T^T W S W T) H^-1) equal dense numpy formulas
+    to 1e-8 relative; gamma -> 0 gives each frame's own Tikhonov solution back (1e-6: gamma 1e-9 perturbs it
+    by about that)."""
     from wss_nlp.models import temporal
 
     problems = _prior_problems(5, 68)
@@ -297,7 +298,8 @@ def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
     sigmas = [np.full(q.data.size, 0.01) for q in problems]
     best = temporal.fit(problems, betas, sigmas, 1.0, float(np.log(sum(q.data.size for q in problems))))
     assert best.bic == min(best.curve.values()) and best.curve[best.gamma] == best.bic
-    assert len(best.curve) >= 4  # a bracket and its refinement, not one point
+    # a bracket and its refinement, not one point (values a lower bound decided are in bounds, all above the best)
+    assert len(best.curve) + len(best.bounds) >= 4 and min(best.bounds.values(), default=np.inf) > best.bic
     tw = [q.operator * (q.weights / q.area)[:, None] for q in problems]
     kk = [a.T @ q.operator for a, q in zip(tw, problems)]
     d2 = temporal.second_difference(n)
@@ -318,6 +320,34 @@ def test_temporal_prior_criterion_trace_and_band_against_dense_formulas():
     for q, b, v in zip(problems, betas, loose):
         own = q.tikhonov.solve(b)
         assert np.max(np.abs(v - own)) <= 1e-6 * np.max(np.abs(own))
+
+
+def test_temporal_prior_bounds_decide_without_changing_the_fit(monkeypatch):
+    """models.temporal.fit skips the trace where a lower bound of the criterion decides (_TraceFloor): the same
+    best gamma, criterion and coefficients, bit for bit, as the search computing every trace (the margin made
+    infinite, so no bound decides); every recorded bound at most the criterion computed there; and the trace
+    bounds themselves below the traces (per-frame and gamma -> infinity bounds, four gammas): proven inequalities,
+    checked to a rounding slack of 1e-9 relative."""
+    from wss_nlp.models import temporal
+
+    problems = _prior_problems(6, 67)
+    betas = 10.0 ** np.array([-8.0, -6.0, -7.0, -5.0, -6.5, -7.5])
+    sigmas = [np.full(q.data.size, 0.01) for q in problems]
+    args = (problems, betas, sigmas, 1.0, float(np.log(sum(q.data.size for q in problems))))
+    fast = temporal.fit(*args)
+    monkeypatch.setattr(temporal, "_FLOOR_MARGIN", np.inf)
+    full = temporal.fit(*args)
+    assert fast.gamma == full.gamma and fast.bic == full.bic and fast.dof == full.dof
+    assert np.array_equal(fast.coefficients, full.coefficients)
+    assert not full.bounds and set(fast.curve) | set(fast.bounds) == set(full.curve)
+    for gamma, bound in fast.bounds.items():
+        assert bound <= full.curve[gamma] * (1 + 1e-9)
+    system = temporal._System(problems, betas)
+    floor = temporal._TraceFloor(system)
+    for gamma in (1e-4, 1e-2, 1.0, 1e2):
+        z = temporal._BandedFactor(system, gamma).inverse_diagonal()
+        dof = sum(float(np.sum(a * k)) for a, k in zip(z, system.normal))
+        assert floor.limit <= floor(gamma) <= dof * (1 + 1e-9)
 
 
 def test_forced_temporal_prior_on_a_steady_profile_scaled_in_time():

@@ -89,3 +89,30 @@ def test_wss_matrix_equals_direct_evaluation(laminar_snr25):
     a, xw = wss.wss_matrix(vp.basis, vp.disk_map, 3.5e-3)
     assert np.allclose(a @ res.coefficients, direct.tau, rtol=1e-10, atol=1e-12)
     assert np.allclose(xw[0], direct.wall_x, atol=1e-12)
+
+
+def test_from_reconstruction_takes_the_kept_matrix_on_the_same_wall_only(laminar_snr25):
+    """After wss_matrix on a plain basis and wall (the beta choice's), from_reconstruction on that wall returns
+    A c: the same tau and mean as the expression's evaluation to 1e-13 relative (one matrix product against
+    CasADi's evaluation, both double precision), the same wall points bit for bit; another viscosity or another
+    wall is not served from the kept matrix (its tau scales with mu: checked at 2 mu)."""
+    from wss_nlp.models import geometry as geo
+    from wss_nlp.models import velocity as vel
+
+    from conftest import geometry_problem
+
+    acq, _ = laminar_snr25
+    g = geo.solve(geometry_problem(acq), geo.GeometryOptions())
+    vo = vel.VelocityOptions(degree=8, angular_order=4)
+    vp = vel.assemble(acq.grid, acq.velocity_images()[0], g.coefficients, g.center, vo)
+    res = vel.solve(vp, vo)
+    wss._MATRICES.clear()
+    direct = wss.from_reconstruction(res, 360, MU)
+    wss.wss_matrix(vp.basis, vp.disk_map, MU)
+    assert wss._matrix_key(res.basis, res.disk_map, MU, 360) in wss._MATRICES
+    kept = wss.from_reconstruction(res, 360, MU)
+    assert np.max(np.abs(kept.tau - direct.tau)) <= 1e-13 * np.max(np.abs(direct.tau))
+    assert kept.mean == pytest.approx(direct.mean, rel=1e-13)
+    assert np.array_equal(kept.wall_x, direct.wall_x) and np.array_equal(kept.wall_y, direct.wall_y)
+    assert wss._matrix_key(res.basis, res.disk_map, 2 * MU, 360) not in wss._MATRICES
+    assert np.allclose(wss.from_reconstruction(res, 360, 2 * MU).tau, 2 * direct.tau, rtol=1e-12, atol=0)

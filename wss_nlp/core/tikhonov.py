@@ -83,6 +83,19 @@ class LinearTikhonov:
         """``W T`` (formed when first used)."""
         return self.operator * self.w[:, None]
 
+    def with_data(self, data) -> LinearTikhonov:
+        """The same operator, weights and penalty with other data ``u``: the normal matrix and the pencils
+        (which do not depend on the data) are shared with this one, only ``g = T^T W u`` is formed (the frames
+        of a cine slice on one wall, :func:`wss_nlp.pipeline.cine.plain_problem`)."""
+        other = LinearTikhonov.__new__(LinearTikhonov)
+        other.operator, other.w, other.gram, other.normal = self.operator, self.w, self.gram, self.normal
+        other._pencils = self._pencils  # shared: a pencil computed for one data set serves every other
+        other.data = np.asarray(data, dtype=float)
+        other.rhs = other.operator.T @ (other.w * other.data)
+        if "weighted_operator" in self.__dict__:
+            other.__dict__["weighted_operator"] = self.weighted_operator
+        return other
+
     def bordered(self, operator, weights, gram) -> LinearTikhonov:
         """The problem with columns appended (``operator`` = ``[T, E]``, the same weights and data) and the
         penalty ``gram``, its normal matrix by blocks: ``[[K, T^T W E], [E^T W T, E^T W E]]`` from this one's

@@ -86,6 +86,7 @@ class SteadyCheck:
     viscosity_ratio: float = float("nan")  # the law of the wall's data viscosity over the stated (turbulent)
     reynolds: float = float("nan")
     rings: int = 0
+    viscosity_reasons: int = 0  # how many of the reasons rest on the stated viscosity (the turbulent regime's)
 
     @property
     def unsteady(self) -> bool:
@@ -100,6 +101,16 @@ class SteadyCheck:
         """The slice's warning ("" when the data do not contradict steady flow)."""
         if not self.reasons:
             return ""
+        if self.viscosity_reasons == len(self.reasons):
+            # every reason is the turbulent regime's, which the stated viscosity sets: steady turbulent flow
+            # with its viscosity stated 2x off gives them too (scripts/unsteady_frames.py --viscosity-factors)
+            return (
+                "SUSPECT: unsteady flow, or the stated viscosity off? at the stated viscosity the near-wall data "
+                "contradict every steady family (" + "; ".join(self.reasons) + "): a single frame of pulsatile flow "
+                "read as a steady slice, or steady turbulent flow whose viscosity is not the stated one (the bulk "
+                "Reynolds number and the law of the wall's layer both take it: check --viscosity); its WSS can "
+                "miss by far more than the band, which holds the noise only"
+            )
         return (
             "SUSPECT: unsteady flow? the near-wall data contradict every steady family ("
             + "; ".join(self.reasons)
@@ -257,15 +268,19 @@ def check(u, sigma, x_mm, y_mm, coefficients, center, voxel_mm: float, reynolds:
         if np.isfinite(ratio) and not 1.0 / VISCOSITY_FACTOR <= ratio <= VISCOSITY_FACTOR:
             out.reasons.append(
                 f"turbulent regime (Re {reynolds:.0f}), but the law of the wall's layer implies {ratio:.2f} x the "
-                f"stated kinematic viscosity (steady turbulent flow: within a factor {VISCOSITY_FACTOR:g})"
+                f"stated kinematic viscosity (steady turbulent flow: within a factor {VISCOSITY_FACTOR:g}; or the "
+                f"true viscosity is {ratio:.2g} x the stated one)"
             )
+            out.viscosity_reasons += 1
         flat = out.parabola_drop - out.core_drop - CORE_MARGIN
         if near.model == "plain" and np.isfinite(flat) and flat > 3.0 * out.core_drop_std:
             out.reasons.append(
                 f"turbulent regime (Re {reynolds:.0f}), but the data chose no turbulent wall layer over the plain "
                 f"basis, and the core is not the laminar parabola either (falls by {100 * out.core_drop:.0f} % to "
-                f"r = {CORE_RADIUS:g} R, the parabola by {100 * out.parabola_drop:.0f} %)"
+                f"r = {CORE_RADIUS:g} R, the parabola by {100 * out.parabola_drop:.0f} %; or the stated viscosity "
+                "is too high: it lowers the Reynolds number and thickens the law of the wall's layer)"
             )
+            out.viscosity_reasons += 1
     else:
         scale = laminar_layer(near, radius)
         if np.isfinite(scale) and np.isfinite(out.core_drop):

@@ -31,7 +31,9 @@ serves the plausibility screen and the cine series' shared box.
 
 from __future__ import annotations
 
+import hashlib
 import logging
+from collections import OrderedDict
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -208,7 +210,40 @@ def beyond_flow(m: np.ndarray, velocity, venc: float | None) -> np.ndarray:
     return np.isin(parts, big)
 
 
+#: The last few :func:`flowing_regions` results, keyed by a digest of their inputs: a slice's preparation, its
+#: screens and its dephasing passes ask the same question of the same images (142 calls, 82 distinct, for a
+#: 20-frame cine), and the answer is a pure function of them.
+_REGIONS: OrderedDict[bytes, Regions] = OrderedDict()
+_REGIONS_KEPT = 16
+
+
+def _digest(*arrays, extra=()) -> bytes:
+    h = hashlib.blake2b(repr(extra).encode(), digest_size=16)
+    for a in arrays:
+        a = np.ascontiguousarray(a)
+        h.update(repr((a.shape, a.dtype.str)).encode())
+        h.update(a.tobytes())
+    return h.digest()
+
+
+def _copy(r: Regions) -> Regions:
+    return Regions(r.labels.copy(), list(r.flowing), list(r.static), dict(r.speeds))
+
+
 def flowing_regions(m: np.ndarray, raw: np.ndarray, velocity: np.ndarray, venc: float | None, sigma: float) -> Regions:
+    """:func:`_flowing_regions`, kept for the same inputs (:data:`_REGIONS`); the caller gets its own copy."""
+    key = _digest(m, raw, velocity, extra=(venc, sigma))
+    if key in _REGIONS:
+        _REGIONS.move_to_end(key)
+        return _copy(_REGIONS[key])
+    out = _flowing_regions(m, raw, velocity, venc, sigma)
+    _REGIONS[key] = _copy(out)
+    while len(_REGIONS) > _REGIONS_KEPT:
+        _REGIONS.popitem(last=False)
+    return out
+
+
+def _flowing_regions(m: np.ndarray, raw: np.ndarray, velocity: np.ndarray, venc: float | None, sigma: float) -> Regions:
     """Label the bright regions of ``m`` and tell those that flow from static ones.
 
     A bright region that flows is first split from the static tissue touching it (:func:`beyond_flow`: fat

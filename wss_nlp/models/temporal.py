@@ -69,6 +69,7 @@ class PriorFit:
     chi2: float
     dof: float
     curve: dict = field(default_factory=dict)  # gamma -> criterion
+    bounds: dict = field(default_factory=dict)  # gamma -> a lower bound of the criterion (its trace not computed)
 
     @functools.cached_property
     def covariance(self) -> np.ndarray:
@@ -82,6 +83,7 @@ class PriorFit:
             "betas": [float(b) for b in self.betas],
             "dof": self.dof,
             "bic": {f"{g:g}": v for g, v in self.curve.items()},
+            "bic_at_least": {f"{g:g}": v for g, v in self.bounds.items()},
         }
 
 
@@ -208,43 +210,117 @@ def fit(problems: list[VelocityProblem], betas, sigmas, nu: float, log_n: float)
     the models it competes with). gamma: decades from :data:`LOG_GAMMA_START` downhill until the criterion
     rises, then the half decades beside the best (each value one banded block factorization, and the trace
     from the inverse's diagonal blocks, :class:`_BandedFactor`).
+
+    The trace (the inverse's diagonal blocks, the dearer half of a value) is skipped where a lower bound of
+    the criterion already decides the comparison it is wanted for (:class:`_TraceFloor`): the search visits
+    the same gammas and returns the same best gamma, coefficients and criterion; a value decided by its bound
+    is recorded as that bound (:attr:`PriorFit.bounds`).
     """
     system = _System(problems, betas)
     inv_var = [1.0 / np.asarray(s, dtype=float) ** 2 for s in sigmas]
-    curve: dict = {}
+    curve: dict = {}  # log gamma -> criterion
+    floors: dict = {}  # log gamma -> a lower bound of the criterion where its trace was not computed
+    traces: dict = {}  # log gamma -> dof (exact)
     solutions: dict = {}  # log gamma -> (coefficients, chi2, dof)
     factors: dict = {}  # the best factor so far, which the band reuses
+    trace_floor = _TraceFloor(system)
 
-    def criterion(log_gamma: float) -> float:
-        if log_gamma not in curve:
-            factor = _BandedFactor(system, 10.0**log_gamma)
-            v = system.blocks(factor.solve(system.rhs))
-            chi2 = sum(float(np.sum((p.operator @ vk - p.data) ** 2 * iv)) for p, vk, iv in zip(problems, v, inv_var))
-            dof = sum(float(np.sum(z * kk)) for z, kk in zip(factor.inverse_diagonal(), system.normal))
-            curve[log_gamma] = nu * chi2 + log_n * dof
-            solutions[log_gamma] = (v, chi2, dof)
-            if not factors or curve[log_gamma] < min(curve[x] for x in factors):
-                factors.clear()
-                factors[log_gamma] = factor
+    def criterion(log_gamma: float, beat: float = np.inf) -> float:
+        """The criterion at ``log_gamma``, or a lower bound of it where that bound is at least ``beat``
+        (the value it is compared with: then it cannot be smaller)."""
+        if log_gamma in curve:
+            return curve[log_gamma]
+        if log_gamma in floors and floors[log_gamma][0] >= beat:
+            return floors[log_gamma][0]
+        if log_gamma in floors:  # bounded before against a value it did not reach: solved already
+            factor, v, chi2 = floors[log_gamma][1]
+        else:
+            factor, v, chi2 = _solved(system, problems, inv_var, 10.0**log_gamma)
+        # the trace decreases with gamma (notes of _TraceFloor): any larger gamma's bounds it, and its limit
+        larger = max([trace_floor.limit, *(traces[x] for x in traces if x > log_gamma)])
+        for dof_floor in (lambda: larger, lambda: trace_floor(10.0**log_gamma)):  # the cheap bound first
+            floor = nu * chi2 + log_n * dof_floor()
+            # rounding: the traces carry relative errors near 1e-12; the margin keeps a bound from deciding a tie
+            if floor - _FLOOR_MARGIN * (abs(floor) + 1.0) >= beat:
+                floors[log_gamma] = (floor, (factor, v, chi2))
+                return floor
+        floors.pop(log_gamma, None)
+        dof = sum(float(np.sum(z * kk)) for z, kk in zip(factor.inverse_diagonal(), system.normal))
+        traces[log_gamma] = dof
+        curve[log_gamma] = nu * chi2 + log_n * dof
+        solutions[log_gamma] = (v, chi2, dof)
+        if not factors or curve[log_gamma] < min(curve[x] for x in factors):
+            factors.clear()
+            factors[log_gamma] = factor
         return curve[log_gamma]
 
     coarse, fine = LOG_GAMMA_STEPS
     lo, hi = LOG_GAMMA_BOUNDS
     here = LOG_GAMMA_START
-    step = coarse if criterion(here + coarse) < criterion(here) else -coarse
+    first = criterion(here)
+    step = coarse if criterion(here + coarse, beat=first) < first else -coarse
     here = here + coarse if step > 0 else here
-    while lo <= here + step <= hi and criterion(here + step) < criterion(here):
+    while lo <= here + step <= hi and criterion(here + step, beat=criterion(here)) < criterion(here):
         here += step
     for x in (here - fine, here + fine):
         if lo <= x <= hi:
-            criterion(x)
+            criterion(x, beat=min(curve.values()))
     best = min(curve, key=curve.__getitem__)
     v, chi2, dof = solutions[best]
     table = {10.0**x: float(curve[x]) for x in sorted(curve)}
     gamma = 10.0**best
     factor = factors[best]
-    return PriorFit(gamma, system.betas, v, lambda: _covariance(system, factor, sigmas) / nu, float(curve[best]),
-                    chi2, dof, table)  # fmt: skip
+    fitted = PriorFit(gamma, system.betas, v, lambda: _covariance(system, factor, sigmas) / nu, float(curve[best]),
+                      chi2, dof, table)  # fmt: skip
+    fitted.bounds = {10.0**x: float(floors[x][0]) for x in sorted(floors)}
+    return fitted
+
+
+#: Relative margin by which a criterion's lower bound must exceed the value it is compared with to decide.
+_FLOOR_MARGIN = 1e-9
+
+
+def _solved(system: _System, problems: list[VelocityProblem], inv_var: list, gamma: float):
+    """``(factor, coefficients, chi2)`` at one gamma: the factorization and solve without the trace."""
+    factor = _BandedFactor(system, gamma)
+    v = system.blocks(factor.solve(system.rhs))
+    chi2 = sum(float(np.sum((p.operator @ vk - p.data) ** 2 * iv)) for p, vk, iv in zip(problems, v, inv_var))
+    return factor, v, chi2
+
+
+class _TraceFloor:
+    r"""Lower bounds of the smoother's trace :math:`\mathrm{dof}(\gamma) = \operatorname{tr}(H_\gamma^{-1}
+    \operatorname{blockdiag} K_k)` at any gamma, without factorizing the coupled system.
+
+    Notes
+    -----
+    :math:`H_\gamma = A + \gamma C`, :math:`A = \operatorname{blockdiag}_k(K_k + \beta_k G / \pi)`,
+    :math:`C = D_2^\top D_2 \otimes G_0 / \pi \succeq 0`; :math:`\operatorname{tr}(Z K) =
+    \operatorname{tr}(K^{1/2} Z K^{1/2})` grows with :math:`Z` (Loewner order), so (i) the trace decreases
+    with gamma (the search bounds a value by the trace at any larger gamma it computed); (ii) a diagonal block
+    of the inverse dominates the inverse of the diagonal block (it is the inverse of a Schur complement,
+    :math:`H_{kk}` less a positive semi-definite term): :math:`(H^{-1})_{kk} \succeq H_{kk}^{-1}`, so
+    :math:`\mathrm{dof}(\gamma) \ge \sum_k \operatorname{tr}((A_k + \gamma (D_2^\top D_2)_{kk} G_0 /
+    \pi)^{-1} K_k)`, one small factorization per frame; (iii) as :math:`\gamma \to \infty` the frames are
+    forced to one coefficient vector (the null space of :math:`C` is the constants in time, :math:`G_0` being
+    definite), so :math:`\mathrm{dof} \ge \operatorname{tr}((\sum_k A_k)^{-1} \sum_k K_k)` at every gamma.
+    """
+
+    def __init__(self, system: _System):
+        self.system = system
+        #: (iii), at every gamma
+        self.limit = float(np.trace(np.linalg.solve(sum(system.own), sum(system.normal))))
+
+    def __call__(self, gamma: float) -> float:
+        """The larger of (ii) and (iii) at ``gamma``."""
+        system, per_frame = self.system, 0.0
+        for k, (own, kk) in enumerate(zip(system.own, system.normal)):
+            try:
+                diagonal = scipy.linalg.cho_factor(own + gamma * system.d[k, k] * system.g0)  # H_kk
+                per_frame += float(np.trace(scipy.linalg.cho_solve(diagonal, kk)))
+            except np.linalg.LinAlgError:
+                return self.limit
+        return max(self.limit, per_frame)
 
 
 def _covariance(system: _System, factor: _BandedFactor, sigmas) -> np.ndarray:

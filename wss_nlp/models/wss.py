@@ -11,6 +11,7 @@ which is what is implemented -- the two agree only when J is symmetric.)
 from __future__ import annotations
 
 import functools
+from collections import OrderedDict
 from dataclasses import dataclass
 
 from typing import Any
@@ -140,11 +141,39 @@ def _is_uniform(phi) -> bool:
     return phi.size > 2 and np.allclose(phi, rad.uniform_angles(phi.size))
 
 
+#: The last few WSS matrices of plain bases (:func:`wss_matrix`) by basis, wall, viscosity and angle count:
+#: :func:`from_reconstruction` on such a wall takes ``tau = A c`` from them (the beta choice formed the matrix
+#: of the wall the velocity is then solved on; 12 ms of CasADi a slice or cine frame saved).
+_MATRICES: OrderedDict = OrderedDict()
+_MATRICES_KEPT = 8
+
+
+def _matrix_key(basis, disk_map, viscosity_pa_s: float, n_phi: int) -> tuple | None:
+    """The key of :data:`_MATRICES` (the values that define the matrix); None for a basis with a layer."""
+    if hasattr(basis, "wss_template"):
+        return None
+    dm = disk_map
+    c_r = np.asarray(dm.coefficients, dtype=float)
+    return (basis, c_r.tobytes(), tuple(float(v) for v in dm.center), float(dm.r_in), float(dm.eta),
+            float(viscosity_pa_s), int(n_phi))  # fmt: skip
+
+
 def from_reconstruction(velocity_result, n_phi: int, viscosity_pa_s: float) -> WssResult:
-    """WSS of a :class:`wss_nlp.models.velocity.VelocityResult` at ``n_phi`` uniform angles."""
+    """WSS of a :class:`wss_nlp.models.velocity.VelocityResult` at ``n_phi`` uniform angles.
+
+    Where :func:`wss_matrix` was formed for the same plain basis, wall, viscosity and angles (the beta
+    choice's), ``tau = A c`` (tau is linear in the coefficients; the same numbers to rounding) instead of
+    evaluating the expression again."""
     dm = velocity_result.disk_map
     phi = rad.uniform_angles(n_phi)
     c_r = np.asarray(dm.coefficients, dtype=float)
+    kept = _MATRICES.get(_matrix_key(velocity_result.basis, dm, viscosity_pa_s, n_phi))
+    if kept is not None:
+        a, xw = kept
+        tau = a @ np.asarray(velocity_result.coefficients, dtype=float)
+        mean = rad.arc_length_mean(tau, rad.evaluate(c_r, phi), rad.evaluate(c_r, phi, 1))
+        return WssResult(phi=phi, tau=tau, mean=mean, wall_x=xw[0].copy(), wall_y=xw[1].copy(),
+                         viscosity_pa_s=viscosity_pa_s)  # fmt: skip
     template, parameters = velocity_template(velocity_result.basis)
     fun = _basis_wss_map(template, rad.n_fourier_from_size(c_r.size), float(dm.eta), n_phi)
     center = np.asarray(dm.center, float)
@@ -178,7 +207,13 @@ def wss_matrix(basis, disk_map, viscosity_pa_s: float, n_phi: int = 360) -> tupl
     shape = parameters(np.zeros(basis.size))[template.size :]
     a, xw = g(rad.uniform_angles(n_phi)[None, :], c_r, np.array(dm.center, dtype=float), viscosity_pa_s, dm.r_in, shape)
     # d tau / d c = d tau / d p_linear times d p_linear / d c (diagonal: the layer's column scale)
-    return np.asarray(a).reshape(n_phi, template.size) * linear_scale(basis)[None, :], np.asarray(xw)
+    matrix, points = np.asarray(a).reshape(n_phi, template.size) * linear_scale(basis)[None, :], np.asarray(xw)
+    key = _matrix_key(basis, dm, viscosity_pa_s, n_phi)
+    if key is not None:  # kept for from_reconstruction (read-only copies: callers may scale their own)
+        _MATRICES[key] = (matrix.copy(), points.copy())
+        while len(_MATRICES) > _MATRICES_KEPT:
+            _MATRICES.popitem(last=False)
+    return matrix, points
 
 
 def linear_scale(basis) -> np.ndarray:

@@ -897,6 +897,9 @@ def plain_problem(
         and like.data_image.shape == result.velocity_image.shape
     ):
         image = np.asarray(result.velocity_image, dtype=float)
-        return replace(like, data=image.ravel()[like.voxels.index], data_image=image)
+        same_wall = replace(like, data=image.ravel()[like.voxels.index], data_image=image)
+        # the normal matrix and the pencils depend on the wall only: formed once for the frames on it
+        same_wall.__dict__["tikhonov"] = like.tikhonov.with_data(same_wall.data)
+        return same_wall
     vopt = replace(options.velocity, near_wall="off")
     return vel.assemble(result.grid, result.velocity_image, coefficients, center, vopt, psf=psf)
