@@ -383,6 +383,9 @@ def test_a_grid_aligned_tube_two_voxels_across_survives_the_segmentation():
     assert np.allclose(re, 1060.0 * 0.4 * 12e-3 / MU, rtol=0.02)
     assert vrec.reynolds_note(res.planes, MU, None, res.time_ms) is None
     assert not any("Reynolds" in n for n in res.notes)
+    # noise-free data get the fixed beta, and the result says so (it over-smooths blunt profiles)
+    assert res.parameters["beta"] == v3.NOISE_FREE_BETA
+    assert any(n.startswith("noise-free data: beta fixed at 1e-05") for n in res.notes)
     # twice the flow: Re 2908 > 2300, the note names the number and the stated density
     fast = dict(res.planes, flow_ml_s=2 * res.planes["flow_ml_s"])
     note = vrec.reynolds_note(fast, MU, 1060.0, res.time_ms)
