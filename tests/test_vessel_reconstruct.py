@@ -779,7 +779,11 @@ def test_the_band_under_the_temporal_prior_matches_monte_carlo_refits(small_band
     scale = np.array([1.0, 0.5, -0.3, 0.8])
     n, k, gamma = scale.size, 300, 3.0
     mass = cycle3d.mass_gram(vp)
-    prior = band3d.TemporalPrior(gamma, mass)
+    import scipy.linalg
+
+    mu, x = scipy.linalg.eigh(vp.hessian(vel.beta), mass)
+    lam, mult = cycle3d.temporal_eigenvalues(n), cycle3d.mode_multiplicity(n)
+    prior = band3d.TemporalPrior(gamma, mu, x, lam, mult)
 
     def fit(data, beta=vel.beta):  # data (n, V, 3 m) -> coefficients (n, size, 3 m)
         rhs = np.stack([vp.rhs(data[t]) for t in range(n)])
@@ -797,7 +801,7 @@ def test_the_band_under_the_temporal_prior_matches_monte_carlo_refits(small_band
         band = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU, prior)
         alone = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU)
         near0 = band3d.vessel_band(b["pieces"], tied, b["sigma"], tau, b["ring"], b["area"], MU,
-                                   band3d.TemporalPrior(1e-9, mass))  # fmt: skip
+                                   band3d.TemporalPrior(1e-9, mu, x, lam, mult))  # fmt: skip
     assert np.allclose(near0.axial_std_pa, alone.axial_std_pa, rtol=1e-5)
     assert near0.mean_std_pa == pytest.approx(alone.mean_std_pa, rel=1e-5)
     assert np.median(band.axial_std_pa / alone.axial_std_pa) < 0.8  # the prior matters here

@@ -186,24 +186,30 @@ def covariance(problem, beta: float, z: np.ndarray, knots) -> Covariance:
 
 @dataclass(frozen=True)
 class TemporalPrior:
-    """The temporal prior a cine volume's velocity was fitted with (:mod:`wss_nlp.vessel.cycle3d`): its ``gamma``
-    and the Gram matrix ``M`` of its penalty."""
+    """The temporal prior a cine volume's velocity was fitted with (:mod:`wss_nlp.vessel.cycle3d`): its ``gamma``,
+    the generalized eigenpairs ``H X = M X diag(mu)``, ``X^T M X = I`` of the velocity's normal matrix and the
+    penalty's Gram matrix ``M`` that the fit computed, and the temporal modes' eigenvalues ``lam`` and
+    multiplicities ``mult`` (``k = 0 .. n // 2``; :func:`wss_nlp.vessel.cycle3d.temporal_eigenvalues`,
+    :func:`~wss_nlp.vessel.cycle3d.mode_multiplicity`)."""
 
     gamma: float
-    mass: np.ndarray
+    mu: np.ndarray
+    x: np.ndarray
+    lam: np.ndarray
+    mult: np.ndarray
 
 
 class _PriorSpectrum:
     """``H X = M X diag(mu)``, ``X^T M X = I`` and the modes' shifts ``c_k`` (module notes, "Under the temporal
     prior"): the per-frame covariance, and the wall mean's variance and ``beta`` derivative over the frames."""
 
-    def __init__(self, problem, beta: float, prior: TemporalPrior, n: int, m: np.ndarray):
-        from .cycle3d import mode_multiplicity, temporal_eigenvalues
-
+    def __init__(self, problem, prior: TemporalPrior, n: int, m: np.ndarray):
+        if prior.lam.size != n // 2 + 1:
+            raise ValueError(f"the temporal prior has {prior.lam.size} modes; {n} frames have {n // 2 + 1}")
         self.n = n
-        self.mu, self.x = scipy.linalg.eigh(problem.hessian(beta), prior.mass)
-        self.shift = self.mu[None, :] + prior.gamma / (np.pi * problem.length_mm) * temporal_eigenvalues(n)[:, None]
-        self.mult = mode_multiplicity(n)  # the real DFT's modes k = 0 .. n // 2 and how many they stand for
+        self.mu, self.x = prior.mu, prior.x
+        self.shift = self.mu[None, :] + prior.gamma / (np.pi * problem.length_mm) * prior.lam[:, None]
+        self.mult = prior.mult  # the real DFT's modes k = 0 .. n // 2 and how many they stand for
         self.q = self.x.T @ m @ self.x
 
     def covariance(self) -> np.ndarray:
@@ -226,11 +232,11 @@ class _PriorSpectrum:
         return var, np.fft.irfft(solved, n=self.n, axis=0)
 
 
-def _prior_covariance(problem, beta: float, z: np.ndarray, knots, prior: TemporalPrior, n: int):
+def _prior_covariance(problem, z: np.ndarray, knots, prior: TemporalPrior, n: int):
     """:func:`covariance` under the temporal prior: ``C``'s window blocks from the dense ``C`` and the spectrum
     (``Covariance.h_inv`` is then unused: the wall mean goes through the spectrum)."""
     m = problem.weighted_normal((problem.weights * z) ** 2)
-    spectrum = _PriorSpectrum(problem, beta, prior, n, m)
+    spectrum = _PriorSpectrum(problem, prior, n, m)
     c = spectrum.covariance()
     nz = problem.basis.disk.size
     blocks = {int(k): c[int(k) * nz : (int(k) + 4) * nz, int(k) * nz : (int(k) + 4) * nz] for k in np.ravel(knots)}
@@ -287,7 +293,7 @@ def vessel_band(pieces: wss3d.WallPieces, velocity, sigma: np.ndarray, tau: np.n
     plane_knots = knots[:, 0]
     spectrum = None
     if prior is not None and prior.gamma > 0 and nt > 1:
-        cov, spectrum = _prior_covariance(problem, velocity.beta, z, plane_knots, prior, nt)
+        cov, spectrum = _prior_covariance(problem, z, plane_knots, prior, nt)
     else:
         cov = covariance(problem, velocity.beta, z, plane_knots)
     b_of = np.stack([pieces.db, pieces.b, pieces.b], axis=1).reshape(ns, nph, 3, 4)[:, 0]  # (ns, q, a)

@@ -69,6 +69,7 @@ import numpy as np
 from .._lazy import scipy
 from ..errors import InputError
 from ..parameters.cycle import EVIDENCE
+from . import band3d
 from . import velocity3d as v3
 
 log = logging.getLogger(__name__)
@@ -204,6 +205,8 @@ class CycleChoice:
     reason: str = ""  # why the prior was not considered
     seconds: float = 0.0
     selection: str = ""  # gamma's criterion: "upre" (with the noise model) or "gcv"
+    #: In memory only: the prior with the eigenpairs its fit computed (the band reuses them), when it was chosen.
+    prior: band3d.TemporalPrior | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         def num(v):
@@ -356,6 +359,7 @@ def fit_cycle(vol, problem: v3.VelocityProblem3D, velocity: v3.Velocity3DResult,
         return velocity, choice
     coef = solve_prior(problem, velocity.beta, gamma, rhs, mass)
     res = np.stack([problem.residual_norm(coef[t], u[t]) for t in range(nt)])
+    choice.prior = band3d.TemporalPrior(gamma, spec.mu, spec.x, spec.lam, spec.mult)
     choice.seconds = time.perf_counter() - t0
     log.info("cycle: temporal prior, gamma %.3g (%s), %.1f s", gamma, how, choice.seconds)
     out = v3.Velocity3DResult(problem, coef, velocity.beta, velocity.beta_choice, res,

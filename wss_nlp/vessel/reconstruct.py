@@ -544,8 +544,7 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     if note:
         notes.append(note)
     t0 = time.perf_counter()
-    prior = None if cycle is None or cycle.model != "temporal" else band3d.TemporalPrior(
-        cycle.gamma, cycle3d.mass_gram(vp))  # fmt: skip
+    prior = None if cycle is None else cycle.prior
     axial_std, planes["mean_wss_std_pa"], band = wall_band(vol, velocity, levels, pieces, wss, ring_weights(
         geometry, s, phi, radius), area, flags, mu, prior)  # fmt: skip
     if not band.get("available"):
