@@ -46,18 +46,10 @@ def cine():
     inputs = vrec.vessel_inputs(vol)
     cl = inputs.centerline
     co = tube.voxel_coordinates(vol, np.argwhere(ndi.binary_dilation(inputs.mask, iterations=5)), cl)
-    grid = np.linspace(0, cl.length_mm, 60)
-    r_est = g3.radius_from_mask(inputs.mask, vol, co, grid)
-
-    def radius(s):
-        return np.interp(s, grid, r_est)
-
-    lev = g3.magnitude_levels(vol, co, radius, grid)
-    raw = vol.magnitude.mean(axis=0)[tuple(co.index.T)]
-    frame = tube.FrameTable(cl)
     # the middle of the visible part only (the wall fit's cost grows with the length): 16 mm
     mid = float(cl.project(truth.centreline(np.array([29.0])).point).s[0])
-    problem = g3.GeometryProblem3D(vol, cl, frame, (mid - 8.0, mid + 8.0), co, raw, radius, lev)
+    problem = g3.problem_from_mask(vol, cl, inputs.mask, co, (mid - 8.0, mid + 8.0), np.linspace(0, cl.length_mm, 60))
+    frame, lev = problem.frame, problem.levels
     geo = g3.fit_wall(problem, g3.Geometry3DOptions(n_fourier=3, outside_updates=0))
     # one small fixed beta for the cycle, a weak spatial prior as GCV chooses on the pulsatile arch (1e-8 there):
     # the frames' own fits keep their noise, which a temporal prior can take out

@@ -133,16 +133,8 @@ def small_problem():
     import scipy.ndimage as ndi
 
     co = tube.voxel_coordinates(vol, np.argwhere(ndi.binary_dilation(inputs.mask, iterations=5)), cl)
-    grid = np.linspace(0, cl.length_mm, 60)
-    r_est = g3.radius_from_mask(inputs.mask, vol, co, grid)
-
-    def radius(s):
-        return np.interp(s, grid, r_est)
-
-    lev = g3.magnitude_levels(vol, co, radius, grid)
-    raw = vol.magnitude.mean(axis=0)[tuple(co.index.T)]
     vis = inputs.record["visible"]
-    problem = g3.GeometryProblem3D(vol, cl, tube.FrameTable(cl), (vis[0][0], vis[-1][1]), co, raw, radius, lev)
+    problem = g3.problem_from_mask(vol, cl, inputs.mask, co, (vis[0][0], vis[-1][1]), np.linspace(0, cl.length_mm, 60))
     return vol, truth, problem
 
 

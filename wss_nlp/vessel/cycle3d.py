@@ -156,7 +156,7 @@ def solve_prior(problem: v3.VelocityProblem3D, beta: float, gamma: float, rhs: n
     k = rhs.shape[2]
     out = np.empty_like(hat)
     for j, lam in enumerate(temporal_eigenvalues(n)):
-        cb = scipy.linalg.cholesky_banded(v3._to_banded(h0 + c * lam * mass, bw), lower=False)
+        cb = scipy.linalg.cholesky_banded(v3.to_banded(h0 + c * lam * mass, bw), lower=False)
         both = scipy.linalg.cho_solve_banded((cb, False), np.hstack([hat[j].real, hat[j].imag]))
         out[j] = both[:, :k] + 1j * both[:, k:]
     return np.fft.irfft(out, n=n, axis=0)

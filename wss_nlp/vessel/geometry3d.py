@@ -406,6 +406,24 @@ class GeometryProblem3D:
         return 0.5 * float(np.linalg.norm(self.vol.voxel_size_mm))
 
 
+def problem_from_mask(
+    vol, centerline, mask, coords: tube.VoxelCoordinates, s_range, s_grid: np.ndarray, exclude=None
+) -> GeometryProblem3D:
+    """The wall fit's problem from a vessel mask: the mask's equal-area radius along ``s`` (:func:`radius_from_mask`
+    on ``s_grid``, linearly interpolated) as the radius estimate, the magnitude levels along ``s``
+    (:func:`magnitude_levels`) and the time-mean magnitude on ``coords``; ``s_range`` the part to fit,
+    ``exclude(s, phi)`` wall regions left out (branches)."""
+    r_mask = radius_from_mask(mask, vol, coords, s_grid)
+
+    def radius_estimate(s):
+        return np.interp(s, s_grid, r_mask)
+
+    levels = magnitude_levels(vol, coords, radius_estimate, s_grid)
+    raw = np.mean(np.asarray(vol.magnitude, float), axis=0)[tuple(coords.index.T)]
+    frame = tube.FrameTable(centerline)
+    return GeometryProblem3D(vol, centerline, frame, tuple(s_range), coords, raw, radius_estimate, levels, exclude)
+
+
 def _box_samples(basis: tube.WallBasis, n_phi: int) -> tuple[np.ndarray, np.ndarray]:
     """Box rows at the knots and ``n_phi`` angles (between them ``R`` is a cubic in ``s`` and a trigonometric
     polynomial in ``phi`` whose excursions beyond the rows are far below the box's margin ``4 gamma``)."""

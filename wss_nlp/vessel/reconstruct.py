@@ -473,7 +473,6 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     reach = 0.35 * 2 * r_max + 6 * h  # the widest box (R/4 or 2h) plus the points' reach, generously
     near = ndi.binary_dilation(mask, iterations=int(np.ceil(reach / spacing.min())))
     coords = tube.voxel_coordinates(vol, np.argwhere(near), centerline)
-    frame = tube.FrameTable(centerline)
     if record is None:
         record = _record_for(centerline, mask, vol, coords, h)
         notes.append("branches: not known for a given centreline (none flagged)")
@@ -486,15 +485,9 @@ def _reconstruct(vol, options: VesselOptions, mask, centerline, record, inputs=N
     ext = 4 * h if options.extend_mm is None else float(options.extend_mm)
     s_range = (max(0.0, min(v[0] for v in visible) - ext), min(centerline.length_mm, max(v[1] for v in visible) + ext))
     s_grid = np.linspace(0.0, centerline.length_mm, max(16, int(np.ceil(centerline.length_mm / (0.5 * h))) + 1))
-    r_mask = g3.radius_from_mask(mask, vol, coords, s_grid)
-
-    def radius_estimate(s):
-        return np.interp(s, s_grid, r_mask)
-
-    levels = g3.magnitude_levels(vol, coords, radius_estimate, s_grid)
-    raw = np.mean(np.asarray(vol.magnitude, float), axis=0)[tuple(coords.index.T)]
     exclude = _branch_test(record.get("branches", []))
-    problem = g3.GeometryProblem3D(vol, centerline, frame, s_range, coords, raw, radius_estimate, levels, exclude)
+    problem = g3.problem_from_mask(vol, centerline, mask, coords, s_range, s_grid, exclude)
+    frame, levels = problem.frame, problem.levels
     seconds["preparation"] = time.perf_counter() - t0
     bar.update()
     t0 = time.perf_counter()

@@ -309,7 +309,7 @@ class VelocityProblem3D:
 
     def factor(self, beta: float) -> np.ndarray:
         """The banded Cholesky factor (upper form) of :meth:`hessian`."""
-        return scipy.linalg.cholesky_banded(_to_banded(self.hessian(beta), self.bandwidth()), lower=False)
+        return scipy.linalg.cholesky_banded(to_banded(self.hessian(beta), self.bandwidth()), lower=False)
 
     def rhs(self, data: np.ndarray) -> np.ndarray:
         """``T^T W u`` for data ``(V, k)``."""
@@ -327,7 +327,7 @@ class VelocityProblem3D:
         return np.sqrt(np.sum(self.weights[:, None] * (fit - np.asarray(data).reshape(fit.shape)) ** 2, axis=0))
 
 
-def _to_banded(m: np.ndarray, u: int) -> np.ndarray:
+def to_banded(m: np.ndarray, u: int) -> np.ndarray:
     """Upper banded storage ``ab[u + i - j, j] = m[i, j]`` of a symmetric matrix with half-bandwidth ``u``."""
     n = m.shape[0]
     ab = np.zeros((u + 1, n))
