@@ -17,8 +17,15 @@ the estimates and is skipped to keep the study short.
 ``--offset-only`` makes only the offset table, from the preprocessing (the offset is fitted before any solve):
 ``scripts/results/invivo_offset.md``.
 
+``--looks`` compares the tissue's looks (``invivo.TEXTURED``, ``UNIFORM``: no texture, ``BATH``: one level outside
+and in the wall, a uniform lumen, no shading) under the default surround model and under Appendix B's two-level
+model (``--surround two-level``), against the same vessel in air: ``scripts/results/invivo_looks.md``.
+
     python scripts/invivo.py [--seeds reported|dev] [--h 1.5,1.0,0.6] [--cases laminar,turbulent] [--components]
     python scripts/invivo.py --offset-only
+    python scripts/invivo.py --looks --h 1.5,1.0
+    python scripts/invivo.py --looks --looks-offset 0 --h 1.5,1.0 --cases laminar
+    python scripts/invivo.py --cnr --h 1.5 --cases laminar    # the air vessel at the tissue's contrast-to-noise
     python scripts/invivo.py --touching-fat 4 --seeds dev --cases laminar --h 1.5,1.0   # fat against the wall
     python scripts/invivo.py --from-csv a.csv,b.csv     # the report from the rows of runs made in parallel
 """
@@ -121,6 +128,105 @@ def offset_row(tissue: dict | None, truth, venc: float) -> dict:
     return row
 
 
+LOOKS = ("TEXTURED", "UNIFORM", "BATH")
+
+
+def looks_rows(case, h, seed, offset_pct: float = 2.0) -> list[dict]:
+    """The air twin and each look of the tissue under the default model and Appendix B's (radius, WSS in %)."""
+    rows = []
+    acq, truth = invivo.make_invivo(case, h, seed=seed, surround=False)
+    variants = {"default": TissueOptions(), "two-level": TissueOptions(surround="two-level")}
+    for look in ("air",) + LOOKS:
+        if look != "air":
+            acq, truth = invivo.make_invivo(
+                case, h, seed=seed, surroundings=getattr(invivo, look), offset_pct=offset_pct
+            )
+        for name, tissue in variants.items():
+            res = reconstruct(acq, ReconstructionOptions(uncertainty=False, tissue=tissue))[0]
+            e = metrics.compare_slice(res, truth)
+            kind = ((res.lumen.tissue or {}).get("surround") or {}).get("kind", "")
+            rows.append({"case": case, "h_mm": h, "seed": seed, "look": look, "model": name, "surround": kind,
+                         "radius_pct": 100 * e.radius_rel_l2, "wss_pct": 100 * e.wss_rel_l2})  # fmt: skip
+            if look == "air":
+                break  # air is two-level under either
+    return rows
+
+
+def looks_table(rows, seeds, which, offset_pct: float = 2.0) -> list[str]:
+    """The looks' table: the mean over the seeds (worst in brackets) and issue 39's target against air."""
+    lines = [
+        f"Eddy-current offset at the vessel: {offset_pct:g} % of the venc"
+        + (" (`--looks-offset 0`: what the tissue's contrast alone costs)." if not offset_pct else "."),
+        "",
+        f"The tissue's looks, default surround model against Appendix B's two-level model (`--surround two-level`), "
+        f"SNR 25, 64 x 64 mm view, {which} seeds {list(seeds)} (`scripts/invivo.py --looks`). TEXTURED: the in-vivo "
+        "phantom; UNIFORM: the same without texture (its outside ring is one level within the noise); BATH: one "
+        "level outside and in the wall, a uniform lumen, no shading (exactly two levels). Relative L2 errors in %, "
+        "mean (worst); target: WSS <= 1.3 x air + 1 point.",
+        "",
+        "| case | h [mm] | look | radius | WSS | WSS, Appendix B's model | target | met |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    misses = []
+    for case in dict.fromkeys(r["case"] for r in rows):
+        for h in dict.fromkeys(r["h_mm"] for r in rows):
+            sel = [r for r in rows if r["case"] == case and r["h_mm"] == h]
+            if not sel:
+                continue
+            air = np.mean([r["wss_pct"] for r in sel if r["look"] == "air"])
+            target = WSS_FACTOR * air + WSS_POINTS
+            air_radius = np.mean([r["radius_pct"] for r in sel if r["look"] == "air"])
+            lines.append(f"| {case} | {h:g} | air | {air_radius:.2f} | {air:.2f} | | | |")
+            for look in LOOKS:
+                d = [r for r in sel if r["look"] == look and r["model"] == "default"]
+                t = [r for r in sel if r["look"] == look and r["model"] == "two-level"]
+                w = np.mean([r["wss_pct"] for r in d])
+                ok = w <= target
+                if not ok:
+                    misses.append(f"{case} h = {h:g} mm {look}: WSS {w:.2f} % > {target:.2f} %")
+                lines.append(
+                    f"| {case} | {h:g} | {look} | {np.mean([r['radius_pct'] for r in d]):.2f} | {w:.2f} "
+                    f"({max(r['wss_pct'] for r in d):.2f}) | {np.mean([r['wss_pct'] for r in t]):.2f} "
+                    f"({max(r['wss_pct'] for r in t):.2f}) | {target:.2f} | {'yes' if ok else '**no**'} |"
+                )
+    return lines + ["", "Misses: " + ("; ".join(misses) if misses else "none") + "."]
+
+
+#: The lumen's contrast against what surrounds it: air 1; the textured phantom's wall ring 1 - WALL_LEVEL, the bath's
+#: 1 - TISSUE_LEVEL (``invivo``'s levels).
+CONTRASTS = {"air": 1.0, "wall ring": 1.0 - invivo.WALL_LEVEL, "bath": 1.0 - invivo.TISSUE_LEVEL}
+
+
+def cnr_table(cases, hs, seeds, which) -> list[str]:
+    """The vessel in air at the SNR times each contrast of :data:`CONTRASTS`: what the partial-volume voxels' lower
+    contrast-to-noise ratio in tissue costs when nothing else differs (a floor for the tissue rows)."""
+    lines = [
+        "The vessel in air at the contrast-to-noise ratio of the partial-volume voxels in tissue: SNR 25 times the "
+        "lumen's contrast against the wall ring (textured phantom) and against the bath (`scripts/invivo.py --cnr`; "
+        f"{which} seeds {list(seeds)}). The velocity noise grows by the same factor here (in tissue it does not: "
+        "the lumen's signal is the same), so these rows bound the tissue's floor from above. WSS relative L2 "
+        "error in %, mean (worst).",
+        "",
+        "| case | h [mm] | "
+        + " | ".join(f"{k} (contrast {c:.2f}, SNR {25 * c:.1f})" for k, c in CONTRASTS.items())
+        + " |",
+        "|---|---|" + "---|" * len(CONTRASTS),
+    ]
+    for case in cases:
+        for h in hs:
+            cells = []
+            for c in CONTRASTS.values():
+                w = []
+                for seed in seeds:
+                    acq, truth = invivo.make_invivo(case, h, seed=seed, surround=False, snr=25.0 * c)
+                    res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
+                    w.append(100 * metrics.compare_slice(res, truth).wss_rel_l2)
+                cells.append(f"{np.mean(w):.2f} ({max(w):.2f})")
+                print(case, h, c, cells[-1], flush=True)
+            lines.append(f"| {case} | {h:g} | " + " | ".join(cells) + " |")
+    return lines
+
+
 def offset_only(case, h, seed) -> dict:
     """The tissue row's offset columns from the preprocessing alone (the offset is fitted before any solve)."""
     acq, truth = invivo.make_invivo(case, h, seed=seed)
@@ -142,6 +248,14 @@ def main() -> None:
         "--offset-only",
         action="store_true",
         help="only the offset table, from the preprocessing (no reconstruction): writes invivo_offset.md",
+    )
+    p.add_argument("--looks", action="store_true", help="the tissue's looks table: writes invivo_looks.md")
+    p.add_argument("--cnr", action="store_true", help="the air vessel at the tissue's contrast-to-noise: invivo_cnr.md")
+    p.add_argument(
+        "--looks-offset",
+        type=float,
+        default=2.0,
+        help="the looks' offset in %% of the venc (0: none; writes invivo_looks_offset0.md)",
     )
     p.add_argument("--out", default=RESULTS)
     p.add_argument(
@@ -168,9 +282,23 @@ def main() -> None:
         for path in args.from_csv.split(","):
             for r in read_rows(path):
                 (comp if r.get("variant") else rows).append(r)
-        name = "invivo" if args.seeds == "reported" else "invivo_dev"
-        write_rows(os.path.join(args.out, f"{name}.csv"), rows + comp)
-        write_report(args.out, f"{name}.md", table(rows, comp, seeds, args.seeds))
+        report(args.out, rows, comp, seeds, args.seeds)
+        return
+    if args.cnr:
+        name = "invivo_cnr" + ("" if args.seeds == "reported" else "_dev")
+        write_report(args.out, f"{name}.md", cnr_table(args.cases.split(","), hs, seeds, args.seeds))
+        return
+    if args.looks:
+        rows = []
+        for case in args.cases.split(","):
+            for h in hs:
+                for seed in seeds:
+                    rows += looks_rows(case, h, seed, args.looks_offset)
+                    print(case, h, seed, " ".join(f"{r['look']}/{r['model']} {r['wss_pct']:.2f}" for r in rows[-7:]),
+                          flush=True)  # fmt: skip
+        name = "invivo_looks" + ("" if args.looks_offset else "_offset0") + ("" if args.seeds == "reported" else "_dev")
+        write_rows(os.path.join(args.out, f"{name}.csv"), rows)
+        write_report(args.out, f"{name}.md", looks_table(rows, seeds, args.seeds, args.looks_offset))
         return
     if args.offset_only:
         rows = [offset_only(case, h, seed) for case in args.cases.split(",") for h in hs for seed in seeds]
@@ -196,13 +324,19 @@ def main() -> None:
                       f"tissue R {rows[-1]['radius_pct']:.2f} WSS {rows[-1]['wss_pct']:.2f}", flush=True)  # fmt: skip
                 # the rows so far, in case the run is stopped (a report can be made from them: --from-csv)
                 write_rows(os.path.join(args.out, "invivo_partial.csv"), rows + comp)
-    name = ("invivo_touching" if TOUCHING_FAT else "invivo") + ("" if args.seeds == "reported" else "_dev")
-    write_rows(os.path.join(args.out, f"{name}.csv"), rows + comp)
-    lines = table(rows, comp, seeds, args.seeds)
+    report(args.out, rows, comp, seeds, args.seeds)
+
+
+def report(out: str, rows: list, comp: list, seeds, which: str) -> None:
+    """Write the rows (``.csv``) and the table (``.md``): ``invivo``, or ``invivo_touching`` with ``--touching-fat``
+    (``_dev`` for the development seeds)."""
+    name = ("invivo_touching" if TOUCHING_FAT else "invivo") + ("" if which == "reported" else "_dev")
+    write_rows(os.path.join(out, f"{name}.csv"), rows + comp)
+    lines = table(rows, comp, seeds, which)
     if TOUCHING_FAT:
         lines = [f"With {TOUCHING_FAT} fat deposits pressed against the vessel's wall (`--touching-fat "
                  f"{TOUCHING_FAT}`; the air data are the same vessel alone).", ""] + lines  # fmt: skip
-    write_report(args.out, f"{name}.md", lines)
+    write_report(out, f"{name}.md", lines)
 
 
 def read_rows(path: str) -> list[dict]:
@@ -259,8 +393,10 @@ def table(rows, comp, seeds, which) -> list[str]:
             met = "yes" if ok_r and ok_w else "**no**"
             if not ok_r:
                 misses.append(f"{case} h = {h:g} mm: radius {rt:.2f} % > {r_target:.2f} %")
-            if not ok_w:
-                misses.append(f"{case} h = {h:g} mm: WSS {wt:.2f} % (worst {worst_w:.2f} %) > {w_target:.2f} %")
+            if wt > w_target:
+                misses.append(f"{case} h = {h:g} mm: WSS {wt:.2f} % > {w_target:.2f} %")
+            elif not ok_w:
+                misses.append(f"{case} h = {h:g} mm: the worst seed's WSS {worst_w:.2f} % > {LAMINAR_WORST:g} %")
             lines.append(
                 f"| {case} | {h:g} | {ra:.2f} | {rt:.2f} ({worst_r:.2f}) | {r_target:.2f} | {wa:.2f} | "
                 f"{wt:.2f} ({worst_w:.2f}) | {w_target:.2f} | {met} |"

@@ -34,6 +34,28 @@ def test_air_twin_is_the_same_vessel_alone():
     assert np.all(b.magnitude[0][outside] == 0)  # air: no signal at all away from the lumen
 
 
+def test_surroundings_change_the_look_only():
+    # the looks draw nothing from the seed: the same vessel, offset and noise draw in each; TEXTURED is the default;
+    # in a BATH every point of tissue and wall has the one level TISSUE_LEVEL and every lumen point 1 (no
+    # texture, no wall contrast, no shading, no inflow), where UNIFORM keeps the wall ring's own level
+    seed = invivo.DEV_SEEDS[0]
+    default, t0 = invivo.make_invivo("laminar", 1.5, seed=seed, max_points=FAST)
+    textured, _ = invivo.make_invivo("laminar", 1.5, seed=seed, max_points=FAST, surroundings=invivo.TEXTURED)
+    assert np.array_equal(default.magnitude, textured.magnitude)
+    _, tb = invivo.make_invivo("laminar", 1.5, seed=seed, max_points=FAST, surroundings=invivo.BATH)
+    _, tu = invivo.make_invivo("laminar", 1.5, seed=seed, max_points=FAST, surroundings=invivo.UNIFORM)
+    assert tb.center == t0.center and tb.parameters["surroundings"]["texture"] == 0.0
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(-31, 31, 20000), rng.uniform(-31, 31, 20000)
+    reg = tb.scene.regions(x, y)
+    rho_b, rho_u = np.abs(tb.scene.signal(x, y)), np.abs(tu.scene.signal(x, y))
+    assert np.allclose(rho_b[reg["tissue"] | reg["wall"]], invivo.TISSUE_LEVEL, rtol=1e-12)
+    assert np.allclose(rho_b[reg["lumen"]], 1.0, rtol=1e-12)
+    shading = tu.scene.coil(x, y)
+    assert np.allclose((rho_u / shading)[reg["tissue"]], invivo.TISSUE_LEVEL, rtol=1e-12)
+    assert np.allclose((rho_u / shading)[reg["wall"]], invivo.WALL_LEVEL, rtol=1e-12)
+
+
 def test_static_tissue_phase_is_the_offset():
     # noise-free: away from every vessel the velocity read from the phase is the offset field itself
     acq, t = invivo.make_invivo("laminar", 1.0, seed=invivo.DEV_SEEDS[1], snr=None, max_points=FAST)

@@ -172,16 +172,15 @@ def test_highpass_noise_variance_of_kspace_noise_over_seeds():
 
 
 def test_an_ambiguous_surround_is_noted_with_its_reason():
-    # each of the three ambiguity tests of SurroundModel reaches the slice's notes with its reason, and a model
-    # clear of every threshold gives no note: a ring mean at the noise floor's threshold, a ring spread at the
-    # uniform background's, a tissue ring with more outliers than AMBIGUOUS_OUTLIERS
+    # each of the two ambiguity tests of SurroundModel reaches the slice's notes with its reason, and a model
+    # clear of every threshold gives no note: a ring mean at the noise floor's threshold, a tissue ring with more
+    # outliers than AMBIGUOUS_OUTLIERS
     sigma = 2.0
     clear = dict(kind="tissue", reason="", sigma=sigma, ring_mean=5 * surround.NOISE_FLOOR * sigma,
-                 ring_spread=5 * surround.UNIFORM_SPREAD * sigma, ring_outliers=0.0)  # fmt: skip
+                 ring_spread=sigma, ring_outliers=0.0)  # fmt: skip
     assert surround.notes({"surround": clear}) == []
     cases = {
         "at the noise floor's threshold": dict(ring_mean=1.05 * surround.NOISE_FLOOR * sigma),
-        "at the uniform background's threshold": dict(ring_spread=0.95 * surround.UNIFORM_SPREAD * sigma),
         "does not follow a smooth level": dict(ring_outliers=surround.AMBIGUOUS_OUTLIERS + 0.05),
     }
     for reason, change in cases.items():
@@ -248,21 +247,58 @@ def test_beyond_flow_keeps_a_slow_lumen_whole():
         assert not surround.beyond_flow(m, u, 1.0).any()
 
 
-def test_fat_touching_the_vessel_leaves_radius_and_wss_near_the_untouched_twins():
-    # the end-to-end claim (about 4 s): with four fat deposits pressed against the wall the default reconstruction
-    # at h = 1 mm is as accurate as on the untouched twin (same seed, noise and scene otherwise), within issue 39's
-    # allowance for tissue against air (WSS 1.3 x + 1 point, radius 1.5 x + 0.1 point). At h = 1.5 mm the voxels
-    # that hold lumen, wall and fat at once are not modelled (their outside level is the tissue's): scripts/invivo.py
+@pytest.mark.parametrize("h, seed", [(1.0, invivo.DEV_SEEDS[0]), (1.5, 401), (1.5, 402)])
+def test_fat_touching_the_vessel_leaves_radius_and_wss_near_the_untouched_twins(h, seed):
+    # the end-to-end claim (about 2 s each): with four fat deposits pressed against the wall the default
+    # reconstruction is as accurate as on the untouched twin (same seed, noise and scene otherwise), within issue
+    # 39's allowance for tissue against air (WSS 1.3 x + 1 point, radius 1.5 x + 0.1 point). At h = 1.5 mm the
+    # voxels next to the fat used to hide the wall ring from its fit (WALL_FAT_MARGIN): the lumen took the wall's
+    # place and the WSS was 25-55 % off; the wall ring must be found. Seeds 401-402 were never used to tune.
     from wss_nlp.analysis import metrics
 
-    errors = {}
+    errors, walls = {}, {}
     for n in (0, 4):
-        acq, truth = invivo.make_invivo("laminar", 1.0, seed=invivo.DEV_SEEDS[0], max_points=8, touching_fat=n)
+        acq, truth = invivo.make_invivo("laminar", h, seed=seed, max_points=8, touching_fat=n)
         res = reconstruct(acq, ReconstructionOptions(uncertainty=False))[0]
         e = metrics.compare_slice(res, truth)
         errors[n] = (100 * e.radius_rel_l2, 100 * e.wss_rel_l2)
+        walls[n] = res.lumen.tissue["surround"]["wall_mm"]
+    assert walls[4] > 0 and walls[0] > 0  # the phantom's wall ring is 1.2 mm
     assert errors[4][0] <= 1.5 * errors[0][0] + 0.1
     assert errors[4][1] <= 1.3 * errors[0][1] + 1.0
+
+
+@pytest.mark.parametrize("look", ["UNIFORM", "BATH"])
+def test_a_uniform_outside_takes_the_fitted_model_not_appendix_b(look):
+    # tissue without texture: its outside ring is one level within the noise, which used to mean Appendix B's
+    # two-level model. That is wrong twice: the histogram's background peak need not be the ring's level (air and
+    # fat are in the view) and a wall ring or a shaded, inflow-enhanced lumen may lie within (UNIFORM); and even in
+    # a bath of exactly two levels (BATH) the partial-volume voxels' phase mixes the lumen's with the bath's, which
+    # only the fitted model takes back. h = 1.5 mm, SNR 25, seeds 301-302 (never used to tune): the default stays
+    # within issue 39's allowance against the same vessel in air (WSS 1.3 x + 1 point, radius 1.5 x + 0.1 point),
+    # and Appendix B's model on the same data misses by more (measured: UNIFORM 10-11 % against 4.8-5.1 %, BATH
+    # 7.7-8.4 % against 4.7-5.4 %; 1.3 x leaves room for a seed)
+    from wss_nlp.analysis import metrics
+
+    def errors(acq, truth, tissue=None):
+        opts = ReconstructionOptions(uncertainty=False, **({} if tissue is None else {"tissue": tissue}))
+        res = reconstruct(acq, opts)[0]
+        e = metrics.compare_slice(res, truth)
+        return 100 * e.radius_rel_l2, 100 * e.wss_rel_l2, res.lumen.tissue["surround"]
+
+    for seed in (301, 302):
+        air = errors(*invivo.make_invivo("laminar", 1.5, seed=seed, surround=False))
+        acq, truth = invivo.make_invivo("laminar", 1.5, seed=seed, surroundings=getattr(invivo, look))
+        radius, wss, model = errors(acq, truth)
+        two = errors(acq, truth, surround.TissueOptions(surround="two-level"))
+        assert model["kind"] == "tissue", model["reason"]
+        if look == "BATH":  # one level outside and in the wall, a uniform lumen, no shading: nothing more is found
+            assert model["outside_order"] == model["lumen_order"] == 0 and model["inflow"] == 0.0
+            assert model["wall_mm"] == 0.0
+        else:  # the wall ring (1.2 mm, level 0.22 against the tissue's 0.32) is found, within a step of its grid
+            assert 0.8 <= model["wall_mm"] <= 1.8
+        assert radius <= 1.5 * air[0] + 0.1 and wss <= 1.3 * air[1] + 1.0, (radius, wss, air)
+        assert two[1] > 1.3 * wss, (two[1], wss)
 
 
 def test_flowing_regions_are_kept_for_the_same_images_and_each_caller_gets_a_copy():

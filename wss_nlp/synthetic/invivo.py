@@ -31,7 +31,7 @@ Development seeds (:data:`DEV_SEEDS`) tune; the tables use :data:`REPORTED_SEEDS
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -71,6 +71,28 @@ INFLOW = 0.2
 #: ``R(phi)`` (mm; less than the radius: each reaches the wall ring's outer edge, the wall and lumen take
 #: precedence), and the angle of the first (rad; the others equally spaced).
 TOUCHING_FAT_MM, TOUCHING_FAT_BEYOND_MM, TOUCHING_FAT_ANGLE = 5.0, 4.0, 0.3
+
+
+@dataclass(frozen=True)
+class Surroundings:
+    """What the tissue around the vessels looks like (the signal levels relative to the lumen's base signal 1).
+
+    :data:`TEXTURED` is the in-vivo-like default; :data:`UNIFORM` the same without texture (a uniform tissue:
+    its outside ring is one level within the noise, but the wall ring and the lumen's inflow and shading are
+    still there); :data:`BATH` the two-level case in tissue (one level outside and in the wall, a uniform lumen,
+    no shading): what Appendix B's model describes exactly.
+    """
+
+    texture: float = TEXTURE  # relative standard deviation of the tissue texture
+    wall_level: float = WALL_LEVEL  # of the vessels' wall rings
+    inflow: float = INFLOW  # the lumens' inflow enhancement at the peak speed
+    shading: bool = True  # coil shading over the view
+
+
+TEXTURED = Surroundings()
+UNIFORM = Surroundings(texture=0.0)
+BATH = Surroundings(texture=0.0, wall_level=TISSUE_LEVEL, inflow=0.0, shading=False)
+
 #: Largest midpoint spacing of the voxel means, mm, and the most points per voxel axis.
 SPACING_MM, MAX_POINTS = 0.04, 40
 
@@ -146,6 +168,7 @@ class Scene:
     texture_k: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # wave vectors, rad/mm
     texture_phase: np.ndarray = field(default_factory=lambda: np.zeros(0))
     shading: tuple = (0.0, 0.0, 0.0)  # coil shading exp(c0 xi + c1 eta + c2 (xi^2 + eta^2)), view coordinates
+    surroundings: Surroundings = TEXTURED
     fat_blobs: tuple = ()  # (x, y, r) mm
     surface: tuple = (24.0, 3.0, 9.0)  # body surface y = s0 + s1 sin(x / s2); air above
     fat_layer_mm: float = 6.0
@@ -182,14 +205,14 @@ class Scene:
         return out
 
     def texture(self, x, y) -> np.ndarray:
-        """``1 + TEXTURE T(x, y)``, T a unit-variance sum of random plane waves."""
+        """``1 + texture T(x, y)``, T a unit-variance sum of random plane waves (:attr:`Surroundings.texture`)."""
         if self.texture_k.size == 0:
             return np.ones(np.shape(x))
         arg = np.multiply.outer(np.asarray(x), self.texture_k[:, 0]) + np.multiply.outer(
             np.asarray(y), self.texture_k[:, 1]
         )
         t = np.sqrt(2.0 / self.texture_k.shape[0]) * np.cos(arg + self.texture_phase).sum(axis=-1)
-        return 1.0 + TEXTURE * t
+        return 1.0 + self.surroundings.texture * t
 
     def coil(self, x, y) -> np.ndarray:
         xi, eta = np.asarray(x) / 32.0, np.asarray(y) / 32.0
@@ -213,8 +236,9 @@ class Scene:
         flowing = reg["lumen"].copy()
         for k in range(len(self.neighbours)):
             flowing |= reg[f"neighbour{k}"]
-        rho = np.where(flowing, 1.0 + INFLOW * np.abs(u) / self.u_peak, 0.0)
-        rho = rho + WALL_LEVEL * reg["wall"] + FAT_LEVEL * reg["fat"]
+        look = self.surroundings
+        rho = np.where(flowing, 1.0 + look.inflow * np.abs(u) / self.u_peak, 0.0)
+        rho = rho + look.wall_level * reg["wall"] + FAT_LEVEL * reg["fat"]
         tissue = reg["tissue"]
         if tissue.any():
             tex = np.ones(np.shape(x))
@@ -257,7 +281,14 @@ def _touching_fat(lumen, n: int) -> tuple:
 
 
 def _scene(
-    case: str, rng: np.random.Generator, h_mm: float, surround: bool, offset_pct: float, family, touching_fat: int = 0
+    case: str,
+    rng: np.random.Generator,
+    h_mm: float,
+    surround: bool,
+    offset_pct: float,
+    family,
+    touching_fat: int = 0,
+    surroundings: Surroundings = TEXTURED,
 ) -> Scene:
     main = _main_flow(case)
     shift = rng.uniform(-0.5, 0.5, size=2) * h_mm
@@ -270,7 +301,7 @@ def _scene(
     kang = rng.uniform(0, 2 * np.pi, size=n_waves)
     k = np.stack([kmag * np.cos(kang), kmag * np.sin(kang)], axis=1)
     kphase = rng.uniform(0, 2 * np.pi, size=n_waves)
-    shading = (0.25 * jitter[0], 0.2 * jitter[1], -0.15 + 0.05 * jitter[2])
+    shading = (0.25 * jitter[0], 0.2 * jitter[1], -0.15 + 0.05 * jitter[2]) if surroundings.shading else (0.0,) * 3
     a = tuple(0.8 * rng.uniform(-1, 1, size=2))
     b = tuple(0.6 * rng.uniform(-1, 1, size=3))
     p = tuple(rng.uniform(0, 2 * np.pi, size=2))
@@ -297,6 +328,7 @@ def _scene(
         texture_k=k,
         texture_phase=kphase,
         shading=shading,
+        surroundings=surroundings,
         fat_blobs=((22.0 + jitter[7], 5.0, 4.0), (-24.0, 6.0 + jitter[7], 3.5))
         + _touching_fat(main.lumen, touching_fat),
     )
@@ -342,6 +374,7 @@ def make_invivo(
     offset_family: str | None = None,
     max_points: int = MAX_POINTS,
     touching_fat: int = 0,
+    surroundings: Surroundings = TEXTURED,
 ) -> tuple[Acquisition, InvivoTruth]:
     """Seeded in-vivo-like phantom: ``(acquisition, truth)`` of one slice in a 64 x 64 mm view.
 
@@ -367,6 +400,9 @@ def make_invivo(
         Fat deposits (radius :data:`TOUCHING_FAT_MM`) pressed against the vessel's wall at equally spaced angles
         (in tissue only): with partial volume they join the lumen in one bright region of the magnitude. They
         draw nothing from the seed: the same seed gives the same noise and the same scene otherwise.
+    surroundings : Surroundings
+        The tissue's look (:data:`TEXTURED`, :data:`UNIFORM`, :data:`BATH`); it draws nothing from the seed
+        either.
     """
     if not h_mm > 0:
         raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
@@ -376,7 +412,9 @@ def make_invivo(
     if family not in OFFSET_FAMILIES + ("none",):
         raise InputError(f"unknown offset family {family!r}; choose from {', '.join(OFFSET_FAMILIES)}")
     rng = np.random.default_rng(seed)
-    scene = _scene(case, rng, h_mm, surround, 0.0 if family == "none" else offset_pct, family, touching_fat)
+    scene = _scene(
+        case, rng, h_mm, surround, 0.0 if family == "none" else offset_pct, family, touching_fat, surroundings
+    )
     n = int(np.ceil(VIEW_MM / h_mm))
     origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
     grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
@@ -403,6 +441,7 @@ def make_invivo(
         "offset_family": family if surround and offset_pct else "none",
         "offset_pct_at_vessel": float(offset_pct) if surround and family != "none" else 0.0,
         "touching_fat": int(touching_fat) if surround else 0,
+        "surroundings": asdict(surroundings) if surround else {},
     }
     truth = InvivoTruth(
         name=name,
