@@ -165,6 +165,21 @@ def _cine():
     return invivo.make_invivo_cine(1.5, seed=invivo.DEV_SEEDS[0], n_frames=6, max_points=4, offset_family="quadratic")
 
 
+def test_cine_frames_record_what_a_slice_records():
+    # a frame's truth parameters are a slice's (one builder) plus its frame and time; a series without an offset
+    # says so (offset_family "none") whatever family the seed would draw
+    cine = _cine()
+    _, truth = invivo.make_invivo("laminar", 1.5, seed=invivo.DEV_SEEDS[0], max_points=4, offset_family="quadratic")
+    frame = cine.truths[2].parameters
+    assert set(frame) == set(truth.parameters) | {"frame", "time_ms"} and frame["frame"] == 2
+    for key in ("h_mm", "snr", "seed", "offset_family", "offset_pct_at_vessel", "touching_fat", "surroundings"):
+        assert frame[key] == truth.parameters[key], key
+    assert frame["time_ms"] == cine.times_ms[2]
+    none = invivo.make_invivo_cine(1.5, seed=invivo.DEV_SEEDS[0], n_frames=2, max_points=2, offset_pct=0.0)
+    assert none.truths[0].parameters["offset_family"] == "none"
+    assert none.truths[0].parameters["offset_pct_at_vessel"] == 0.0
+
+
 def _stacks(cine):
     raw = np.stack([f.magnitude[0] for f in cine.frames])
     return raw, np.stack([f.velocity_images()[0] for f in cine.frames])

@@ -334,6 +334,24 @@ def _scene(
     )
 
 
+def _parameters(name: str, h_mm, snr, seed: int, scene: Scene, family: str, offset_pct, touching_fat: int = 0,
+                **extra) -> dict:  # fmt: skip
+    """The truth's parameters of a slice (or a cine frame: ``extra``), from its scene: what was drawn and chosen."""
+    offset = scene.surround and family != "none" and bool(offset_pct)
+    return {
+        "case": name,
+        "h_mm": h_mm,
+        "snr": -1.0 if snr is None else float(snr),
+        "seed": seed,
+        **extra,
+        "venc_m_s": scene.venc,
+        "offset_family": family if offset else "none",
+        "offset_pct_at_vessel": float(offset_pct) if offset else 0.0,
+        "touching_fat": int(touching_fat) if scene.surround else 0,
+        "surroundings": asdict(scene.surroundings) if scene.surround else {},
+    }
+
+
 def voxel_means(scene: Scene, grid: VoxelGrid, venc: float, max_points: int = MAX_POINTS):
     """Voxel means of the complex signal, of the main vessel's velocity, and the static and flowing fractions.
 
@@ -432,17 +450,7 @@ def make_invivo(
         density_kg_m3=getattr(scene.main, "density_kg_m3", None),
         source=f"phantom:{name}",
     )
-    params = {
-        "case": name,
-        "h_mm": h_mm,
-        "snr": -1.0 if snr is None else float(snr),
-        "seed": seed,
-        "venc_m_s": scene.venc,
-        "offset_family": family if surround and offset_pct else "none",
-        "offset_pct_at_vessel": float(offset_pct) if surround and family != "none" else 0.0,
-        "touching_fat": int(touching_fat) if surround else 0,
-        "surroundings": asdict(surroundings) if surround else {},
-    }
+    params = _parameters(name, h_mm, snr, seed, scene, family, offset_pct, touching_fat)
     truth = InvivoTruth(
         name=name,
         flow=scene.main,
@@ -531,9 +539,7 @@ def make_invivo_cine(
                 source=f"phantom:invivo-cine frame {k}",
             )
         )
-        params = {"case": "invivo-cine", "h_mm": h_mm, "snr": -1.0 if snr is None else float(snr), "seed": seed,
-                  "frame": k, "time_ms": float(t), "venc_m_s": scene.venc, "offset_family": family,
-                  "offset_pct_at_vessel": float(offset_pct) if family != "none" else 0.0}  # fmt: skip
+        params = _parameters("invivo-cine", h_mm, snr, seed, scene, family, offset_pct, frame=k, time_ms=float(t))
         truths.append(
             InvivoTruth(
                 name="invivo-cine",
