@@ -422,35 +422,50 @@ def make_invivo(
         The tissue's look (:data:`TEXTURED`, :data:`UNIFORM`, :data:`BATH`); it draws nothing from the seed
         either.
     """
-    if not h_mm > 0:
-        raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
     if touching_fat < 0:
         raise InputError(f"touching_fat is a number of fat deposits (>= 0), got {touching_fat}")
-    family = OFFSET_FAMILIES[seed % 3] if offset_family is None else offset_family
-    if family not in OFFSET_FAMILIES + ("none",):
-        raise InputError(f"unknown offset family {family!r}; choose from {', '.join(OFFSET_FAMILIES)}")
+    family = _family(h_mm, seed, offset_family)
     rng = np.random.default_rng(seed)
     scene = _scene(
         case, rng, h_mm, surround, 0.0 if family == "none" else offset_pct, family, touching_fat, surroundings
     )
+    name = f"invivo-{case}" if surround else f"air-{case}"
+    params = _parameters(name, h_mm, snr, seed, scene, family, offset_pct, touching_fat)
+    return _acquire(scene, _view(h_mm), snr, rng, max_points, name, f"phantom:{name}", params)
+
+
+def _family(h_mm: float, seed: int, offset_family: str | None) -> str:
+    """The offset family a seed draws (or the one named), after checking the voxel size and the name."""
+    if not h_mm > 0:
+        raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
+    family = OFFSET_FAMILIES[seed % 3] if offset_family is None else offset_family
+    if family not in OFFSET_FAMILIES + ("none",):
+        raise InputError(f"unknown offset family {family!r}; choose from {', '.join(OFFSET_FAMILIES)}")
+    return family
+
+
+def _view(h_mm: float) -> VoxelGrid:
+    """The square view of :data:`VIEW_MM` in voxels of ``h_mm``, centred on the origin."""
     n = int(np.ceil(VIEW_MM / h_mm))
-    origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
-    grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
+    return VoxelGrid((n, n), (h_mm, h_mm), (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm))
+
+
+def _acquire(scene: Scene, grid: VoxelGrid, snr, rng, max_points: int, name: str, source: str, params: dict):
+    """One slice of ``scene`` on ``grid``: its voxel means with the noise drawn next from ``rng``, as
+    ``(acquisition, truth)``."""
     signal, u_mean, static, flowing = voxel_means(scene, grid, scene.venc, max_points)
     if snr is not None:
         signal = complex_noise(signal, 1.0 / snr, rng)
-    name = f"invivo-{case}" if surround else f"air-{case}"
     acq = Acquisition(
         magnitude=np.abs(signal)[None],
         phase=np.angle(signal)[None],
-        voxel_size_mm=(h_mm, h_mm),
-        origin_mm=origin,
+        voxel_size_mm=grid.voxel_size_mm,
+        origin_mm=grid.origin_mm,
         venc_m_s=scene.venc,
         viscosity_pa_s=scene.main.viscosity_pa_s,
         density_kg_m3=getattr(scene.main, "density_kg_m3", None),
-        source=f"phantom:{name}",
+        source=source,
     )
-    params = _parameters(name, h_mm, snr, seed, scene, family, offset_pct, touching_fat)
     truth = InvivoTruth(
         name=name,
         flow=scene.main,
@@ -501,16 +516,10 @@ def make_invivo_cine(
     """
     if n_frames < 2:
         raise InputError(f"a cine series needs at least 2 frames, got {n_frames}")
-    if not h_mm > 0:
-        raise InputError(f"voxel size must be > 0 mm, got {h_mm}")
-    family = OFFSET_FAMILIES[seed % 3] if offset_family is None else offset_family
-    if family not in OFFSET_FAMILIES + ("none",):
-        raise InputError(f"unknown offset family {family!r}; choose from {', '.join(OFFSET_FAMILIES)}")
+    family = _family(h_mm, seed, offset_family)
     rng = np.random.default_rng(seed)
     base = _scene("laminar", rng, h_mm, True, 0.0 if family == "none" else offset_pct, family)
-    n = int(np.ceil(VIEW_MM / h_mm))
-    origin = (-(n - 1) / 2 * h_mm, -(n - 1) / 2 * h_mm)
-    grid = VoxelGrid((n, n), (h_mm, h_mm), origin)
+    grid = _view(h_mm)
     times = np.arange(n_frames) * period_ms / n_frames
     artery, vein = base.neighbours
     main = base.main
@@ -525,33 +534,11 @@ def make_invivo_cine(
             main=replace(main, u_max=a * main.u_max),
             neighbours=(replace(artery, u_max=a * artery.u_max), replace(vein, u_max=b * vein.u_max)),
         )
-        signal, u_mean, static, flowing = voxel_means(scene, grid, scene.venc, max_points)
-        if snr is not None:
-            signal = complex_noise(signal, 1.0 / snr, rng)
-        frames.append(
-            Acquisition(
-                magnitude=np.abs(signal)[None],
-                phase=np.angle(signal)[None],
-                voxel_size_mm=(h_mm, h_mm),
-                origin_mm=origin,
-                venc_m_s=scene.venc,
-                viscosity_pa_s=scene.main.viscosity_pa_s,
-                source=f"phantom:invivo-cine frame {k}",
-            )
-        )
         params = _parameters("invivo-cine", h_mm, snr, seed, scene, family, offset_pct, frame=k, time_ms=float(t))
-        truths.append(
-            InvivoTruth(
-                name="invivo-cine",
-                flow=scene.main,
-                velocity_image=u_mean,
-                parameters=params,
-                scene=scene,
-                grid=grid,
-                static_fraction=static,
-                flowing_fraction=flowing,
-            )  # fmt: skip
-        )
+        acq, truth = _acquire(scene, grid, snr, rng, max_points, "invivo-cine", f"phantom:invivo-cine frame {k}",
+                              params)  # fmt: skip
+        frames.append(acq)
+        truths.append(truth)
     return InvivoCine(frames, times, float(period_ms), truths)
 
 
